@@ -1,0 +1,55 @@
+"""Estimators: from camera-frame marker poses to world poses. See :mod:`kmea.estimators.base`.
+
+``get(name)`` returns an estimator instance by name; ``available()`` lists the names.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+
+from kmea.estimators.base import (
+    CameraIntrinsics,
+    Estimate,
+    Estimator,
+    MarkerEstimate,
+    MarkerObservation,
+    NotEstimated,
+)
+
+__all__ = [
+    "CameraIntrinsics",
+    "Estimate",
+    "Estimator",
+    "MarkerEstimate",
+    "MarkerObservation",
+    "NotEstimated",
+    "available",
+    "get",
+]
+
+# name -> "module:Class"; modules are imported on first use.
+_REGISTRY: dict[str, str] = {
+    "kmea": "kmea.estimators.kmea:KMEA",
+    "lmea": "kmea.estimators.lmea:LMEA",
+    "umeyama": "kmea.estimators.umeyama:Umeyama",
+}
+
+
+def register(name: str, target: str) -> None:
+    """Register an estimator class as ``"module:Class"`` under ``name``."""
+    _REGISTRY[name] = target
+
+
+def available() -> list[str]:
+    """Names of the registered estimators."""
+    return list(_REGISTRY)
+
+
+def get(name: str, **options: object) -> Estimator:
+    """A new estimator instance; ``ValueError`` naming the choices for an unknown name."""
+    try:
+        target = _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown algorithm {name!r}; choose one of {', '.join(_REGISTRY)}") from None
+    module, cls = target.split(":")
+    return getattr(import_module(module), cls)(**options)
