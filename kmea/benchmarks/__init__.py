@@ -1,0 +1,1 @@
+"""Benchmarks behind ``kmea bench`` (they print figures)."""

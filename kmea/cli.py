@@ -1,0 +1,43 @@
+"""``kmea``: the tools (calibrate, print, experiment, bench, map).
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
+``run(args) -> int``; they are imported only when used, so a missing optional
+dependency of one tool never breaks another.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from importlib import import_module
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "map": ("kmea.map_cli", "show, check or convert a marker map"),
+    "calibrate": ("kmea.vision.calibrate_cli", "calibrate a camera from board views"),
+    "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
+    "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
+    "bench": ("kmea.bench", "benchmarks that print figures"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="kmea", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    modules = {}
+    argv = sys.argv[1:] if argv is None else argv
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_)
+        # Only the chosen command's module is imported (and so its dependencies).
+        if argv and argv[0] == name:
+            modules[name] = import_module(module)
+            modules[name].add_arguments(p)
+    args = parser.parse_args(argv)
+    try:
+        return int(modules[args.command].run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
