@@ -1,19 +1,31 @@
 """Camera models: pinhole intrinsics with OpenCV distortion coefficients.
 
 Pixel convention is OpenCV's: the centre of the top-left pixel is (0, 0).
-File reading and writing (OpenCV FileStorage YAML/XML/JSON and TOML) live here too.
+File reading and writing (OpenCV FileStorage YAML/XML/JSON and TOML) live here too; the
+formats are described in ``docs/camera.md``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import re
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
 from kmea.estimators.base import CameraIntrinsics
 
-__all__ = ["CameraError", "CameraModel", "pi_camera_v2"]
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = ["CameraError", "CameraModel", "load_camera", "model_for_frame", "pi_camera_v2",
+           "save_camera"]
+
+FILESTORAGE_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
 
 
 class CameraError(ValueError):
@@ -26,12 +38,16 @@ class CameraModel:
 
     camera_matrix: (3, 3) K, pixels. dist_coeffs: (n,) with n in {4, 5, 8, 12, 14}, OpenCV
     order (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]]). width, height: pixels.
+    size_known: False when the file gave no image size (OpenCV's tutorial files often
+    don't); width/height are then a guess from the principal point and the first
+    ``scaled_to`` adopts the frame size as it is instead of scaling.
     """
 
     camera_matrix: np.ndarray
     dist_coeffs: np.ndarray
     width: int
     height: int
+    size_known: bool = True
 
     def __post_init__(self) -> None:
         K = np.asarray(self.camera_matrix, dtype=float)
@@ -39,7 +55,8 @@ class CameraModel:
         if K.shape != (3, 3):
             raise CameraError(f"camera_matrix: expected shape (3, 3), got {K.shape}")
         if d.size not in (0, 4, 5, 8, 12, 14):
-            raise CameraError(f"distortion_coefficients: expected 4, 5, 8, 12 or 14 values, got {d.size}")
+            raise CameraError(f"distortion_coefficients: expected 4, 5, 8, 12 or 14 values, "
+                              f"got {d.size}")
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(d))):
             raise CameraError("camera_matrix/distortion_coefficients: non-finite value")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -80,7 +97,9 @@ class CameraModel:
         does not change. Another aspect ratio is a crop we cannot know: ``CameraError``.
         """
         if (width, height) == (self.width, self.height):
-            return self
+            return self if self.size_known else replace(self, size_known=True)
+        if not self.size_known:
+            return replace(self, width=int(width), height=int(height), size_known=True)
         sx, sy = width / self.width, height / self.height
         if not math.isclose(sx, sy, rel_tol=2e-3):
             raise CameraError(
@@ -104,3 +123,288 @@ def pi_camera_v2(width: int = 1640, height: int = 1232) -> CameraModel:
     K = np.array([[1357.0, 0.0, 819.5], [0.0, 1357.0, 615.5], [0.0, 0.0, 1.0]])
     dist = np.array([0.12, -0.25, 0.0, 0.0, 0.10])
     return CameraModel(K, dist, 1640, 1232).scaled_to(width, height)
+
+
+def model_for_frame(model: CameraModel, width: int, height: int) -> CameraModel:
+    """``model`` for frames of ``width`` x ``height`` pixels (see ``CameraModel.scaled_to``).
+
+    Raises ``CameraError`` for another aspect ratio than the calibration's.
+    """
+    return model.scaled_to(int(width), int(height))
+
+
+# ---------------------------------------------------------------------------- files
+
+# Accepted spellings, first one written. The second ones are from OpenCV's older
+# calibration sample (out_camera_data.xml).
+_K_KEYS = ("camera_matrix", "Camera_Matrix")
+_D_KEYS = ("distortion_coefficients", "Distortion_Coefficients")
+_W_KEYS = ("image_width", "image_Width")
+_H_KEYS = ("image_height", "image_Height")
+
+_TOML_KEYS = {"camera_matrix", "dist_coeffs", "width", "height", "fx", "fy", "cx", "cy",
+              "skew", "meta"}
+
+
+def _finite_array(value: object, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise CameraError(f"{where}: expected numbers, got {value!r}") from None
+    if not np.all(np.isfinite(a)):
+        raise CameraError(f"{where}: non-finite value in {a.reshape(-1).tolist()}")
+    return a
+
+
+def _check_K(K: np.ndarray, where: str) -> np.ndarray:
+    if K.shape != (3, 3):
+        raise CameraError(f"{where}: expected a 3x3 matrix, got shape {K.shape}")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CameraError(f"{where}: focal lengths fx, fy must be > 0, got {K[0, 0]}, {K[1, 1]}")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
+        raise CameraError(f"{where}: not a camera matrix (expected [[fx, s, cx], [0, fy, cy], "
+                          f"[0, 0, 1]]), got {K.tolist()}")
+    return K
+
+
+def _check_dist(d: np.ndarray, where: str) -> np.ndarray:
+    d = d.reshape(-1)
+    if d.size not in (4, 5, 8, 12, 14):
+        raise CameraError(f"{where}: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
+    return d
+
+
+def _size(value: object, where: str) -> int:
+    if isinstance(value, bool) or value is None:
+        raise CameraError(f"{where}: expected a positive integer, got {value!r}")
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise CameraError(f"{where}: expected a positive integer, got {value!r}") from None
+    if not math.isfinite(v) or v != int(v) or v <= 0:
+        raise CameraError(f"{where}: expected a positive integer, got {value!r}")
+    return int(v)
+
+
+def _build(K: np.ndarray, d: np.ndarray, w: int | None, h: int | None, source: str,
+           image_size: tuple[int, int] | None) -> CameraModel:
+    known = w is not None and h is not None
+    if not known:
+        if image_size is not None:
+            w, h = int(image_size[0]), int(image_size[1])
+            known = True
+        else:
+            # A guess only: the principal point is near the centre. size_known=False makes
+            # the first scaled_to() adopt the real frame size instead of scaling.
+            w = max(1, round(2.0 * (K[0, 2] + 0.5)))
+            h = max(1, round(2.0 * (K[1, 2] + 0.5)))
+    try:
+        return CameraModel(K, d, int(w), int(h), size_known=known)  # type: ignore[arg-type]
+    except CameraError as e:
+        raise CameraError(f"{source}: {e}") from None
+
+
+def _fs_error(exc: BaseException) -> str:
+    """The useful line of a cv2.error (the python binding wraps it in a SystemError)."""
+    err = exc.__cause__ or exc
+    text = str(err).strip()
+    m = re.search(r"in function '(.*)'", text, re.S)
+    if m:
+        return m.group(1).strip()
+    return text.splitlines()[-1] if text else type(exc).__name__
+
+
+def _fs_node_array(node: object, where: str) -> np.ndarray:
+    mat = node.mat()  # type: ignore[attr-defined]
+    if mat is None:
+        if node.isSeq():  # type: ignore[attr-defined]
+            vals = []
+            for i in range(node.size()):  # type: ignore[attr-defined]
+                item = node.at(i)  # type: ignore[attr-defined]
+                if item.isSeq():
+                    vals.append([item.at(j).real() for j in range(item.size())])
+                elif item.isReal() or item.isInt():
+                    vals.append(item.real())
+                else:
+                    raise CameraError(f"{where}: expected numbers")
+            return _finite_array(vals, where)
+        if node.isReal() or node.isInt():  # type: ignore[attr-defined]
+            return _finite_array([node.real()], where)  # type: ignore[attr-defined]
+        raise CameraError(f"{where}: expected a matrix (!!opencv-matrix) or a list of numbers")
+    return _finite_array(mat, where)
+
+
+def _load_filestorage(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except Exception as e:  # cv2.error, surfacing as SystemError from the constructor
+        raise CameraError(f"{path}: not a valid OpenCV FileStorage file: {_fs_error(e)}") from None
+    if not fs.isOpened():
+        raise CameraError(f"{path}: cannot open as an OpenCV FileStorage file")
+    try:
+        def node(keys: tuple[str, ...]) -> tuple[str, object | None]:
+            for k in keys:
+                n = fs.getNode(k)
+                if not n.empty() and not n.isNone():
+                    return k, n
+            return keys[0], None
+
+        kk, kn = node(_K_KEYS)
+        if kn is None:
+            raise CameraError(f"{path}: missing key {kk!r} (or {_K_KEYS[1]!r})")
+        K = _check_K(_fs_node_array(kn, f"{path}: {kk}"), f"{path}: {kk}")
+        dk, dn = node(_D_KEYS)
+        if dn is None:
+            raise CameraError(f"{path}: missing key {dk!r} (or {_D_KEYS[1]!r})")
+        d = _check_dist(_fs_node_array(dn, f"{path}: {dk}"), f"{path}: {dk}")
+        wk, wn = node(_W_KEYS)
+        hk, hn = node(_H_KEYS)
+        if (wn is None) != (hn is None):
+            missing = wk if wn is None else hk
+            raise CameraError(f"{path}: missing key {missing!r} (give both image size keys or "
+                              f"neither)")
+        w = h = None
+        if wn is not None and hn is not None:
+            if not ((wn.isInt() or wn.isReal()) and (hn.isInt() or hn.isReal())):  # type: ignore[attr-defined]
+                raise CameraError(f"{path}: {wk}/{hk}: expected positive integers")
+            w = _size(wn.real(), f"{path}: {wk}")  # type: ignore[attr-defined]
+            h = _size(hn.real(), f"{path}: {hk}")  # type: ignore[attr-defined]
+    finally:
+        fs.release()
+    return _build(K, d, w, h, str(path), image_size)
+
+
+def _load_toml(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
+    try:
+        data = tomllib.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise CameraError(f"{path}: not a text file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise CameraError(f"{path}: invalid TOML: {e}") from None
+    unknown = set(data) - _TOML_KEYS
+    if unknown:
+        raise CameraError(f"{path}: unknown key(s) {sorted(unknown)}")
+    if "camera_matrix" in data:
+        extra = {"fx", "fy", "cx", "cy", "skew"} & set(data)
+        if extra:
+            raise CameraError(f"{path}: give either camera_matrix or fx/fy/cx/cy, not both "
+                              f"(found {sorted(extra)})")
+        K = _check_K(_finite_array(data["camera_matrix"], f"{path}: camera_matrix"),
+                     f"{path}: camera_matrix")
+    else:
+        vals = {}
+        for k in ("fx", "fy", "cx", "cy"):
+            if k not in data:
+                raise CameraError(f"{path}: missing key 'camera_matrix' (or {k!r})")
+            a = _finite_array(data[k], f"{path}: {k}")
+            if a.ndim != 0:
+                raise CameraError(f"{path}: {k}: expected a number, got {data[k]!r}")
+            vals[k] = float(a)
+        skew = _finite_array(data.get("skew", 0.0), f"{path}: skew")
+        if skew.ndim != 0:
+            raise CameraError(f"{path}: skew: expected a number, got {data['skew']!r}")
+        K = _check_K(np.array([[vals["fx"], float(skew), vals["cx"]], [0.0, vals["fy"], vals["cy"]],
+                               [0.0, 0.0, 1.0]]), f"{path}: fx/fy/cx/cy")
+    if "dist_coeffs" not in data:
+        raise CameraError(f"{path}: missing key 'dist_coeffs' (use [0, 0, 0, 0, 0] for none)")
+    d = _check_dist(_finite_array(data["dist_coeffs"], f"{path}: dist_coeffs"),
+                    f"{path}: dist_coeffs")
+    if ("width" in data) != ("height" in data):
+        raise CameraError(f"{path}: missing key {'height' if 'width' in data else 'width'!r}")
+    w = h = None
+    if "width" in data:
+        w = _size(data["width"], f"{path}: width")
+        h = _size(data["height"], f"{path}: height")
+    if "meta" in data and not isinstance(data["meta"], dict):
+        raise CameraError(f"{path}: meta: expected a table")
+    return _build(K, d, w, h, str(path), image_size)
+
+
+def load_camera(path: str | Path, image_size: tuple[int, int] | None = None) -> CameraModel:
+    """Read a camera file: OpenCV FileStorage (.yml/.yaml/.xml/.json) or TOML (.toml).
+
+    FileStorage keys: ``camera_matrix`` (3x3) and ``distortion_coefficients`` (4, 5, 8, 12 or
+    14), also spelled ``Camera_Matrix`` / ``Distortion_Coefficients``; optional
+    ``image_width`` / ``image_height`` (also ``image_Width`` / ``image_Height``). TOML keys:
+    see ``docs/camera.md``. ``image_size`` (width, height) is used when the file gives none;
+    without either the model's ``size_known`` is False. Raises ``CameraError`` naming the
+    file and the key.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (*FILESTORAGE_SUFFIXES, ".toml"):
+        raise CameraError(f"{path}: unknown camera file format {path.suffix!r} "
+                          f"(use .yml, .yaml, .xml, .json or .toml)")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1)
+    except OSError as e:
+        raise CameraError(f"{path}: cannot read: {e.strerror or e}") from None
+    if not head:
+        raise CameraError(f"{path}: empty file")
+    if suffix == ".toml":
+        return _load_toml(path, image_size)
+    return _load_filestorage(path, image_size)
+
+
+def save_camera(model: CameraModel, path: str | Path, meta: dict | None = None) -> None:
+    """Write ``model`` to ``path``; the format follows the suffix (as in :func:`load_camera`).
+
+    ``meta``: extra scalars (str, int, float, bool) stored beside the model, e.g. the RMS
+    reprojection error (``avg_reprojection_error`` in FileStorage files as OpenCV's sample
+    writes it). The image size is written only when known.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    meta = dict(meta or {})
+    for k, v in meta.items():
+        if not isinstance(v, (str, int, float, bool)):
+            raise CameraError(f"{path}: meta {k!r}: only str/int/float/bool values can be saved")
+    if suffix == ".toml":
+        import tomli_w
+
+        # Written by hand: one matrix row per line reads better than tomli_w's layout.
+        lines = ["# Camera model: pixels; dist_coeffs in OpenCV order (k1, k2, p1, p2, k3, ...)"]
+        if model.size_known:
+            lines += [f"width = {model.width}", f"height = {model.height}"]
+        lines.append("camera_matrix = [")
+        lines += ["    [" + ", ".join(repr(float(v)) for v in row) + "],"
+                  for row in model.camera_matrix]
+        lines.append("]")
+        lines.append("dist_coeffs = [" + ", ".join(repr(float(v)) for v in model.dist_coeffs)
+                     + "]")
+        text = "\n".join(lines) + "\n"
+        if meta:
+            text += "\n" + tomli_w.dumps({"meta": meta})
+        try:
+            path.write_text(text)
+        except OSError as e:
+            raise CameraError(f"{path}: cannot write: {e.strerror or e}") from None
+        return
+    if suffix not in FILESTORAGE_SUFFIXES:
+        raise CameraError(f"{path}: unknown camera file format {path.suffix!r} "
+                          f"(use .yml, .yaml, .xml, .json or .toml)")
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    except Exception as e:
+        raise CameraError(f"{path}: cannot write: {_fs_error(e)}") from None
+    if not fs.isOpened():
+        raise CameraError(f"{path}: cannot open for writing")
+    try:
+        if model.size_known:
+            fs.write("image_width", int(model.width))
+            fs.write("image_height", int(model.height))
+        fs.write("camera_matrix", np.ascontiguousarray(model.camera_matrix, dtype=np.float64))
+        fs.write("distortion_coefficients",
+                 np.ascontiguousarray(model.dist_coeffs.reshape(-1, 1), dtype=np.float64))
+        for k, v in meta.items():
+            key = "avg_reprojection_error" if k == "rms" else k
+            if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", key):
+                raise CameraError(f"{path}: meta key {k!r} is not a valid FileStorage name")
+            fs.write(key, int(v) if isinstance(v, bool) else v)
+    finally:
+        fs.release()
