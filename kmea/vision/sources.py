@@ -1,0 +1,485 @@
+"""Frame sources shared by ``kmea calibrate`` and the daemon.
+
+A source is opened from a spec string (see ``docs/camera.md``):
+
+- ``images:DIR``   image files in DIR, in natural name order (``img2`` before ``img10``);
+- ``video:PATH``   a video file read with ``cv2.VideoCapture``; ends cleanly;
+- ``camera:INDEX`` a V4L2/OpenCV camera; options ``width``, ``height``, ``fps``;
+- ``picamera``     the Raspberry Pi camera through picamera2 (imported only here): greyscale
+  Y plane of a YUV420 stream; options ``width``, ``height``, ``fps``;
+- anything added with :func:`register_source` (the daemon adds ``replay``); ``sim`` falls back
+  to ``kmea.sim`` (``SimSource(scene_from_spec(rest))``) when nobody registered it.
+
+Options come as keyword arguments of :func:`open_source` or after a ``?`` in the spec:
+``camera:0?width=1280&height=960&fps=30``.
+
+A frame that cannot be decoded does not stop a file source: :meth:`FrameSource.read` returns
+a :class:`Frame` with ``image = None`` and ``meta["error"]`` (e.g. ``"b.png: cannot decode"``);
+callers skip it and go on. A source that cannot be opened, or a live camera that stops
+delivering, raises :class:`SourceError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "PICAMERA2_MISSING",
+    "CameraSource",
+    "Frame",
+    "FrameSource",
+    "ImageFolderSource",
+    "PiCameraSource",
+    "SourceError",
+    "VideoSource",
+    "open_source",
+    "register_source",
+    "registered_sources",
+]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm",
+                  ".webp")
+
+PICAMERA2_MISSING = ("picamera2 is not installed: on Raspberry Pi OS run `sudo apt install "
+                     "python3-picamera2` and create the venv with --system-site-packages")
+
+
+class SourceError(RuntimeError):
+    """A source cannot be opened or stopped delivering; the message names the source."""
+
+
+@dataclass
+class Frame:
+    """One frame.
+
+    index: 0-based frame number in the source. timestamp: seconds (file sources: index / fps;
+    cameras: ``time.monotonic()`` at capture; picamera: sensor timestamp). image: (H, W) uint8
+    greyscale or (H, W, 3) uint8 BGR, or None when the frame could not be decoded (then
+    ``meta["error"]`` says why). meta: source-specific extras (``path``, ``sensor_timestamp_ns``).
+    """
+
+    index: int
+    timestamp: float
+    image: np.ndarray | None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.image is not None
+
+    @property
+    def error(self) -> str | None:
+        return self.meta.get("error")
+
+
+class FrameSource:
+    """Base class: ``read()`` until None, ``close()``; a context manager and an iterator.
+
+    ``live``: True for cameras (frames arrive in real time and never end by themselves),
+    False for files. ``size``: (width, height) in pixels, or None until known.
+    """
+
+    live: bool = False
+    spec: str = ""
+
+    def __init__(self) -> None:
+        self.size: tuple[int, int] | None = None
+        self._closed = False
+
+    def read(self) -> Frame | None:
+        """The next frame, or None at the end of a file source."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self._closed = True
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> FrameSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[Frame]:
+        while True:
+            frame = self.read()
+            if frame is None:
+                return
+            yield frame
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.spec!r}>"
+
+
+def _cap_size(cap: Any) -> tuple[int, int] | None:
+    import cv2
+
+    w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    return (w, h) if w > 0 and h > 0 else None
+
+
+def _natural_key(name: str) -> list:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _to_gray(img: np.ndarray) -> np.ndarray:
+    import cv2
+
+    if img.ndim == 2:
+        return img
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+
+class ImageFolderSource(FrameSource):
+    """Image files of a folder in natural name order; other files are ignored.
+
+    Options: ``gray`` (bool, default False: BGR as decoded), ``fps`` (timestamps = index / fps,
+    default 30). A file that cannot be decoded gives a Frame with image None and
+    ``meta["error"]``.
+    """
+
+    live = False
+
+    def __init__(self, folder: str | Path, gray: bool = False, fps: float = 30.0) -> None:
+        super().__init__()
+        self.folder = Path(folder)
+        self.spec = f"images:{folder}"
+        if not self.folder.is_dir():
+            raise SourceError(f"{self.spec}: not a folder")
+        if fps <= 0:
+            raise SourceError(f"{self.spec}: fps must be > 0, got {fps}")
+        self.files = sorted((p for p in self.folder.iterdir()
+                             if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+                            key=lambda p: _natural_key(p.name))
+        if not self.files:
+            raise SourceError(f"{self.spec}: no image files ({', '.join(IMAGE_SUFFIXES)})")
+        self.gray = bool(gray)
+        self.fps = float(fps)
+        self._next = 0
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def read(self) -> Frame | None:
+        import cv2
+
+        if self._closed or self._next >= len(self.files):
+            return None
+        i = self._next
+        self._next += 1
+        path = self.files[i]
+        meta: dict[str, Any] = {"path": str(path)}
+        img = None
+        try:
+            buf = np.fromfile(path, dtype=np.uint8)
+        except OSError as e:
+            meta["error"] = f"{path.name}: cannot read: {e.strerror or e}"
+        else:
+            # imdecode rather than imread: no warning printed for a corrupt file.
+            img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR) \
+                if buf.size else None
+            if img is None:
+                meta["error"] = f"{path.name}: cannot decode"
+        if img is not None and self.size is None:
+            self.size = (int(img.shape[1]), int(img.shape[0]))
+        return Frame(i, i / self.fps, img, meta)
+
+
+class VideoSource(FrameSource):
+    """A video file. Options: ``gray`` (bool). Timestamps: index / the file's frame rate."""
+
+    live = False
+
+    def __init__(self, path: str | Path, gray: bool = False) -> None:
+        import cv2
+
+        super().__init__()
+        self.path = Path(path)
+        self.spec = f"video:{path}"
+        if not self.path.is_file():
+            raise SourceError(f"{self.spec}: no such file")
+        self._cap = cv2.VideoCapture(str(self.path))
+        if not self._cap.isOpened():
+            raise SourceError(f"{self.spec}: cannot open as a video")
+        fps = self._cap.get(cv2.CAP_PROP_FPS)
+        self.fps = float(fps) if fps and fps > 0 else 30.0
+        self.size = _cap_size(self._cap)
+        self.gray = bool(gray)
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        if self._closed:
+            return None
+        ok, img = self._cap.read()
+        if not ok or img is None:
+            return None
+        i = self._index
+        self._index += 1
+        if self.gray:
+            img = _to_gray(img)
+        return Frame(i, i / self.fps, img, {"path": str(self.path)})
+
+    def close(self) -> None:
+        if not self._closed:
+            self._cap.release()
+        super().close()
+
+
+class CameraSource(FrameSource):
+    """An OpenCV camera (V4L2 on Linux). Options: ``width``, ``height``, ``fps``, ``gray``.
+
+    Raises ``SourceError`` when the camera cannot be opened or stops delivering frames.
+    """
+
+    live = True
+
+    def __init__(self, index: int, width: int | None = None, height: int | None = None,
+                 fps: float | None = None, gray: bool = False) -> None:
+        import cv2
+
+        super().__init__()
+        self.index = int(index)
+        self.spec = f"camera:{self.index}"
+        dev = Path(f"/dev/video{self.index}")
+        if sys.platform.startswith("linux") and not dev.exists():
+            # Checked first so OpenCV does not print its own warnings for a missing device.
+            raise SourceError(f"{self.spec}: cannot open camera {self.index}: {dev} does not exist "
+                              f"(is the camera connected? `v4l2-ctl --list-devices`)")
+        backend = getattr(cv2, "CAP_V4L2", cv2.CAP_ANY) if dev.exists() else cv2.CAP_ANY
+        self._cap = cv2.VideoCapture(self.index, backend)
+        if not self._cap.isOpened():
+            self._cap.release()
+            raise SourceError(f"{self.spec}: cannot open camera {self.index} (in use by another "
+                              f"program, or not a capture device?)")
+        if width and height:
+            self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, int(width))
+            self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, int(height))
+        if fps:
+            self._cap.set(cv2.CAP_PROP_FPS, float(fps))
+        self.size = _cap_size(self._cap)
+        self.gray = bool(gray)
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        if self._closed:
+            return None
+        ok, img = self._cap.read()
+        t = time.monotonic()
+        if not ok or img is None:
+            raise SourceError(f"{self.spec}: the camera stopped delivering frames")
+        if self.gray:
+            img = _to_gray(img)
+        i = self._index
+        self._index += 1
+        self.size = (int(img.shape[1]), int(img.shape[0]))
+        return Frame(i, t, img, {})
+
+    def close(self) -> None:
+        if not self._closed:
+            self._cap.release()
+        super().close()
+
+
+class PiCameraSource(FrameSource):
+    """The Raspberry Pi camera through picamera2, greyscale (the Y plane of YUV420).
+
+    Options: ``width``, ``height`` (default 1640x1232, the IMX219 full-field binned mode),
+    ``fps`` (default 30), ``buffer_count`` (default 4). Timestamps: the sensor timestamp of
+    the request metadata (``SensorTimestamp``, ns) in seconds; ``meta`` keeps the raw value and
+    ``ExposureTime`` (us) when present. picamera2 is imported only when this source is opened.
+    """
+
+    live = True
+
+    def __init__(self, width: int = 1640, height: int = 1232, fps: float = 30.0,
+                 buffer_count: int = 4) -> None:
+        super().__init__()
+        self.spec = "picamera"
+        try:
+            from picamera2 import Picamera2
+        except ImportError:
+            raise SourceError(f"picamera: {PICAMERA2_MISSING}") from None
+        self.fps = float(fps)
+        try:
+            self._cam = Picamera2()
+        except Exception as e:  # libcamera raises several types when no camera is attached
+            raise SourceError(f"picamera: cannot open the camera: {e}") from None
+        try:
+            config = self._cam.create_video_configuration(
+                main={"size": (int(width), int(height)), "format": "YUV420"},
+                controls={"FrameRate": self.fps}, buffer_count=int(buffer_count))
+            self._cam.configure(config)
+            size = (int(width), int(height))
+            with contextlib.suppress(Exception):  # older picamera2: keep the requested size
+                size = tuple(self._cam.stream_configuration("main")["size"])  # type: ignore
+            self.size = (int(size[0]), int(size[1]))
+            self._cam.start()
+        except Exception as e:
+            self._cam.close()
+            raise SourceError(f"picamera: cannot start {width}x{height} at {fps} fps: "
+                              f"{e}") from None
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        if self._closed:
+            return None
+        try:
+            request = self._cam.capture_request()
+        except Exception as e:
+            raise SourceError(f"picamera: capture failed: {e}") from None
+        try:
+            yuv = request.make_array("main")
+            md = request.get_metadata() or {}
+        finally:
+            request.release()  # the buffer goes back to libcamera; we keep a copy
+        w, h = self.size or (yuv.shape[1], yuv.shape[0] * 2 // 3)
+        # The YUV420 array is (H * 3/2, stride): Y rows first, possibly padded to the stride.
+        gray = np.ascontiguousarray(yuv[:h, :w])
+        ts_ns = md.get("SensorTimestamp")
+        meta: dict[str, Any] = {}
+        if ts_ns is not None:
+            meta["sensor_timestamp_ns"] = int(ts_ns)
+            t = int(ts_ns) * 1e-9
+        else:
+            t = time.monotonic()
+        if "ExposureTime" in md:
+            meta["exposure_time_us"] = md["ExposureTime"]
+        i = self._index
+        self._index += 1
+        return Frame(i, t, gray, meta)
+
+    def close(self) -> None:
+        if not self._closed:
+            try:
+                self._cam.stop()
+            finally:
+                self._cam.close()
+        super().close()
+
+
+# ---------------------------------------------------------------------------- registry
+
+SourceFactory = Callable[..., FrameSource]
+_REGISTRY: dict[str, SourceFactory] = {}
+
+
+def register_source(prefix: str, factory: SourceFactory) -> None:
+    """Make ``open_source("PREFIX:REST", **opts)`` call ``factory(REST, **opts)``.
+
+    Used by the daemon (``replay``) and the simulator (``sim``) so this module never imports
+    them. Registering a prefix again replaces the factory.
+    """
+    if not re.fullmatch(r"[a-z][a-z0-9_-]*", prefix):
+        raise ValueError(f"source prefix {prefix!r}: use lower-case letters, digits, - and _")
+    _REGISTRY[prefix] = factory
+
+
+def registered_sources() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+_BOOL = {"1": True, "true": True, "yes": True, "on": True,
+         "0": False, "false": False, "no": False, "off": False}
+
+
+def _parse_value(text: str) -> Any:
+    if text.lower() in _BOOL:
+        return _BOOL[text.lower()]
+    for conv in (int, float):
+        try:
+            return conv(text)
+        except ValueError:
+            pass
+    return text
+
+
+def _split_options(spec: str) -> tuple[str, dict[str, Any]]:
+    if "?" not in spec:
+        return spec, {}
+    base, _, query = spec.partition("?")
+    opts: dict[str, Any] = {}
+    for part in filter(None, query.split("&")):
+        key, eq, value = part.partition("=")
+        if not eq or not key:
+            raise SourceError(f"{spec}: option {part!r} is not key=value")
+        opts[key] = _parse_value(value)
+    return base, opts
+
+
+def _images(rest: str, **opts: Any) -> FrameSource:
+    return ImageFolderSource(rest, **opts)
+
+
+def _video(rest: str, **opts: Any) -> FrameSource:
+    return VideoSource(rest, **opts)
+
+
+def _camera(rest: str, **opts: Any) -> FrameSource:
+    try:
+        index = int(rest or "0")
+    except ValueError:
+        raise SourceError(f"camera:{rest}: INDEX must be an integer (camera:0)") from None
+    return CameraSource(index, **opts)
+
+
+def _picamera(rest: str, **opts: Any) -> FrameSource:
+    if rest:
+        raise SourceError(f"picamera:{rest}: the Pi camera takes no argument; use options "
+                          f"(picamera?width=1640&height=1232&fps=30)")
+    return PiCameraSource(**opts)
+
+
+def _sim_fallback(rest: str, **opts: Any) -> FrameSource:
+    try:
+        from kmea import sim
+    except ImportError as e:  # pragma: no cover - kmea.sim is part of the package
+        raise SourceError(f"sim:{rest}: the simulator is not available: {e}") from None
+    if not (hasattr(sim, "SimSource") and hasattr(sim, "scene_from_spec")):
+        raise SourceError(f"sim:{rest}: kmea.sim provides no SimSource/scene_from_spec")
+    return sim.SimSource(sim.scene_from_spec(rest), **opts)
+
+
+_BUILTIN: dict[str, SourceFactory] = {"images": _images, "video": _video, "camera": _camera,
+                                      "picamera": _picamera}
+_FALLBACK: dict[str, SourceFactory] = {"sim": _sim_fallback}
+
+
+def open_source(spec: str, **options: Any) -> FrameSource:
+    """Open a frame source from ``PREFIX:REST`` (see the module docstring).
+
+    ``options`` are passed to the source (e.g. ``width``, ``height``, ``fps``, ``gray``) and
+    override options given in the spec after ``?``. Raises ``SourceError`` for an unknown
+    prefix, bad options, or a source that cannot be opened.
+    """
+    base, spec_opts = _split_options(str(spec))
+    spec_opts.update(options)
+    prefix, _, rest = base.partition(":")
+    factory = _REGISTRY.get(prefix) or _BUILTIN.get(prefix) or _FALLBACK.get(prefix)
+    if factory is None:
+        known = sorted({*_REGISTRY, *_BUILTIN, *_FALLBACK})
+        raise SourceError(f"{spec}: unknown source {prefix!r} (known: "
+                          f"{', '.join(p + ':' for p in known)}; 'replay:' is provided by kmead)")
+    try:
+        return factory(rest, **spec_opts)
+    except TypeError as e:
+        # An option the source does not take: name it rather than show a traceback.
+        m = re.search(r"unexpected keyword argument '(\w+)'", str(e))
+        if m:
+            raise SourceError(f"{spec}: option {m.group(1)!r} is not supported by "
+                              f"{prefix}:") from None
+        raise
