@@ -50,6 +50,7 @@ def get(name: str, **options: object) -> Estimator:
     try:
         target = _REGISTRY[name]
     except KeyError:
-        raise ValueError(f"unknown algorithm {name!r}; choose one of {', '.join(_REGISTRY)}") from None
+        raise ValueError(f"unknown algorithm {name!r}; "
+                         f"choose one of {', '.join(_REGISTRY)}") from None
     module, cls = target.split(":")
     return getattr(import_module(module), cls)(**options)

@@ -144,7 +144,8 @@ class Estimator(Protocol):
 
 
 def check_observations(observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:
-    """Drop nothing silently: raise ``ValueError`` on duplicate ids, non-finite poses or bad shapes."""
+    """Drop nothing silently: raise ``ValueError`` on duplicate ids, non-finite poses or bad
+    shapes."""
     seen: set[int] = set()
     out = []
     for o in observations:

@@ -1,0 +1,174 @@
+"""KMEA, the Kabsch Marker Estimation Algorithm (the paper's Algorithm 2), numpy only.
+
+Steps, on the references (observed markers that are in the map and not excluded):
+
+1. scale = mean distance of the references to the origin marker in the map / the same mean
+   in the camera frame. When the origin marker is not a reference (not visible, or
+   excluded), the reference centroid stands in for it: map centroid in the map, camera
+   centroid in the camera frame (for an exact similarity both give the true scale).
+2. Scale the camera positions.
+3. Kabsch rotation between the scaled camera positions and the map positions, both about
+   their centroids; if det(R) < 0, flip the last axis.
+4. t = map centroid - R @ scaled camera centroid; every detected marker is transformed.
+
+Option ``z_noise``: the paper adds uniform noise in [-z_noise, +z_noise] m (1e-4 in the
+paper) to the map z of the references against coplanar degeneracy. Off by default: the
+determinant correction of step 3 already handles coplanar references.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Mapping, Sequence
+
+import numpy as np
+
+from kmea.estimators.base import (
+    CameraIntrinsics,
+    Estimate,
+    MarkerObservation,
+    check_observations,
+)
+from kmea.estimators.common import (
+    COINCIDENT_TOL,
+    COLLINEAR_TOL,
+    References,
+    finish_estimate,
+    kabsch,
+    kabsch_batch,
+    reference_problem,
+    select_references,
+)
+from kmea.maps import MarkerMap
+
+__all__ = ["KMEA"]
+
+# Leave-one-out works on (chunk, N, 3) arrays; this bounds their size for big maps.
+_LOO_CHUNK = 128
+
+
+class KMEA:
+    """The paper's Algorithm 2. See the module docstring for the steps."""
+
+    name = "kmea"
+
+    def __init__(self, z_noise: float = 0.0, seed: int | None = None) -> None:
+        if not (np.isfinite(z_noise) and z_noise >= 0.0):
+            raise ValueError(f"z_noise must be a finite number >= 0 m, got {z_noise!r}")
+        self.z_noise = float(z_noise)
+        self.seed = seed
+        self._rng = np.random.default_rng(seed)
+
+    def _world(self, refs: References) -> np.ndarray:
+        if self.z_noise == 0.0 or len(refs) == 0:
+            return refs.world
+        w = refs.world.copy()
+        w[:, 2] += self._rng.uniform(-self.z_noise, self.z_noise, size=len(w))
+        return w
+
+    def estimate(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        exclude: Collection[int] = (),
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+    ) -> Estimate:
+        """World pose of every observed marker; see :class:`kmea.estimators.base.Estimator`."""
+        observations = check_observations(observations)
+        refs = select_references(observations, world_map, exclude)
+        world = self._world(refs)
+        problem = reference_problem(world, refs.cam)
+        if problem:
+            return Estimate.failed(self.name, problem)
+        cam = refs.cam
+        o = refs.index(world_map.origin_id)
+        if o is not None:
+            scale_from = "origin"
+            dm = np.linalg.norm(world - world[o], axis=1).mean()
+            dc = np.linalg.norm(cam - cam[o], axis=1).mean()
+        else:
+            scale_from = "centroid"
+            dm = np.linalg.norm(world - world.mean(axis=0), axis=1).mean()
+            dc = np.linalg.norm(cam - cam.mean(axis=0), axis=1).mean()
+        scale = dm / dc
+        cam_s = scale * cam
+        cs, ws = cam_s.mean(axis=0), world.mean(axis=0)
+        R = kabsch(cam_s - cs, world - ws)
+        t = ws - R @ cs
+        return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights,
+                               info={"scale_from": scale_from})
+
+    def estimate_loo(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+    ) -> dict[int, np.ndarray]:
+        """Leave-one-out: id -> (3,) world position of each observed map marker, estimated
+        with itself excluded from the references (omitted when that is not estimable).
+
+        Equal (to rounding) to ``estimate(..., exclude={id}).markers[id].position`` for every
+        id, but all N alignments are computed together: masked sums and one batched SVD.
+        """
+        observations = check_observations(observations)
+        refs = select_references(observations, world_map)
+        n = len(refs)
+        if n < 4:
+            return {}
+        world = self._world(refs)
+        cam = refs.cam
+        o = refs.index(world_map.origin_id)
+        out: dict[int, np.ndarray] = {}
+        for k0 in range(0, n, _LOO_CHUNK):
+            ks = np.arange(k0, min(n, k0 + _LOO_CHUNK))
+            pos, ok = _loo_chunk(ks, cam, world, o)
+            for k, p, good in zip(ks, pos, ok, strict=True):
+                if good:
+                    out[refs.ids[k]] = p
+        return out
+
+
+def _masked_centroid(W: np.ndarray, P: np.ndarray, m: float) -> np.ndarray:
+    # W holds exact zeros for left-out rows, so a left-out value never leaks into a sum.
+    return (W @ P) / m
+
+
+def _loo_chunk(ks: np.ndarray, cam: np.ndarray, world: np.ndarray,
+               o: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (K, 3) of markers ``ks`` each estimated without itself, and an ok mask (K,)."""
+    n = len(cam)
+    K = len(ks)
+    m = n - 1
+    W = np.ones((K, n))
+    W[np.arange(K), ks] = 0.0
+    ca = _masked_centroid(W, cam, m)  # (K, 3) camera centroids without k
+    wa = _masked_centroid(W, world, m)
+    Cc = cam[None, :, :] - ca[:, None, :]  # (K, N, 3)
+    Wc = world[None, :, :] - wa[:, None, :]
+    Cc *= W[:, :, None]
+    Wc *= W[:, :, None]
+
+    # Degeneracy of each reduced set, the same test as reference_problem.
+    ok = np.ones(K, dtype=bool)
+    for P in (Wc, Cc):
+        s = np.sqrt(np.clip(np.linalg.eigvalsh(np.swapaxes(P, 1, 2) @ P), 0.0, None))[:, ::-1]
+        ok &= (s[:, 0] > COINCIDENT_TOL) & (s[:, 1] > COLLINEAR_TOL * s[:, 0])
+
+    # Scale: distances to the origin marker, or to the centroid when the origin is left out.
+    dm_c = (np.linalg.norm(Wc, axis=2)).sum(axis=1)
+    dc_c = (np.linalg.norm(Cc, axis=2)).sum(axis=1)
+    scale = dm_c / np.where(dc_c > 0, dc_c, np.nan)
+    if o is not None:
+        dm_o = np.linalg.norm(world - world[o], axis=1)
+        dc_o = np.linalg.norm(cam - cam[o], axis=1)
+        use = ks != o
+        so = (W @ dm_o) / np.where((W @ dc_o) > 0, W @ dc_o, np.nan)
+        scale = np.where(use, so, scale)
+
+    H = np.swapaxes(Cc, 1, 2) @ Wc  # (K, 3, 3); a positive scale does not change Kabsch's R
+    R = kabsch_batch(H)
+    t = wa - scale[:, None] * np.einsum("kij,kj->ki", R, ca)
+    pos = scale[:, None] * np.einsum("kij,kj->ki", R, cam[ks]) + t
+    ok &= np.isfinite(pos).all(axis=1) & np.isfinite(scale) & (scale > 0)
+    return pos, ok

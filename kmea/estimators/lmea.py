@@ -1,0 +1,89 @@
+"""LMEA, the paper's Algorithm 1 (KMEA's predecessor and the baseline of every comparison).
+
+It uses only the three anchor markers of the map (``origin_id``, ``x_id``, ``y_id``):
+
+1. scale = |x anchor - origin| in the map / the same distance in the camera frame;
+2. translate the camera positions to the origin marker and scale them;
+3. rotate them into the orthonormal basis built from the anchors: e_x along origin -> x
+   anchor, e_z = e_x x (y anchor - origin) normalised, e_y = e_z x e_x (Gram-Schmidt);
+4. place that basis on the same basis built from the anchors' map positions.
+
+On the RobotAtFactory map (origin at 0, x anchor on +X, y anchor on +Y) step 4 is the
+identity and this is the paper's algorithm verbatim; on other maps it keeps its meaning.
+Without its three anchors (not visible, or excluded) it reports "not estimated".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Mapping, Sequence
+
+import numpy as np
+
+from kmea.estimators.base import (
+    CameraIntrinsics,
+    Estimate,
+    MarkerObservation,
+    check_observations,
+)
+from kmea.estimators.common import COLLINEAR_TOL, References, finish_estimate
+from kmea.maps import MarkerMap
+
+__all__ = ["LMEA", "anchor_basis"]
+
+
+def anchor_basis(origin: np.ndarray, x_anchor: np.ndarray,
+                 y_anchor: np.ndarray) -> np.ndarray | None:
+    """Orthonormal right-handed basis (3, 3), columns e_x, e_y, e_z, from three anchor
+    positions (3,); None when they are coincident or collinear."""
+    vx = x_anchor - origin
+    vy = y_anchor - origin
+    lx, ly = np.linalg.norm(vx), np.linalg.norm(vy)
+    if lx == 0.0 or ly == 0.0:
+        return None
+    ex = vx / lx
+    z = np.cross(ex, vy)
+    lz = np.linalg.norm(z)
+    if lz <= COLLINEAR_TOL * ly:
+        return None
+    ez = z / lz
+    return np.column_stack([ex, np.cross(ez, ex), ez])
+
+
+class LMEA:
+    """The paper's Algorithm 1. See the module docstring for the steps."""
+
+    name = "lmea"
+
+    def estimate(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        exclude: Collection[int] = (),
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+    ) -> Estimate:
+        """World pose of every observed marker; see :class:`kmea.estimators.base.Estimator`."""
+        observations = check_observations(observations)
+        anchors = (world_map.origin_id, world_map.x_id, world_map.y_id)
+        excl = set(exclude)
+        seen = {o.id: o for o in observations}
+        for label, mid in zip(("origin", "x-axis", "y-axis"), anchors, strict=True):
+            if mid not in world_map:
+                return Estimate.failed(self.name, f"{label} anchor {mid} is not in the map")
+            if mid in excl:
+                return Estimate.failed(self.name, f"{label} anchor {mid} is excluded")
+            if mid not in seen:
+                return Estimate.failed(self.name, f"{label} anchor {mid} not visible")
+        cam = np.array([np.asarray(seen[m].marker2cam_t, dtype=float) for m in anchors])
+        world = world_map.positions(list(anchors))
+        B_cam = anchor_basis(*cam)
+        B_map = anchor_basis(*world)
+        if B_cam is None or B_map is None:
+            return Estimate.failed(self.name, "anchors are coincident or collinear")
+        dc = np.linalg.norm(cam[1] - cam[0])
+        scale = np.linalg.norm(world[1] - world[0]) / dc
+        # p_world = world_o + B_map @ B_cam^T @ (scale * (p_cam - cam_o))
+        R = B_map @ B_cam.T
+        t = world[0] - scale * (R @ cam[0])
+        refs = References(anchors, cam, world)
+        return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights)

@@ -1,0 +1,143 @@
+"""Robot poses from the world poses of the markers they carry, numpy only.
+
+Conventions (shared by the simulator, the daemon and the configuration): a robot carries one
+marker or a pair, flat on a top plate ``height`` m above the floor, each marker's x axis
+pointing to the robot's forward.
+
+- Single marker: robot (x, y) = marker centre, theta = marker yaw.
+- Pair ``markers = (left, right)``, left/right as seen by the robot looking forward, mounted
+  at (0, +d) and (0, -d) in the robot frame with d = separation / 2: (x, y) = midpoint and
+  theta = heading of (right - left) rotated +90 deg CCW. Forward is therefore the side
+  from which the left marker is on the left: e.g. left at (0, 0.05), right at (0, -0.05)
+  gives right - left = (0, -0.1), rotated +90 deg -> (0.1, 0): theta = 0, facing +x.
+- Pair with one marker seen: that marker's position and yaw, with the known offset d to the
+  side: centre = left - d * (-sin theta, cos theta) or right + d * (-sin theta, cos theta).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from kmea.estimators.base import MarkerEstimate
+from kmea.transforms import wrap_angle
+
+__all__ = ["RobotPose", "RobotSpec", "check_robot_spec", "robot_pose"]
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """A robot and its markers.
+
+    name: unique name; markers: (id,) or (left, right); height: marker plane above the floor,
+    m; length: marker side, m; separation: centre-to-centre distance of a pair (2 d), m;
+    destinations: names of the places it may be sent to (used by the daemon's tasks).
+    Lists are accepted and stored as tuples; ``check_robot_spec`` runs on creation.
+    """
+
+    name: str
+    markers: tuple[int, ...]
+    height: float = 0.2
+    length: float = 0.06
+    separation: float = 0.10
+    destinations: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if isinstance(self.markers, (int, np.integer)) and not isinstance(self.markers, bool):
+            object.__setattr__(self, "markers", (int(self.markers),))
+        elif isinstance(self.markers, (list, np.ndarray)):
+            object.__setattr__(self, "markers", tuple(int(m) for m in self.markers))
+        if isinstance(self.destinations, list):
+            object.__setattr__(self, "destinations", tuple(self.destinations))
+        check_robot_spec(self)
+
+    @property
+    def is_pair(self) -> bool:
+        return len(self.markers) == 2
+
+
+def _finite(v: object, where: str, positive: bool = False) -> None:
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    if not ok or (positive and v <= 0) or (not positive and v < 0):
+        raise ValueError(f"{where} must be a finite number {'> 0' if positive else '>= 0'} m, "
+                         f"got {v!r}")
+
+
+def check_robot_spec(spec: RobotSpec) -> RobotSpec:
+    """Raise ``ValueError`` naming the robot and field when ``spec`` is inconsistent."""
+    name = spec.name
+    if not isinstance(name, str) or not name.strip():
+        raise ValueError(f"robot name must be a non-empty string, got {name!r}")
+    where = f"robot {name!r}"
+    ms = spec.markers
+    if not isinstance(ms, tuple) or len(ms) not in (1, 2):
+        raise ValueError(f"{where}: markers must be one id or a pair [left, right], got {ms!r}")
+    for m in ms:
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+            raise ValueError(f"{where}: marker id must be an integer >= 0, got {m!r}")
+    if len(ms) == 2 and ms[0] == ms[1]:
+        raise ValueError(f"{where}: the two markers of a pair must differ, got {list(ms)}")
+    _finite(spec.height, f"{where}: height")
+    _finite(spec.length, f"{where}: length", positive=True)
+    _finite(spec.separation, f"{where}: separation", positive=True)
+    if len(ms) == 2 and spec.separation < spec.length:
+        raise ValueError(f"{where}: separation {spec.separation} m is less than the marker "
+                         f"length {spec.length} m (the markers would overlap)")
+    if not isinstance(spec.destinations, tuple) or not all(
+            isinstance(d, str) for d in spec.destinations):
+        raise ValueError(f"{where}: destinations must be a list of names")
+    return spec
+
+
+@dataclass(frozen=True)
+class RobotPose:
+    """World pose of a robot.
+
+    x, y: floor position of its centre (m); theta: heading (rad, CCW from world x, in
+    [-pi, pi)); z: estimated height of its marker plane (m); markers_seen: ids used;
+    sigma: a consistency figure (m) or None: for a pair seen whole, |measured separation -
+    spec separation|; for one marker, that marker's own sigma.
+    """
+
+    name: str
+    x: float
+    y: float
+    theta: float
+    z: float
+    markers_seen: tuple[int, ...]
+    sigma: float | None = None
+
+
+def _left_dir(theta: float) -> np.ndarray:
+    return np.array([-math.sin(theta), math.cos(theta)])
+
+
+def robot_pose(spec: RobotSpec, estimates: Mapping[int, MarkerEstimate]) -> RobotPose | None:
+    """Pose of ``spec``'s robot from marker world estimates (id -> MarkerEstimate), or None
+    when none of its markers was estimated."""
+    seen = tuple(m for m in spec.markers if m in estimates)
+    if not seen:
+        return None
+    if len(seen) == 2:
+        pl = np.asarray(estimates[spec.markers[0]].position, dtype=float)
+        pr = np.asarray(estimates[spec.markers[1]].position, dtype=float)
+        v = pr[:2] - pl[:2]
+        mid = (pl + pr) / 2.0
+        # Heading: (right - left) rotated +90 deg CCW, i.e. (-vy, vx).
+        theta = math.atan2(v[0], -v[1])
+        sigma = abs(float(np.hypot(*v)) - spec.separation)
+        return RobotPose(spec.name, float(mid[0]), float(mid[1]), float(wrap_angle(theta)),
+                         float(mid[2]), seen, sigma)
+    mid_ = seen[0]
+    me = estimates[mid_]
+    p = np.asarray(me.position, dtype=float)
+    theta = float(me.yaw)
+    xy = p[:2].copy()
+    if spec.is_pair:
+        d = spec.separation / 2.0
+        xy += -d * _left_dir(theta) if mid_ == spec.markers[0] else d * _left_dir(theta)
+    return RobotPose(spec.name, float(xy[0]), float(xy[1]), float(wrap_angle(theta)),
+                     float(p[2]), seen, me.sigma)
