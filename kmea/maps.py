@@ -1,13 +1,19 @@
-"""Marker maps: surveyed 6-DoF poses of ArUco markers in the world frame.
+"""Marker maps: surveyed 6-DoF poses of ArUco markers in the world frame (numpy only).
 
 A map is loaded from TOML (full description) or CSV (marker table only; the dictionary
-and default length then come from the configuration). See ``docs/maps.md``.
+and default length then come from the configuration). Positions are metres; rotations are
+given in the files as degrees ``rx_deg, ry_deg, rz_deg``: fixed-frame rotations applied
+first about Z, then Y, then X, i.e. ``R = Rx @ Ry @ Rz`` (marker2world). See ``docs/maps.md``.
+
+Every problem with a file raises :class:`MapError` with one line naming the file, the line
+(CSV, and TOML ``[[markers]]`` tables) or the key, and the problem.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import re
 import sys
 from dataclasses import dataclass, field
 from importlib import resources
@@ -22,11 +28,43 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-__all__ = ["Marker", "MarkerMap", "MapError", "default_map", "load_map", "save_map_toml"]
+__all__ = [
+    "ARUCO_DICTIONARIES",
+    "MapError",
+    "Marker",
+    "MarkerMap",
+    "check_map",
+    "default_map",
+    "dumps_map_toml",
+    "load_csv_markers",
+    "load_map",
+    "map_from_dict",
+    "map_to_dict",
+    "save_map_toml",
+]
 
 
 class MapError(ValueError):
     """A map file or map value is invalid; the message names the file, line or key."""
+
+
+def _dict_sizes() -> dict[str, int]:
+    sizes = {f"DICT_{b}X{b}_{n}": n for b in (4, 5, 6, 7) for n in (50, 100, 250, 1000)}
+    sizes.update({"DICT_ARUCO_ORIGINAL": 1024, "DICT_APRILTAG_16h5": 30,
+                  "DICT_APRILTAG_25h9": 35, "DICT_APRILTAG_36h10": 2320,
+                  "DICT_APRILTAG_36h11": 587, "DICT_ARUCO_MIP_36h12": 250})
+    return sizes
+
+
+# OpenCV's predefined ArUco dictionaries and their number of markers (valid ids 0..n-1).
+ARUCO_DICTIONARIES: dict[str, int] = _dict_sizes()
+
+
+def _check_dictionary(name: object, where: str) -> str:
+    if not isinstance(name, str) or name not in ARUCO_DICTIONARIES:
+        raise MapError(f"{where}: unknown ArUco dictionary {name!r} (e.g. DICT_5X5_50, "
+                       f"DICT_5X5_100, DICT_4X4_50)")
+    return name
 
 
 @dataclass(frozen=True)
@@ -38,12 +76,35 @@ class Marker:
         position: (3,) centre in the world frame, metres.
         rotation: (3, 3) marker2world rotation.
         length: side of the black square, metres.
+
+    Lists are accepted and stored as float arrays; a bad shape, a non-finite value, a
+    rotation that is not proper or a length <= 0 raises :class:`MapError`.
     """
 
     id: int
     position: np.ndarray
     rotation: np.ndarray
     length: float
+
+    def __post_init__(self) -> None:
+        where = f"marker {self.id}"
+        if isinstance(self.id, bool) or not isinstance(self.id, (int, np.integer)) or self.id < 0:
+            raise MapError(f"marker id must be an integer >= 0, got {self.id!r}")
+        p = np.array(self.position, dtype=float)
+        R = np.array(self.rotation, dtype=float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise MapError(f"{where}: position must be 3 finite numbers (m)")
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) \
+                or np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+            raise MapError(f"{where}: rotation must be a proper 3x3 rotation matrix")
+        if isinstance(self.length, bool) or not (math.isfinite(self.length) and self.length > 0):
+            raise MapError(f"{where}: length must be > 0 m, got {self.length!r}")
+        p.setflags(write=False)
+        R.setflags(write=False)
+        object.__setattr__(self, "id", int(self.id))
+        object.__setattr__(self, "position", p)
+        object.__setattr__(self, "rotation", R)
+        object.__setattr__(self, "length", float(self.length))
 
     @property
     def on_floor(self) -> bool:
@@ -102,7 +163,8 @@ class MarkerMap:
         """(xmin, xmax, ymin, ymax) of the floor markers' centres, metres (all markers if none)."""
         ms = [m for m in self.markers.values() if m.on_floor] or list(self.markers.values())
         p = np.array([m.position for m in ms])
-        return float(p[:, 0].min()), float(p[:, 0].max()), float(p[:, 1].min()), float(p[:, 1].max())
+        return (float(p[:, 0].min()), float(p[:, 0].max()),
+                float(p[:, 1].min()), float(p[:, 1].max()))
 
     def ref_length(self) -> float:
         """Reference length for the MRE, metres."""
@@ -112,6 +174,40 @@ class MarkerMap:
         return math.hypot(x1 - x0, y1 - y0)
 
 
+def check_map(m: MarkerMap) -> list[str]:
+    """Warnings about a loaded map that is usable but probably not what was meant.
+
+    Anchors missing from the map (LMEA then never estimates; KMEA's scale step uses the
+    centroid), ids the dictionary cannot encode, an unknown dictionary, overlapping markers.
+    """
+    out: list[str] = []
+    for label, mid in (("origin_id", m.origin_id), ("x_id", m.x_id), ("y_id", m.y_id)):
+        if mid not in m:
+            out.append(f"{label} {mid} is not in the map (LMEA cannot run)")
+    if len({m.origin_id, m.x_id, m.y_id}) < 3:
+        out.append("origin_id, x_id and y_id are not three different markers")
+    size = ARUCO_DICTIONARIES.get(m.dictionary)
+    if size is None:
+        out.append(f"unknown ArUco dictionary {m.dictionary!r}")
+    else:
+        big = [i for i in m.ids if i >= size]
+        if big:
+            out.append(f"{m.dictionary} has ids 0-{size - 1}; ids {big} can never be detected")
+    # Markers facing the same way closer than their mean side overlap (back-to-back wall
+    # markers, facing opposite ways, are fine).
+    ids = m.ids
+    P = m.positions(ids)
+    N = np.array([m[i].normal for i in ids])
+    L = np.array([m[i].length for i in ids])
+    for a in range(len(ids)):
+        d = np.linalg.norm(P[a + 1:] - P[a], axis=1)
+        same = N[a + 1:] @ N[a] > 0.9
+        for j in np.nonzero(same & (d < (L[a + 1:] + L[a]) / 2))[0]:
+            out.append(f"markers {ids[a]} and {ids[a + 1 + j]} overlap "
+                       f"(centres {d[j]:.4f} m apart)")
+    return out
+
+
 # ---------------------------------------------------------------------------- loading
 
 _MAP_KEYS = {"name", "dictionary", "default_length", "origin_id", "x_id", "y_id",
@@ -119,8 +215,11 @@ _MAP_KEYS = {"name", "dictionary", "default_length", "origin_id", "x_id", "y_id"
 _MARKER_KEYS = {"id", "x", "y", "z", "rx_deg", "ry_deg", "rz_deg", "length"}
 
 
-def _num(value: object, where: str) -> float:
-    if isinstance(value, bool):
+def _num(value: object, where: str, strict: bool = False) -> float:
+    """A finite float; ``strict`` (TOML) refuses strings, CSV cells are strings."""
+    if value is None or value == "":
+        raise MapError(f"{where}: missing value")
+    if isinstance(value, bool) or (strict and not isinstance(value, (int, float))):
         raise MapError(f"{where}: expected a number, got {value!r}")
     try:
         v = float(value)  # type: ignore[arg-type]
@@ -131,20 +230,23 @@ def _num(value: object, where: str) -> float:
     return v
 
 
-def _int(value: object, where: str) -> int:
-    v = _num(value, where)
+def _int(value: object, where: str, strict: bool = False) -> int:
+    if strict and isinstance(value, float):
+        raise MapError(f"{where}: expected an integer id, got {value!r}")
+    v = _num(value, where, strict)
     if v != int(v) or v < 0:
         raise MapError(f"{where}: expected a non-negative integer id, got {value!r}")
     return int(v)
 
 
-def _make_marker(row: dict, where: str, default_length: float) -> Marker:
-    mid = _int(row.get("id"), f"{where}: id")
-    pos = np.array([_num(row.get(k), f"{where}: {k}") for k in ("x", "y", "z")])
-    angles = [_num(row.get(k, 0.0) if row.get(k, "") != "" else 0.0, f"{where}: {k}")
+def _make_marker(row: dict, where: str, default_length: float, strict: bool = False) -> Marker:
+    mid = _int(row.get("id"), f"{where}: id", strict)
+    pos = np.array([_num(row.get(k), f"{where}: {k}", strict) for k in ("x", "y", "z")])
+    angles = [0.0 if row.get(k) in (None, "") else _num(row[k], f"{where}: {k}", strict)
               for k in ("rx_deg", "ry_deg", "rz_deg")]
-    raw_len = row.get("length", "")
-    length = default_length if raw_len in ("", None) else _num(raw_len, f"{where}: length")
+    raw_len = row.get("length")
+    length = default_length if raw_len in ("", None) else _num(raw_len, f"{where}: length",
+                                                               strict)
     if length <= 0:
         raise MapError(f"{where}: length must be > 0 m, got {length}")
     return Marker(mid, pos, euler_zyx_fixed_deg(*angles), float(length))
@@ -157,10 +259,12 @@ def _add(markers: dict[int, Marker], m: Marker, where: str) -> None:
 
 
 def load_csv_markers(path: Path, default_length: float) -> dict[int, Marker]:
-    """Read ``id,x,y,z[,rx_deg,ry_deg,rz_deg][,length]`` (metres, degrees)."""
+    """Read ``id,x,y,z[,rx_deg,ry_deg,rz_deg][,length]`` (metres, degrees); blank lines are
+    skipped. ``default_length`` (m) is used where ``length`` is absent or empty."""
     markers: dict[int, Marker] = {}
+    path = Path(path)
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
             header = [h.strip() for h in (reader.fieldnames or [])]
             for col in ("id", "x", "y", "z"):
@@ -169,6 +273,9 @@ def load_csv_markers(path: Path, default_length: float) -> dict[int, Marker]:
             unknown = set(header) - _MARKER_KEYS
             if unknown:
                 raise MapError(f"{path}: line 1: unknown column(s) {sorted(unknown)}")
+            dup = sorted({h for h in header if header.count(h) > 1})
+            if dup:
+                raise MapError(f"{path}: line 1: duplicate column(s) {dup}")
             reader.fieldnames = header
             for row in reader:
                 where = f"{path}: line {reader.line_num}"
@@ -181,7 +288,9 @@ def load_csv_markers(path: Path, default_length: float) -> dict[int, Marker]:
     except OSError as e:
         raise MapError(f"{path}: cannot read: {e.strerror or e}") from None
     except UnicodeDecodeError:
-        raise MapError(f"{path}: not a text file") from None
+        raise MapError(f"{path}: not a UTF-8 text file") from None
+    except csv.Error as e:
+        raise MapError(f"{path}: bad CSV: {e}") from None
     if not markers:
         raise MapError(f"{path}: no markers")
     return markers
@@ -192,41 +301,63 @@ def load_map(path: str | Path, dictionary: str = "DICT_5X5_50",
     """Load a map from ``.toml`` or ``.csv``.
 
     A CSV map takes ``dictionary`` and ``default_length`` (m) from the caller (the
-    configuration); the anchors default to the RobotAtFactory ids 13, 16, 4.
+    configuration); the anchors default to the RobotAtFactory ids 13, 16, 4 and the
+    reference length to the diagonal of the floor markers' extent.
     """
     path = Path(path)
     if path.suffix.lower() == ".csv":
+        _check_dictionary(dictionary, f"{path}: dictionary")
+        if isinstance(default_length, bool) or not (math.isfinite(default_length)
+                                                    and default_length > 0):
+            raise MapError(f"{path}: default marker length must be > 0 m, got {default_length!r}")
         markers = load_csv_markers(path, default_length)
         return MarkerMap(markers, dictionary=dictionary, default_length=default_length,
                          name=path.stem, source=str(path))
     if path.suffix.lower() == ".toml":
         try:
-            data = tomllib.loads(path.read_text())
+            text = path.read_text(encoding="utf-8")
+            data = tomllib.loads(text)
         except OSError as e:
             raise MapError(f"{path}: cannot read: {e.strerror or e}") from None
+        except UnicodeDecodeError:
+            raise MapError(f"{path}: not a UTF-8 text file") from None
         except tomllib.TOMLDecodeError as e:
             raise MapError(f"{path}: invalid TOML: {e}") from None
-        return map_from_dict(data, str(path))
+        return map_from_dict(data, str(path), _table_lines(text))
     raise MapError(f"{path}: unknown map format {path.suffix!r} (use .toml or .csv)")
 
 
-def map_from_dict(data: dict, source: str) -> MarkerMap:
-    """Build a map from a parsed TOML document (see ``docs/maps.md``)."""
+_TABLE_RE = re.compile(r"^\s*\[\[\s*markers\s*\]\]")
+
+
+def _table_lines(text: str) -> list[int]:
+    """Line numbers (1-based) of the ``[[markers]]`` headers, in order."""
+    return [i + 1 for i, line in enumerate(text.splitlines()) if _TABLE_RE.match(line)]
+
+
+def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> MarkerMap:
+    """Build a map from a parsed TOML document (see ``docs/maps.md``).
+
+    ``lines``: line numbers of the ``[[markers]]`` tables, to name them in errors.
+    """
     unknown = set(data) - _MAP_KEYS
     if unknown:
         raise MapError(f"{source}: unknown key(s) {sorted(unknown)}")
-    default_length = _num(data.get("default_length", 0.06), f"{source}: default_length")
+    default_length = _num(data.get("default_length", 0.06), f"{source}: default_length", True)
     if default_length <= 0:
-        raise MapError(f"{source}: default_length must be > 0 m")
-    dictionary = data.get("dictionary", "DICT_5X5_50")
-    if not isinstance(dictionary, str) or not dictionary:
-        raise MapError(f"{source}: dictionary must be a non-empty string")
+        raise MapError(f"{source}: default_length must be > 0 m, got {default_length}")
+    dictionary = _check_dictionary(data.get("dictionary", "DICT_5X5_50"),
+                                   f"{source}: dictionary")
+    name = data.get("name", Path(source).stem)
+    if not isinstance(name, str):
+        raise MapError(f"{source}: name must be a string, got {name!r}")
     rows = data.get("markers")
     if not isinstance(rows, list) or not rows:
         raise MapError(f"{source}: markers: expected a non-empty array of tables [[markers]]")
+    use_lines = lines is not None and len(lines) == len(rows)
     markers: dict[int, Marker] = {}
     for i, row in enumerate(rows):
-        where = f"{source}: markers[{i}]"
+        where = f"{source}: markers[{i}]" + (f" (line {lines[i]})" if use_lines else "")
         if not isinstance(row, dict):
             raise MapError(f"{where}: expected a table")
         bad = set(row) - _MARKER_KEYS
@@ -235,23 +366,23 @@ def map_from_dict(data: dict, source: str) -> MarkerMap:
         for k in ("id", "x", "y", "z"):
             if k not in row:
                 raise MapError(f"{where}: missing key {k!r}")
-        _add(markers, _make_marker(row, where, default_length), where)
+        _add(markers, _make_marker(row, where, default_length, strict=True), where)
+    anchors = {}
+    for key, default in (("origin_id", 13), ("x_id", 16), ("y_id", 4)):
+        anchors[key] = _int(data.get(key, default), f"{source}: {key}", strict=True)
+        if key in data and anchors[key] not in markers:
+            raise MapError(f"{source}: {key}: marker {anchors[key]} is not in the map")
+    if len(set(anchors.values())) < 3 and any(k in data for k in anchors):
+        raise MapError(f"{source}: origin_id, x_id and y_id must be three different markers")
     ref = data.get("reference_length")
-    m = MarkerMap(
-        markers,
-        dictionary=dictionary,
-        default_length=default_length,
-        origin_id=_int(data.get("origin_id", 13), f"{source}: origin_id"),
-        x_id=_int(data.get("x_id", 16), f"{source}: x_id"),
-        y_id=_int(data.get("y_id", 4), f"{source}: y_id"),
-        reference_length=None if ref is None else _num(ref, f"{source}: reference_length"),
-        name=str(data.get("name", Path(source).stem)),
-        source=source,
-    )
-    if m.reference_length is not None and m.reference_length <= 0:
-        raise MapError(f"{source}: reference_length must be > 0 m")
-    return m
+    ref = None if ref is None else _num(ref, f"{source}: reference_length", True)
+    if ref is not None and ref <= 0:
+        raise MapError(f"{source}: reference_length must be > 0 m, got {ref}")
+    return MarkerMap(markers, dictionary=dictionary, default_length=default_length,
+                     reference_length=ref, name=name, source=source, **anchors)
 
+
+# ---------------------------------------------------------------------------- saving
 
 def _angles_deg(R: np.ndarray) -> tuple[float, float, float]:
     """Inverse of ``euler_zyx_fixed_deg``: R = Rx(a) Ry(b) Rz(c) -> (a, b, c) degrees."""
@@ -262,6 +393,7 @@ def _angles_deg(R: np.ndarray) -> tuple[float, float, float]:
     else:  # gimbal lock: put everything in c
         a = 0.0
         c = math.atan2(R[1, 0], R[1, 1])
+    # Rounded to 1e-9 deg so that 90 is written 90.0, not 90.00000000000001.
     return tuple(round(math.degrees(v), 9) + 0.0 for v in (a, b, c))  # type: ignore[return-value]
 
 
@@ -291,11 +423,48 @@ def map_to_dict(m: MarkerMap) -> dict:
     return doc
 
 
+def _toml_value(v: object) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        f = float(v)
+        if not math.isfinite(f):
+            raise MapError(f"cannot write non-finite value {f!r}")
+        return repr(f)  # shortest round-tripping form; always has '.', 'e' or both
+    if isinstance(v, str):
+        out = ['"']
+        for ch in v:
+            o = ord(ch)
+            if ch in '"\\':
+                out.append("\\" + ch)
+            elif o < 0x20 or o == 0x7F:
+                out.append(f"\\u{o:04x}")
+            else:
+                out.append(ch)
+        return "".join(out) + '"'
+    raise MapError(f"cannot write {type(v).__name__} value {v!r} to TOML")
+
+
+def dumps_map_toml(m: MarkerMap) -> str:
+    """The TOML text of ``m`` (stdlib writer: keys and values of :func:`map_to_dict`)."""
+    doc = map_to_dict(m)
+    lines = ["# KMEA marker map: metres; rotations in degrees, fixed frame Z then Y then X",
+             "# (R = Rx @ Ry @ Rz, marker2world). See docs/maps.md."]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in doc.items() if k != "markers"]
+    for row in doc["markers"]:
+        lines += ["", "[[markers]]"] + [f"{k} = {_toml_value(v)}" for k, v in row.items()]
+    return "\n".join(lines) + "\n"
+
+
 def save_map_toml(m: MarkerMap, path: str | Path) -> None:
     """Write ``m`` as TOML (round-trips through :func:`load_map`)."""
-    import tomli_w
-
-    Path(path).write_text(tomli_w.dumps(map_to_dict(m)))
+    path = Path(path)
+    try:
+        path.write_text(dumps_map_toml(m), encoding="utf-8")
+    except OSError as e:
+        raise MapError(f"{path}: cannot write: {e.strerror or e}") from None
 
 
 def default_map() -> MarkerMap:
@@ -309,7 +478,7 @@ def default_map() -> MarkerMap:
     with resources.as_file(pkg / "raf4_floor_markers.csv") as floor_csv, \
             resources.as_file(pkg / "raf4_wall_markers.csv") as wall_csv:
         markers = load_csv_markers(Path(floor_csv), 0.06)
-        for mid, mk in load_csv_markers(Path(wall_csv), 0.04).items():
+        for mk in load_csv_markers(Path(wall_csv), 0.04).values():
             _add(markers, mk, str(wall_csv))
     return MarkerMap(markers, dictionary="DICT_5X5_100", default_length=0.06, origin_id=13,
                      x_id=16, y_id=4, reference_length=2.081, name="RobotAtFactory 4.0",
