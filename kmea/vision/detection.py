@@ -1,0 +1,182 @@
+"""ArUco marker detection with ``cv2.aruco.ArucoDetector``.
+
+Defaults are tuned for the RobotAtFactory setup: 60 mm floor markers (40 mm on the walls)
+seen from 1.2 to 1.5 m by a Pi Camera v2 at 1640x1232, i.e. markers 55-70 px wide (wall
+markers ~35 px, often oblique). See ``docs/vision.md`` for the reasoning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from kmea.vision.dictionary import get_dictionary
+
+__all__ = ["DEFAULT_PARAMETERS", "Detections", "DetectorConfig", "MarkerDetector", "as_gray"]
+
+_REFINEMENT = {
+    "none": cv2.aruco.CORNER_REFINE_NONE,
+    "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+    "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+}
+
+# Our defaults over OpenCV's (attribute name -> value); every other parameter keeps OpenCV's.
+DEFAULT_PARAMETERS: dict[str, float | int | bool] = {
+    # Smallest marker we care about is a 40 mm wall marker at ~2 m in a 640x480 frame,
+    # about 13 px wide -> perimeter 52 px = 0.08 of 640; 0.04 keeps a margin while
+    # skipping the many tiny contours of texture and noise.
+    "minMarkerPerimeterRate": 0.04,
+    # Windows 5, 13, 21 px: modules are 8-10 px at 1640x1232 (60 mm, 7 modules incl.
+    # border) and 3-4 px at 640x480; the 3 px OpenCV window only adds noise contours.
+    "adaptiveThreshWinSizeMin": 5,
+    "adaptiveThreshWinSizeMax": 21,
+    "adaptiveThreshWinSizeStep": 8,
+    # Sub-pixel search: window at most 5 px and at most 0.3 module (OpenCV's relative rule),
+    # so the search never reaches the inner bit corners; iterate to 0.01 px.
+    "cornerRefinementWinSize": 5,
+    "cornerRefinementMaxIterations": 50,
+    "cornerRefinementMinAccuracy": 0.01,
+}
+
+Scalar = float | int | bool
+
+
+@dataclass
+class DetectorConfig:
+    """What the detector needs.
+
+    dictionary: predefined name (``DICT_5X5_100``) or a custom dictionary file path.
+    corner_refinement: ``"subpix"`` (default), ``"none"``, ``"contour"`` or ``"apriltag"``.
+    parameters: ``cv2.aruco.DetectorParameters`` overrides by attribute name, applied over
+        :data:`DEFAULT_PARAMETERS` (``cornerRefinementMethod`` is set by ``corner_refinement``).
+    """
+
+    dictionary: str | Path = "DICT_5X5_100"
+    corner_refinement: str = "subpix"
+    parameters: dict[str, Scalar] = field(default_factory=dict)
+
+    def detector_parameters(self) -> cv2.aruco.DetectorParameters:
+        """The validated OpenCV parameters; ``ValueError`` naming the bad key or value."""
+        method = _REFINEMENT.get(str(self.corner_refinement).lower())
+        if method is None:
+            raise ValueError(f"detector corner_refinement: {self.corner_refinement!r} is not one "
+                             f"of {', '.join(_REFINEMENT)}")
+        if not isinstance(self.parameters, dict):
+            raise ValueError("detector parameters: expected a table of name = value")
+        p = cv2.aruco.DetectorParameters()
+        for key, value in {**DEFAULT_PARAMETERS, **self.parameters}.items():
+            _set_parameter(p, key, value)
+        p.cornerRefinementMethod = method
+        lo, hi = p.adaptiveThreshWinSizeMin, p.adaptiveThreshWinSizeMax
+        if lo < 3 or hi < lo:
+            raise ValueError("detector parameters: need 3 <= adaptiveThreshWinSizeMin <= "
+                             "adaptiveThreshWinSizeMax")
+        if p.adaptiveThreshWinSizeStep <= 0:
+            raise ValueError("detector parameters: adaptiveThreshWinSizeStep must be > 0")
+        if not 0 < p.minMarkerPerimeterRate < p.maxMarkerPerimeterRate:
+            raise ValueError("detector parameters: need 0 < minMarkerPerimeterRate < "
+                             "maxMarkerPerimeterRate")
+        return p
+
+
+def _parameter_names() -> list[str]:
+    p = cv2.aruco.DetectorParameters()
+    return sorted(a for a in dir(p) if not a.startswith("_")
+                  and not callable(getattr(p, a)))
+
+
+def _set_parameter(p: cv2.aruco.DetectorParameters, key: object, value: object) -> None:
+    names = _parameter_names()
+    if not isinstance(key, str) or key not in names:
+        close = [n for n in names if isinstance(key, str) and key.lower()[:6] in n.lower()]
+        hint = f"; did you mean {', '.join(close[:4])}?" if close else ""
+        raise ValueError(f"detector parameters: unknown key {key!r}{hint}")
+    if key == "cornerRefinementMethod":
+        raise ValueError("detector parameters: set cornerRefinementMethod through "
+                         "corner_refinement (none, subpix, contour, apriltag)")
+    current = getattr(p, key)
+    where = f"detector parameters: {key}"
+    if isinstance(current, bool):
+        if not isinstance(value, bool):
+            raise ValueError(f"{where}: expected true or false, got {value!r}")
+    elif isinstance(current, int):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise ValueError(f"{where}: expected an integer, got {value!r}")
+        value = int(value)
+        if value < 0:
+            raise ValueError(f"{where}: must be >= 0, got {value}")
+    else:
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+            raise ValueError(f"{where}: expected a number, got {value!r}")
+        value = float(value)
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"{where}: must be finite and >= 0, got {value}")
+    setattr(p, key, value)
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Markers found in one frame.
+
+    ids: (N,) int64. corners: (N, 4, 2) float64 pixels, TL, TR, BR, BL (OpenCV order and
+    pixel convention: the top-left pixel's centre is (0, 0)). rejected: number of
+    candidate squares that did not decode.
+    """
+
+    ids: np.ndarray
+    corners: np.ndarray
+    rejected: int = 0
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+def as_gray(frame: object) -> np.ndarray:
+    """A validated uint8 (H, W) image; BGR/BGRA (OpenCV order) colour frames are converted.
+
+    Raises ``ValueError`` on anything else (not an array, empty, wrong dtype or shape).
+    """
+    if not isinstance(frame, np.ndarray):
+        raise ValueError(f"frame: expected a numpy array, got {type(frame).__name__}")
+    if frame.size == 0:
+        raise ValueError(f"frame: empty image (shape {frame.shape})")
+    if frame.dtype != np.uint8:
+        raise ValueError(f"frame: expected dtype uint8, got {frame.dtype}")
+    if frame.ndim == 3 and frame.shape[2] == 1:
+        frame = frame[:, :, 0]
+    if frame.ndim == 2:
+        gray = frame
+    elif frame.ndim == 3 and frame.shape[2] == 3:
+        gray = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_BGR2GRAY)
+    elif frame.ndim == 3 and frame.shape[2] == 4:
+        gray = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_BGRA2GRAY)
+    else:
+        raise ValueError(f"frame: expected shape (H, W), (H, W, 1), (H, W, 3) or (H, W, 4), "
+                         f"got {frame.shape}")
+    if min(gray.shape) < 8:
+        raise ValueError(f"frame: image too small ({gray.shape[1]}x{gray.shape[0]})")
+    return np.ascontiguousarray(gray)
+
+
+class MarkerDetector:
+    """Detects ArUco markers; build once, call :meth:`detect` every frame."""
+
+    def __init__(self, config: DetectorConfig | None = None) -> None:
+        self.config = config or DetectorConfig()
+        self.dictionary = get_dictionary(self.config.dictionary)
+        self.parameters = self.config.detector_parameters()
+        self._detector = cv2.aruco.ArucoDetector(self.dictionary, self.parameters)
+
+    def detect(self, gray: np.ndarray) -> Detections:
+        """Detect markers in a uint8 grey (or BGR/BGRA) frame; see :class:`Detections`."""
+        img = as_gray(gray)
+        corners, ids, rejected = self._detector.detectMarkers(img)
+        n_rej = len(rejected) if rejected is not None else 0
+        if ids is None or len(corners) == 0:
+            return Detections(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 2)), n_rej)
+        c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+        return Detections(np.asarray(ids, dtype=np.int64).reshape(-1), c, n_rej)

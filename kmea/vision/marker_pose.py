@@ -1,0 +1,424 @@
+"""Per-marker pose in the camera frame, with the IPPE two-fold ambiguity resolved by the scene.
+
+A square marker seen nearly face-on has two PnP solutions (``SOLVEPNP_IPPE_SQUARE`` returns
+both): the true pose and its mirror about the line of sight. Their reprojection errors are
+close, so the lowest-error one is wrong now and then (a few percent of 60 px markers with
+0.2 px corner noise), and its normal is then off by 15-50 degrees. We keep both and pick the
+one consistent with the scene:
+
+1. Consensus: every candidate of a visible map marker implies a world2cam rotation
+   (``marker2cam @ marker2world.T``). The candidates that agree (within ``kernel_deg``) with
+   the most markers form the consensus, averaged (chordal mean) over one candidate per marker.
+   With no map marker in view, the floor normal alone is voted from the markers assumed
+   horizontal (robots).
+2. Decision: each marker's expected normal in the camera frame is its map normal (map
+   markers) or world +z (others, unless ``expected_normals`` says otherwise) rotated by the
+   consensus of the OTHER markers (leave-one-out, so a marker never votes for itself). The
+   candidate closer to it wins if it faces the camera.
+
+``flipped`` = the scene overrode the lowest-error solution (counted in the diagnostics);
+``ambiguous`` = the errors are close and the scene could not decide, or the marker's clear
+photometric answer contradicts the scene (a tilted or moved marker: we keep the photometric
+answer, flag it and count a conflict). See ``docs/vision.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.maps import MarkerMap
+from kmea.transforms import marker_corners_local
+from kmea.vision.camera import CameraModel
+
+__all__ = ["DisambiguationSettings", "PoseDiagnostics", "estimate_marker_poses"]
+
+_Z = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class DisambiguationSettings:
+    """Thresholds of the IPPE choice (pixels and degrees, since people tune them).
+
+    noise_px: corner noise floor added to both errors before their ratio, so two tiny errors
+        (noise-free data) do not look decisive.
+    ambiguity_ratio: (alt + noise) / (best + noise) below this = the errors cannot tell.
+    decisive_ratio: above this the photometric answer wins over a disagreeing scene.
+    kernel_deg: candidates within this angle of the consensus vote for it.
+    margin_deg: the scene decides only if the two candidates' normals differ in angle to the
+        expected normal by at least this much.
+    max_deviation_deg: a marker whose both candidates are further than this from its
+        expected normal contradicts the scene (conflict).
+    """
+
+    noise_px: float = 0.1
+    ambiguity_ratio: float = 2.0
+    decisive_ratio: float = 3.0
+    kernel_deg: float = 15.0
+    margin_deg: float = 2.0
+    max_deviation_deg: float = 25.0
+
+
+@dataclass
+class PoseDiagnostics:
+    """What the IPPE choice did in one frame (or, after :meth:`merge`, over many).
+
+    n_markers: poses estimated; n_ambiguous / n_flipped / n_conflicts: markers flagged
+    ambiguous / scene-corrected / contradicting the scene; *_by_id: the same per id (counts).
+    failed_ids: ids whose corners gave no pose (degenerate quadrilateral).
+    consensus: "map" (world2cam rotation from map markers), "horizontal" (floor normal from
+    markers assumed horizontal) or "none"; n_support: markers agreeing with it.
+    world2cam_R: (3, 3) consensus rotation or None; floor_normal: (3,) world +z in the
+    camera frame, or None.
+    """
+
+    n_markers: int = 0
+    n_ambiguous: int = 0
+    n_flipped: int = 0
+    n_conflicts: int = 0
+    flips_by_id: dict[int, int] = field(default_factory=dict)
+    ambiguous_by_id: dict[int, int] = field(default_factory=dict)
+    conflicts_by_id: dict[int, int] = field(default_factory=dict)
+    failed_ids: list[int] = field(default_factory=list)
+    consensus: str = "none"
+    n_support: int = 0
+    world2cam_R: np.ndarray | None = None
+    floor_normal: np.ndarray | None = None
+
+    def merge(self, other: PoseDiagnostics) -> None:
+        """Accumulate another frame's counts into this one (the consensus fields become other's)."""
+        self.n_markers += other.n_markers
+        self.n_ambiguous += other.n_ambiguous
+        self.n_flipped += other.n_flipped
+        self.n_conflicts += other.n_conflicts
+        for mine, theirs in ((self.flips_by_id, other.flips_by_id),
+                             (self.ambiguous_by_id, other.ambiguous_by_id),
+                             (self.conflicts_by_id, other.conflicts_by_id)):
+            for k, v in theirs.items():
+                mine[k] = mine.get(k, 0) + v
+        self.failed_ids.extend(other.failed_ids)
+        self.consensus, self.n_support = other.consensus, other.n_support
+        self.world2cam_R, self.floor_normal = other.world2cam_R, other.floor_normal
+
+
+Lengths = Mapping[int, float] | Callable[[int], float | None] | None
+
+
+def _length_resolver(lengths: Lengths, world_map: MarkerMap | None,
+                     default_length: float) -> Callable[[int], float]:
+    """id -> side (m): ``lengths`` first (mapping or callable), then the map, then the default."""
+    def resolve(mid: int) -> float:
+        value = None
+        if callable(lengths):
+            value = lengths(mid)
+        elif lengths is not None:
+            value = lengths.get(mid)
+        if value is None and world_map is not None and mid in world_map:
+            value = world_map[mid].length
+        if value is None:
+            value = default_length
+        value = float(value)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"marker {mid}: side length must be a finite value > 0 m, got {value}")
+        return value
+    return resolve
+
+
+def _as_inputs(ids: object, corners: object) -> tuple[np.ndarray, np.ndarray]:
+    id_arr = np.asarray(ids if ids is not None else [], dtype=np.int64).reshape(-1)
+    if isinstance(corners, (list, tuple)):
+        corners = [np.asarray(c, dtype=np.float64).reshape(-1) for c in corners]
+        c_arr = np.array(corners, dtype=np.float64).reshape(len(corners), -1) if corners \
+            else np.zeros((0, 8))
+    else:
+        c_arr = np.asarray(corners, dtype=np.float64)
+    if c_arr.size != id_arr.size * 8:
+        raise ValueError(f"corners: expected {id_arr.size} markers x 4 corners x 2, got shape "
+                         f"{np.shape(c_arr)}")
+    c_arr = c_arr.reshape(-1, 4, 2)
+    if not np.all(np.isfinite(c_arr)):
+        raise ValueError("corners: non-finite values")
+    if len(set(id_arr.tolist())) != id_arr.size:
+        raise ValueError(f"ids: duplicate marker id in one frame ({id_arr.tolist()})")
+    return id_arr, c_arr
+
+
+def _project_rotations(M: np.ndarray) -> np.ndarray:
+    """Nearest rotations (chordal mean) of a batch of (…, 3, 3) matrix sums."""
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt
+
+
+def _rot_angles(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Angles (rad) between rotations A (P, 3, 3) and B (Q, 3, 3) -> (P, Q)."""
+    tr = np.einsum("pij,qij->pq", A, B)
+    return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
+
+
+def estimate_marker_poses(
+    ids: object,
+    corners: object,
+    camera: CameraModel | CameraIntrinsics,
+    lengths: Lengths = None,
+    world_map: MarkerMap | None = None,
+    default_length: float = 0.06,
+    *,
+    expected_normals: Mapping[int, np.ndarray | None] | None = None,
+    settings: DisambiguationSettings | None = None,
+) -> tuple[list[MarkerObservation], PoseDiagnostics]:
+    """Pose of every detected marker in the camera frame (OpenCV axes, metres).
+
+    ids: (N,) ints; corners: (N, 4, 2) pixels (TL, TR, BR, BL; or OpenCV's list of (1, 4, 2)).
+    camera: intrinsics at the frame's resolution. lengths: id -> side (m), mapping or
+    callable returning None for "don't know"; then the map's length, then ``default_length``.
+    world_map: surveyed markers, whose rotations give their expected normals.
+    expected_normals: id -> (3,) world normal for markers not in the map (default world +z:
+    robots' markers lie flat); a None value means "no assumption" for that id.
+    Returns the observations (in input order, minus ``failed_ids``) and the diagnostics.
+    """
+    s = settings or DisambiguationSettings()
+    id_arr, c_arr = _as_inputs(ids, corners)
+    length_of = _length_resolver(lengths, world_map, default_length)
+    K = np.asarray(camera.camera_matrix, dtype=np.float64)
+    D = np.asarray(camera.dist_coeffs, dtype=np.float64)
+    diag = PoseDiagnostics()
+
+    # ---- both IPPE solutions of every marker
+    keep_ids: list[int] = []
+    keep_corners: list[np.ndarray] = []
+    keep_len: list[float] = []
+    Rs, ts, es = [], [], []
+    for mid, c in zip(id_arr.tolist(), c_arr, strict=True):
+        L = length_of(mid)
+        try:
+            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+                marker_corners_local(L), c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        except cv2.error:
+            n = 0
+        if not n:
+            diag.failed_ids.append(mid)
+            continue
+        R2 = [cv2.Rodrigues(rv)[0] for rv in rvecs[:2]]
+        t2 = [np.asarray(tv, dtype=np.float64).reshape(3) for tv in tvecs[:2]]
+        e2 = [float(e) for e in np.asarray(errs).reshape(-1)[:2]]
+        if len(R2) == 1:
+            R2.append(R2[0])
+            t2.append(t2[0])
+            e2.append(e2[0])
+        if e2[1] < e2[0]:  # OpenCV sorts them; do not rely on it
+            R2, t2, e2 = R2[::-1], t2[::-1], e2[::-1]
+        keep_ids.append(mid)
+        keep_corners.append(c.copy())
+        keep_len.append(L)
+        Rs.append(R2)
+        ts.append(t2)
+        es.append(e2)
+    N = len(keep_ids)
+    diag.n_markers = N
+    if N == 0:
+        return [], diag
+    R = np.array(Rs)            # (N, 2, 3, 3) marker2cam
+    t = np.array(ts)            # (N, 2, 3)
+    e = np.array(es)            # (N, 2) RMS px, e[:, 0] <= e[:, 1]
+    normals = R[:, :, :, 2]     # (N, 2, 3)
+    # Facing the camera: the printed face's normal points back along the line of sight.
+    facing = np.einsum("nkj,nkj->nk", normals, t) < 0.0
+    # IPPE returns the same pose twice for an exactly fronto-parallel marker.
+    same = np.einsum("nij,nij->n", R[:, 0], R[:, 1]) > 1.0 + 2.0 * math.cos(math.radians(0.1))
+    ratio = (e[:, 1] + s.noise_px) / (e[:, 0] + s.noise_px)
+    confident = (ratio >= s.ambiguity_ratio) & facing[:, 0]
+
+    # ---- scene consensus, leave-one-out expected normals (N, 3) in the camera frame
+    expected, diag_consensus = _expected_normals(
+        keep_ids, R, normals, facing, confident, world_map, expected_normals, s)
+    diag.consensus, diag.n_support, diag.world2cam_R, diag.floor_normal = diag_consensus
+
+    # ---- per-marker decision
+    obs: list[MarkerObservation] = []
+    margin = math.radians(s.margin_deg)
+    max_dev = math.radians(s.max_deviation_deg)
+    E = np.array([np.full(3, np.nan) if v is None else v for v in expected])
+    theta = np.arccos(np.clip(np.einsum("nkj,nj->nk", normals, E), -1.0, 1.0)).tolist()
+    n_facing = facing.sum(axis=1).tolist()
+    ratios = ratio.tolist()
+    for i, mid in enumerate(keep_ids):
+        chosen, ambiguous, flipped, conflict = 0, False, False, False
+        if same[i]:
+            pass
+        elif n_facing[i] == 1:
+            chosen = int(np.argmax(facing[i]))
+            flipped = chosen == 1  # the lowest-error one faces away from the camera
+        elif n_facing[i] == 0:
+            ambiguous = True
+        else:
+            th0, th1 = theta[i]
+            decided = False
+            if expected[i] is not None:
+                if min(th0, th1) > max_dev:
+                    conflict = True
+                elif abs(th0 - th1) >= margin:
+                    decided = True
+                    if th1 < th0:
+                        if ratios[i] >= s.decisive_ratio:
+                            conflict = True
+                        else:
+                            chosen, flipped = 1, True
+            if conflict:
+                ambiguous = True
+            elif not decided:
+                ambiguous = ratios[i] < s.ambiguity_ratio
+        alt = 1 - chosen
+        has_alt = not same[i]
+        obs.append(MarkerObservation(
+            id=mid,
+            marker2cam_R=R[i, chosen].copy(),
+            marker2cam_t=t[i, chosen].copy(),
+            corners=keep_corners[i],
+            length=keep_len[i],
+            reproj_error=float(e[i, chosen]),
+            alt_R=R[i, alt].copy() if has_alt else None,
+            alt_t=t[i, alt].copy() if has_alt else None,
+            alt_reproj_error=float(e[i, alt]) if has_alt else math.nan,
+            ambiguous=ambiguous,
+            flipped=flipped,
+        ))
+        if ambiguous:
+            diag.n_ambiguous += 1
+            diag.ambiguous_by_id[mid] = diag.ambiguous_by_id.get(mid, 0) + 1
+        if flipped:
+            diag.n_flipped += 1
+            diag.flips_by_id[mid] = diag.flips_by_id.get(mid, 0) + 1
+        if conflict:
+            diag.n_conflicts += 1
+            diag.conflicts_by_id[mid] = diag.conflicts_by_id.get(mid, 0) + 1
+    return obs, diag
+
+
+def _expected_normals(
+    ids: list[int], R: np.ndarray, normals: np.ndarray, facing: np.ndarray,
+    confident: np.ndarray, world_map: MarkerMap | None,
+    expected_normals: Mapping[int, np.ndarray | None] | None, s: DisambiguationSettings,
+) -> tuple[list[np.ndarray | None], tuple[str, int, np.ndarray | None, np.ndarray | None]]:
+    """Per-marker expected normal in the camera frame (or None) and the consensus summary."""
+    N = len(ids)
+    kernel = math.radians(s.kernel_deg)
+    extra = expected_normals or {}
+
+    def world_normal(mid: int) -> np.ndarray | None:
+        if world_map is not None and mid in world_map:
+            return world_map[mid].rotation[:, 2]
+        if mid in extra:
+            v = extra[mid]
+            if v is None:
+                return None
+            v = np.asarray(v, dtype=float).reshape(3)
+            return v / np.linalg.norm(v)
+        return _Z
+
+    in_map = [i for i, mid in enumerate(ids) if world_map is not None and mid in world_map]
+    if in_map:
+        # Candidate world2cam rotations of the map markers: (M, 2, 3, 3).
+        Rw = np.array([world_map[ids[i]].rotation for i in in_map])  # type: ignore[index]
+        cand = np.einsum("mkij,mlj->mkil", R[in_map], Rw)
+        votes = _vote(cand.reshape(-1, 3, 3), facing[in_map], confident[in_map], kernel,
+                      _rot_angles)
+        if votes is not None:
+            pick, inlier = votes
+            chosen = cand[np.arange(len(in_map)), pick]            # (M, 3, 3)
+            total = chosen[inlier].sum(axis=0)
+            n_in = int(inlier.sum())
+            mean = _project_rotations(total)
+            # A single voter is trusted only if its own errors were decisive.
+            decisive = confident[in_map] & (pick == 0) & inlier
+            # Leave-one-out consensus for each inlier map marker.
+            loo_all = _project_rotations(total[None] - chosen)    # one batched SVD
+            loo = {}
+            for j, i in enumerate(in_map):
+                if inlier[j]:
+                    others = n_in - 1
+                    sole_ok = others == 1 and bool(np.delete(decisive, j).any())
+                    loo[i] = loo_all[j] if others >= 2 or sole_ok else None
+            trusted_all = n_in >= 2 or bool(decisive.any())
+            out: list[np.ndarray | None] = []
+            for i, mid in enumerate(ids):
+                nw = world_normal(mid)
+                rot = loo.get(i, mean if trusted_all else None)
+                out.append(None if nw is None or rot is None else rot @ nw)
+            return out, ("map", n_in, mean, mean[:, 2].copy())
+    # No map marker: vote for the floor normal among markers assumed horizontal.
+    horiz = [i for i, mid in enumerate(ids)
+             if (w := world_normal(mid)) is not None and w[2] > 1.0 - 1e-9]
+    if len(horiz) < 2:
+        return [None] * N, ("none", 0, None, None)
+    cand_n = normals[horiz]                                         # (H, 2, 3)
+
+    def normal_angles(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        return np.arccos(np.clip(A @ B.T, -1.0, 1.0))
+
+    votes = _vote(cand_n.reshape(-1, 3), facing[horiz], confident[horiz], kernel, normal_angles)
+    if votes is None:
+        return [None] * N, ("none", 0, None, None)
+    pick, inlier = votes
+    chosen_n = cand_n[np.arange(len(horiz)), pick]
+    total = chosen_n[inlier].sum(axis=0)
+    n_in = int(inlier.sum())
+    decisive = confident[horiz] & (pick == 0) & inlier
+    out: list[np.ndarray | None] = [None] * N
+    for j, i in enumerate(horiz):
+        others = n_in - int(inlier[j])
+        # A single other voter is trusted only if its own errors were decisive.
+        if others >= 2 or (others == 1 and bool(np.delete(decisive, j).any())):
+            v = total - chosen_n[j] if inlier[j] else total
+            out[i] = v / np.linalg.norm(v)
+    g = total / np.linalg.norm(total)
+    return out, ("horizontal", n_in, None, g)
+
+
+def _vote(cands: np.ndarray, facing: np.ndarray, confident: np.ndarray, kernel: float,
+          angles: Callable[[np.ndarray, np.ndarray], np.ndarray],
+          ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Robust mode of per-marker candidate pairs.
+
+    cands: (2M, ...) candidates, marker m's at 2m and 2m+1 (lowest error first).
+    Returns (pick (M,) index 0/1 of each marker's candidate nearest the winner, inlier (M,)
+    bool), or None when no candidate faces the camera.
+    """
+    M = facing.shape[0]
+    valid = facing.reshape(-1)
+    if not valid.any():
+        return None
+    A = angles(cands, cands).reshape(2 * M, M, 2)                 # seed x marker x candidate
+    A = np.where(facing[None, :, :], A, np.inf)
+    nearest = A.min(axis=2)                                        # (2M, M)
+    # One vote per marker; a decisive lowest-error candidate counts a little more, so ties
+    # between the two mirror families go to the photometrically better one.
+    weight = np.where(confident, 1.05, 1.0)
+    score = ((nearest < kernel) * weight[None, :]).sum(axis=1) - 1e-3 * np.where(
+        np.isfinite(nearest), np.minimum(nearest, kernel), kernel).sum(axis=1)
+    score = np.where(valid, score, -np.inf)
+    seed = int(np.argmax(score))
+    pick = np.argmin(A[seed], axis=1)
+    inlier = nearest[seed] < kernel
+    # Two refinement passes around the mean of the inliers.
+    for _ in range(2):
+        sel = cands.reshape(M, 2, *cands.shape[1:])[np.arange(M), pick][inlier]
+        if sel.ndim == 3:
+            centre = _project_rotations(sel.sum(axis=0))[None]
+        else:
+            v = sel.sum(axis=0)
+            centre = (v / np.linalg.norm(v))[None]
+        A2 = angles(centre, cands).reshape(M, 2)
+        A2 = np.where(facing, A2, np.inf)
+        pick = np.argmin(A2, axis=1)
+        inlier = A2.min(axis=1) < kernel
+        if not inlier.any():
+            return None
+    return pick, inlier
