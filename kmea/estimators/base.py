@@ -148,6 +148,8 @@ def check_observations(observations: Sequence[MarkerObservation]) -> list[Marker
     shapes."""
     seen: set[int] = set()
     out = []
+    Rs: list[np.ndarray] = []
+    ts: list[np.ndarray] = []
     for o in observations:
         if o.id in seen:
             raise ValueError(f"observation id {o.id}: duplicate id in one frame")
@@ -157,7 +159,12 @@ def check_observations(observations: Sequence[MarkerObservation]) -> list[Marker
         if R.shape != (3, 3) or t.shape != (3,):
             raise ValueError(f"observation id {o.id}: marker2cam_R must be (3, 3) and "
                              f"marker2cam_t (3,), got {R.shape} and {t.shape}")
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-            raise ValueError(f"observation id {o.id}: non-finite pose")
+        Rs.append(R)
+        ts.append(t)
         out.append(o)
+    if out:
+        # One vectorised finiteness test for the whole frame (this runs every frame).
+        ok = np.isfinite(np.stack(Rs)).all(axis=(1, 2)) & np.isfinite(np.stack(ts)).all(axis=1)
+        if not ok.all():
+            raise ValueError(f"observation id {out[int(np.argmin(ok))].id}: non-finite pose")
     return out

@@ -13,7 +13,7 @@ import numpy as np
 
 from kmea.estimators.base import Estimate, MarkerEstimate, MarkerObservation
 from kmea.maps import MarkerMap
-from kmea.transforms import make_transform, yaw_of
+from kmea.transforms import make_transform
 
 __all__ = [
     "COINCIDENT_TOL",
@@ -131,12 +131,15 @@ def apply_similarity(observations: Sequence[MarkerObservation], scale: float, R:
 
     The world rotation of a marker is R @ marker2cam_R (scale does not rotate).
     """
-    out: dict[int, MarkerEstimate] = {}
-    for o in observations:
-        p = scale * (R @ np.asarray(o.marker2cam_t, dtype=float)) + t
-        Rw = R @ np.asarray(o.marker2cam_R, dtype=float)
-        out[o.id] = MarkerEstimate(o.id, p, Rw, yaw_of(Rw))
-    return out
+    if not observations:
+        return {}
+    P = np.array([o.marker2cam_t for o in observations], dtype=float).reshape(-1, 3)
+    Rc = np.array([o.marker2cam_R for o in observations], dtype=float).reshape(-1, 3, 3)
+    Pw = scale * P @ R.T + t
+    Rw = R @ Rc  # (N, 3, 3): R broadcast over the stack
+    yaw = np.arctan2(Rw[:, 1, 0], Rw[:, 0, 0])  # as transforms.yaw_of, for all at once
+    return {o.id: MarkerEstimate(o.id, Pw[i], Rw[i], float(yaw[i]))
+            for i, o in enumerate(observations)}
 
 
 def apply_plane_heights(markers: dict[int, MarkerEstimate], camera_world: np.ndarray,
