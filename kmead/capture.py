@@ -1,0 +1,122 @@
+"""Getting frames from a source: threaded for live sources, in order for files.
+
+A live source (camera, Pi camera, paced simulator) is read by its own thread into a
+one-slot mailbox: when processing is slower than the camera the newest frame wins and the
+replaced one is counted as dropped, so the pipeline always works on the freshest image and
+never blocks the camera. A file source is read in the caller's thread, every frame in
+order. Both give ``(frame, capture_ms, t_capture)`` tuples.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Iterator
+
+from kmea.vision.sources import Frame, FrameSource, SourceError
+
+__all__ = ["Capture", "CaptureEnded"]
+
+
+class CaptureEnded(Exception):
+    """The source ended or failed; ``error`` holds the message when it failed."""
+
+
+class Capture:
+    """Frames from ``source``; ``threaded`` for live sources (see the module docstring).
+
+    pace_fps: for sources that render rather than wait for a sensor (the simulator), the
+    capture thread sleeps to deliver at most this rate (0 = no pacing).
+    """
+
+    def __init__(self, source: FrameSource, threaded: bool, pace_fps: float = 0.0) -> None:
+        self.source = source
+        self.threaded = threaded
+        self.pace_fps = pace_fps
+        self.dropped = 0
+        self.captured = 0
+        self.error: str | None = None
+        self.ended = False
+        self._slot: tuple[Frame, float, float] | None = None
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if threaded:
+            self._thread = threading.Thread(target=self._run, name="kmead-capture", daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        period = 1.0 / self.pace_fps if self.pace_fps > 0 else 0.0
+        next_t = time.perf_counter()
+        try:
+            while not self._stop.is_set():
+                if period:
+                    delay = next_t - time.perf_counter()
+                    if delay > 0:
+                        self._stop.wait(delay)
+                    next_t = max(next_t + period, time.perf_counter() - period)
+                t0 = time.perf_counter()
+                frame = self.source.read()
+                t1 = time.perf_counter()
+                if frame is None:
+                    break
+                with self._cond:
+                    self.captured += 1
+                    if self._slot is not None:
+                        self.dropped += 1
+                    self._slot = (frame, (t1 - t0) * 1e3, t1)
+                    self._cond.notify()
+        except SourceError as e:
+            self.error = str(e)
+        except Exception as e:  # a broken driver must end the run cleanly, not hang it
+            self.error = f"{self.source.spec}: {type(e).__name__}: {e}"
+        with self._cond:
+            self.ended = True
+            self._cond.notify_all()
+
+    def get(self, timeout: float = 0.1) -> tuple[Frame, float, float] | None:
+        """The next frame (newest for live sources), None on timeout.
+
+        Raises :class:`CaptureEnded` when the source is finished or failed.
+        """
+        if not self.threaded:
+            if self.ended:
+                raise CaptureEnded(self.error)
+            t0 = time.perf_counter()
+            try:
+                frame = self.source.read()
+            except SourceError as e:
+                self.error = str(e)
+                frame = None
+            t1 = time.perf_counter()
+            if frame is None:
+                self.ended = True
+                raise CaptureEnded(self.error)
+            self.captured += 1
+            return frame, (t1 - t0) * 1e3, t1
+        with self._cond:
+            if self._slot is None and not self.ended:
+                self._cond.wait(timeout)
+            if self._slot is not None:
+                item, self._slot = self._slot, None
+                return item
+            if self.ended:
+                raise CaptureEnded(self.error)
+            return None
+
+    def __iter__(self) -> Iterator[tuple[Frame, float, float]]:
+        while True:
+            try:
+                item = self.get()
+            except CaptureEnded:
+                return
+            if item is not None:
+                yield item
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        with contextlib.suppress(Exception):
+            self.source.close()

@@ -1,0 +1,438 @@
+"""kmead configuration: the packaged default, overlays, ``--set`` and validation.
+
+The effective configuration is a plain nested dict ``{section: {key: value}}`` plus
+``"robots"``: a list of robot tables. Every value is checked here, the same way for a file,
+``--set`` and a live ``set`` request; a problem raises :class:`ConfigError` with one line
+naming the file (or ``--set`` / ``control``), the key and the problem.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = [
+    "LIVE_KEYS",
+    "Config",
+    "ConfigError",
+    "default_text",
+    "load_config",
+    "parse_set",
+    "validate_value",
+]
+
+
+class ConfigError(ValueError):
+    """A bad configuration file or value; the message is one line naming file and key."""
+
+
+Check = Callable[[Any, str], Any]
+
+
+def _str(v: Any, where: str) -> str:
+    if not isinstance(v, str):
+        raise ConfigError(f"{where}: expected a string, got {v!r}")
+    return v
+
+
+def _bool(v: Any, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise ConfigError(f"{where}: expected true or false, got {v!r}")
+    return v
+
+
+def _number(v: Any, where: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"{where}: expected a number, got {v!r}")
+    if not math.isfinite(v):
+        raise ConfigError(f"{where}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def _positive(v: Any, where: str) -> float:
+    x = _number(v, where)
+    if x <= 0:
+        raise ConfigError(f"{where}: must be > 0, got {v!r}")
+    return x
+
+
+def _nonneg(v: Any, where: str) -> float:
+    x = _number(v, where)
+    if x < 0:
+        raise ConfigError(f"{where}: must be >= 0, got {v!r}")
+    return x
+
+
+def _int_ge(lo: int) -> Check:
+    def check(v: Any, where: str) -> int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(f"{where}: expected an integer, got {v!r}")
+        if v < lo:
+            raise ConfigError(f"{where}: must be >= {lo}, got {v}")
+        return v
+    return check
+
+
+def _alpha(v: Any, where: str) -> float:
+    x = _number(v, where)
+    if not 0 < x <= 1:
+        raise ConfigError(f"{where}: must be in (0, 1] (1 = no filtering), got {v!r}")
+    return x
+
+
+def _choice(*options: str) -> Check:
+    def check(v: Any, where: str) -> str:
+        if v not in options:
+            raise ConfigError(f"{where}: must be one of {', '.join(options)}; got {v!r}")
+        return v
+    return check
+
+
+_SOURCE_RE = re.compile(r"^(sim(:.+)?|picamera(:.*)?|camera:\d+|video:.+|images:.+|replay:.+)$")
+
+
+def _source_spec(v: Any, where: str) -> str:
+    s = _str(v, where)
+    if not _SOURCE_RE.match(s):
+        # Sources registered by plugins (kmea.vision.sources.register_source) are accepted too.
+        prefix = s.split(":", 1)[0]
+        if not _registered_source(prefix):
+            raise ConfigError(
+                f"{where}: unknown source {s!r}; use sim, sim:SCENE, picamera, camera:INDEX, "
+                "video:PATH, images:DIR or replay:FILE")
+    return s
+
+
+def _registered_source(prefix: str) -> bool:
+    try:
+        from kmea.vision import sources
+    except Exception:
+        return False
+    reg = getattr(sources, "_REGISTRY", None) or getattr(sources, "SOURCES", None) or {}
+    return prefix in reg
+
+
+def _algorithm(v: Any, where: str) -> str:
+    s = _str(v, where)
+    from kmea import estimators
+
+    if s not in estimators.available():
+        raise ConfigError(f"{where}: unknown algorithm {s!r}; choose one of "
+                          f"{', '.join(estimators.available())}")
+    return s
+
+
+def _dictionary(v: Any, where: str) -> str:
+    s = _str(v, where)
+    if s == "":
+        return s
+    try:
+        from kmea.vision.dictionary import get_dictionary
+
+        get_dictionary(s)
+    except ImportError:  # pragma: no cover - vision module missing
+        pass
+    except ValueError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    return s
+
+
+def _endpoint(v: Any, where: str) -> str:
+    s = _str(v, where)
+    if s and not re.match(r"^(tcp://[^:/]+:(\d+|\*)|ipc://.+|inproc://.+)$", s):
+        raise ConfigError(f"{where}: expected a ZeroMQ endpoint like tcp://127.0.0.1:5555 "
+                          f"(or \"\" for off), got {s!r}")
+    return s
+
+
+def _detector_parameters(v: Any, where: str) -> dict:
+    if not isinstance(v, dict):
+        raise ConfigError(f"{where}: expected a table of OpenCV DetectorParameters names")
+    try:
+        from kmea.vision.detection import DetectorConfig
+
+        DetectorConfig(parameters=dict(v)).detector_parameters()
+    except ImportError:  # pragma: no cover - vision module missing
+        pass
+    except ValueError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    return dict(v)
+
+
+SCHEMA: dict[str, dict[str, Check]] = {
+    "source": {"spec": _source_spec, "fps": _nonneg, "width": _int_ge(0), "height": _int_ge(0)},
+    "camera": {"file": _str},
+    "map": {"file": _str},
+    "detector": {"dictionary": _dictionary, "marker_length": _positive,
+                 "corner_refinement": _choice("subpix", "none", "contour", "apriltag"),
+                 "parameters": _detector_parameters},
+    "estimator": {"algorithm": _algorithm},
+    "filter": {"alpha": _alpha, "reset_after_s": _positive},
+    "stats": {"loo": _bool, "window": _int_ge(1), "displaced_threshold": _positive},
+    "relay": {"stale_after_s": _positive, "stale_repeat_s": _nonneg},
+    "network": {"telemetry": _endpoint, "control": _endpoint, "status_period_s": _positive},
+    "log": {"csv": _str, "record": _str,
+            "level": _choice("debug", "info", "warning", "error")},
+}
+
+ROBOT_KEYS = ("name", "markers", "height", "length", "separation", "destinations")
+
+# Keys a live ``set`` request may change (the rest need a restart).
+LIVE_KEYS = {
+    "estimator.algorithm", "filter.alpha", "filter.reset_after_s", "robots",
+    "relay.stale_after_s", "relay.stale_repeat_s", "stats.window", "stats.loo",
+    "stats.displaced_threshold", "log.level",
+}
+LIVE_SECTIONS = {"detector"}
+
+_UDP_RE = re.compile(r"^udp:([^:]+):(\d{1,5})$")
+
+
+def parse_destination(d: str, where: str) -> tuple[str, int]:
+    """``"udp:HOST:PORT"`` -> (host, port)."""
+    m = _UDP_RE.match(d) if isinstance(d, str) else None
+    if not m or not 0 < int(m.group(2)) < 65536:
+        raise ConfigError(f"{where}: destination must be \"udp:HOST:PORT\", got {d!r}")
+    return m.group(1), int(m.group(2))
+
+
+def _robot(row: Any, where: str) -> dict:
+    if not isinstance(row, dict):
+        raise ConfigError(f"{where}: expected a table with {', '.join(ROBOT_KEYS)}")
+    bad = sorted(set(row) - set(ROBOT_KEYS))
+    if bad:
+        raise ConfigError(f"{where}: unknown key {bad[0]!r} (robot keys: {', '.join(ROBOT_KEYS)})")
+    for k in ("name", "markers"):
+        if k not in row:
+            raise ConfigError(f"{where}: missing key {k!r}")
+    name = _str(row["name"], f"{where}.name")
+    if not re.match(r"^[A-Za-z0-9_-]+$", name):
+        raise ConfigError(f"{where}.name: use letters, digits, '_' or '-' (it goes in "
+                          f"datagrams and topics), got {name!r}")
+    markers = row["markers"]
+    if isinstance(markers, int) and not isinstance(markers, bool):
+        markers = [markers]
+    if (not isinstance(markers, list) or len(markers) not in (1, 2)
+            or any(isinstance(m, bool) or not isinstance(m, int) or m < 0 for m in markers)):
+        raise ConfigError(f"{where}.markers: expected one marker id or a pair [left, right], "
+                          f"got {row['markers']!r}")
+    if len(markers) == 2 and markers[0] == markers[1]:
+        raise ConfigError(f"{where}.markers: the pair needs two different ids, got {markers}")
+    height = _nonneg(row.get("height", 0.0), f"{where}.height")
+    length = _positive(row.get("length", 0.06), f"{where}.length")
+    separation = _positive(row.get("separation", 0.10), f"{where}.separation")
+    if len(markers) == 2 and separation < length:
+        raise ConfigError(f"{where}.separation: {separation} m is less than the marker length "
+                          f"{length} m (the two markers would overlap)")
+    dests = row.get("destinations", [])
+    if not isinstance(dests, list):
+        raise ConfigError(f"{where}.destinations: expected a list like [\"udp:127.0.0.1:9001\"]")
+    for i, d in enumerate(dests):
+        parse_destination(d, f"{where}.destinations[{i}]")
+    return {"name": name, "markers": list(markers), "height": height, "length": length,
+            "separation": separation, "destinations": list(dests)}
+
+
+def _robots(rows: Any, where: str) -> list[dict]:
+    if not isinstance(rows, list):
+        raise ConfigError(f"{where}: expected an array of tables [[robots]]")
+    out = [_robot(r, f"{where}[{i}]") for i, r in enumerate(rows)]
+    names: set[str] = set()
+    ids: dict[int, str] = {}
+    for i, r in enumerate(out):
+        if r["name"] in names:
+            raise ConfigError(f"{where}[{i}].name: duplicate robot name {r['name']!r}")
+        names.add(r["name"])
+        for m in r["markers"]:
+            if m in ids:
+                raise ConfigError(f"{where}[{i}].markers: marker {m} already belongs to "
+                                  f"robot {ids[m]!r}")
+            ids[m] = r["name"]
+    return out
+
+
+def validate_value(key: str, value: Any, where: str) -> Any:
+    """Check one ``section.key`` (or ``robots``); returns the normalised value."""
+    if key == "robots":
+        return _robots(value, f"{where}: robots")
+    section, _, name = key.partition(".")
+    if section not in SCHEMA:
+        raise ConfigError(f"{where}: unknown section {section!r} in key {key!r} "
+                          f"(sections: {', '.join([*SCHEMA, 'robots'])})")
+    if not name or "." in name:
+        raise ConfigError(f"{where}: key {key!r} must be SECTION.KEY")
+    if name not in SCHEMA[section]:
+        raise ConfigError(f"{where}: unknown key {key!r} (known in [{section}]: "
+                          f"{', '.join(SCHEMA[section])})")
+    return SCHEMA[section][name](value, f"{where}: key {key!r}")
+
+
+def _merge(base: dict, doc: dict, where: str) -> None:
+    """Overlay a parsed TOML document on ``base`` in place, validating every key."""
+    for section, table in doc.items():
+        if section == "robots":
+            base["robots"] = validate_value("robots", table, where)
+            continue
+        if section not in SCHEMA:
+            raise ConfigError(f"{where}: unknown section [{section}] "
+                              f"(sections: {', '.join([*SCHEMA, 'robots'])})")
+        if not isinstance(table, dict):
+            raise ConfigError(f"{where}: {section} must be a table [{section}]")
+        for key, value in table.items():
+            base.setdefault(section, {})[key] = validate_value(f"{section}.{key}", value, where)
+
+
+def default_text() -> str:
+    """The packaged default configuration (identical to the repository's config.toml)."""
+    return (resources.files("kmead") / "default_config.toml").read_text()
+
+
+def _read_toml(path: Path) -> dict:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror or e}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML: {e}") from None
+
+
+def parse_set(item: str) -> tuple[str, Any]:
+    """``"SECTION.KEY=VALUE"`` -> (key, value); VALUE is TOML, or a bare string if not TOML.
+
+    Shells strip quotes (``--set detector.dictionary="DICT_6X6_250"`` arrives unquoted),
+    so a value that is not valid TOML is taken as a string; validation then decides.
+    """
+    key, sep, raw = item.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError(f"--set {item!r}: expected SECTION.KEY=VALUE")
+    raw = raw.strip()
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        if raw.startswith(("[", "{", '"', "'")):
+            raise ConfigError(f"--set {key}: value {raw!r} is not valid TOML") from None
+        value = raw
+    return key, value
+
+
+@dataclass
+class Config:
+    """The effective configuration and where it came from.
+
+    data: {section: {key: value}, "robots": [robot tables]}.
+    files: configuration files read, in order (the packaged default first).
+    base: the configuration from the files alone (no overlay, no command line): what
+        ``save_config`` diffs against.
+    """
+
+    data: dict
+    files: list[str] = field(default_factory=list)
+    user_file: str | None = None
+    base: dict = field(default_factory=dict)
+
+    def __getitem__(self, section: str) -> Any:
+        return self.data[section]
+
+    def get(self, key: str) -> Any:
+        if key == "robots":
+            return self.data["robots"]
+        section, _, name = key.partition(".")
+        return self.data[section][name]
+
+    def set(self, key: str, value: Any, where: str = "control") -> Any:
+        """Validate and apply one key; returns the stored value."""
+        v = validate_value(key, value, where)
+        if key == "robots":
+            self.data["robots"] = v
+        else:
+            section, _, name = key.partition(".")
+            self.data[section][name] = v
+        return v
+
+    def to_dict(self) -> dict:
+        return copy.deepcopy(self.data)
+
+    @property
+    def overlay_path(self) -> Path:
+        """Where ``save_config`` writes by default (see docs/daemon.md)."""
+        if self.user_file:
+            p = Path(self.user_file)
+            return p.with_name(p.name.removesuffix(".toml") + ".local.toml")
+        return Path("kmead.local.toml").resolve()
+
+
+def load_config(path: str | None = None, sets: list[str] | None = None,
+                overrides: dict[str, Any] | None = None, use_local: bool = True) -> Config:
+    """Default config, overlaid by ``path``, ``path.local.toml``, ``overrides`` then ``sets``.
+
+    overrides: key -> value from the dedicated command-line options (``--source`` ...).
+    Raises :class:`ConfigError` with one line naming the file or option, the key and problem.
+    """
+    data: dict = {}
+    _merge(data, tomllib.loads(default_text()), "<default config>")
+    files = ["<default config>"]
+    if path is not None:
+        p = Path(path)
+        _merge(data, _read_toml(p), str(p))
+        files.append(str(p))
+    cfg = Config(data=data, files=files, user_file=str(Path(path).resolve()) if path else None)
+    cfg.base = copy.deepcopy(data)
+    if path is not None and use_local and cfg.overlay_path.exists():
+        _merge(data, _read_toml(cfg.overlay_path), str(cfg.overlay_path))
+        files.append(str(cfg.overlay_path))
+    for key, value in (overrides or {}).items():
+        cfg.set(key, value, where=f"--{key.split('.')[-1]}")
+    for item in sets or []:
+        key, value = parse_set(item)
+        cfg.set(key, value, where="--set")
+    return cfg
+
+
+def overlay_doc(cfg: Config) -> dict:
+    """The keys of ``cfg`` that differ from its files: what ``save_config`` writes."""
+    doc: dict = {}
+    for section, table in cfg.data.items():
+        if section == "robots":
+            if table != cfg.base.get("robots"):
+                doc["robots"] = table
+            continue
+        for key, value in table.items():
+            if cfg.base.get(section, {}).get(key) != value:
+                doc.setdefault(section, {})[key] = value
+    return doc
+
+
+def save_overlay(cfg: Config, path: str | Path | None = None) -> tuple[Path, dict]:
+    """Write the changed keys to an overlay TOML file (never touches the user's file)."""
+    import time
+
+    import tomli_w
+
+    p = Path(path) if path else cfg.overlay_path
+    doc = overlay_doc(cfg)
+    head = (f"# Written by kmead save_config at {time.strftime('%Y-%m-%d %H:%M:%S')}.\n"
+            f"# Settings changed at run time; they overlay {cfg.user_file or 'the default config'}"
+            ".\n# Delete this file to go back to that configuration.\n")
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(head + tomli_w.dumps(doc))
+    tmp.replace(p)
+    return p, doc

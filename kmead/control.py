@@ -1,0 +1,194 @@
+"""Control: a ZeroMQ REP socket served by its own thread (see docs/protocol.md).
+
+The thread also publishes the 1 Hz ``status`` message and runs the daemon's watchdog. Every
+request gets exactly one reply: bad JSON, wrong types, unknown commands and oversized
+messages get ``{"v": 1, "ok": false, "error": "..."}``; nothing a client sends can raise
+out of this thread or hold the pipeline for longer than one frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import zmq
+
+from kmead import protocol as P
+from kmead.config import LIVE_KEYS, ConfigError
+
+if TYPE_CHECKING:
+    from kmead.daemon import Daemon
+
+log = logging.getLogger("kmead.control")
+
+# Bigger messages are dropped by ZeroMQ itself (the peer is disconnected); between
+# MAX_MESSAGE_BYTES and this, the client gets an error reply.
+SOCKET_MAX_BYTES = 16 * P.MAX_MESSAGE_BYTES
+
+COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop", "record_start",
+            "record_stop", "reload_map", "save_config", "reset_stats")
+
+
+class RequestError(ValueError):
+    """A request that cannot be served; the text goes to the client."""
+
+
+def _field(req: dict, name: str, types: type | tuple[type, ...], required: bool = True) -> Any:
+    if name not in req or req[name] is None:
+        if required:
+            raise RequestError(f"field {name!r}: missing")
+        return None
+    v = req[name]
+    if not isinstance(v, types) or (isinstance(v, bool) and bool not in (
+            types if isinstance(types, tuple) else (types,))):
+        tn = types.__name__ if isinstance(types, type) else "/".join(t.__name__ for t in types)
+        raise RequestError(f"field {name!r}: expected {tn}, got {type(v).__name__}")
+    return v
+
+
+class ControlServer:
+    """REP socket on ``endpoint`` serving ``daemon``; :meth:`start` runs the thread."""
+
+    def __init__(self, endpoint: str, daemon: Daemon, context: zmq.Context | None = None,
+                 poll_ms: int = 100) -> None:
+        self.daemon = daemon
+        self.poll_ms = poll_ms
+        ctx = context or zmq.Context.instance()
+        self.sock = ctx.socket(zmq.REP)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.MAXMSGSIZE, SOCKET_MAX_BYTES)
+        try:
+            self.sock.bind(endpoint)
+        except zmq.ZMQError as e:
+            self.sock.close()
+            raise OSError(f"network.control: cannot bind {endpoint}: {e}") from None
+        self.bound = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.requests = 0
+        self.errors = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="kmead-control", daemon=True)
+
+    def start(self) -> None:
+        if not self._thread.is_alive():
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout=2.0)
+        self.sock.close(linger=0)
+
+    def _run(self) -> None:
+        period = self.daemon.cfg["network"]["status_period_s"]
+        next_status = time.monotonic() + period
+        while not self._stop.is_set():
+            try:
+                if self.sock.poll(self.poll_ms, zmq.POLLIN):
+                    frames = self.sock.recv_multipart(zmq.NOBLOCK)
+                    reply = self.serve(frames)
+                    self.sock.send(P.encode_body(reply))
+            except zmq.ZMQError as e:
+                if self._stop.is_set() or e.errno == zmq.ETERM:
+                    return
+                log.warning("control socket: %s", e)
+            except Exception:  # never let the service thread die
+                log.exception("control thread error")
+            now = time.monotonic()
+            try:
+                if now >= next_status:
+                    next_status = now + period
+                    self.daemon.publish(P.TOPIC_STATUS, self.daemon.status_body())
+                self.daemon.tick()
+            except Exception:
+                log.exception("status/watchdog error")
+
+    def serve(self, frames: list[bytes]) -> dict:
+        """The reply (without ``v``) to one request given as its ZeroMQ frames."""
+        self.requests += 1
+        try:
+            if len(frames) != 1:
+                raise RequestError(f"expected one JSON frame, got {len(frames)} frames")
+            try:
+                req = P.decode_body(frames[0])
+            except P.ProtocolError as e:
+                raise RequestError(str(e)) from None
+            cmd = _field(req, "cmd", str)
+            if cmd not in COMMANDS:
+                raise RequestError(f"unknown command {cmd!r} (commands: {', '.join(COMMANDS)})")
+            reply = getattr(self, f"_cmd_{cmd}")(req)
+            return {"ok": True, "cmd": cmd, **reply}
+        except (RequestError, ConfigError, ValueError, OSError) as e:
+            self.errors += 1
+            text = str(e) or type(e).__name__
+            self.daemon.event("warning", f"control request refused: {text}")
+            return {"ok": False, "error": text}
+
+    # ------------------------------------------------------------------ commands
+    def _cmd_ping(self, req: dict) -> dict:
+        return {"t": time.time()}
+
+    def _cmd_get_state(self, req: dict) -> dict:
+        d = self.daemon
+        with d.lock:
+            return {"status": d.status_body(), "frame": d.last_frame_body,
+                    "stats": d._stats_body(d.last_result)}
+
+    def _cmd_get_config(self, req: dict) -> dict:
+        d = self.daemon
+        with d.lock:
+            return {"config": d.cfg.to_dict(), "config_file": d.cfg.user_file,
+                    "config_files": d.cfg.files, "overlay_file": str(d.cfg.overlay_path),
+                    "live_keys": [*sorted(LIVE_KEYS), "detector.*"]}
+
+    def _cmd_set(self, req: dict) -> dict:
+        key = _field(req, "key", str)
+        if "value" not in req:
+            raise RequestError("field 'value': missing")
+        with self.daemon.lock:
+            v = self.daemon.apply_setting(key, req["value"])
+        return {"key": key, "value": v}
+
+    def _path(self, req: dict) -> str | None:
+        p = _field(req, "path", str, required=False)
+        if p is not None and not p.strip():
+            raise RequestError("field 'path': empty")
+        return p
+
+    def _cmd_log_start(self, req: dict) -> dict:
+        d = self.daemon
+        path = self._path(req) or d.cfg["log"]["csv"] or time.strftime("kmead-%Y%m%d-%H%M%S.csv")
+        with d.lock:
+            c = d.start_csv(path)
+        return {"path": str(c.path)}
+
+    def _cmd_log_stop(self, req: dict) -> dict:
+        with self.daemon.lock:
+            return self.daemon.stop_csv()
+
+    def _cmd_record_start(self, req: dict) -> dict:
+        d = self.daemon
+        path = (self._path(req) or d.cfg["log"]["record"]
+                or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl"))
+        with d.lock:
+            r = d.start_recording(path)
+        return {"path": str(r.path)}
+
+    def _cmd_record_stop(self, req: dict) -> dict:
+        with self.daemon.lock:
+            return self.daemon.stop_recording()
+
+    def _cmd_reload_map(self, req: dict) -> dict:
+        with self.daemon.lock:
+            m = self.daemon.reload_map()
+        return {"map": {"name": m.name, "n": len(m)}}
+
+    def _cmd_save_config(self, req: dict) -> dict:
+        with self.daemon.lock:
+            return self.daemon.save_config(self._path(req))
+
+    def _cmd_reset_stats(self, req: dict) -> dict:
+        with self.daemon.lock:
+            self.daemon.stats.reset()
+        return {}

@@ -1,0 +1,614 @@
+"""The daemon: source -> pipeline -> outputs, plus the control/status service thread.
+
+Threads: the main loop (pipeline and outputs, one frame at a time, under ``self.lock``),
+the capture thread of a live source (:mod:`kmead.capture`) and the service thread
+(:mod:`kmead.control`: control requests, 1 Hz status, the stale-robot watchdog). A control
+request takes the lock between two frames, so it waits at most one frame and never stalls
+capture.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kmea.maps import MapError, MarkerMap, default_map, load_map
+from kmea.metrics import WindowStats
+from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
+from kmea.vision.sources import FrameSource, SourceError, open_source
+from kmead import protocol as P
+from kmead.capture import Capture, CaptureEnded
+from kmead.config import LIVE_KEYS, LIVE_SECTIONS, Config, ConfigError, save_overlay
+from kmead.csvlog import CsvLog, row
+from kmead.pipeline import FrameInput, FrameResult, Pipeline
+from kmead.recording import ReplaySource
+from kmead.relay import Relay
+from kmead.telemetry import Telemetry, TelemetryLogHandler
+
+log = logging.getLogger("kmead")
+
+EXIT_OK, EXIT_RUNTIME, EXIT_CONFIG = 0, 1, 2
+
+
+class StartupError(Exception):
+    """The daemon cannot start; ``code`` is the exit code (2: configuration, 1: other)."""
+
+    def __init__(self, message: str, code: int = EXIT_CONFIG) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class RunTotals:
+    """Whole-run figures for the summary."""
+
+    frames: int = 0
+    bad_frames: int = 0
+    not_estimated: int = 0
+    markers_seen: set[int] = field(default_factory=set)
+    robots_seen: set[str] = field(default_factory=set)
+    loo_sum: float = 0.0
+    loo_n: int = 0
+    loo_max: float = 0.0
+    t_start: float = 0.0
+    t_end: float = 0.0
+    csv_rows: int = 0
+    csv_paths: list[str] = field(default_factory=list)
+    record_paths: list[str] = field(default_factory=list)
+    latency_ms: list[float] = field(default_factory=list)
+
+
+def _source_options(cfg: Config, prefix: str) -> dict[str, Any]:
+    s = cfg["source"]
+    opts: dict[str, Any] = {}
+    if prefix in ("camera", "picamera", "sim"):
+        if s["width"] and s["height"]:
+            opts.update(width=s["width"], height=s["height"])
+        if prefix != "sim" and s["fps"]:
+            opts["fps"] = s["fps"]
+    if prefix in ("images", "video", "camera"):
+        opts["gray"] = True  # detection works on grey: convert once at decode time
+    return opts
+
+
+def open_configured_source(cfg: Config) -> FrameSource:
+    spec = cfg["source"]["spec"]
+    prefix = spec.split(":", 1)[0].split("?", 1)[0]
+    opts = _source_options(cfg, prefix)
+    try:
+        return open_source(spec, **opts)
+    except TypeError as e:  # a source without width/height options: retry without them
+        if prefix == "sim" and opts:
+            log.warning("sim source takes no size option (%s); using its default size", e)
+            return open_source(spec)
+        raise
+
+
+def is_paced_sim(source: FrameSource, cfg: Config) -> bool:
+    return cfg["source"]["spec"].split(":", 1)[0] == "sim" and cfg["source"]["fps"] > 0
+
+
+class Daemon:
+    """A configured daemon; :meth:`run` processes frames until the end, --frames or stop()."""
+
+    def __init__(self, cfg: Config, max_frames: int | None = None) -> None:
+        self.cfg = cfg
+        self.max_frames = max_frames
+        self.lock = threading.RLock()
+        self.stop_event = threading.Event()
+        self.totals = RunTotals()
+        self.t0 = time.time()
+        self.csv: CsvLog | None = None
+        self.recorder = None
+        self.telemetry: Telemetry | None = None
+        self.control = None
+        self.relay: Relay | None = None
+        self.capture: Capture | None = None
+        self.last_frame_body: dict = {}
+        self.last_result: FrameResult | None = None
+        self.frame_times: collections.deque[float] = collections.deque(maxlen=31)
+        self.displaced: set[int] = set()
+        self._last_stats_pub = 0.0
+        self._last_frame_wall = time.time()
+        self.exit_code = EXIT_OK
+        self._log_handler: logging.Handler | None = None
+        try:
+            self._build()
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ construction
+    def _build(self) -> None:
+        cfg = self.cfg
+        try:
+            self.source = open_configured_source(cfg)
+        except SourceError as e:
+            raise StartupError(f"source: {e}", EXIT_RUNTIME) from None
+        self.source_spec = cfg["source"]["spec"]
+        self.replay = isinstance(self.source, ReplaySource)
+        self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(self.source, cfg)
+        self.world_map = self._load_map()
+        camera = self._load_camera()
+        try:
+            self.pipeline = Pipeline(camera, self.world_map, cfg.data)
+        except ValueError as e:  # detector parameters, dictionary, algorithm options
+            raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
+        self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
+        net = cfg["network"]
+        try:
+            self.telemetry = Telemetry(net["telemetry"])
+        except OSError as e:
+            raise StartupError(str(e), EXIT_RUNTIME) from None
+        self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
+                           cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish)
+        if net["control"]:
+            from kmead.control import ControlServer
+
+            try:
+                self.control = ControlServer(net["control"], self)
+            except OSError as e:
+                raise StartupError(str(e), EXIT_RUNTIME) from None
+        self._log_handler = TelemetryLogHandler(self.telemetry)
+        logging.getLogger("kmead").addHandler(self._log_handler)
+        if cfg["log"]["csv"]:
+            self.start_csv(cfg["log"]["csv"])
+        if cfg["log"]["record"]:
+            self.start_recording(cfg["log"]["record"])
+
+    def _load_map(self) -> MarkerMap:
+        cfg = self.cfg
+        path = cfg["map"]["file"]
+        if path:
+            try:
+                return load_map(path, dictionary=cfg["detector"]["dictionary"] or "DICT_5X5_100",
+                                default_length=cfg["detector"]["marker_length"])
+            except MapError as e:
+                raise StartupError(f"map: {e}") from None
+        m = getattr(self.source, "world_map", None)
+        return m if isinstance(m, MarkerMap) else default_map()
+
+    def _load_camera(self) -> CameraModel:
+        path = self.cfg["camera"]["file"]
+        size = getattr(self.source, "size", None)
+        if path:
+            try:
+                cam = load_camera(path, image_size=size)
+            except CameraError as e:
+                raise StartupError(f"camera: {e}") from None
+        else:
+            cam = getattr(self.source, "camera", None)
+            if not isinstance(cam, CameraModel):
+                scene = getattr(self.source, "scene", None)
+                cam = getattr(scene, "camera", None)
+            if not isinstance(cam, CameraModel):
+                cam = pi_camera_v2()
+        if size and (cam.width, cam.height) != tuple(size):
+            try:
+                cam = cam.scaled_to(*size)
+            except CameraError as e:
+                raise StartupError(f"camera: {path or 'default camera'}: {e}") from None
+        return cam
+
+    # ------------------------------------------------------------------ outputs on/off
+    def start_csv(self, path: str) -> CsvLog:
+        if self.csv is not None:
+            raise ValueError(f"already logging to {self.csv.path}; stop it first")
+        try:
+            self.csv = CsvLog(path)
+        except OSError as e:
+            raise ValueError(f"log: cannot write {path}: {e.strerror or e}") from None
+        self.totals.csv_paths.append(str(self.csv.path))
+        log.info("CSV log started: %s", self.csv.path)
+        return self.csv
+
+    def stop_csv(self) -> dict:
+        if self.csv is None:
+            raise ValueError("not logging")
+        c, self.csv = self.csv, None
+        c.close()
+        self.totals.csv_rows += c.rows
+        log.info("CSV log stopped: %s (%d rows)", c.path, c.rows)
+        return {"path": str(c.path), "rows": c.rows, "bytes": c.bytes}
+
+    def start_recording(self, path: str):
+        from kmead.recording import Recorder
+
+        if self.recorder is not None:
+            raise ValueError(f"already recording to {self.recorder.path}; stop it first")
+        try:
+            self.recorder = Recorder(path, self.pipeline.camera, self.world_map,
+                                     self.source_spec, self.cfg.to_dict())
+        except OSError as e:
+            raise ValueError(f"record: cannot write {path}: {e.strerror or e}") from None
+        self.totals.record_paths.append(str(self.recorder.path))
+        log.info("recording started: %s", self.recorder.path)
+        return self.recorder
+
+    def stop_recording(self) -> dict:
+        if self.recorder is None:
+            raise ValueError("not recording")
+        r, self.recorder = self.recorder, None
+        r.close()
+        log.info("recording stopped: %s (%d frames)", r.path, r.frames)
+        return {"path": str(r.path), "frames": r.frames, "bytes": r.bytes}
+
+    # ------------------------------------------------------------------ live settings
+    def apply_setting(self, key: str, value: Any) -> Any:
+        """Validate and apply one key live (``ConfigError``/``ValueError`` if not allowed)."""
+        section = key.partition(".")[0]
+        if key not in LIVE_KEYS and section not in LIVE_SECTIONS:
+            raise ConfigError(f"control: key {key!r} cannot change while running "
+                              f"(live keys: {', '.join(sorted(LIVE_KEYS))}, detector.*); "
+                              "save it and restart kmead")
+        old = self.cfg.get(key)
+        v = self.cfg.set(key, value, where="control")
+        try:
+            if key == "estimator.algorithm":
+                self.pipeline.set_algorithm(v)
+                self.stats.reset()
+            elif key.startswith("filter."):
+                self.pipeline.configure_filter()
+            elif section == "detector":
+                self.pipeline.configure_detector()
+            elif key == "robots":
+                self.pipeline.configure_robots()
+                self.relay.configure(v)
+            elif key.startswith("relay."):
+                self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
+                self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
+            elif key == "stats.window":
+                self.stats = WindowStats(v, self.world_map.ref_length())
+            elif key == "log.level":
+                logging.getLogger("kmead").setLevel(v.upper())
+        except Exception as e:
+            self.cfg.set(key, old, where="control")
+            raise ValueError(f"control: key {key!r}: {e}") from None
+        log.info("set %s = %r", key, v)
+        return v
+
+    def reload_map(self) -> MarkerMap:
+        path = self.cfg["map"]["file"]
+        if not path:
+            m = getattr(self.source, "world_map", None)
+            new = m if isinstance(m, MarkerMap) else default_map()
+        else:
+            new = load_map(path, dictionary=self.cfg["detector"]["dictionary"] or "DICT_5X5_100",
+                           default_length=self.cfg["detector"]["marker_length"])
+        self.world_map = new
+        self.pipeline.set_map(new)
+        self.stats = WindowStats(self.cfg["stats"]["window"], new.ref_length())
+        self.displaced.clear()
+        log.info("map reloaded: %s (%d markers)", new.name, len(new))
+        return new
+
+    def save_config(self, path: str | None = None) -> dict:
+        p, doc = save_overlay(self.cfg, path)
+        keys = sorted(f"{s}.{k}" for s, t in doc.items() if s != "robots" for k in t)
+        if "robots" in doc:
+            keys.append("robots")
+        log.info("configuration overlay saved: %s (%s)", p, ", ".join(keys) or "no changes")
+        return {"path": str(p), "keys": keys}
+
+    # ------------------------------------------------------------------ telemetry bodies
+    def status_body(self) -> dict:
+        cam = self.pipeline.camera
+        c, r = self.csv, self.recorder
+        return {
+            "t": time.time(), "uptime": time.time() - self.t0, "source": self.source_spec,
+            "config_file": self.cfg.user_file or "<default config>",
+            "config_files": self.cfg.files, "algorithm": self.pipeline.algorithm,
+            "logging": {"active": c is not None, "path": str(c.path) if c else None,
+                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
+            "recording": {"active": r is not None, "path": str(r.path) if r else None,
+                          "frames": r.frames if r else 0, "bytes": r.bytes if r else 0},
+            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy},
+            "map": {"name": self.world_map.name, "n": len(self.world_map)},
+            "frames": self.totals.frames, "dropped": self.dropped,
+            "bad_frames": self.totals.bad_frames,
+            "telemetry": self.telemetry.bound if self.telemetry else "",
+            "control": self.control.bound if self.control else "",
+        }
+
+    @property
+    def dropped(self) -> int:
+        return self.capture.dropped if self.capture else 0
+
+    def fps(self) -> float:
+        ts = self.frame_times
+        if len(ts) < 2 or ts[-1] <= ts[0]:
+            return 0.0
+        return (len(ts) - 1) / (ts[-1] - ts[0])
+
+    def publish(self, topic: str, body: dict) -> None:
+        if self.telemetry is not None:
+            self.telemetry.publish(topic, body)
+
+    def event(self, level: str, text: str) -> None:
+        getattr(log, "warning" if level == "warning" else level, log.info)(text)
+        if self.telemetry is not None:
+            self.telemetry.event(level, text)
+
+    # ------------------------------------------------------------------ per frame
+    def _frame_input(self, frame, capture_ms: float, t_cap: float) -> FrameInput:
+        ts = frame.timestamp
+        if self.live:
+            # Live: unix time of the capture, so robots can age a fix with their own clock.
+            ts = time.time() - (time.perf_counter() - t_cap)
+        rep = frame.meta.get("replay")
+        if rep is not None:
+            ids, corners, obs, diag = rep
+            return FrameInput(frame.index, ts, None, ids, corners, obs, diag, frame.meta, t_cap,
+                              capture_ms)
+        return FrameInput(frame.index, ts, frame.image, meta=frame.meta, t_capture=t_cap,
+                          capture_ms=capture_ms)
+
+    def process_frame(self, frame, capture_ms: float, t_cap: float) -> FrameResult | None:
+        """One frame through the pipeline and every output (caller holds ``self.lock``)."""
+        if frame.image is None and "replay" not in frame.meta:
+            self.totals.bad_frames += 1
+            self.event("warning", f"frame {frame.index}: {frame.meta.get('error', 'no image')}"
+                                  "; skipped")
+            return None
+        inp = self._frame_input(frame, capture_ms, t_cap)
+        try:
+            res = self.pipeline.process(inp, loo=self.cfg["stats"]["loo"])
+        except Exception as e:  # a frame the detector or pose cannot digest: report, go on
+            self.totals.bad_frames += 1
+            self.event("error", f"frame {frame.index}: {type(e).__name__}: {e}; skipped")
+            log.debug("frame failure", exc_info=True)
+            return None
+        self._outputs(res)
+        return res
+
+    def _outputs(self, res: FrameResult) -> None:
+        t_out = time.perf_counter()
+        tot = self.totals
+        tot.frames += 1
+        est = res.estimate
+        # 1. robots first: the relay is the latency-critical output.
+        for fix in res.robots.values():
+            self.relay.update(fix.name, res.timestamp, fix.x, fix.y, fix.theta, fix.sigma)
+            tot.robots_seen.add(fix.name)
+        for name in self.relay.tick(res.timestamp):
+            self.event("warning", f"robot {name} not seen for "
+                                  f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
+        if res.t_capture:
+            tot.latency_ms.append((time.perf_counter() - res.t_capture) * 1e3)
+            if len(tot.latency_ms) > 100000:
+                del tot.latency_ms[:50000]
+        # 2. statistics
+        tot.markers_seen.update(int(i) for i in res.ids)
+        if not est.ok:
+            tot.not_estimated += 1
+        for mid, e in res.loo.items():
+            self.stats.add(mid, e)
+            tot.loo_sum += e
+            tot.loo_n += 1
+            tot.loo_max = max(tot.loo_max, e)
+        self._displacement_events(res)
+        # 3. files
+        if self.csv is not None:
+            self.csv.write_rows(self._csv_lines(res))
+        if self.recorder is not None:
+            truth = res.meta.get("truth")
+            self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
+                                      res.observations, res.diagnostics,
+                                      _truth_json(truth) if truth is not None else None)
+        # 4. telemetry
+        self.publish(P.TOPIC_MARKERS, self._markers_body(res))
+        self.publish(P.TOPIC_ROBOTS, self._robots_body(res))
+        now = time.perf_counter()
+        if now - self._last_stats_pub >= 0.2:
+            self._last_stats_pub = now
+            self.publish(P.TOPIC_STATS, self._stats_body(res))
+        self.frame_times.append(now)
+        self._last_frame_wall = time.time()
+        res.timings["output"] = (time.perf_counter() - t_out) * 1e3
+        res.timings["total"] = sum(v for k, v in res.timings.items() if k != "total")
+        self.last_frame_body = self._frame_body(res)
+        self.publish(P.TOPIC_FRAME, self.last_frame_body)
+        self.last_result = res
+
+    def _displacement_events(self, res: FrameResult) -> None:
+        thr = self.cfg["stats"]["displaced_threshold"]
+        bad = {mid: e for mid, e in res.loo.items() if e > thr}
+        bad.update({mid: d for mid, d in res.estimate.rejected.items() if mid not in bad})
+        for mid, e in sorted(bad.items()):
+            if mid not in self.displaced:
+                self.displaced.add(mid)
+                self.event("warning", f"marker {mid} looks displaced by {e * 1e3:.0f} mm")
+        # Markers estimated well again may warn again later.
+        for mid in list(self.displaced):
+            if mid in res.loo and mid not in bad:
+                self.displaced.discard(mid)
+
+    def _csv_lines(self, res: FrameResult) -> list[str]:
+        est = res.estimate
+        nref = len(est.references)
+        alg, i, t = res.algorithm, res.index, res.timestamp
+        lines = []
+        for mid, (p, yaw) in res.markers.items():
+            err = res.loo.get(mid) if mid in self.world_map else None
+            lines.append(row(i, t, alg, "marker", mid, p[0], p[1], p[2], yaw, err, nref))
+        for name, fix in res.robots.items():
+            z = self._robot_height(name)
+            lines.append(row(i, t, alg, "robot", name, fix.x, fix.y, z, fix.theta, None, nref))
+        for mid, d in sorted(est.rejected.items()):
+            me = res.markers.get(mid)
+            p = me[0] if me is not None else (None, None, None)
+            yaw = me[1] if me is not None else None
+            lines.append(row(i, t, alg, "rejected", mid, p[0], p[1], p[2], yaw, d, nref))
+        return lines
+
+    def _robot_height(self, name: str) -> float | None:
+        for r in self.cfg["robots"]:
+            if r["name"] == name:
+                return r["height"]
+        return None
+
+    def _frame_body(self, res: FrameResult) -> dict:
+        d = res.diagnostics
+        return {"t": res.timestamp, "frame": res.index, "source": self.source_spec,
+                "algorithm": res.algorithm, "ok": res.estimate.ok, "reason": res.estimate.reason,
+                "n_detected": len(res.ids), "n_refs": len(res.estimate.references),
+                "fps": self.fps(), "dropped": self.dropped,
+                "timings_ms": {k: round(v, 4) for k, v in res.timings.items()},
+                "flips": int(d.get("n_flipped", 0)), "ambiguous": int(d.get("n_ambiguous", 0)),
+                "bad_frames": self.totals.bad_frames, "scale": res.estimate.scale,
+                "rejected": sorted(res.estimate.rejected)}
+
+    def _markers_body(self, res: FrameResult) -> dict:
+        est = res.estimate
+        obs = {o.id: o for o in res.observations}
+        ids = sorted(set(self.world_map.ids) | set(int(i) for i in res.ids))
+        out = []
+        for mid in ids:
+            mk = self.world_map.markers.get(mid)
+            me = res.markers.get(mid)
+            o = obs.get(mid)
+            p = me[0] if me is not None else None
+            out.append({
+                "id": mid, "in_map": mk is not None, "detected": o is not None,
+                "x": None if p is None else p[0], "y": None if p is None else p[1],
+                "z": None if p is None else p[2], "yaw": None if me is None else me[1],
+                "map_x": None if mk is None else mk.position[0],
+                "map_y": None if mk is None else mk.position[1],
+                "map_z": None if mk is None else mk.position[2],
+                "error": res.loo.get(mid), "ambiguous": bool(o.ambiguous) if o else False,
+                "flipped": bool(o.flipped) if o else False, "rejected": mid in est.rejected,
+                "displacement": est.rejected.get(mid),
+                "reference": mid in est.references,
+            })
+        return {"t": res.timestamp, "frame": res.index, "algorithm": res.algorithm,
+                "markers": out}
+
+    def _robots_body(self, res: FrameResult) -> dict:
+        out = []
+        for tr in self.relay.tracks.values():
+            seen = tr.last_seen is not None
+            out.append({"name": tr.name, "markers": tr.markers,
+                        "x": tr.x if seen else None, "y": tr.y if seen else None,
+                        "theta": tr.theta if seen else None, "sigma": tr.sigma,
+                        "valid": tr.name in res.robots,
+                        "age_s": (res.timestamp - tr.last_seen) if seen else None,
+                        "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
+                        "seq": tr.seq, "send_errors": tr.errors})
+        return {"t": res.timestamp, "frame": res.index, "robots": out}
+
+    def _stats_body(self, res: FrameResult | None) -> dict:
+        pm = self.stats.per_marker()
+        return {"t": res.timestamp if res else time.time(), "frame": res.index if res else None,
+                "algorithm": self.pipeline.algorithm, "window": self.stats.window,
+                "mean_error": self.stats.mean_error, "max_error": self.stats.max_error,
+                "markers": [{"id": mid, **m.as_dict()} for mid, m in pm.items()]}
+
+    # ------------------------------------------------------------------ service thread hooks
+    def tick(self) -> None:
+        """Called by the service thread about every 100 ms."""
+        if self.live and self.relay is not None:
+            # No frame for a while (camera stalled): robots still go stale on the wall clock.
+            now = time.time()
+            if now - self._last_frame_wall >= self.cfg["relay"]["stale_after_s"]:
+                with self.lock:
+                    for name in self.relay.tick(now):
+                        self.event("warning", f"robot {name} not seen for "
+                                              f"{self.relay.stale_after_s:g} s: stale "
+                                              "(valid=0 sent)")
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> int:
+        """Process frames until the source ends, ``max_frames`` or :meth:`stop`."""
+        paced = is_paced_sim(self.source, self.cfg)
+        self.capture = Capture(self.source, threaded=self.live,
+                               pace_fps=self.cfg["source"]["fps"] if paced else 0.0)
+        if self.control is not None:
+            self.control.start()
+        self.totals.t_start = time.perf_counter()
+        self.publish(P.TOPIC_STATUS, self.status_body())
+        log.info("running: source %s, algorithm %s, map %s (%d markers)", self.source_spec,
+                 self.pipeline.algorithm, self.world_map.name, len(self.world_map))
+        try:
+            while not self.stop_event.is_set():
+                if self.max_frames is not None and self.totals.frames >= self.max_frames:
+                    break
+                try:
+                    item = self.capture.get(timeout=0.1)
+                except CaptureEnded as e:
+                    if e.args and e.args[0]:
+                        self.event("error", f"source stopped: {e.args[0]}")
+                        self.exit_code = EXIT_RUNTIME
+                    break
+                if item is None:
+                    continue
+                with self.lock:
+                    self.process_frame(*item)
+        finally:
+            self.totals.t_end = time.perf_counter()
+        return self.exit_code
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def close(self) -> None:
+        """Flush and close everything (idempotent)."""
+        with self.lock:
+            if self.control is not None:
+                self.control.stop()
+                self.control = None
+            if self.capture is not None:
+                self.capture.close()
+            elif getattr(self, "source", None) is not None:
+                self.source.close()
+            if self.csv is not None:
+                self.stop_csv()
+            if self.recorder is not None:
+                self.stop_recording()
+            if self.relay is not None:
+                self.relay.close()
+                self.relay = None
+            if self._log_handler is not None:
+                logging.getLogger("kmead").removeHandler(self._log_handler)
+                self._log_handler = None
+            if self.telemetry is not None:
+                self.telemetry.close()
+                self.telemetry = None
+
+    # ------------------------------------------------------------------ summary
+    def summary(self) -> str:
+        from kmead.summary import format_summary
+
+        return format_summary(self)
+
+
+def _truth_json(truth: Any) -> Any:
+    """The simulator's ground truth as JSON-able data (dataclasses and arrays flattened)."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(truth) and not isinstance(truth, type):
+        return {f.name: _truth_json(getattr(truth, f.name)) for f in dataclasses.fields(truth)}
+    if isinstance(truth, dict):
+        return {str(k): _truth_json(v) for k, v in truth.items()}
+    if isinstance(truth, (list, tuple)):
+        return [_truth_json(v) for v in truth]
+    if isinstance(truth, np.ndarray):
+        return truth.tolist()
+    if isinstance(truth, (np.floating, np.integer)):
+        return truth.item()
+    if isinstance(truth, float) and not math.isfinite(truth):
+        return None
+    if isinstance(truth, (str, int, float, bool)) or truth is None:
+        return truth
+    return str(truth)
+
+
+def _unused(_: Path) -> None:  # pragma: no cover - keeps Path imported for type hints
+    pass

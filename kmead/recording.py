@@ -1,0 +1,249 @@
+"""Recordings: every frame's detections and per-marker poses, for ``--source replay:FILE``.
+
+A recording is JSON lines (UTF-8, one object per line):
+
+1. a header ``{"format": "kmead-recording", "version": 1, "created", "source", "camera",
+   "map", "robots", "config"}``: the camera model at the frame size, the marker map with
+   raw rotation matrices (so replay sees bit-identical numbers), and the configuration;
+2. one line per frame ``{"frame", "t", "ids", "corners", "markers", "diag"[, "truth"]}``:
+   ``markers`` holds every per-marker pose (both IPPE solutions, reprojection errors,
+   ``ambiguous`` and ``flipped``); ``truth`` is the simulator's ground truth when known.
+
+Floats are written with Python's shortest round-trip repr, so replaying with the same
+settings reproduces the recorded run's estimates exactly. NaN is written as ``null``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kmea.estimators.base import MarkerObservation
+from kmea.maps import Marker, MarkerMap
+from kmea.vision.camera import CameraModel
+from kmea.vision.sources import Frame, FrameSource, SourceError, register_source
+
+FORMAT = "kmead-recording"
+VERSION = 1
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be read; the message names the file and line."""
+
+
+def _num(v: float) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _arr(a: Any) -> Any:
+    if a is None:
+        return None
+    return [_num(x) for x in np.asarray(a, dtype=float).reshape(-1)]
+
+
+def _unnum(v: Any) -> float:
+    return math.nan if v is None else float(v)
+
+
+def camera_to_json(c: CameraModel) -> dict:
+    return {"camera_matrix": _arr(c.camera_matrix), "dist_coeffs": _arr(c.dist_coeffs),
+            "width": c.width, "height": c.height}
+
+
+def camera_from_json(d: dict) -> CameraModel:
+    return CameraModel(np.array(d["camera_matrix"], dtype=float).reshape(3, 3),
+                       np.array(d["dist_coeffs"], dtype=float), int(d["width"]), int(d["height"]))
+
+
+def map_to_json(m: MarkerMap) -> dict:
+    return {"name": m.name, "source": m.source, "dictionary": m.dictionary,
+            "default_length": m.default_length, "origin_id": m.origin_id, "x_id": m.x_id,
+            "y_id": m.y_id, "reference_length": m.reference_length,
+            "markers": [{"id": mid, "position": _arr(mk.position), "rotation": _arr(mk.rotation),
+                         "length": mk.length} for mid, mk in sorted(m.markers.items())]}
+
+
+def map_from_json(d: dict) -> MarkerMap:
+    markers = {int(r["id"]): Marker(int(r["id"]), np.array(r["position"], dtype=float),
+                                    np.array(r["rotation"], dtype=float).reshape(3, 3),
+                                    float(r["length"])) for r in d["markers"]}
+    return MarkerMap(markers, dictionary=d["dictionary"], default_length=d["default_length"],
+                     origin_id=d["origin_id"], x_id=d["x_id"], y_id=d["y_id"],
+                     reference_length=d["reference_length"], name=d["name"],
+                     source=d.get("source", "<recording>"))
+
+
+def obs_to_json(o: MarkerObservation) -> dict:
+    return {"id": int(o.id), "R": _arr(o.marker2cam_R), "t": _arr(o.marker2cam_t),
+            "corners": _arr(o.corners), "length": float(o.length),
+            "reproj": _num(o.reproj_error), "alt_R": _arr(o.alt_R), "alt_t": _arr(o.alt_t),
+            "alt_reproj": _num(o.alt_reproj_error), "ambiguous": bool(o.ambiguous),
+            "flipped": bool(o.flipped)}
+
+
+def obs_from_json(d: dict) -> MarkerObservation:
+    def arr(key: str, shape: tuple[int, ...]) -> np.ndarray | None:
+        v = d.get(key)
+        return None if v is None else np.array([_unnum(x) for x in v]).reshape(shape)
+
+    return MarkerObservation(
+        id=int(d["id"]), marker2cam_R=arr("R", (3, 3)), marker2cam_t=arr("t", (3,)),
+        corners=arr("corners", (4, 2)), length=float(d["length"]),
+        reproj_error=_unnum(d.get("reproj")), alt_R=arr("alt_R", (3, 3)),
+        alt_t=arr("alt_t", (3,)), alt_reproj_error=_unnum(d.get("alt_reproj")),
+        ambiguous=bool(d.get("ambiguous", False)), flipped=bool(d.get("flipped", False)))
+
+
+def _jsonable(obj: Any) -> Any:
+    from kmead.protocol import _clean
+
+    return _clean(obj)
+
+
+class Recorder:
+    """Writes a recording; one ``write`` per frame, flushed (whole lines survive a kill)."""
+
+    def __init__(self, path: str | Path, camera: CameraModel, world_map: MarkerMap,
+                 source: str, config: dict) -> None:
+        self.path = Path(path)
+        if self.path.parent and not self.path.parent.exists():
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "wb", buffering=0)  # noqa: SIM115 - closed in close()
+        self.frames = 0
+        self.bytes = 0
+        self.camera = camera
+        header = {"format": FORMAT, "version": VERSION, "created": time.time(),
+                  "source": source, "camera": camera_to_json(camera),
+                  "map": map_to_json(world_map), "robots": config.get("robots", []),
+                  "config": config}
+        self._line(header)
+
+    def _line(self, obj: dict) -> None:
+        data = (json.dumps(obj, separators=(",", ":"), allow_nan=False) + "\n").encode()
+        view = memoryview(data)
+        while view:
+            view = view[self._f.write(view):]
+        self.bytes += len(data)
+
+    def write_frame(self, index: int, t: float, ids: np.ndarray, corners: np.ndarray,
+                    observations: list[MarkerObservation], diag: dict,
+                    truth: dict | None = None) -> None:
+        line: dict[str, Any] = {
+            "frame": int(index), "t": float(t),
+            "ids": [int(i) for i in np.asarray(ids).reshape(-1)],
+            "corners": [_arr(c) for c in np.asarray(corners, dtype=float).reshape(-1, 4, 2)],
+            "markers": [obs_to_json(o) for o in observations],
+            "diag": _jsonable(diag)}
+        if truth is not None:
+            line["truth"] = _jsonable(truth)
+        self._line(line)
+        self.frames += 1
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._f.closed
+
+
+def read_header(path: str | Path) -> dict:
+    """The header of a recording (``RecordingError`` naming the file when it is not one)."""
+    path = Path(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            first = f.readline()
+    except OSError as e:
+        raise RecordingError(f"{path}: cannot read: {e.strerror or e}") from None
+    except UnicodeDecodeError:
+        raise RecordingError(f"{path}: not a kmead recording (not text)") from None
+    try:
+        head = json.loads(first)
+    except json.JSONDecodeError:
+        raise RecordingError(f"{path}: line 1: not a kmead recording (no JSON header)") from None
+    if not isinstance(head, dict) or head.get("format") != FORMAT:
+        raise RecordingError(f"{path}: line 1: not a kmead recording (format != {FORMAT!r})")
+    if head.get("version") != VERSION:
+        raise RecordingError(f"{path}: line 1: recording version {head.get('version')!r} "
+                             f"not supported (expected {VERSION})")
+    for key in ("camera", "map"):
+        if key not in head:
+            raise RecordingError(f"{path}: line 1: header has no {key!r}")
+    return head
+
+
+class ReplaySource(FrameSource):
+    """``replay:FILE``: the frames of a recording, with detections and poses, no images.
+
+    Each :class:`Frame` has ``image = None`` and ``meta["replay"] = (ids, corners,
+    observations, diag)``; a line that cannot be parsed gives ``meta["error"]``.
+    ``camera`` and ``world_map`` come from the header.
+    """
+
+    live = False
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self.spec = f"replay:{path}"
+        try:
+            self.header = read_header(self.path)
+            self.camera = camera_from_json(self.header["camera"])
+            self.world_map = map_from_json(self.header["map"])
+        except RecordingError as e:
+            raise SourceError(str(e)) from None
+        except (KeyError, TypeError, ValueError) as e:
+            raise SourceError(f"{self.path}: line 1: bad recording header: {e}") from None
+        self.size = (self.camera.width, self.camera.height)
+        self._f = open(self.path, encoding="utf-8")  # noqa: SIM115 - closed in close()
+        self._f.readline()
+        self._line = 1
+        self._count = 0
+
+    def read(self) -> Frame | None:
+        if self._closed:
+            return None
+        text = self._f.readline()
+        if not text:
+            return None
+        self._line += 1
+        if not text.endswith("\n"):  # a recording cut by a kill: the last line is partial
+            return None
+        where = f"{self.path.name}: line {self._line}"
+        try:
+            d = json.loads(text)
+            ids = np.array(d["ids"], dtype=np.int64)
+            corners = np.array([[_unnum(x) for x in c] for c in d["corners"]],
+                               dtype=float).reshape(-1, 4, 2)
+            obs = [obs_from_json(m) for m in d["markers"]]
+            frame = Frame(int(d["frame"]), float(d["t"]), None,
+                          {"replay": (ids, corners, obs, d.get("diag") or {}),
+                           "truth": d.get("truth")})
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+            frame = Frame(self._count, math.nan, None, {"error": f"{where}: bad frame: {e}"})
+        self._count += 1
+        return frame
+
+    def close(self) -> None:
+        if not self._closed:
+            self._f.close()
+        super().close()
+
+
+def _replay_factory(rest: str, **opts: Any) -> FrameSource:
+    if not rest:
+        raise SourceError("replay: expected replay:FILE")
+    p = Path(rest)
+    if not p.is_file():
+        raise SourceError(f"replay:{rest}: no such file")
+    return ReplaySource(p)
+
+
+register_source("replay", _replay_factory)

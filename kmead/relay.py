@@ -1,0 +1,138 @@
+"""Robot relay: each robot's pose to its destinations, and stale messages.
+
+Datagram (one line of ASCII, no newline, ``;``-separated ``key=value``)::
+
+    name=amr1;seq=17;t=1700000000.123456;x=0.512300;y=0.200100;theta=1.570800;valid=1
+
+``seq`` counts this robot's messages (all destinations share it), ``t`` is the frame
+timestamp (s), x/y metres in the world frame, theta radians in (-pi, pi]. ``valid=0``: the
+robot has not been seen for ``relay.stale_after_s``; x/y/theta then repeat the last known
+pose (or 0 if never seen).
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+from dataclasses import dataclass, field
+from typing import Any
+
+from kmead.config import parse_destination
+
+
+@dataclass
+class RobotTrack:
+    """Relay state of one robot."""
+
+    name: str
+    markers: list[int]
+    destinations: list[str]
+    addrs: list[tuple[str, int]]
+    x: float = math.nan
+    y: float = math.nan
+    theta: float = math.nan
+    sigma: float | None = None
+    last_seen: float | None = None  # source clock, s
+    last_stale_sent: float | None = None
+    stale: bool = True
+    seq: int = 0
+    sent: int = 0
+    errors: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+def datagram(name: str, seq: int, t: float, x: float, y: float, theta: float,
+             valid: bool) -> bytes:
+    """The ASCII datagram of one message (see the module docstring)."""
+    def f(v: float) -> str:
+        return f"{(v if math.isfinite(v) else 0.0):.6f}"
+    return (f"name={name};seq={seq};t={t:.6f};x={f(x)};y={f(y)};theta={f(theta)};"
+            f"valid={int(valid)}").encode("ascii")
+
+
+def parse_datagram(data: bytes) -> dict[str, Any]:
+    """Inverse of :func:`datagram` (for tests and for clients written in Python)."""
+    out: dict[str, Any] = {}
+    for part in data.decode("ascii").split(";"):
+        k, _, v = part.partition("=")
+        out[k] = v
+    return {"name": out["name"], "seq": int(out["seq"]), "t": float(out["t"]),
+            "x": float(out["x"]), "y": float(out["y"]), "theta": float(out["theta"]),
+            "valid": out["valid"] == "1"}
+
+
+class Relay:
+    """Sends robot poses; ``publish`` is called with (topic, body) for the telemetry topic."""
+
+    def __init__(self, robots: list[dict], stale_after_s: float, stale_repeat_s: float,
+                 publish=None) -> None:
+        self.stale_after_s = stale_after_s
+        self.stale_repeat_s = stale_repeat_s
+        self.publish = publish
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.tracks: dict[str, RobotTrack] = {}
+        self.configure(robots)
+
+    def configure(self, robots: list[dict]) -> None:
+        """Replace the robot list, keeping the state of robots that stay."""
+        old = self.tracks
+        self.tracks = {}
+        for r in robots:
+            addrs = [parse_destination(d, f"robot {r['name']}") for d in r["destinations"]]
+            tr = old.get(r["name"])
+            if tr is None or tr.markers != r["markers"]:
+                tr = RobotTrack(r["name"], list(r["markers"]), list(r["destinations"]), addrs)
+            else:
+                tr.destinations, tr.addrs = list(r["destinations"]), addrs
+            self.tracks[r["name"]] = tr
+
+    def _send(self, tr: RobotTrack, t: float, valid: bool) -> None:
+        tr.seq += 1
+        data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid)
+        for addr in tr.addrs:
+            try:
+                self.sock.sendto(data, addr)
+                tr.sent += 1
+            except OSError:
+                # Unresolvable host, no route, full buffer: count it, never stall the loop.
+                tr.errors += 1
+        if self.publish is not None:
+            self.publish(f"robot.{tr.name}", {"name": tr.name, "seq": tr.seq, "t": t,
+                                              "x": tr.x, "y": tr.y, "theta": tr.theta,
+                                              "valid": valid, "sigma": tr.sigma})
+
+    def update(self, name: str, t: float, x: float, y: float, theta: float,
+               sigma: float | None = None) -> None:
+        """A fix of robot ``name`` at source time ``t``: send it everywhere."""
+        tr = self.tracks[name]
+        tr.x, tr.y, tr.theta, tr.sigma = x, y, theta, sigma
+        tr.last_seen = t
+        tr.stale = False
+        tr.last_stale_sent = None
+        self._send(tr, t, True)
+
+    def tick(self, now: float) -> list[str]:
+        """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.
+
+        Returns the names that just became stale (for an event).
+        """
+        newly = []
+        for tr in self.tracks.values():
+            if tr.last_seen is None:
+                continue  # never seen: nothing to withdraw
+            if now - tr.last_seen < self.stale_after_s:
+                continue
+            if not tr.stale:
+                tr.stale = True
+                newly.append(tr.name)
+                tr.last_stale_sent = now
+                self._send(tr, now, False)
+            elif (self.stale_repeat_s > 0 and tr.last_stale_sent is not None
+                  and now - tr.last_stale_sent >= self.stale_repeat_s):
+                tr.last_stale_sent = now
+                self._send(tr, now, False)
+        return newly
+
+    def close(self) -> None:
+        self.sock.close()

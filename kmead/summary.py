@@ -1,0 +1,44 @@
+"""The short summary printed when the daemon stops."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from kmead.daemon import Daemon
+
+
+def format_summary(d: Daemon) -> str:
+    """Frames, markers seen, robots tracked, LOO error statistics, frames/s, drops, files."""
+    t = d.totals
+    wall = max(t.t_end - t.t_start, 1e-9) if t.t_end else 0.0
+    fps = t.frames / wall if wall else 0.0
+    in_map = sorted(i for i in t.markers_seen if i in d.world_map)
+    other = sorted(i for i in t.markers_seen if i not in d.world_map)
+    lines = [
+        f"kmead summary: {t.frames} frames in {wall:.1f} s ({fps:.1f} frames/s), "
+        f"source {d.source_spec}, algorithm {d.pipeline.algorithm}",
+        f"  dropped frames: {d.dropped}, bad frames: {t.bad_frames}, "
+        f"not estimated: {t.not_estimated}",
+        f"  markers seen: {len(t.markers_seen)} ({len(in_map)} in the map of {len(d.world_map)}"
+        f", {len(other)} others{': ' + ' '.join(map(str, other)) if other else ''})",
+        f"  robots tracked: {len(t.robots_seen)} of {len(d.cfg['robots'])}"
+        f"{': ' + ', '.join(sorted(t.robots_seen)) if t.robots_seen else ''}",
+    ]
+    if t.loo_n:
+        lines.append(f"  leave-one-out error: mean {t.loo_sum / t.loo_n * 1e3:.3f} mm, "
+                     f"max {t.loo_max * 1e3:.3f} mm over {t.loo_n} marker estimates")
+    else:
+        lines.append("  leave-one-out error: none computed")
+    if t.latency_ms:
+        lat = np.asarray(t.latency_ms)
+        lines.append(f"  capture-to-relay latency: median {np.median(lat):.1f} ms, "
+                     f"p99 {np.percentile(lat, 99):.1f} ms")
+    rows = t.csv_rows + (d.csv.rows if d.csv is not None else 0)
+    if t.csv_paths:
+        lines.append(f"  CSV log: {', '.join(t.csv_paths)} ({rows} rows)")
+    if t.record_paths:
+        lines.append(f"  recording: {', '.join(t.record_paths)}")
+    return "\n".join(lines)
