@@ -1,0 +1,352 @@
+"""The kmea-tui application: a terminal UI on a running kmead (or a recording of one).
+
+Data flow: ONE exclusive async worker (:meth:`KmeaTui.stream`) reads the telemetry socket,
+keeps only the newest message per topic and posts a :class:`TelemetryBatch` at most every
+``ui_period`` seconds, and only after the UI has applied the previous one (so a fast daemon
+can never queue work in the UI: older messages are dropped and counted as coalesced).
+Tables are keyed by marker id / robot name and updated in place.
+A second small worker pings the control socket every second for the connection state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from collections import deque
+from typing import Any
+
+from textual import work
+from textual.app import App, ComposeResult
+from textual.binding import Binding
+from textual.widgets import Footer, TabbedContent, TabPane
+
+from kmea_tui.client import DaemonClient, RecordingClient
+from kmea_tui.messages import ConnectionChanged, ControlReply, ControlRequest, TelemetryBatch
+from kmea_tui.widgets.config_form import ConfigPane
+from kmea_tui.widgets.floor_map import FloorMap, MapData, MapPane
+from kmea_tui.widgets.live_table import LiveTable
+from kmea_tui.widgets.log_panel import LogPane
+from kmea_tui.widgets.markers import MarkersPane
+from kmea_tui.widgets.robots import RobotsPane
+from kmea_tui.widgets.stats import StatsPane
+from kmea_tui.widgets.status_bar import StatusBar
+from kmead import protocol
+
+Client = DaemonClient | RecordingClient
+
+TABS = (("markers", "1 Markers"), ("robots", "2 Robots"), ("stats", "3 Statistics"),
+        ("map", "4 Map"), ("config", "5 Config"), ("log", "6 Log"))
+# event/log messages are a history, not a state: kept (not coalesced), up to this many
+# per batch; older ones beyond it are dropped and counted.
+EVENT_BACKLOG = 500
+
+
+def terminal_has_16_colours(env: dict[str, str] | None = None) -> bool:
+    """True when the terminal announces neither 256 colours nor truecolor."""
+    env = dict(os.environ) if env is None else env
+    if env.get("COLORTERM", "").lower() in ("truecolor", "24bit"):
+        return False
+    return "256" not in env.get("TERM", "")
+
+
+def floor_extent(status: dict[str, Any] | None) -> tuple[float, float, float, float] | None:
+    """The floor rectangle (xmin, xmax, ymin, ymax) m if the daemon's status gives one."""
+    m = (status or {}).get("map") or {}
+    for key in ("floor", "extent"):
+        v = m.get(key)
+        if isinstance(v, list) and len(v) == 4 and all(isinstance(a, (int, float)) for a in v):
+            return (float(v[0]), float(v[1]), float(v[2]), float(v[3]))
+        if isinstance(v, dict) and {"xmin", "xmax", "ymin", "ymax"} <= set(v):
+            return (float(v["xmin"]), float(v["xmax"]), float(v["ymin"]), float(v["ymax"]))
+    return None
+
+
+class KmeaTui(App[None]):
+    """The UI. ``client`` is a :class:`DaemonClient` or a :class:`RecordingClient`."""
+
+    CSS_PATH = "app.tcss"
+    TITLE = "kmea-tui"
+    BINDINGS = [
+        *(Binding(str(i + 1), f"show_tab('{tab}')", title, show=False)
+          for i, (tab, title) in enumerate(TABS)),
+        Binding("q", "quit", "Quit"),
+        Binding("x", "reset_stats", "Reset stats"),
+        Binding("plus,equals_sign", "magnify(1)", "Error ×"),
+        Binding("minus", "magnify(-1)", "Error ÷"),
+        Binding("a", "auto_magnification", "Auto ×"),
+    ]
+
+    def __init__(self, client: Client, *, theme: str | None = None, ui_period: float = 0.1,
+                 stale_after: float = 2.0, ping_period: float = 1.0) -> None:
+        super().__init__()
+        self.client = client
+        if theme is None:
+            theme = "ansi-dark" if terminal_has_16_colours() else "textual-dark"
+        self.theme = theme
+        self.ui_period = ui_period
+        self.stale_after = stale_after
+        self.ping_period = ping_period
+        self.frame: dict[str, Any] | None = None
+        self.status: dict[str, Any] | None = None
+        self.markers_body: dict[str, Any] | None = None
+        self.robots_body: dict[str, Any] | None = None
+        self.misplaced: set[int] = set()
+        self.received = 0
+        self.coalesced = 0
+        self.batches = 0
+        self.replay_done = False
+        self.ping_ok: bool | None = None
+        self.ping_detail = ""
+        self.last_telemetry: float | None = None
+        self.connection_state = "connecting"
+        self.config_loaded = False
+        self._ui_ready = asyncio.Event()
+
+    # -- layout ----------------------------------------------------------------------------
+    def compose(self) -> ComposeResult:
+        with TabbedContent(initial="markers", id="tabs"):
+            with TabPane(TABS[0][1], id="markers"):
+                yield MarkersPane()
+            with TabPane(TABS[1][1], id="robots"):
+                yield RobotsPane()
+            with TabPane(TABS[2][1], id="stats"):
+                yield StatsPane()
+            with TabPane(TABS[3][1], id="map"):
+                yield MapPane()
+            with TabPane(TABS[4][1], id="config"):
+                yield ConfigPane(id="config-pane")
+            with TabPane(TABS[5][1], id="log"):
+                yield LogPane(id="log-pane")
+        yield StatusBar(id="status")
+        yield Footer()
+
+    async def on_mount(self) -> None:
+        self._ui_ready.set()
+        await self.client.open()
+        self.stream()
+        if self.client.live:
+            self.ping_loop()
+            self.set_interval(0.5, self.update_connection_state)
+        self.control("get_state")
+        self.control("get_config")
+        self.update_connection_state()
+        self.query_one("#markers-table").focus()
+
+    def on_unmount(self) -> None:
+        self.workers.cancel_all()
+        self.client.close()
+
+    # -- the telemetry stream ----------------------------------------------------------------
+    @work(exclusive=True, group="stream")
+    async def stream(self) -> None:
+        """Read telemetry, coalesce per topic, post at most one batch per ``ui_period``."""
+        latest: dict[str, dict[str, Any]] = {}
+        events: deque[tuple[str, dict[str, Any]]] = deque()
+        received = coalesced = 0
+        next_post = 0.0
+        ended_sent = False
+        while True:
+            msgs = await self.client.recv(0.05)
+            now = time.monotonic()
+            if msgs:
+                self.last_telemetry = now
+            for topic, body in msgs:
+                received += 1
+                if topic in (protocol.TOPIC_EVENT, protocol.TOPIC_LOG):
+                    events.append((topic, body))
+                    if len(events) > EVENT_BACKLOG:
+                        events.popleft()
+                        coalesced += 1
+                    continue
+                if topic in latest:
+                    coalesced += 1
+                latest[topic] = body
+            ended = self.client.ended
+            pending = bool(latest or events) or (ended and not ended_sent)
+            if pending and now >= next_post and self._ui_ready.is_set():
+                self._ui_ready.clear()
+                self.post_message(TelemetryBatch(latest, list(events), received, coalesced,
+                                                 ended=ended))
+                ended_sent = ended
+                latest, events = {}, deque()
+                next_post = now + self.ui_period
+
+    def on_telemetry_batch(self, msg: TelemetryBatch) -> None:
+        try:
+            self.apply_batch(msg)
+        finally:
+            self._ui_ready.set()
+
+    def apply_batch(self, msg: TelemetryBatch) -> None:
+        self.batches += 1
+        self.received, self.coalesced = msg.received, msg.coalesced
+        latest = msg.latest
+        with self.batch_update():
+            if (body := latest.get(protocol.TOPIC_FRAME)) is not None:
+                self.frame = body
+            if (body := latest.get(protocol.TOPIC_STATUS)) is not None:
+                self.status = body
+                self.query_one(LogPane).update_status(body)
+            if (body := latest.get(protocol.TOPIC_MARKERS)) is not None:
+                self.markers_body = body
+                self.misplaced = self.query_one(MarkersPane).update_markers(body)
+            if (body := latest.get(protocol.TOPIC_ROBOTS)) is not None:
+                self.robots_body = body
+                self.query_one(RobotsPane).update_robots(body)
+            if (body := latest.get(protocol.TOPIC_STATS)) is not None:
+                self.query_one(StatsPane).update_stats(body)
+            if msg.events:
+                self.query_one(LogPane).add_events(msg.events)
+            if protocol.TOPIC_MARKERS in latest or protocol.TOPIC_ROBOTS in latest \
+                    or protocol.TOPIC_STATUS in latest:
+                self.query_one(MapPane).set_data(MapData(
+                    markers=(self.markers_body or {}).get("markers", []),
+                    robots=(self.robots_body or {}).get("robots", []),
+                    misplaced=self.misplaced, floor=floor_extent(self.status)))
+            if msg.ended:
+                self.replay_done = True
+            self.update_connection_state()
+
+    # -- connection state ----------------------------------------------------------------------
+    @work(exclusive=True, group="ping")
+    async def ping_loop(self) -> None:
+        while True:
+            reply = await self.client.request("ping", timeout=min(0.5, self.ping_period))
+            ok = bool(reply.get("ok"))
+            if ok != self.ping_ok:
+                self.post_message(ConnectionChanged(ok, str(reply.get("error", ""))))
+            await asyncio.sleep(self.ping_period)
+
+    def on_connection_changed(self, msg: ConnectionChanged) -> None:
+        was = self.ping_ok
+        self.ping_ok, self.ping_detail = msg.ok, msg.detail
+        if (msg.ok and was is False) or (msg.ok and not self.config_loaded):
+            # (Re)connected: the daemon may have restarted with another configuration.
+            self.control("get_state")
+            self.control("get_config")
+        if was is not None:
+            self.query_one(LogPane).note(
+                f"daemon {'reachable again' if msg.ok else 'not answering'} "
+                f"({self.client.control})", msg.ok)
+        self.update_connection_state()
+
+    def compute_state(self, now: float | None = None) -> tuple[str, str]:
+        if not self.client.live:
+            return ("replay end" if self.replay_done else "replay"), self.client.name
+        now = time.monotonic() if now is None else now
+        if self.ping_ok is None:
+            return "connecting", self.client.control
+        if not self.ping_ok:
+            return "disconnected", self.ping_detail or "control ping failed"
+        if self.last_telemetry is None:
+            return "stale", "no telemetry yet"
+        age = now - self.last_telemetry
+        if age > self.stale_after:
+            return "stale", f"no telemetry for {age:.0f} s"
+        return "connected", ""
+
+    def update_connection_state(self) -> None:
+        state, detail = self.compute_state()
+        self.connection_state = state
+        self.query_one(StatusBar).show(state, self.frame, detail)
+
+    # -- control -------------------------------------------------------------------------------
+    def control(self, cmd: str, **args: Any) -> None:
+        """Send ``cmd`` in the background; the reply comes back as a :class:`ControlReply`."""
+        self.run_worker(self._control(cmd, args), group="control")
+
+    async def _control(self, cmd: str, args: dict[str, Any]) -> None:
+        reply = await self.client.request(cmd, **args)
+        self.post_message(ControlReply(cmd, args, reply))
+
+    def on_control_request(self, msg: ControlRequest) -> None:
+        msg.stop()
+        self.control(msg.cmd, **msg.args)
+
+    def on_control_reply(self, msg: ControlReply) -> None:
+        cmd, args, reply = msg.cmd, msg.args, msg.reply
+        ok = bool(reply.get("ok"))
+        config_pane = self.query_one(ConfigPane)
+        log_pane = self.query_one(LogPane)
+        error = str(reply.get("error", "failed"))
+        if cmd == "get_state" and ok:
+            state = reply.get("state", reply)
+            algos = state.get("algorithms") if isinstance(state, dict) else None
+            if isinstance(algos, list):
+                config_pane.algorithms = [str(a) for a in algos]
+            target = state.get("save_target") if isinstance(state, dict) else None
+            if isinstance(target, str) and target:
+                config_pane.save_target = target
+            return
+        if cmd == "get_state":
+            return
+        if cmd == "get_config":
+            if ok and isinstance(reply.get("config"), dict):
+                self.config_loaded = True
+                config_pane.show_config(reply["config"])
+            elif args:
+                config_pane.show_reply(f"get_config: {error}", False)
+            return
+        if cmd == "set":
+            text = f"{args.get('key')} = {args.get('value')!r}"
+            config_pane.show_reply(f"set {text}" if ok else f"set {text}: {error}", ok)
+            if ok:
+                self.control("get_config")
+            self.notify(f"set {args.get('key')}" + ("" if ok else f": {error}"),
+                        severity="information" if ok else "error")
+            return
+        if cmd == "save_config":
+            where = reply.get("path") or reply.get("file") or config_pane.save_target
+            config_pane.show_reply(f"saved to {where}" if ok else f"save: {error}", ok)
+            self.notify(f"configuration saved to {where}" if ok else f"save failed: {error}",
+                        severity="information" if ok else "error")
+            return
+        if cmd in ("log_start", "log_stop", "record_start", "record_stop", "reload_map",
+                   "reset_stats"):
+            path = reply.get("path")
+            text = f"{cmd}" + (f" {path}" if path else "") + ("" if ok else f": {error}")
+            log_pane.note(text, ok)
+            if cmd in ("reload_map",):
+                config_pane.show_reply(text, ok)
+            self.notify(text, severity="information" if ok else "error")
+
+    # -- key actions -------------------------------------------------------------------------
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        tab = self.query_one(TabbedContent).active if self.is_mounted else ""
+        if action == "reset_stats":
+            return tab == "stats"
+        if action in ("magnify", "auto_magnification"):
+            return tab == "map"
+        return True
+
+    def on_tabbed_content_tab_activated(self, event: TabbedContent.TabActivated) -> None:
+        self.refresh_bindings()
+
+    def action_show_tab(self, tab: str) -> None:
+        self.query_one(TabbedContent).active = tab
+        focus = {"markers": "#markers-table", "robots": "#robots-table",
+                 "stats": "#stats-table", "map": FloorMap, "config": "#algorithm",
+                 "log": "#events"}[tab]
+        self.query_one(focus).focus()  # type: ignore[call-overload]
+        self.refresh_bindings()
+
+    def action_reset_stats(self) -> None:
+        self.control("reset_stats")
+
+    def action_magnify(self, step: int) -> None:
+        self.query_one(MapPane).change_magnification(step)
+
+    def action_auto_magnification(self) -> None:
+        self.query_one(MapPane).auto_magnification()
+
+    def on_live_table_sort_changed(self, event: LiveTable.SortChanged) -> None:
+        # Robots and statistics summaries show the sort; re-render them from the last data.
+        if self.robots_body is not None:
+            self.query_one(RobotsPane).update_robots(self.robots_body)
+
+
+def run_tui(telemetry: str = protocol.DEFAULT_TELEMETRY,
+            control: str = protocol.DEFAULT_CONTROL) -> None:
+    """Run the UI on the daemon at these endpoints until the user quits (blocking)."""
+    KmeaTui(DaemonClient(telemetry, control)).run()

@@ -1,0 +1,60 @@
+"""``kmea-tui``: the terminal UI on a running kmead, or on a recorded telemetry stream."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+from kmead import protocol
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="kmea-tui",
+        description="Terminal UI for kmead: markers, robots, statistics, floor map, "
+                    "configuration and logging. Keys: 1-6 tabs, q quit.")
+    p.add_argument("--telemetry", default=protocol.DEFAULT_TELEMETRY, metavar="ENDPOINT",
+                   help="the daemon's telemetry PUB socket (default %(default)s)")
+    p.add_argument("--control", default=protocol.DEFAULT_CONTROL, metavar="ENDPOINT",
+                   help="the daemon's control REP socket (default %(default)s)")
+    p.add_argument("--replay", metavar="FILE.jsonl",
+                   help="show a recorded telemetry stream instead of a daemon")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="replay speed factor (default 1)")
+    p.add_argument("--save-stream", metavar="FILE.jsonl",
+                   help="record the daemon's telemetry to FILE for --replay (no UI)")
+    p.add_argument("--seconds", type=float, default=5.0,
+                   help="how long --save-stream records (default %(default)s s)")
+    p.add_argument("--theme", default="auto",
+                   help="Textual theme; 'auto' picks ansi-dark on 16-colour terminals "
+                        "and textual-dark otherwise")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from kmea_tui.client import DaemonClient, RecordingClient, record_stream
+
+    if args.save_stream:
+        n = asyncio.run(record_stream(args.telemetry, args.control, args.save_stream,
+                                      args.seconds))
+        print(f"kmea-tui: wrote {n} messages to {args.save_stream}")
+        return 0 if n else 1
+    from kmea_tui.app import KmeaTui
+
+    if args.replay:
+        try:
+            client: DaemonClient | RecordingClient = RecordingClient(
+                args.replay, realtime=True, speed=args.speed, loop=True)
+        except ValueError as e:
+            print(f"kmea-tui: {e}", file=sys.stderr)
+            return 2
+    else:
+        client = DaemonClient(args.telemetry, args.control)
+    KmeaTui(client, theme=None if args.theme == "auto" else args.theme).run()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

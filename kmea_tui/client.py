@@ -1,0 +1,301 @@
+"""Where the UI's data comes from: a running daemon (ZeroMQ) or a recorded telemetry stream.
+
+Both clients share one small async interface, so :class:`kmea_tui.app.KmeaTui` runs
+unchanged against either:
+
+- ``await open()`` / ``close()``
+- ``await recv(timeout)`` -> list of ``(topic, body)`` available now (waits at most
+  ``timeout`` s for the first one). Bodies are checked with :func:`kmead.protocol.decode`.
+- ``await request(cmd, **args)`` -> the reply dict; never raises for a dead daemon: the
+  reply is then ``{"ok": False, "error": ...}`` (lazy-pirate pattern: the REQ socket is
+  closed and re-created after a timeout so it never stays stuck in its send/recv cycle).
+- ``live`` (a daemon: stale/disconnected states apply), ``ended`` (a finished recording),
+  ``bad_messages`` (telemetry that did not follow the protocol, skipped).
+
+Recording format (``tests/data/telemetry_*.jsonl``, written by :func:`record_stream`): JSON
+lines; an optional first line ``{"header": {"telemetry": ..., "config": {...},
+"state": {...}}}`` with the control replies a replay can answer, then one line per
+telemetry message ``{"topic": str, "body": {...}, "dt": seconds since the previous line}``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import zmq
+import zmq.asyncio
+
+from kmead import protocol
+
+# Topics the UI shows. robot.<name> topics are for the robots themselves; "robots" has them all.
+UI_TOPICS = (
+    protocol.TOPIC_FRAME,
+    protocol.TOPIC_MARKERS,
+    protocol.TOPIC_ROBOTS,
+    protocol.TOPIC_STATS,
+    protocol.TOPIC_STATUS,
+    protocol.TOPIC_EVENT,
+    protocol.TOPIC_LOG,
+)
+
+Reply = dict[str, Any]
+Message = tuple[str, dict[str, Any]]
+
+# At most this many messages per recv() call, so one call never monopolises the event loop.
+MAX_BATCH = 2000
+
+
+class DaemonClient:
+    """SUB (telemetry) + REQ (control) sockets to one kmead.
+
+    Args:
+        telemetry: ZeroMQ endpoint of the daemon's PUB socket.
+        control: ZeroMQ endpoint of the daemon's REP socket.
+        timeout: seconds to wait for a control reply before giving up on it.
+    """
+
+    live = True
+    ended = False
+
+    def __init__(self, telemetry: str = protocol.DEFAULT_TELEMETRY,
+                 control: str = protocol.DEFAULT_CONTROL, timeout: float = 1.0) -> None:
+        self.telemetry = telemetry
+        self.control = control
+        self.timeout = timeout
+        self.bad_messages = 0
+        self.last_error = ""
+        self._ctx: zmq.asyncio.Context | None = None
+        self._sub: zmq.asyncio.Socket | None = None
+        self._req: zmq.asyncio.Socket | None = None
+        self._lock: asyncio.Lock | None = None
+
+    @property
+    def name(self) -> str:
+        return self.telemetry
+
+    async def open(self) -> None:
+        """Create the sockets (inside the event loop that will use them)."""
+        self._ctx = zmq.asyncio.Context()
+        self._lock = asyncio.Lock()
+        sub = self._ctx.socket(zmq.SUB)
+        sub.setsockopt(zmq.LINGER, 0)
+        # A UI that falls behind loses old telemetry at the socket, never memory.
+        sub.setsockopt(zmq.RCVHWM, 1000)
+        for topic in UI_TOPICS:
+            sub.setsockopt(zmq.SUBSCRIBE, topic.encode())
+        sub.connect(self.telemetry)
+        self._sub = sub
+
+    def close(self) -> None:
+        for s in (self._sub, self._req):
+            if s is not None:
+                s.close(linger=0)
+        self._sub = self._req = None
+        if self._ctx is not None:
+            self._ctx.term()
+            self._ctx = None
+
+    async def recv(self, timeout: float) -> list[Message]:
+        """Every telemetry message waiting now; waits up to ``timeout`` s for the first."""
+        sub = self._sub
+        if sub is None:
+            raise RuntimeError("DaemonClient.recv before open()")
+        if not await sub.poll(timeout * 1000, zmq.POLLIN):
+            return []
+        out: list[Message] = []
+        while len(out) < MAX_BATCH:
+            try:
+                frames = await sub.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            try:
+                out.append(protocol.decode(frames))
+            except protocol.ProtocolError as e:
+                self.bad_messages += 1
+                self.last_error = str(e)
+        return out
+
+    def _new_req(self) -> zmq.asyncio.Socket:
+        assert self._ctx is not None
+        req = self._ctx.socket(zmq.REQ)
+        req.setsockopt(zmq.LINGER, 0)
+        req.setsockopt(zmq.SNDTIMEO, int(self.timeout * 1000))
+        req.setsockopt(zmq.RCVTIMEO, int(self.timeout * 1000))
+        req.connect(self.control)
+        return req
+
+    async def request(self, cmd: str, timeout: float | None = None, **args: Any) -> Reply:
+        """Send one control command; the reply, or ``{"ok": False, "error": ...}``."""
+        if self._ctx is None or self._lock is None:
+            return {"ok": False, "error": "not connected (client not open)"}
+        wait = self.timeout if timeout is None else timeout
+        async with self._lock:
+            if self._req is None:
+                self._req = self._new_req()
+            req = self._req
+            try:
+                await req.send(protocol.encode_body({"cmd": cmd, **args}))
+                if not await req.poll(wait * 1000, zmq.POLLIN):
+                    raise TimeoutError
+                data = await req.recv()
+            except (TimeoutError, zmq.ZMQError):
+                # Lazy pirate: a REQ socket that missed its reply is unusable; start afresh.
+                req.close(linger=0)
+                self._req = None
+                return {"ok": False, "error": f"no reply from {self.control} within {wait:g} s"}
+        try:
+            reply = protocol.decode_body(data)
+        except protocol.ProtocolError as e:
+            return {"ok": False, "error": f"bad reply to {cmd!r}: {e}"}
+        reply.setdefault("ok", False)
+        return reply
+
+
+class RecordingClient:
+    """Replays a recorded telemetry stream (see the module docstring for the format).
+
+    Args:
+        path: the JSON-lines recording.
+        realtime: replay at the recorded pace (``dt``) times ``speed``; otherwise every
+            message is delivered at once, which makes the UI deterministic for snapshots.
+        loop: start again at the end (demos).
+    """
+
+    live = False
+
+    def __init__(self, path: str | Path, realtime: bool = False, speed: float = 1.0,
+                 loop: bool = False) -> None:
+        self.path = Path(path)
+        self.realtime = realtime
+        self.speed = speed
+        self.loop = loop
+        self.header: dict[str, Any] = {}
+        self.messages: list[tuple[str, dict[str, Any], float]] = []
+        self.bad_messages = 0
+        self.telemetry = f"replay:{self.path.name}"
+        self.control = "(none: replay)"
+        self._load()
+        self._pos = 0
+        self._t0 = 0.0
+        self._next_due = 0.0
+
+    @property
+    def name(self) -> str:
+        return self.telemetry
+
+    def _load(self) -> None:
+        try:
+            lines = self.path.read_text(encoding="utf-8").splitlines()
+        except OSError as e:
+            raise ValueError(f"{self.path}: cannot read recording: {e.strerror}") from None
+        for n, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError as e:
+                raise ValueError(f"{self.path}:{n}: not JSON: {e.msg}") from None
+            if not isinstance(rec, dict):
+                raise ValueError(f"{self.path}:{n}: expected a JSON object")
+            if "header" in rec:
+                self.header = dict(rec["header"])
+                continue
+            topic, body = rec.get("topic"), rec.get("body")
+            if not isinstance(topic, str) or not isinstance(body, dict):
+                raise ValueError(f"{self.path}:{n}: expected fields 'topic' (str) and "
+                                 f"'body' (object)")
+            try:
+                protocol.decode_body(json.dumps(body).encode())
+            except protocol.ProtocolError as e:
+                raise ValueError(f"{self.path}:{n}: {e}") from None
+            self.messages.append((topic, body, float(rec.get("dt", 0.0))))
+
+    @property
+    def ended(self) -> bool:
+        return self._pos >= len(self.messages) and not self.loop
+
+    async def open(self) -> None:
+        self._pos = 0
+        self._t0 = time.monotonic()
+        self._next_due = self._t0
+
+    def close(self) -> None:
+        pass
+
+    async def recv(self, timeout: float) -> list[Message]:
+        if self._pos >= len(self.messages):
+            if not self.loop:
+                await asyncio.sleep(timeout)
+                return []
+            self._pos = 0
+        if not self.realtime:
+            chunk = self.messages[self._pos:self._pos + MAX_BATCH]
+            self._pos += len(chunk)
+            await asyncio.sleep(0)
+            return [(t, b) for t, b, _ in chunk]
+        out: list[Message] = []
+        deadline = time.monotonic() + timeout
+        while self._pos < len(self.messages) and len(out) < MAX_BATCH:
+            topic, body, dt = self.messages[self._pos]
+            due = self._next_due + dt / self.speed
+            now = time.monotonic()
+            if due > now:
+                if out or due > deadline:
+                    break
+                await asyncio.sleep(due - now)
+            self._next_due = due
+            out.append((topic, body))
+            self._pos += 1
+        if not out:
+            await asyncio.sleep(max(0.0, deadline - time.monotonic()))
+        return out
+
+    async def request(self, cmd: str, timeout: float | None = None, **args: Any) -> Reply:
+        if cmd == "ping":
+            return {"ok": True, "pong": True}
+        if cmd == "get_config" and "config" in self.header:
+            return {"ok": True, "config": self.header["config"]}
+        if cmd == "get_state" and "state" in self.header:
+            return {"ok": True, "state": self.header["state"]}
+        return {"ok": False, "error": f"replaying {self.path.name}: no daemon to {cmd}"}
+
+
+async def record_stream(telemetry: str, control: str, path: str | Path, seconds: float,
+                        topics: Iterable[str] = UI_TOPICS) -> int:
+    """Record ``seconds`` of a daemon's telemetry into ``path`` (the replay format).
+
+    The header holds the daemon's ``get_config`` and ``get_state`` replies when it answers.
+    Returns the number of messages written.
+    """
+    client = DaemonClient(telemetry, control)
+    await client.open()
+    wanted = tuple(topics)
+    try:
+        header: dict[str, Any] = {"telemetry": telemetry}
+        cfg = await client.request("get_config")
+        if cfg.get("ok"):
+            header["config"] = cfg.get("config", {})
+        st = await client.request("get_state")
+        if st.get("ok"):
+            header["state"] = st.get("state", {})
+        lines = [json.dumps({"header": header}, separators=(",", ":"))]
+        end = time.monotonic() + seconds
+        last: float | None = None
+        while (now := time.monotonic()) < end:
+            for topic, body in await client.recv(min(0.1, end - now)):
+                if not topic.startswith(wanted):
+                    continue
+                t = time.monotonic()
+                dt = 0.0 if last is None else t - last
+                last = t
+                lines.append(json.dumps({"topic": topic, "body": body, "dt": round(dt, 4)},
+                                        separators=(",", ":")))
+    finally:
+        client.close()
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return len(lines) - 1

@@ -1,0 +1,228 @@
+"""Configuration tab: algorithm, filter, robots and detector options, applied live."""
+
+from __future__ import annotations
+
+import json
+import sys
+from typing import Any
+
+from rich.text import Text
+from textual import on
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual.widgets import Button, DataTable, Input, Label, Select, Static
+
+from kmea_tui.messages import ControlRequest
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+# Offered when the daemon does not list its algorithms (get_state "algorithms").
+DEFAULT_ALGORITHMS = ("kmea", "lmea", "umeyama")
+
+
+def parse_value(text: str) -> Any:
+    """A typed-in value as TOML (``1.0``, ``true``, ``"DICT_6X6_250"``, ``[1, 2]``);
+    a bare word that is not TOML is taken as a string."""
+    text = text.strip()
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def show_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    return json.dumps(value) if isinstance(value, (list, dict)) else str(value)
+
+
+def robot_row(r: dict[str, Any]) -> tuple[str, str, str, str, str]:
+    markers = r.get("markers")
+    if isinstance(markers, list):
+        markers_s = "+".join(map(str, markers))
+    else:
+        markers_s = str(markers)
+    dests = r.get("destinations") or []
+    return (str(r.get("name", "?")), markers_s, f"{float(r.get('height', 0.0)):.3f}",
+            f"{float(r.get('length', 0.0)):.3f}",
+            ", ".join(map(str, dests)) if isinstance(dests, list) else str(dests))
+
+
+class RobotsConfigTable(DataTable):
+    BINDINGS = [
+        Binding("a", "add", "Add robot"),
+        Binding("e,enter", "edit", "Edit"),
+        Binding("d,delete", "remove", "Remove"),
+    ]
+
+    def on_mount(self) -> None:
+        self.cursor_type = "row"
+        for key, label in (("name", "name"), ("markers", "markers"), ("height", "height m"),
+                           ("length", "length m"), ("destinations", "destinations")):
+            self.add_column(label, key=key)
+
+    def action_add(self) -> None:
+        self.app.query_one(ConfigPane).edit_robot(None)
+
+    def action_edit(self) -> None:
+        if self.row_count:
+            self.app.query_one(ConfigPane).edit_robot(self.cursor_row)
+
+    def action_remove(self) -> None:
+        if self.row_count:
+            self.app.query_one(ConfigPane).remove_robot(self.cursor_row)
+
+
+class ConfigPane(VerticalScroll):
+    """Shows the daemon's effective configuration; every change is one control ``set``."""
+
+    BINDINGS = [Binding("ctrl+s", "save", "Save config"),
+                Binding("ctrl+r", "refresh_config", "Re-read")]
+
+    def __init__(self, id: str | None = None) -> None:
+        super().__init__(id=id)
+        self.config: dict[str, Any] = {}
+        self.algorithms: list[str] = list(DEFAULT_ALGORITHMS)
+        self.robots: list[dict[str, Any]] = []
+        self.save_target = "the daemon's configuration file"
+
+    def compose(self) -> ComposeResult:
+        yield Static("configuration not loaded yet (daemon not reachable?)", id="config-status",
+                     classes="summary")
+        with Horizontal(classes="form-row"):
+            yield Label("algorithm", classes="form-label")
+            yield Select([(a, a) for a in self.algorithms], allow_blank=True,
+                         id="algorithm", prompt="(unknown)", compact=True)
+        with Horizontal(classes="form-row"):
+            yield Label("filter alpha", classes="form-label")
+            yield Input(placeholder="0..1, 1 = no filtering", id="filter-alpha", compact=True)
+        yield Label("robots: a add · e/Enter edit · d remove", classes="form-title",
+                    markup=False)
+        yield RobotsConfigTable(id="robots-config")
+        yield Label("detector options (values in TOML syntax)", classes="form-title",
+                    markup=False)
+        yield Vertical(id="detector-options")
+        with Horizontal(classes="form-row"):
+            yield Button("Save [ctrl+s]", id="save", variant="primary")
+            yield Button("Re-read [ctrl+r]", id="reread")
+            yield Button("Reload map", id="reload-map")
+        yield Static("", id="save-note", classes="note")
+
+    # -- showing the daemon's configuration ----------------------------------------------
+    def show_config(self, config: dict[str, Any], algorithms: list[str] | None = None,
+                    save_target: str | None = None) -> None:
+        self.config = config
+        if algorithms:
+            self.algorithms = list(algorithms)
+        if save_target:
+            self.save_target = save_target
+        est = config.get("estimator", {}) if isinstance(config.get("estimator"), dict) else {}
+        algo = est.get("algorithm")
+        if isinstance(algo, str) and algo not in self.algorithms:
+            self.algorithms.append(algo)
+        select = self.query_one("#algorithm", Select)
+        with select.prevent(Select.Changed):
+            select.set_options([(a, a) for a in self.algorithms])
+            if isinstance(algo, str):
+                select.value = algo
+        filt = config.get("filter", {}) if isinstance(config.get("filter"), dict) else {}
+        alpha = self.query_one("#filter-alpha", Input)
+        if not alpha.has_focus and "alpha" in filt:
+            alpha.value = show_value(filt["alpha"])
+        robots = config.get("robots", [])
+        self.robots = [dict(r) for r in robots if isinstance(r, dict)]
+        table = self.query_one(RobotsConfigTable)
+        table.clear()  # a configuration change, not live data: small and rare
+        for i, r in enumerate(self.robots):
+            table.add_row(*robot_row(r), key=str(i))
+        self._show_detector(config.get("detector", {}))
+        self.query_one("#save-note", Static).update(
+            f"Save writes {self.save_target}.")
+        self.query_one("#config-status", Static).update(Text.assemble(
+            ("configuration", "bold"), f" of {config.get('_source', 'the daemon')}: ",
+            "Enter applies a value live; Save makes changes permanent"))
+
+    def _show_detector(self, detector: Any) -> None:
+        box = self.query_one("#detector-options", Vertical)
+        options = {k: v for k, v in (detector or {}).items()
+                   if isinstance(v, (str, int, float, bool))}
+        existing = {inp.name for inp in box.query(Input)}
+        if existing == set(options):
+            for inp in box.query(Input):
+                if not inp.has_focus and inp.name in options:
+                    inp.value = show_value(options[inp.name])
+            return
+        box.remove_children()
+        rows = []
+        for key, value in options.items():
+            rows.append(Horizontal(Label(key, classes="form-label"),
+                                   Input(show_value(value), name=key,
+                                         id=f"detector-{key.replace('_', '-')}",
+                                         classes="detector-option", compact=True),
+                                   classes="form-row"))
+        box.mount_all(rows)
+
+    def show_reply(self, text: str, ok: bool) -> None:
+        self.query_one("#config-status", Static).update(
+            Text(("✓ " if ok else "✗ ") + text, style="green" if ok else "bold red"))
+
+    # -- user actions ------------------------------------------------------------------------
+    def _set(self, key: str, value: Any) -> None:
+        self.post_message(ControlRequest("set", {"key": key, "value": value}))
+
+    @on(Select.Changed, "#algorithm")
+    def _algorithm_changed(self, event: Select.Changed) -> None:
+        if isinstance(event.value, str):
+            self._set("estimator.algorithm", event.value)
+
+    @on(Input.Submitted, "#filter-alpha")
+    def _alpha_submitted(self, event: Input.Submitted) -> None:
+        value = parse_value(event.value)
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            self.show_reply(f"filter alpha must be a number, got {event.value!r}", False)
+            return
+        self._set("filter.alpha", float(value))
+
+    @on(Input.Submitted, ".detector-option")
+    def _detector_submitted(self, event: Input.Submitted) -> None:
+        self._set(f"detector.{event.input.name}", parse_value(event.value))
+
+    @on(Button.Pressed, "#save")
+    def action_save(self) -> None:
+        self.post_message(ControlRequest("save_config", {}))
+
+    @on(Button.Pressed, "#reread")
+    def action_refresh_config(self) -> None:
+        self.post_message(ControlRequest("get_config", {}))
+
+    @on(Button.Pressed, "#reload-map")
+    def _reload_map(self) -> None:
+        self.post_message(ControlRequest("reload_map", {}))
+
+    def edit_robot(self, index: int | None) -> None:
+        from kmea_tui.screens.robot_edit import RobotEditScreen
+
+        robot = self.robots[index] if index is not None and index < len(self.robots) else None
+
+        def done(result: dict[str, Any] | None) -> None:
+            if result is None:
+                return
+            robots = [dict(r) for r in self.robots]
+            if index is None or index >= len(robots):
+                robots.append(result)
+            else:
+                robots[index] = result
+            self._set("robots", robots)
+
+        self.app.push_screen(RobotEditScreen(robot), done)
+
+    def remove_robot(self, index: int) -> None:
+        if 0 <= index < len(self.robots):
+            robots = [dict(r) for i, r in enumerate(self.robots) if i != index]
+            self._set("robots", robots)

@@ -1,0 +1,244 @@
+"""Top view of the floor to scale in braille: outline, markers by id, robots, error vectors."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from rich.text import Text
+from textual.widget import Widget
+
+from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnification
+
+# Styles use the 16 ANSI colours only, so they read the same on any terminal.
+STYLE_OUTLINE = "bright_black"
+STYLE_DETECTED = "bold green"
+STYLE_UNSEEN = "bright_black"
+STYLE_MISPLACED = "bold red"
+STYLE_FOREIGN = "bold cyan"
+STYLE_VECTOR = "yellow"
+STYLE_ROBOT = "bold magenta"
+STYLE_STALE = "magenta"
+STYLE_AXES = "blue"
+
+# Margin around the markers' extent when the floor size is unknown, metres.
+EXTENT_MARGIN = 0.155
+# Auto magnification makes the longest error vector about this fraction of the floor's width.
+VECTOR_FRACTION = 0.08
+ROBOT_HEADING_M = 0.12
+
+
+@dataclass
+class MapData:
+    """What the map shows; marker and robot dicts are the telemetry's."""
+
+    markers: list[dict[str, Any]] = field(default_factory=list)
+    robots: list[dict[str, Any]] = field(default_factory=list)
+    misplaced: set[int] = field(default_factory=set)
+    floor: tuple[float, float, float, float] | None = None  # xmin, xmax, ymin, ymax (m)
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def marker_error_vector(m: dict[str, Any]) -> tuple[float, float] | None:
+    """(dx, dy) m from the map position to the estimated one, or None if unknown."""
+    x, y, mx, my = (_num(m.get(k)) for k in ("x", "y", "map_x", "map_y"))
+    if None in (x, y, mx, my) or not m.get("detected", x is not None):
+        return None
+    return x - mx, y - my  # type: ignore[operator]
+
+
+class FloorMap(Widget):
+    """Draws :class:`MapData` to fill the widget; ``magnification`` None = automatic."""
+
+    DEFAULT_CSS = "FloorMap { height: 1fr; width: 1fr; }"
+
+    def __init__(self, id: str | None = None) -> None:
+        super().__init__(id=id)
+        self.data = MapData()
+        self.magnification: float | None = None
+        self._auto_mag = 100.0
+        self.extent_is_floor = False
+
+    def set_data(self, data: MapData) -> None:
+        self.data = data
+        self._update_auto_magnification()
+        self.refresh()
+
+    @property
+    def effective_magnification(self) -> float:
+        return self.magnification if self.magnification is not None else self._auto_mag
+
+    def _update_auto_magnification(self) -> None:
+        # Scaled to the markers that are not misplaced: a misplaced marker's long vector
+        # is clipped at the edge instead of shrinking every other vector to nothing.
+        errs = [math.hypot(*v) for m in self.data.markers
+                if m.get("id") not in self.data.misplaced
+                and (v := marker_error_vector(m)) is not None]
+        x0, x1, y0, y1 = self.extent()
+        suggested = nice_magnification(max(errs, default=0.0),
+                                       VECTOR_FRACTION * max(x1 - x0, y1 - y0))
+        # Hysteresis: only change by more than one 1-2-5 step, so the map doesn't flicker.
+        ratio = suggested / self._auto_mag
+        if ratio > 2.6 or ratio < 1 / 2.6 or not errs:
+            self._auto_mag = suggested
+
+    def extent(self) -> tuple[float, float, float, float]:
+        """The world rectangle drawn as the floor outline (m)."""
+        if self.data.floor is not None:
+            self.extent_is_floor = True
+            return self.data.floor
+        self.extent_is_floor = False
+        xs, ys = [], []
+        for m in self.data.markers:
+            for kx, ky in (("map_x", "map_y"), ("x", "y")):
+                x, y = _num(m.get(kx)), _num(m.get(ky))
+                if x is not None and y is not None:
+                    xs.append(x)
+                    ys.append(y)
+                    break
+        if not xs:
+            return (-0.85, 0.85, -0.6, 0.6)
+        return (min(xs) - EXTENT_MARGIN, max(xs) + EXTENT_MARGIN,
+                min(ys) - EXTENT_MARGIN, max(ys) + EXTENT_MARGIN)
+
+    def metres_per_cell(self) -> float:
+        c = BrailleCanvas(self.size.width, self.size.height)
+        x0, x1, y0, y1 = self.extent()
+        return 2.0 / Viewport(x0, x1, y0, y1, c.width, c.height).scale
+
+    def render(self) -> Text:
+        canvas = BrailleCanvas(self.size.width, self.size.height)
+        if canvas.cols < 4 or canvas.rows < 2:
+            return Text("")
+        self.draw(canvas)
+        return canvas.render()
+
+    def draw(self, canvas: BrailleCanvas) -> None:
+        x0, x1, y0, y1 = self.extent()
+        vp = Viewport(x0, x1, y0, y1, canvas.width, canvas.height)
+        canvas.rect(*vp.to_dots(x0, y0), *vp.to_dots(x1, y1), STYLE_OUTLINE)
+        # Origin axes, 10 cm each, so the frame's orientation is visible.
+        if x0 <= 0 <= x1 and y0 <= 0 <= y1:
+            canvas.line(*vp.to_dots(0, 0), *vp.to_dots(0.1, 0), STYLE_AXES)
+            canvas.line(*vp.to_dots(0, 0), *vp.to_dots(0, 0.1), STYLE_AXES)
+        mag = self.effective_magnification
+        markers = self.data.markers
+        for m in markers:
+            v = marker_error_vector(m)
+            if v is None:
+                continue
+            mx, my = float(m["map_x"]), float(m["map_y"])
+            style = STYLE_MISPLACED if m.get("id") in self.data.misplaced else STYLE_VECTOR
+            canvas.line(*vp.to_dots(mx, my), *vp.to_dots(mx + mag * v[0], my + mag * v[1]),
+                        style)
+        for r in self.data.robots:
+            x, y, th = _num(r.get("x")), _num(r.get("y")), _num(r.get("theta"))
+            if x is None or y is None or th is None:
+                continue
+            style = STYLE_STALE if r.get("stale") else STYLE_ROBOT
+            hx, hy = x + ROBOT_HEADING_M * math.cos(th), y + ROBOT_HEADING_M * math.sin(th)
+            canvas.line(*vp.to_dots(x, y), *vp.to_dots(hx, hy), style)
+
+        def rank(m: dict[str, Any]) -> int:
+            # Later labels win where they overlap: misplaced, then detected, then the rest.
+            if m.get("id") in self.data.misplaced:
+                return 3
+            return 2 if m.get("detected") else 1
+
+        for m in sorted(markers, key=rank):
+            in_map = _num(m.get("map_x")) is not None and _num(m.get("map_y")) is not None
+            if in_map:
+                px, py = float(m["map_x"]), float(m["map_y"])
+            elif _num(m.get("x")) is not None and _num(m.get("y")) is not None:
+                px, py = float(m["x"]), float(m["y"])
+            else:
+                continue
+            if not in_map:
+                style = STYLE_FOREIGN
+            elif m.get("id") in self.data.misplaced:
+                style = STYLE_MISPLACED
+            elif m.get("detected"):
+                style = STYLE_DETECTED
+            else:
+                style = STYLE_UNSEEN
+            label = str(m.get("id"))
+            cx, cy = vp.to_cell(px, py)
+            lx = cx - (len(label) - 1) // 2
+            if canvas.free(lx, cy, len(label)) or rank(m) == 3:
+                canvas.text(lx, cy, label, style)
+            else:
+                # Too close to a label already drawn (stacked wall markers): a dot only.
+                canvas.dot(*vp.to_dots(px, py), style)
+        for r in self.data.robots:
+            x, y, th = _num(r.get("x")), _num(r.get("y")), _num(r.get("theta"))
+            if x is None or y is None or th is None:
+                continue
+            style = STYLE_STALE if r.get("stale") else STYLE_ROBOT
+            cx, cy = vp.to_cell(x, y)
+            canvas.text(cx, cy, heading_arrow(th), style)
+            name = str(r.get("name", ""))
+            # The name goes where it hides no marker label: right, left, below or above.
+            for nx, ny in ((cx + 1, cy), (cx - len(name), cy), (cx, cy + 1), (cx, cy - 1)):
+                if canvas.free(nx, ny, len(name)):
+                    canvas.text(nx, ny, name, style)
+                    break
+
+
+class MapPane(Widget):
+    """The floor map with its legend; ``+``/``-`` change the error magnification, ``a`` auto."""
+
+    DEFAULT_CSS = """
+    MapPane { layout: vertical; }
+    MapPane > #map-legend { height: auto; }
+    """
+
+    def compose(self):  # type: ignore[no-untyped-def]
+        from textual.widgets import Static
+
+        yield FloorMap(id="floor-map")
+        yield Static("", id="map-legend")
+
+    def on_mount(self) -> None:
+        self.query_one(FloorMap).can_focus = True
+
+    def set_data(self, data: MapData) -> None:
+        fm = self.query_one(FloorMap)
+        fm.set_data(data)
+        self.update_legend()
+
+    def update_legend(self) -> None:
+        from textual.widgets import Static
+
+        fm = self.query_one(FloorMap)
+        mag = fm.effective_magnification
+        auto = "auto" if fm.magnification is None else "fixed"
+        cell = fm.metres_per_cell() * 100 if fm.size.width else float("nan")
+        outline = "floor" if fm.extent_is_floor else "map extent"
+        self.query_one("#map-legend", Static).update(Text.assemble(
+            ("■", STYLE_DETECTED), " seen ", ("■", STYLE_UNSEEN), " unseen ",
+            ("■", STYLE_MISPLACED), " misplaced ", ("■", STYLE_FOREIGN), " not in map ",
+            ("→", STYLE_ROBOT), " robot  ", ("⠤", STYLE_VECTOR),
+            f" error ×{mag:g} ({auto}, +/-/a) · □ {outline} · cell {cell:.1f} cm"))
+
+    def on_resize(self) -> None:
+        self.update_legend()
+
+    def change_magnification(self, step: int) -> None:
+        fm = self.query_one(FloorMap)
+        series = [m * 10.0 ** e for e in range(0, 5) for m in (1, 2, 5)]
+        cur = fm.effective_magnification
+        i = min(range(len(series)), key=lambda k: abs(series[k] - cur))
+        fm.magnification = series[max(0, min(len(series) - 1, i + step))]
+        fm.refresh()
+        self.update_legend()
+
+    def auto_magnification(self) -> None:
+        fm = self.query_one(FloorMap)
+        fm.magnification = None
+        fm._update_auto_magnification()
+        fm.refresh()
+        self.update_legend()

@@ -1,0 +1,108 @@
+"""Log tab: CSV logging and recording (start, stop, file, rows, size) and the daemon's events."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from rich.text import Text
+from textual import on
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical
+from textual.widgets import Button, Input, RichLog, Static
+
+from kmea_tui.messages import ControlRequest
+
+LEVEL_STYLES = {"DEBUG": "bright_black", "INFO": "", "WARNING": "yellow", "ERROR": "bold red",
+                "CRITICAL": "bold red"}
+
+
+def human_bytes(n: Any) -> str:
+    if not isinstance(n, (int, float)):
+        return "-"
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n) < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} GB"
+
+
+def clock(t: Any) -> str:
+    """UTC time of day of a telemetry timestamp (s since the epoch)."""
+    if not isinstance(t, (int, float)):
+        return "--:--:--"
+    return time.strftime("%H:%M:%S", time.gmtime(t))
+
+
+def event_line(topic: str, body: dict[str, Any]) -> Text:
+    level = str(body.get("level", "INFO")).upper()
+    who = "event" if topic == "event" else str(body.get("logger", "log"))
+    return Text.assemble((clock(body.get("t")), "bright_black"), " ",
+                         (f"{level:<7}", LEVEL_STYLES.get(level, "")), " ",
+                         (f"{who}: ", "cyan"), str(body.get("text", "")))
+
+
+class LogPane(Vertical):
+    BINDINGS = [Binding("l", "toggle_log", "CSV log on/off"),
+                Binding("r", "toggle_record", "Record on/off")]
+
+    def __init__(self, id: str | None = None) -> None:
+        super().__init__(id=id)
+        self.logging: dict[str, Any] = {}
+        self.recording: dict[str, Any] = {}
+
+    def compose(self) -> ComposeResult:
+        yield Static("CSV log: (no status from the daemon yet)", id="log-state")
+        yield Static("recording: (no status from the daemon yet)", id="record-state")
+        with Horizontal(classes="form-row"):
+            yield Input(placeholder="file for the next log/recording (empty: daemon's default)",
+                        id="log-path", compact=True)
+            yield Button("CSV log [l]", id="log-toggle")
+            yield Button("Record [r]", id="record-toggle")
+        yield RichLog(id="events", max_lines=2000, wrap=True, markup=False, auto_scroll=True)
+
+    @staticmethod
+    def _state_line(what: str, s: dict[str, Any], count_label: str, count_key: str) -> Text:
+        if s.get("active"):
+            return Text.assemble((f"{what}: ", "bold"), ("● on", "bold green"), "  ",
+                                 str(s.get("path") or "-"), "  ",
+                                 f"{s.get(count_key, '-')} {count_label}", "  ",
+                                 human_bytes(s.get("bytes")))
+        last = f"  last: {s['path']}" if s.get("path") else ""
+        return Text.assemble((f"{what}: ", "bold"), ("○ off", "bright_black"), last)
+
+    def update_status(self, body: dict[str, Any]) -> None:
+        self.logging = body.get("logging") or {}
+        self.recording = body.get("recording") or {}
+        self.query_one("#log-state", Static).update(
+            self._state_line("CSV log", self.logging, "rows", "rows"))
+        self.query_one("#record-state", Static).update(
+            self._state_line("recording", self.recording, "frames", "frames"))
+
+    def add_events(self, events: list[tuple[str, dict[str, Any]]]) -> None:
+        log = self.query_one("#events", RichLog)
+        for topic, body in events:
+            log.write(event_line(topic, body))
+
+    def note(self, text: str, ok: bool = True) -> None:
+        self.query_one("#events", RichLog).write(
+            Text(("✓ " if ok else "✗ ") + text, style="green" if ok else "bold red"))
+
+    def _path_args(self) -> dict[str, Any]:
+        path = self.query_one("#log-path", Input).value.strip()
+        return {"path": path} if path else {}
+
+    @on(Button.Pressed, "#log-toggle")
+    def action_toggle_log(self) -> None:
+        if self.logging.get("active"):
+            self.post_message(ControlRequest("log_stop", {}))
+        else:
+            self.post_message(ControlRequest("log_start", self._path_args()))
+
+    @on(Button.Pressed, "#record-toggle")
+    def action_toggle_record(self) -> None:
+        if self.recording.get("active"):
+            self.post_message(ControlRequest("record_stop", {}))
+        else:
+            self.post_message(ControlRequest("record_start", self._path_args()))

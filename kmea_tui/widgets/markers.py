@@ -1,0 +1,124 @@
+"""Markers tab: every marker the daemon reports, with its leave-one-out error."""
+
+from __future__ import annotations
+
+import math
+import statistics
+from typing import Any
+
+from rich.text import Text
+from textual.app import ComposeResult
+from textual.containers import Vertical
+from textual.widgets import Static
+
+from kmea_tui.widgets.live_table import DASH, LiveTable, fmt
+
+# A marker is flagged as misplaced when its leave-one-out error exceeds both
+# MISPLACED_FACTOR x the median error of all map markers and MISPLACED_FLOOR_M.
+# The floor keeps a well-surveyed floor (all errors ~1 mm) from flagging noise.
+MISPLACED_FACTOR = 3.0
+MISPLACED_FLOOR_M = 0.010
+
+COLUMNS = [
+    ("id", "id"), ("map", "map"), ("det", "det"), ("x", "x m"), ("y", "y m"),
+    ("yaw", "yaw°"), ("map_x", "map x"), ("map_y", "map y"), ("error", "LOO mm"),
+    ("flags", "flags"),
+]
+
+
+def misplaced_threshold(markers: list[dict[str, Any]]) -> float:
+    """Error (m) above which a map marker counts as misplaced."""
+    errs = [float(m["error"]) for m in markers
+            if isinstance(m.get("error"), (int, float)) and m.get("in_map", True)]
+    med = statistics.median(errs) if errs else 0.0
+    return max(MISPLACED_FACTOR * med, MISPLACED_FLOOR_M)
+
+
+def misplaced_ids(markers: list[dict[str, Any]]) -> set[int]:
+    thr = misplaced_threshold(markers)
+    return {int(m["id"]) for m in markers
+            if isinstance(m.get("error"), (int, float)) and m["error"] > thr}
+
+
+def flags_of(m: dict[str, Any], misplaced: bool) -> str:
+    """``!`` misplaced, ``A`` ambiguous pose, ``F`` pose flipped, ``R`` rejected as outlier."""
+    return "".join(ch for ch, on in (("!", misplaced), ("A", m.get("ambiguous")),
+                                     ("F", m.get("flipped")), ("R", m.get("rejected")))
+                   if on)
+
+
+def _sort_value(raw: dict[str, Any], col: str) -> Any:
+    if col == "id":
+        return int(raw.get("id", 0))
+    if col in ("map", "det"):
+        return bool(raw.get("in_map" if col == "map" else "detected"))
+    if col == "flags":
+        return raw.get("_flags", "") or None
+    v = raw.get(col)
+    return v if isinstance(v, (int, float)) else None
+
+
+class MarkersTable(LiveTable):
+    def __init__(self, id: str | None = None) -> None:
+        super().__init__(COLUMNS, sort_value=_sort_value, sort_column="id", id=id)
+
+
+def marker_cells(m: dict[str, Any], misplaced: bool) -> list[str | Text]:
+    yaw = m.get("yaw")
+    cells: list[str | Text] = [
+        str(m.get("id")),
+        "yes" if m.get("in_map") else "no",
+        "yes" if m.get("detected") else "no",
+        fmt(m.get("x")), fmt(m.get("y")),
+        fmt(math.degrees(yaw), ".0f") if isinstance(yaw, (int, float)) else DASH,
+        fmt(m.get("map_x")), fmt(m.get("map_y")),
+        fmt(m.get("error"), ".1f", 1000.0),
+        flags_of(m, misplaced),
+    ]
+    if misplaced:
+        return [Text(c, style="bold red") if isinstance(c, str) else c for c in cells]
+    if not m.get("detected"):
+        return [Text(c, style="bright_black") if isinstance(c, str) else c for c in cells]
+    if not m.get("in_map"):
+        return [Text(c, style="cyan") if isinstance(c, str) else c for c in cells]
+    return cells
+
+
+class MarkersPane(Vertical):
+    """Summary line and the live markers table."""
+
+    def compose(self) -> ComposeResult:
+        yield Static("waiting for telemetry…", id="markers-summary", classes="summary")
+        yield MarkersTable(id="markers-table")
+
+    def update_markers(self, body: dict[str, Any]) -> set[int]:
+        """Show one ``markers`` message; returns the ids flagged as misplaced."""
+        self._last_body = body
+        markers = [m for m in body.get("markers", []) if isinstance(m, dict) and "id" in m]
+        thr = misplaced_threshold(markers)
+        bad = misplaced_ids(markers)
+        rows = {}
+        for m in markers:
+            mid = int(m["id"])
+            raw = dict(m, _flags=flags_of(m, mid in bad))
+            rows[str(mid)] = (raw, marker_cells(m, mid in bad))
+        table = self.query_one(MarkersTable)
+        table.sync(rows)
+        in_map = [m for m in markers if m.get("in_map")]
+        seen = sum(1 for m in in_map if m.get("detected"))
+        foreign = sum(1 for m in markers if not m.get("in_map") and m.get("detected"))
+        errs = [m["error"] for m in markers if isinstance(m.get("error"), (int, float))]
+        med = f"{1000 * statistics.median(errs):.1f} mm" if errs else DASH
+        summary = Text.assemble(
+            (f"frame {body.get('frame', DASH)}", "bold"),
+            f" · seen {seen}/{len(in_map)} map, {foreign} other · median LOO {med} · ",
+            (f"misplaced {len(bad)}", "bold red" if bad else ""),
+            f" (>{1000 * thr:.0f} mm) · ", (table.sort_label() + " [s/S]", "italic"),
+        )
+        self.query_one("#markers-summary", Static).update(summary)
+        return bad
+
+    def on_live_table_sort_changed(self, event: LiveTable.SortChanged) -> None:
+        event.stop()
+        if getattr(self, "_last_body", None) is not None:
+            self.update_markers(self._last_body)

@@ -1,0 +1,77 @@
+"""Robots tab: pose, age of the last fix, relay destinations and messages sent per robot."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from rich.text import Text
+from textual.app import ComposeResult
+from textual.containers import Vertical
+from textual.widgets import Static
+
+from kmea_tui.widgets.live_table import DASH, LiveTable, fmt
+
+COLUMNS = [
+    ("name", "name"), ("markers", "markers"), ("x", "x m"), ("y", "y m"),
+    ("theta", "θ°"), ("sigma", "σ mm"), ("age_s", "age s"), ("state", "state"),
+    ("sent", "sent"), ("destinations", "destinations"),
+]
+
+
+def robot_state(r: dict[str, Any]) -> str:
+    if r.get("stale"):
+        return "STALE"
+    return "ok" if r.get("valid") else "no fix"
+
+
+def _sort_value(raw: dict[str, Any], col: str) -> Any:
+    if col in ("name", "markers", "destinations"):
+        v = raw.get(col)
+        return ",".join(map(str, v)) if isinstance(v, list) else str(v or "")
+    if col == "state":
+        return robot_state(raw)
+    v = raw.get(col)
+    return v if isinstance(v, (int, float)) else None
+
+
+def robot_cells(r: dict[str, Any]) -> list[str | Text]:
+    th = r.get("theta")
+    markers = r.get("markers") or []
+    dests = r.get("destinations") or []
+    state = robot_state(r)
+    cells: list[str | Text] = [
+        str(r.get("name", "?")),
+        "+".join(map(str, markers)) if isinstance(markers, list) else str(markers),
+        fmt(r.get("x")), fmt(r.get("y")),
+        fmt(math.degrees(th), ".0f") if isinstance(th, (int, float)) else DASH,
+        fmt(r.get("sigma"), ".1f", 1000.0),
+        fmt(r.get("age_s"), ".1f"),
+        Text(state, style="bold red" if state == "STALE" else
+             ("green" if state == "ok" else "yellow")),
+        str(r.get("sent", DASH)),
+        ", ".join(map(str, dests)) if isinstance(dests, list) else str(dests),
+    ]
+    return cells
+
+
+class RobotsTable(LiveTable):
+    def __init__(self, id: str | None = None) -> None:
+        super().__init__(COLUMNS, sort_value=_sort_value, sort_column="name", id=id)
+
+
+class RobotsPane(Vertical):
+    def compose(self) -> ComposeResult:
+        yield Static("waiting for telemetry…", id="robots-summary", classes="summary")
+        yield RobotsTable(id="robots-table")
+
+    def update_robots(self, body: dict[str, Any]) -> None:
+        robots = [r for r in body.get("robots", []) if isinstance(r, dict) and "name" in r]
+        table = self.query_one(RobotsTable)
+        table.sync({str(r["name"]): (r, robot_cells(r)) for r in robots})
+        stale = sum(1 for r in robots if r.get("stale"))
+        self.query_one("#robots-summary", Static).update(Text.assemble(
+            (f"frame {body.get('frame', DASH)}", "bold"),
+            f" · {len(robots)} robots · ",
+            (f"{stale} stale", "bold red" if stale else ""),
+            " · ", (table.sort_label() + " [s/S]", "italic")))

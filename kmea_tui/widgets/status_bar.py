@@ -1,0 +1,63 @@
+"""The status line: connection state, frame rate, per-stage timings, dropped frames."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rich.text import Text
+from textual.widgets import Static
+
+STATE_STYLES = {
+    "connected": "bold green", "stale": "bold yellow", "disconnected": "bold red",
+    "connecting": "yellow", "replay": "bold cyan", "replay end": "cyan",
+}
+# Shown in this order, as long as the line has room.
+STAGES = ("detect", "pose", "estimate", "loo", "filter", "robots", "output", "capture")
+SHORT = {"capture": "cap", "detect": "det", "pose": "pose", "estimate": "est", "loo": "loo",
+         "filter": "filt", "robots": "rob", "output": "out"}
+
+
+def status_text(state: str, frame: dict[str, Any] | None, width: int = 80,
+                detail: str = "") -> Text:
+    """One line: state, fps, dropped frames, total time, then stages that fit ``width``."""
+    t = Text(no_wrap=True, overflow="ellipsis")
+    t.append(f"● {state}", STATE_STYLES.get(state, "bold"))
+    if detail and state in ("disconnected", "stale", "connecting"):
+        t.append(f" ({detail})", "bright_black")
+    if frame:
+        fps = frame.get("fps")
+        t.append(f"  {fps:.1f} fps" if isinstance(fps, (int, float)) else "  - fps")
+        dropped = frame.get("dropped", 0)
+        t.append(f"  dropped {dropped}", "bold yellow" if dropped else "")
+        timings = frame.get("timings_ms") or {}
+        total = timings.get("total")
+        if isinstance(total, (int, float)):
+            t.append(f"  {total:.1f} ms:")
+        for stage in STAGES:
+            v = timings.get(stage)
+            if not isinstance(v, (int, float)):
+                continue
+            piece = f" {SHORT[stage]} {v:.1f}"
+            if len(t) + len(piece) > width - 1:
+                break
+            t.append(piece, "bright_black")
+    return t
+
+
+class StatusBar(Static):
+    DEFAULT_CSS = "StatusBar { height: 1; padding: 0 1; }"
+
+    def __init__(self, id: str | None = None) -> None:
+        super().__init__("● connecting", id=id)
+        self.state = "connecting"
+        self.detail = ""
+        self.frame: dict[str, Any] | None = None
+
+    def show(self, state: str, frame: dict[str, Any] | None = None, detail: str = "") -> None:
+        self.state, self.detail = state, detail
+        if frame is not None:
+            self.frame = frame
+        self.update(status_text(state, self.frame, self.size.width or 80, detail))
+
+    def on_resize(self) -> None:
+        self.show(self.state, None, self.detail)
