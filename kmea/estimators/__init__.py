@@ -32,6 +32,8 @@ _REGISTRY: dict[str, str] = {
     "kmea": "kmea.estimators.kmea:KMEA",
     "lmea": "kmea.estimators.lmea:LMEA",
     "umeyama": "kmea.estimators.umeyama:Umeyama",
+    "kmea-robust": "kmea.estimators.robust:KMEARobust",
+    "corner-pnp": "kmea.estimators.corners:CornerPnP",
 }
 
 

@@ -1,0 +1,494 @@
+"""``corner-pnp``: the camera pose from the corners of all reference markers, then ray-plane.
+
+KMEA aligns the *centres* of per-marker PnP poses; the depth of one small marker is its
+noisiest coordinate and leaks sideways off the optical axis. Here instead:
+
+1. **Robust start**: :class:`kmea.estimators.robust.KMEARobust` on the per-marker poses
+   gives a consensus of references and a rough camera pose (its similarity's rotation,
+   and the camera centre where the similarity puts the camera origin).
+2. **Levenberg-Marquardt** on the reprojection error of every corner of every consensus
+   reference (map corners projected with K and the OpenCV distortion model, numpy), with
+   a Huber loss (``huber_px``) so one bad corner cannot dominate.
+3. **Rejection** of references whose corners, intersected with their map plane under the
+   fitted pose, lie more than ``threshold`` metres (RMS over the 4 corners) from their map
+   corners; then LM again, until the consensus is stable. Rejected references are reported
+   in ``Estimate.rejected`` (id -> that RMS distance, m; for a shifted marker it is the
+   shift) and ``info["displaced"]``.
+4. **Every marker from its corners**: the rays of its 4 corners (pixel -> undistorted
+   normalized ray) intersect its plane: its map plane for a map marker (what leave-one-out
+   evaluates), ``z = plane_heights[id]`` for a robot's marker; centre = mean of the 4 points,
+   in-plane rotation from a 2D Procrustes fit of the square. A marker with no known plane
+   (or no corners) gets its own PnP pose moved by the fitted camera pose.
+
+Optional intrinsics refinement (``refine_intrinsics``): a common multiplier of fx and fy
+and k1 join the LM, with a weak Gaussian prior at the calibrated values (``f`` 5 %, k1
+0.1: real calibrations are a few percent off, and the prior keeps a fronto-parallel
+view, where focal length and camera height are not separable, well-posed). ``"auto"``
+turns it on when at least ``refine_min_references`` references are in the consensus.
+
+Uncertainty (``MarkerEstimate.sigma``, m): the RMS position error predicted by first-order
+propagation of (a) the pose (and intrinsics) covariance ``sigma_px^2 (J^T J)^-1`` of the LM
+and (b) the marker's own corner noise ``sigma_px``, through the ray-plane intersection;
+``sigma_px^2`` is the residual variance of the fit (sum of squared pixel residuals over
+their degrees of freedom). ``sigma = sqrt(trace(Cov))``. Markers placed by their own PnP
+pose get ``None``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from kmea.estimators.base import (
+    CameraIntrinsics,
+    Estimate,
+    MarkerEstimate,
+    MarkerObservation,
+    check_observations,
+)
+from kmea.estimators.camera_np import dist14, distort, project, skew, so3_exp, undistort
+from kmea.estimators.robust import KMEARobust, describe_rejected
+from kmea.maps import MarkerMap
+from kmea.transforms import make_transform, marker_corners_local, rot_z, yaw_of
+
+__all__ = ["CornerPnP"]
+
+
+@dataclass
+class _Fit:
+    """State of one LM fit: world2cam pose, intrinsics, and what the covariance needs."""
+
+    R: np.ndarray  # (3, 3) world2cam
+    t: np.ndarray  # (3,)
+    K: np.ndarray  # (3, 3) current (refined) camera matrix
+    K0: np.ndarray  # (3, 3) calibrated camera matrix (the multiplier's reference)
+    d: np.ndarray  # (14,) current distortion
+    d0: np.ndarray  # (14,) calibrated distortion
+    H: np.ndarray  # (p, p) Gauss-Newton matrix at the solution (weighted + prior)
+    sigma_px: float  # residual standard deviation per pixel coordinate
+    rms_px: float
+    iterations: int
+    refine: bool
+
+
+def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mapping[int, float]
+                  ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """id -> (frame (3, 3) with columns e1, e2, normal; origin (3,)) for markers with a plane."""
+    out = {}
+    for i in ids:
+        if i in world_map:
+            m = world_map[i]
+            out[i] = (m.rotation, m.position)
+        elif i in plane_heights:
+            out[i] = (np.eye(3), np.array([0.0, 0.0, float(plane_heights[i])]))
+    return out
+
+
+class CornerPnP:
+    """All-corner camera pose + ray-plane marker estimator (see the module docstring).
+
+    Options:
+        threshold: RMS corner disagreement (m) on its map plane beyond which a reference is
+            rejected as displaced.
+        start_threshold: consensus threshold (m) of the robust KMEA start.
+        huber_px: Huber loss knee, pixels.
+        refine_intrinsics: False, True or "auto".
+        refine_min_references: consensus size from which "auto" refines.
+        max_iterations: LM iterations per fit.
+        min_references: fewer consensus references give "not estimated" (>= 3).
+    """
+
+    name = "corner-pnp"
+
+    def __init__(self, threshold: float = 0.01, start_threshold: float = 0.02,
+                 huber_px: float = 1.0, refine_intrinsics: bool | str = False,
+                 refine_min_references: int = 12, max_iterations: int = 50,
+                 min_references: int = 3, prior_f: float = 0.05, prior_k1: float = 0.1,
+                 prior_px: float = 0.5) -> None:
+        if refine_intrinsics not in (True, False, "auto"):
+            raise ValueError(f"corner-pnp: refine_intrinsics must be true, false or 'auto', "
+                             f"got {refine_intrinsics!r}")
+        if not (threshold > 0 and start_threshold > 0 and huber_px > 0):
+            raise ValueError("corner-pnp: threshold, start_threshold and huber_px must be > 0")
+        self.threshold = float(threshold)
+        self.huber_px = float(huber_px)
+        self.refine_intrinsics = refine_intrinsics
+        self.refine_min_references = int(refine_min_references)
+        self.max_iterations = int(max_iterations)
+        self.min_references = max(3, int(min_references))
+        self.prior = (float(prior_f), float(prior_k1), float(prior_px))
+        self._start = KMEARobust(threshold=start_threshold, min_references=self.min_references)
+
+    # ------------------------------------------------------------------ LM
+    def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
+                   K: np.ndarray, d: np.ndarray, refine: bool, jac: bool,
+                   K0: np.ndarray | None = None):
+        """Pixel residuals (2N,) and, with ``jac``, their Jacobian (2N, 6 or 8) in the
+        parameters (rotation increment, translation[, focal multiplier of K0, k1])."""
+        Pc = X @ R.T + t
+        if np.any(Pc[:, 2] <= 1e-9):
+            return (None, None) if jac else None
+        if not jac:
+            return (project(Pc, K, d) - uv).reshape(-1)
+        proj, J_pc, J_f, J_k1 = project(Pc, K, d, jac=True)
+        cols = [np.einsum("nij,njk->nik", J_pc, -skew(Pc - t)), J_pc]
+        if refine:
+            # project() differentiates a multiplier of the current K; the parameter multiplies K0.
+            cols += [J_f[:, :, None] * (K0[0, 0] / K[0, 0]), J_k1[:, :, None]]
+        J = np.concatenate(cols, axis=2).reshape(2 * len(X), -1)
+        return (proj - uv).reshape(-1), J
+
+    def _prior_rows(self, K: np.ndarray, d: np.ndarray, K0: np.ndarray, d0: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        pf, pk, ppx = self.prior
+        r = np.array([(K[0, 0] / K0[0, 0] - 1.0) / pf * ppx, (d[0] - d0[0]) / pk * ppx])
+        J = np.zeros((2, 8))
+        J[0, 6] = ppx / pf
+        J[1, 7] = ppx / pk
+        return r, J
+
+    def _huber_w(self, r: np.ndarray) -> np.ndarray:
+        """Per-row IRLS weights (2N,) from the per-corner residual norms."""
+        e = np.linalg.norm(r.reshape(-1, 2), axis=1)
+        w = np.where(e <= self.huber_px, 1.0, self.huber_px / np.maximum(e, 1e-300))
+        return np.repeat(w, 2)
+
+    def _huber_cost(self, r: np.ndarray) -> float:
+        e = np.linalg.norm(r.reshape(-1, 2), axis=1)
+        h = self.huber_px
+        return float(np.sum(np.where(e <= h, e * e, 2.0 * h * e - h * h)))
+
+    @staticmethod
+    def _update(R, t, K, d, delta, refine, K0):
+        R2 = so3_exp(delta[:3]) @ R
+        t2 = t + delta[3:6]
+        if not refine:
+            return R2, t2, K, d
+        m = K[0, 0] / K0[0, 0] + delta[6]
+        K2 = K0.copy()
+        K2[:2, :2] *= m
+        d2 = d.copy()
+        d2[0] += delta[7]
+        return R2, t2, K2, d2
+
+    def _lm(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
+            K0: np.ndarray, d0: np.ndarray, refine: bool) -> _Fit | None:
+        """Minimize the Huber reprojection cost (plus the intrinsics prior) from (R, t)."""
+        K, d = K0.copy(), d0.copy()
+
+        def cost_of(r, K, d):
+            c = self._huber_cost(r)
+            if refine:
+                c += float(np.sum(self._prior_rows(K, d, K0, d0)[0] ** 2))
+            return c
+
+        r, J = self._residuals(X, uv, R, t, K, d, refine, True, K0)
+        if r is None:
+            return None
+        cost = cost_of(r, K, d)
+        lam = 1e-4
+        iterations = 0
+        for it in range(1, self.max_iterations + 1):
+            iterations = it
+            w = self._huber_w(r)
+            H = J.T @ (J * w[:, None])
+            g = J.T @ (w * r)
+            if refine:
+                rp, Jp = self._prior_rows(K, d, K0, d0)
+                H = H + Jp.T @ Jp
+                g = g + Jp.T @ rp
+            done = False
+            while True:
+                A = H + lam * np.diag(np.diag(H) + 1e-12)
+                try:
+                    delta = -np.linalg.solve(A, g)
+                except np.linalg.LinAlgError:
+                    return None
+                R2, t2, K2, d2 = self._update(R, t, K, d, delta, refine, K0)
+                r2 = self._residuals(X, uv, R2, t2, K2, d2, refine, False)
+                c2 = math.inf if r2 is None else cost_of(r2, K2, d2)
+                if c2 <= cost:
+                    R, t, K, d = R2, t2, K2, d2
+                    small = float(np.max(np.abs(delta))) < 1e-13 or cost - c2 <= 1e-18 * cost
+                    cost = c2
+                    lam = max(lam / 10.0, 1e-12)
+                    done = small
+                    break
+                lam *= 10.0
+                if lam > 1e8:
+                    done = True
+                    break
+            r, J = self._residuals(X, uv, R, t, K, d, refine, True, K0)
+            if done or cost < 1e-26:
+                break
+        w = self._huber_w(r)
+        H = J.T @ (J * w[:, None])
+        if refine:
+            Jp = self._prior_rows(K, d, K0, d0)[1]
+            H = H + Jp.T @ Jp
+        dof = max(r.size - H.shape[0], 1)
+        sigma = math.sqrt(float(r @ r) / dof)
+        rms = math.sqrt(float(r @ r) / r.size)
+        return _Fit(R, t, K, K0, d, d0, H, sigma, rms, iterations, refine)
+
+    # ------------------------------------------------------------------ geometry
+    @staticmethod
+    def _intersect(R: np.ndarray, t: np.ndarray, xy: np.ndarray, frames: np.ndarray,
+                   origins: np.ndarray) -> np.ndarray:
+        """World points (N, 3) where the rays of normalized image points xy (N, 2) of the
+        world2cam pose (R, t) meet the planes with normals frames[:, :, 2] through origins
+        (N, 3); NaN where the plane is behind the camera or parallel to the ray."""
+        ray = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R  # R^T ray, world
+        C = -R.T @ t
+        n = frames[:, :, 2]
+        den = np.einsum("ni,ni->n", n, ray)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.einsum("ni,ni->n", n, origins - C) / den
+        P = C + lam[:, None] * ray
+        P[~(lam > 0) | ~np.isfinite(lam)] = np.nan
+        return P
+
+    @staticmethod
+    def _stack_corners(ids, obs) -> np.ndarray:
+        return np.concatenate([np.asarray(obs[i].corners, float).reshape(4, 2) for i in ids])
+
+    def _disagreement(self, fit: _Fit, ref_ids, xy: np.ndarray, world_map) -> dict[int, float]:
+        """id -> RMS distance (m) between a reference's corners intersected with its map
+        plane (normalized corners xy, 4 rows per id) and its map corners."""
+        frames = np.repeat(np.array([world_map[i].rotation for i in ref_ids]), 4, axis=0)
+        origins = np.repeat(world_map.positions(list(ref_ids)), 4, axis=0)
+        P = self._intersect(fit.R, fit.t, xy, frames, origins).reshape(-1, 4, 3)
+        M = np.array([world_map[i].corners_world() for i in ref_ids])
+        e = np.sqrt(np.mean(np.sum((P - M) ** 2, axis=2), axis=1))
+        return {i: (float(v) if np.isfinite(v) else math.inf)
+                for i, v in zip(ref_ids, e, strict=True)}
+
+    # ------------------------------------------------------------------ estimate
+    def _solve(self, observations, world_map, exclude, camera):
+        """Shared part of estimate and estimate_loo: (fit, refs, inliers, disagreement, obs),
+        or an ``Estimate.failed``."""
+        if camera is None:
+            return Estimate.failed(self.name, "corner-pnp needs the camera intrinsics "
+                                              "(camera matrix and distortion)")
+        obs = {o.id: o for o in check_observations(observations)}
+        excl = set(exclude)
+        refs = sorted(i for i in obs
+                      if i in world_map and i not in excl and obs[i].corners is not None)
+        if len(refs) < self.min_references:
+            return Estimate.failed(self.name, f"{len(refs)} reference marker(s) with corners "
+                                              f"visible, need {self.min_references}")
+        for i in refs:
+            c = np.asarray(obs[i].corners, dtype=float)
+            if c.size != 8 or not np.all(np.isfinite(c)):
+                raise ValueError(f"observation id {i}: corners must be 4 finite (x, y) pixels")
+        try:
+            K0 = np.asarray(camera.camera_matrix, dtype=float)
+            d0 = dist14(camera.dist_coeffs)
+        except ValueError as e:
+            return Estimate.failed(self.name, f"camera: {e}")
+        start = self._start.estimate([obs[i] for i in refs], world_map)
+        if not start.ok:
+            return Estimate.failed(self.name, f"robust start: {start.reason}")
+        C = start.cam2world
+        Rc2w = C[:3, :3] / start.scale
+        R, t = Rc2w.T, -Rc2w.T @ C[:3, 3]
+        uv_refs = self._stack_corners(refs, obs)
+        row = {i: k for k, i in enumerate(refs)}
+        X_refs = np.concatenate([world_map[i].corners_world() for i in refs])
+        xy_refs = undistort(uv_refs, K0, d0)
+        inliers = list(start.references)
+        fit = None
+        for _ in range(6):
+            refine = (self.refine_intrinsics is True or (
+                self.refine_intrinsics == "auto" and len(inliers) >= self.refine_min_references))
+            sel = np.concatenate([np.arange(4 * row[i], 4 * row[i] + 4) for i in inliers])
+            fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, refine)
+            if fit is None:
+                return Estimate.failed(self.name, "reprojection fit failed (camera behind markers)")
+            R, t = fit.R, fit.t
+            xy = undistort(uv_refs, fit.K, fit.d) if refine else xy_refs
+            dis = self._disagreement(fit, refs, xy, world_map)
+            new = [i for i in refs if dis[i] <= self.threshold]
+            if new == inliers:
+                break
+            if len(new) < self.min_references:
+                return Estimate.failed(
+                    self.name, f"no consensus: {len(new)} of {len(refs)} references agree "
+                               f"within {self.threshold * 1e3:.0f} mm")
+            inliers = new
+        return fit, refs, inliers, dis, obs
+
+    def estimate(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        exclude: Collection[int] = (),
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+    ) -> Estimate:
+        """World pose of every observed marker; see the module docstring.
+
+        camera is required; plane_heights: id -> height (m) of horizontal non-map markers.
+        """
+        res = self._solve(observations, world_map, exclude, camera)
+        if isinstance(res, Estimate):
+            return res
+        fit, refs, inliers, dis, obs = res
+        markers = self._markers(fit, obs, world_map, dict(plane_heights or {}))
+        Rc2w = fit.R.T
+        rejected = {i: dis[i] for i in refs if i not in inliers}
+        info = {"displaced": describe_rejected(rejected), "reprojection_rms_px": fit.rms_px,
+                "sigma_px": fit.sigma_px, "iterations": fit.iterations,
+                "threshold": self.threshold, "intrinsics_refined": fit.refine}
+        if fit.refine:
+            info.update(fx=float(fit.K[0, 0]), fy=float(fit.K[1, 1]), k1=float(fit.d[0]))
+        return Estimate(
+            algorithm=self.name, ok=True, markers=markers, references=tuple(inliers),
+            cam2world=make_transform(Rc2w, -Rc2w @ fit.t), scale=1.0,
+            residuals={i: dis[i] for i in inliers}, rejected=rejected, info=info)
+
+    def _markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation], world_map: MarkerMap,
+                 plane_heights: Mapping[int, float]) -> dict[int, MarkerEstimate]:
+        """World pose and sigma of every observed marker."""
+        Rc2w = fit.R.T
+        C = -Rc2w @ fit.t
+
+        def by_pnp(o: MarkerObservation) -> MarkerEstimate:
+            Rw = Rc2w @ np.asarray(o.marker2cam_R, dtype=float)
+            return MarkerEstimate(o.id, Rc2w @ np.asarray(o.marker2cam_t, float) + C, Rw,
+                                  yaw_of(Rw))
+
+        frames = _plane_frames([i for i in obs if obs[i].corners is not None], world_map,
+                               plane_heights)
+        out = {i: by_pnp(o) for i, o in obs.items() if i not in frames}
+        if not frames:
+            return out
+        ids = list(frames)
+        uv = self._stack_corners(ids, obs)
+        xy = undistort(uv, fit.K, fit.d)
+        F = np.repeat(np.array([frames[i][0] for i in ids]), 4, axis=0)
+        O = np.repeat(np.array([frames[i][1] for i in ids]), 4, axis=0)
+        P = self._intersect(fit.R, fit.t, xy, F, O).reshape(-1, 4, 3)
+        centres = P.mean(axis=1)
+        sig = self._sigmas(fit, xy, F, O)
+        for k, i in enumerate(ids):
+            if not np.all(np.isfinite(P[k])):  # plane behind the camera: fall back to PnP
+                out[i] = by_pnp(obs[i])
+                continue
+            frame = frames[i][0]
+            length = world_map[i].length if i in world_map else obs[i].length
+            a = (P[k] - centres[k]) @ frame[:, :2]  # in-plane coordinates about the centre
+            c = marker_corners_local(length)[:, :2]
+            ang = math.atan2(float(np.sum(c[:, 0] * a[:, 1] - c[:, 1] * a[:, 0])),
+                             float(np.sum(c[:, 0] * a[:, 0] + c[:, 1] * a[:, 1])))
+            Rw = frame @ rot_z(ang)
+            out[i] = MarkerEstimate(i, centres[k], Rw, yaw_of(Rw), float(sig[k]))
+        return out
+
+    def _sigmas(self, fit: _Fit, xy: np.ndarray, F: np.ndarray, O: np.ndarray) -> np.ndarray:
+        """1-sigma (RMS) centre error (m) per marker; xy holds 4 normalized corners per marker.
+
+        First order: Cov = Jp Cov_params Jp^T + sigma_px^2 sum_k Ju_k Ju_k^T / 16 with Jp the
+        centre's derivative in the fitted parameters and Ju_k in corner k's pixel.
+        """
+        p = fit.H.shape[0]
+        n = len(xy) // 4
+        try:
+            cov = fit.sigma_px ** 2 * np.linalg.inv(fit.H)
+        except np.linalg.LinAlgError:
+            return np.full(n, np.nan)
+        base = self._intersect(fit.R, fit.t, xy, F, O)
+        Jc = np.empty((n, 3, p))
+        h = 1e-7
+        for k in range(p):
+            delta = np.zeros(p)
+            delta[k] = h
+            R2, t2, K2, d2 = self._update(fit.R, fit.t, fit.K, fit.d, delta, fit.refine, fit.K0)
+            xy2 = xy if k < 6 else undistort(project_back(xy, fit.K, fit.d), K2, d2)
+            Pk = self._intersect(R2, t2, xy2, F, O)
+            Jc[:, :, k] = ((Pk - base) / h).reshape(n, 4, 3).mean(axis=1)
+        cov_c = np.einsum("nik,kl,njl->nij", Jc, cov, Jc)
+        # Own corner noise: d P / d uv = d P / d xy @ (d uv / d xy)^-1, per corner.
+        dP_dxy = np.empty((len(xy), 3, 2))
+        for axis in range(2):
+            xy2 = xy.copy()
+            xy2[:, axis] += h
+            dP_dxy[:, :, axis] = (self._intersect(fit.R, fit.t, xy2, F, O) - base) / h
+        Jd = distort(xy, fit.d, jac=True)[1]
+        A = fit.K[:2, :2]
+        duv_dxy = np.einsum("ij,njk->nik", A, Jd)
+        dP_duv = np.einsum("nij,njk->nik", dP_dxy, np.linalg.inv(duv_dxy)).reshape(n, 4, 3, 2)
+        cov_c += fit.sigma_px ** 2 / 16.0 * np.einsum("nkia,nkja->nij", dP_duv, dP_duv)
+        return np.sqrt(np.trace(cov_c, axis1=1, axis2=2))
+
+    # ------------------------------------------------------------------ leave-one-out
+    def estimate_loo(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+    ) -> dict[int, np.ndarray]:
+        """Leave-one-out: id -> (3,) world position (m) of each observed map marker estimated
+        without its own corners in the camera fit (the convention of
+        :func:`kmea.estimators.loo.loo_positions`).
+
+        One full fit, then for each consensus reference j one Gauss-Newton step from the
+        full solution with j's rows removed (H - J_j^T W_j J_j, g - J_j^T W_j r_j): a 6x6
+        (8x8) solve instead of a robust start and an LM per marker. Removing one of many
+        references moves the optimum little, so one step lands on it to second order (the
+        tests compare with ``estimate(exclude={j})``). A rejected reference is not in the
+        fit, so its position is the full fit's.
+        """
+        res = self._solve(observations, world_map, (), camera)
+        if isinstance(res, Estimate):
+            return {}
+        fit, refs, inliers, _, obs = res
+        X = np.concatenate([world_map[i].corners_world() for i in inliers])
+        uv = self._stack_corners(inliers, obs)
+        r, J = self._residuals(X, uv, fit.R, fit.t, fit.K, fit.d, fit.refine, True, fit.K0)
+        w = self._huber_w(r)
+        Jw = J * w[:, None]
+        g = Jw.T @ r
+        if fit.refine:
+            rp, Jp = self._prior_rows(fit.K, fit.d, fit.K0, fit.d0)
+            g = g + Jp.T @ rp
+        out: dict[int, np.ndarray] = {}
+        frames = np.repeat(np.array([world_map[i].rotation for i in refs]), 4, axis=0)
+        origins = np.repeat(world_map.positions(refs), 4, axis=0)
+        uv_refs = self._stack_corners(refs, obs)
+        xy_full = undistort(uv_refs, fit.K, fit.d)
+        full = self._intersect(fit.R, fit.t, xy_full, frames, origins).reshape(-1, 4, 3)
+        for k, i in enumerate(refs):
+            if i not in inliers:
+                out[i] = full[k].mean(axis=0)
+        if len(inliers) - 1 >= self.min_references:
+            pos = {i: k for k, i in enumerate(refs)}
+            for k, i in enumerate(inliers):
+                rows = slice(8 * k, 8 * k + 8)
+                Hj = fit.H - Jw[rows].T @ J[rows]
+                gj = g - Jw[rows].T @ r[rows]
+                try:
+                    delta = -np.linalg.solve(Hj, gj)
+                except np.linalg.LinAlgError:
+                    continue
+                R2, t2, K2, d2 = self._update(fit.R, fit.t, fit.K, fit.d, delta, fit.refine,
+                                              fit.K0)
+                q = slice(4 * pos[i], 4 * pos[i] + 4)
+                xy = xy_full[q] if not fit.refine else undistort(uv_refs[q], K2, d2)
+                P = self._intersect(R2, t2, xy, frames[q], origins[q])
+                if np.all(np.isfinite(P)):
+                    out[i] = P.mean(axis=0)
+        Rc2w = fit.R.T
+        for i, o in obs.items():  # map markers without corners: their PnP pose
+            if i in world_map and i not in out and o.corners is None:
+                out[i] = Rc2w @ (np.asarray(o.marker2cam_t, float) - fit.t)
+        return dict(sorted(out.items()))
+
+
+def project_back(xy: np.ndarray, K: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of normalized undistorted points xy (N, 2) (inverse of ``undistort``)."""
+    return project(np.concatenate([xy, np.ones((len(xy), 1))], axis=1), K, d)
