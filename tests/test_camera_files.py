@@ -1,0 +1,216 @@
+"""Camera files: FileStorage (YAML/XML/JSON) and TOML, bad files, scaling to other sizes."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from kmea.vision.camera import (
+    CameraError,
+    CameraModel,
+    load_camera,
+    model_for_frame,
+    pi_camera_v2,
+    save_camera,
+)
+
+K = np.array([[612.5, 0.0, 318.25], [0.0, 611.75, 241.5], [0.0, 0.0, 1.0]])
+DIST = np.array([0.11, -0.23, 0.0012, -0.0007, 0.09])
+
+
+def _model() -> CameraModel:
+    return CameraModel(K, DIST, 640, 480)
+
+
+def test_tutorial_camera_params_has_no_image_size(shared_dir: Path) -> None:
+    path = shared_dir / "opencv-gridboard" / "tutorial_camera_params.yml"
+    m = load_camera(path)
+    np.testing.assert_allclose(m.camera_matrix, [[628.158, 0, 324.099], [0, 628.156, 260.908],
+                                                 [0, 0, 1]])
+    np.testing.assert_allclose(m.dist_coeffs, [0.0995485, -0.206384, 0.00754589, 0.00336531, 0])
+    assert not m.size_known
+    # The first frame size is adopted, not scaled: the file has no size to scale from.
+    at = model_for_frame(m, 640, 480)
+    assert (at.width, at.height, at.size_known) == (640, 480, True)
+    np.testing.assert_allclose(at.camera_matrix, m.camera_matrix)
+    # ... and an explicit size is used as the calibration size.
+    m2 = load_camera(path, image_size=(640, 480))
+    assert m2.size_known and (m2.width, m2.height) == (640, 480)
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".yaml", ".xml", ".json", ".toml"])
+def test_round_trip(tmp_path: Path, suffix: str) -> None:
+    path = tmp_path / f"cam{suffix}"
+    save_camera(_model(), path, meta={"rms": 0.21, "board": "chessboard:9x7:0.025"})
+    m = load_camera(path)
+    np.testing.assert_allclose(m.camera_matrix, K, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m.dist_coeffs, DIST, rtol=0, atol=1e-12)
+    assert (m.width, m.height, m.size_known) == (640, 480, True)
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".xml", ".json"])
+def test_filestorage_is_readable_by_opencv(tmp_path: Path, suffix: str) -> None:
+    path = tmp_path / f"cam{suffix}"
+    save_camera(_model(), path, meta={"rms": 0.21})
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    np.testing.assert_allclose(fs.getNode("camera_matrix").mat(), K)
+    np.testing.assert_allclose(fs.getNode("distortion_coefficients").mat().ravel(), DIST)
+    assert int(fs.getNode("image_width").real()) == 640
+    assert fs.getNode("avg_reprojection_error").real() == pytest.approx(0.21)
+    fs.release()
+
+
+def test_old_sample_spelling(tmp_path: Path) -> None:
+    """OpenCV's older calibration sample writes Camera_Matrix, image_Width, ..."""
+    path = tmp_path / "out_camera_data.yml"
+    path.write_text(
+        "%YAML:1.0\n---\n"
+        'calibration_Time: "08/19/11 20:44:38"\n'
+        "nrOfFrames: 8\nimage_Width: 384\nimage_Height: 288\n"
+        "Camera_Matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        "   data: [ 305.2, 0., 197.4, 0., 304.9, 149.3, 0., 0., 1. ]\n"
+        "Distortion_Coefficients: !!opencv-matrix\n   rows: 5\n   cols: 1\n   dt: d\n"
+        "   data: [ 0.198, -0.445, 0.0022, 0.0033, 0.287 ]\n"
+        "Avg_Reprojection_Error: 1.68e-01\n")
+    m = load_camera(path)
+    assert (m.fx, m.fy, m.cx, m.cy) == (305.2, 304.9, 197.4, 149.3)
+    assert m.dist_coeffs[4] == pytest.approx(0.287)
+    assert (m.width, m.height) == (384, 288)
+
+
+def test_toml_convenience_keys(tmp_path: Path) -> None:
+    path = tmp_path / "cam.toml"
+    path.write_text("width = 1640\nheight = 1232\nfx = 1357.0\nfy = 1356.0\ncx = 819.5\n"
+                    "cy = 615.5\ndist_coeffs = [0.1, -0.2, 0.0, 0.0]\n")
+    m = load_camera(path)
+    np.testing.assert_allclose(m.camera_matrix, [[1357, 0, 819.5], [0, 1356, 615.5], [0, 0, 1]])
+    assert m.dist_coeffs.tolist() == [0.1, -0.2, 0.0, 0.0]
+
+
+def test_scaling_keeps_the_rays() -> None:
+    """A binned mode sees the same ray at the scaled pixel: x' + 0.5 = s (x + 0.5)."""
+    full = pi_camera_v2(1640, 1232)
+    half = model_for_frame(full, 820, 616)
+    assert half.fx == pytest.approx(full.fx / 2)
+    p = np.array([[0.31, -0.12, 1.4]])
+    a, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), full.camera_matrix, full.dist_coeffs)
+    b, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), half.camera_matrix, half.dist_coeffs)
+    np.testing.assert_allclose(b.ravel() + 0.5, (a.ravel() + 0.5) / 2, atol=1e-9)
+    back = half.scaled_to(1640, 1232)
+    np.testing.assert_allclose(back.camera_matrix, full.camera_matrix, atol=1e-9)
+
+
+def test_other_aspect_ratio_is_an_error() -> None:
+    with pytest.raises(CameraError, match=r"1280x720 has another aspect ratio .* 1640x1232"):
+        model_for_frame(pi_camera_v2(), 1280, 720)
+
+
+def _fs_file(path: Path, **nodes: object) -> Path:
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for k, v in nodes.items():
+        fs.write(k, v)
+    fs.release()
+    return path
+
+
+BAD_FS = {
+    "no_matrix": ({"distortion_coefficients": DIST.reshape(-1, 1)}, "camera_matrix"),
+    "no_dist": ({"camera_matrix": K}, "distortion_coefficients"),
+    "matrix_2x3": ({"camera_matrix": K[:2], "distortion_coefficients": DIST.reshape(-1, 1)},
+                   "camera_matrix"),
+    "dist_6": ({"camera_matrix": K, "distortion_coefficients": np.zeros((6, 1))},
+               "distortion_coefficients"),
+    "nan": ({"camera_matrix": np.where(np.eye(3) > 0, np.nan, K),
+             "distortion_coefficients": DIST.reshape(-1, 1)}, "camera_matrix"),
+    "inf_dist": ({"camera_matrix": K,
+                  "distortion_coefficients": np.array([[0.1], [np.inf], [0], [0], [0]])},
+                 "distortion_coefficients"),
+    "width_only": ({"camera_matrix": K, "distortion_coefficients": DIST.reshape(-1, 1),
+                    "image_width": 640}, "image_height"),
+    "zero_height": ({"camera_matrix": K, "distortion_coefficients": DIST.reshape(-1, 1),
+                     "image_width": 640, "image_height": 0}, "image_height"),
+    "negative_f": ({"camera_matrix": K * [[-1], [1], [1]],
+                    "distortion_coefficients": DIST.reshape(-1, 1)}, "camera_matrix"),
+}
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".json"])
+@pytest.mark.parametrize("case", sorted(BAD_FS))
+def test_bad_filestorage_names_file_and_key(tmp_path: Path, case: str, suffix: str) -> None:
+    nodes, key = BAD_FS[case]
+    path = _fs_file(tmp_path / f"{case}{suffix}", **nodes)
+    with pytest.raises(CameraError) as e:
+        load_camera(path)
+    msg = str(e.value)
+    assert str(path) in msg and key in msg, msg
+    assert "\n" not in msg
+
+
+BAD_TOML = {
+    "missing_matrix": ("dist_coeffs = [0, 0, 0, 0, 0]\n", "camera_matrix"),
+    "missing_dist": ("camera_matrix = [[600, 0, 320], [0, 600, 240], [0, 0, 1]]\n",
+                     "dist_coeffs"),
+    "ragged": ("camera_matrix = [[600, 0, 320], [0, 600], [0, 0, 1]]\n"
+               "dist_coeffs = [0, 0, 0, 0, 0]\n", "camera_matrix"),
+    "shape": ("camera_matrix = [[600, 0, 320], [0, 600, 240]]\n"
+              "dist_coeffs = [0, 0, 0, 0, 0]\n", "camera_matrix"),
+    "nan": ("camera_matrix = [[nan, 0, 320], [0, 600, 240], [0, 0, 1]]\n"
+            "dist_coeffs = [0, 0, 0, 0, 0]\n", "camera_matrix"),
+    "text": ("camera_matrix = [[600, 0, 320], [0, 600, 240], [0, 0, 1]]\n"
+             "dist_coeffs = [0, 'a', 0, 0, 0]\n", "dist_coeffs"),
+    "unknown": ("camera_matrix = [[600, 0, 320], [0, 600, 240], [0, 0, 1]]\n"
+                "dist_coeffs = [0, 0, 0, 0, 0]\nfocal = 3\n", "focal"),
+    "fx_missing_cy": ("fx = 600\nfy = 600\ncx = 320\ndist_coeffs = [0, 0, 0, 0]\n", "cy"),
+    "float_width": ("camera_matrix = [[600, 0, 320], [0, 600, 240], [0, 0, 1]]\n"
+                    "dist_coeffs = [0, 0, 0, 0, 0]\nwidth = 640.5\nheight = 480\n", "width"),
+    "syntax": ("camera_matrix = [[600, 0, 320]\n", "invalid TOML"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TOML))
+def test_bad_toml_names_file_and_key(tmp_path: Path, case: str) -> None:
+    text, key = BAD_TOML[case]
+    path = tmp_path / f"{case}.toml"
+    path.write_text(text)
+    with pytest.raises(CameraError) as e:
+        load_camera(path)
+    msg = str(e.value)
+    assert str(path) in msg and key in msg, msg
+
+
+@pytest.mark.parametrize("name,text,expect", [
+    ("broken.yml", "%YAML:1.0\ncamera_matrix: [1, 2\n  foo: :\n", "not a valid OpenCV FileStorage"),
+    ("broken.xml", '<?xml version="1.0"?><opencv_storage><camera_matrix>', "not a valid"),
+    ("broken.json", '{"camera_matrix": ', "not a valid"),
+    ("empty.yml", "", "empty file"),
+    ("cam.ini", "fx = 1\n", "unknown camera file format"),
+])
+def test_unreadable_files(tmp_path: Path, name: str, text: str, expect: str) -> None:
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(CameraError, match=expect) as e:
+        load_camera(path)
+    assert str(path) in str(e.value)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(CameraError, match=r"nope\.yml: cannot read"):
+        load_camera(tmp_path / "nope.yml")
+
+
+def test_unknown_size_not_written(tmp_path: Path) -> None:
+    m = CameraModel(K, DIST, 640, 480, size_known=False)
+    for suffix in (".yml", ".toml"):
+        save_camera(m, tmp_path / f"c{suffix}")
+        assert not load_camera(tmp_path / f"c{suffix}").size_known
+        assert "width" not in (tmp_path / f"c{suffix}").read_text()
+
+
+def test_model_validation_message() -> None:
+    with pytest.raises(CameraError, match="distortion_coefficients"):
+        CameraModel(K, np.zeros(3), 640, 480)
+    assert math.isclose(_model().intrinsics.camera_matrix[0, 0], 612.5)
