@@ -1,0 +1,243 @@
+"""Frame sources: image folders (with a corrupt file), video files, cameras, fake picamera2."""
+
+from __future__ import annotations
+
+import sys
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from kmea.vision.sources import (
+    PICAMERA2_MISSING,
+    Frame,
+    FrameSource,
+    SourceError,
+    open_source,
+    register_source,
+)
+
+
+def _numbered(i: int, w: int = 160, h: int = 120) -> np.ndarray:
+    """A BGR image whose bright block sits in column ``i``: the frame's number is readable."""
+    img = np.full((h, w, 3), 40, np.uint8)
+    img[40:80, 10 * i:10 * i + 10] = 230
+    return img
+
+
+def _block_column(img: np.ndarray) -> int:
+    g = img if img.ndim == 2 else img.mean(axis=2)
+    return int(np.argmax(g[40:80].mean(axis=0).reshape(-1, 10).mean(axis=1)))
+
+
+def test_image_folder_natural_order_and_corrupt_file(tmp_path: Path) -> None:
+    for i in (1, 2, 10):
+        cv2.imwrite(str(tmp_path / f"img{i}.png"), _numbered(i))
+    (tmp_path / "img3.jpg").write_bytes(b"\xff\xd8 this is not a jpeg")
+    (tmp_path / "notes.txt").write_text("not an image: skipped, not an error")
+    with open_source(f"images:{tmp_path}") as src:
+        assert not src.live and len(src) == 4  # type: ignore[arg-type]
+        frames = list(src)
+        assert src.read() is None  # stays at the end
+    assert [Path(f.meta["path"]).name for f in frames] == ["img1.png", "img2.png", "img3.jpg",
+                                                           "img10.png"]
+    assert [f.index for f in frames] == [0, 1, 2, 3]
+    bad = frames[2]
+    assert bad.image is None and not bad.ok and bad.error == "img3.jpg: cannot decode"
+    assert [_block_column(f.image) for f in frames if f.ok] == [1, 2, 10]
+    assert frames[3].image.shape == (120, 160, 3)
+    assert src.size == (160, 120)
+    assert frames[1].timestamp == pytest.approx(1 / 30)
+
+
+def test_image_folder_gray_option_in_spec(tmp_path: Path) -> None:
+    cv2.imwrite(str(tmp_path / "a.png"), _numbered(4))
+    with open_source(f"images:{tmp_path}?gray=true&fps=10") as src:
+        f = src.read()
+        assert f is not None and f.image.ndim == 2 and _block_column(f.image) == 4
+        assert src.read() is None
+
+
+def test_image_folder_errors(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="not a folder"):
+        open_source(f"images:{tmp_path / 'missing'}")
+    (tmp_path / "readme.md").write_text("x")
+    with pytest.raises(SourceError, match="no image files"):
+        open_source(f"images:{tmp_path}")
+
+
+def test_video_file_ends_cleanly(tmp_path: Path) -> None:
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (160, 120))
+    assert writer.isOpened()
+    for i in range(12):
+        writer.write(_numbered(i))
+    writer.release()
+    src = open_source(f"video:{path}")
+    assert not src.live and src.size == (160, 120)
+    frames = list(src)
+    assert src.read() is None and src.read() is None
+    src.close()
+    assert src.read() is None
+    assert len(frames) == 12
+    assert [_block_column(f.image) for f in frames] == list(range(12))
+    np.testing.assert_allclose([f.timestamp for f in frames], np.arange(12) / 25.0)
+
+
+def test_video_errors(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="no such file"):
+        open_source(f"video:{tmp_path / 'none.avi'}")
+    junk = tmp_path / "junk.avi"
+    junk.write_bytes(b"\x00" * 100)
+    with pytest.raises(SourceError, match="cannot open as a video"):
+        open_source(f"video:{junk}")
+
+
+def test_missing_camera_index_is_a_clear_error() -> None:
+    with pytest.raises(SourceError, match=r"camera:63: cannot open camera 63"):
+        open_source("camera:63")
+    with pytest.raises(SourceError, match="INDEX must be an integer"):
+        open_source("camera:front")
+
+
+def test_unknown_spec_and_bad_options(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match=r"unknown source 'rtsp'.*images:.*video:"):
+        open_source("rtsp://host/stream")
+    cv2.imwrite(str(tmp_path / "a.png"), _numbered(0))
+    with pytest.raises(SourceError, match="option 'width' is not supported"):
+        open_source(f"images:{tmp_path}", width=640)
+    with pytest.raises(SourceError, match="not key=value"):
+        open_source(f"images:{tmp_path}?gray")
+
+
+class _Counter(FrameSource):
+    live = True
+
+    def __init__(self, rest: str, n: int = 2) -> None:
+        super().__init__()
+        self.rest, self.n, self.i = rest, n, 0
+        self.size = (4, 3)
+
+    def read(self) -> Frame | None:
+        if self.i >= self.n:
+            return None
+        self.i += 1
+        return Frame(self.i - 1, float(self.i), np.zeros((3, 4), np.uint8), {"rest": self.rest})
+
+
+def test_register_source_plugs_in_a_prefix() -> None:
+    register_source("testcount", lambda rest, **o: _Counter(rest, **o))
+    with open_source("testcount:abc?n=3") as src:
+        frames = list(src)
+    assert src.closed
+    assert [f.meta["rest"] for f in frames] == ["abc"] * 3
+    with pytest.raises(ValueError, match="prefix"):
+        register_source("Bad Prefix", _Counter)
+
+
+# ---------------------------------------------------------------------------- picamera2
+
+
+class _FakeRequest:
+    def __init__(self, cam: _FakePicamera2, n: int) -> None:
+        self.cam, self.n, self.released = cam, n, False
+
+    def make_array(self, name: str) -> np.ndarray:
+        assert name == "main" and not self.released
+        w, h = self.cam.config["main"]["size"]
+        stride = (w + 63) // 64 * 64  # libcamera pads rows
+        arr = np.full((h * 3 // 2, stride), 128, np.uint8)  # chroma and padding: 128
+        arr[:h, :w] = (np.arange(w)[None, :] + np.arange(h)[:, None] + self.n) % 200
+        arr[:h, w:] = 255  # padding that must not leak into the frame
+        return arr
+
+    def get_metadata(self) -> dict:
+        return {"SensorTimestamp": 1_000_000_000 + self.n * 33_333_333, "ExposureTime": 8000}
+
+    def release(self) -> None:
+        self.released = True
+        self.cam.released += 1
+
+
+class _FakePicamera2:
+    """Mimics picamera2.Picamera2: create_video_configuration, configure, start,
+    capture_request (-> make_array, get_metadata, release), stop, close."""
+
+    instances: list[_FakePicamera2] = []
+
+    def __init__(self, camera_num: int = 0) -> None:
+        self.config: dict = {}
+        self.started = self.closed = False
+        self.requests: list[_FakeRequest] = []
+        self.released = 0
+        _FakePicamera2.instances.append(self)
+
+    def create_video_configuration(self, main: dict | None = None, lores: dict | None = None,
+                                   raw: dict | None = None, controls: dict | None = None,
+                                   buffer_count: int = 6, **kw: object) -> dict:
+        return {"main": dict(main or {}), "controls": dict(controls or {}),
+                "buffer_count": buffer_count}
+
+    def configure(self, config: dict) -> None:
+        self.config = config
+
+    def stream_configuration(self, name: str = "main") -> dict:
+        return self.config[name]
+
+    def start(self) -> None:
+        assert self.config, "configure() before start()"
+        self.started = True
+
+    def capture_request(self) -> _FakeRequest:
+        assert self.started
+        r = _FakeRequest(self, len(self.requests))
+        self.requests.append(r)
+        return r
+
+    def stop(self) -> None:
+        self.started = False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.fixture
+def fake_picamera2(monkeypatch: pytest.MonkeyPatch) -> type[_FakePicamera2]:
+    mod = types.ModuleType("picamera2")
+    mod.Picamera2 = _FakePicamera2  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "picamera2", mod)
+    _FakePicamera2.instances = []
+    return _FakePicamera2
+
+
+def test_picamera_gray_frames_and_sensor_timestamps(fake_picamera2: type) -> None:
+    with open_source("picamera?width=640&height=480&fps=40") as src:
+        assert src.live and src.size == (640, 480)
+        frames = [src.read() for _ in range(3)]
+    cam = fake_picamera2.instances[0]
+    assert cam.config["main"] == {"size": (640, 480), "format": "YUV420"}
+    assert cam.config["controls"] == {"FrameRate": 40.0}
+    assert cam.released == 3 and all(r.released for r in cam.requests)
+    assert cam.closed and not cam.started
+    for n, f in enumerate(frames):
+        assert f is not None and f.image.shape == (480, 640) and f.image.dtype == np.uint8
+        expect = (np.arange(640)[None, :] + np.arange(480)[:, None] + n) % 200
+        np.testing.assert_array_equal(f.image, expect)
+        assert f.meta["sensor_timestamp_ns"] == 1_000_000_000 + n * 33_333_333
+        assert f.meta["exposure_time_us"] == 8000
+    assert frames[1].timestamp - frames[0].timestamp == pytest.approx(0.033333333)
+
+
+def test_picamera_takes_no_argument(fake_picamera2: type) -> None:
+    with pytest.raises(SourceError, match="takes no argument"):
+        open_source("picamera:0")
+
+
+def test_picamera2_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "picamera2", None)  # import now raises ImportError
+    with pytest.raises(SourceError) as e:
+        open_source("picamera")
+    assert PICAMERA2_MISSING in str(e.value)
+    assert "sudo apt install python3-picamera2" in str(e.value)
