@@ -115,22 +115,29 @@ def main(argv: list[str] | None = None) -> int:
 def _run_with_ui(daemon) -> int:
     """Daemon in a background thread, the Textual UI in the foreground on its sockets."""
     try:
-        from kmea_tui.cli import run_ui  # type: ignore[attr-defined]
+        from kmea_tui.app import run_tui
     except ImportError as e:
         logging.getLogger("kmead").warning("terminal UI unavailable (%s); running headless", e)
         signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
         return daemon.run()
     result: dict[str, int] = {}
+    # The UI owns the terminal: log lines go to its Log tab (telemetry "log"), not stderr.
+    root = logging.getLogger("kmead")
+    quiet = [h for h in root.handlers if getattr(h, "_kmead", False)]
+    for h in quiet:
+        root.removeHandler(h)
     t = threading.Thread(target=lambda: result.setdefault("code", daemon.run()),
                          name="kmead-main", daemon=True)
     t.start()
     signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
     try:
-        run_ui(telemetry=_connectable(daemon.telemetry.bound),
+        run_tui(telemetry=_connectable(daemon.telemetry.bound),
                control=_connectable(daemon.control.bound if daemon.control else ""))
     finally:
         daemon.stop()
         t.join(timeout=5.0)
+        for h in quiet:
+            root.addHandler(h)
     return result.get("code", 0)
 
 

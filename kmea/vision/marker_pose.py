@@ -203,6 +203,10 @@ def estimate_marker_poses(
                 marker_corners_local(L), c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         except cv2.error:
             n = 0
+        # IPPE_SQUARE returns NaN for an exactly fronto-parallel square: no pose, not a crash.
+        if n and not all(np.all(np.isfinite(np.asarray(a, dtype=np.float64)))
+                         for a in (*rvecs[:n], *tvecs[:n])):
+            n = 0
         if not n:
             diag.failed_ids.append(mid)
             continue
