@@ -2,7 +2,8 @@
 
 Conventions are OpenCV's: camera frame x right, y down, z forward; pixel centres at integer
 coordinates; distortion coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4
-[, tauX, tauY]]]]). The tilted-sensor terms (tauX, tauY) must be zero. Numpy only, so the
+[, tauX, tauY]]]]). The tilted-sensor terms (tauX, tauY) must be zero. Like
+``cv2.projectPoints`` and ``cv2.undistortPoints``, the skew K[0, 1] is ignored. Numpy only, so the
 estimators stay free of cv2; the tests check it against ``cv2.projectPoints`` and
 ``cv2.undistortPoints``.
 """
@@ -80,11 +81,11 @@ def project(Pc: np.ndarray, K: np.ndarray, d: np.ndarray, jac: bool = False):
     """Pixels (N, 2) of camera-frame points Pc (N, 3) (metres, z > 0).
 
     With ``jac`` also returns d uv / d Pc (N, 2, 3), d uv / d f (N, 2) for a common
-    multiplier of fx, fy and the skew at 1, and d uv / d k1 (N, 2).
+    multiplier of fx and fy at 1, and d uv / d k1 (N, 2).
     """
     Z = Pc[:, 2]
     xy = Pc[:, :2] / Z[:, None]
-    fx, s, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    fx, s, cx, fy, cy = K[0, 0], 0.0, K[0, 2], K[1, 1], K[1, 2]
     if not jac:
         xd = distort(xy, d)
         return np.stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy], axis=1)
@@ -111,7 +112,7 @@ def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20
     for any distortion the calibration can produce inside the image.
     """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    fx, s, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    fx, s, cx, fy, cy = K[0, 0], 0.0, K[0, 2], K[1, 1], K[1, 2]
     yd = (uv[:, 1] - cy) / fy
     xd = (uv[:, 0] - cx - s * yd) / fx
     target = np.stack([xd, yd], axis=1)

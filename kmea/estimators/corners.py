@@ -169,7 +169,8 @@ class CornerPnP:
             return R2, t2, K, d
         m = K[0, 0] / K0[0, 0] + delta[6]
         K2 = K0.copy()
-        K2[:2, :2] *= m
+        K2[0, 0] *= m
+        K2[1, 1] *= m
         d2 = d.copy()
         d2[0] += delta[7]
         return R2, t2, K2, d2
