@@ -393,8 +393,13 @@ def _angles_deg(R: np.ndarray) -> tuple[float, float, float]:
     else:  # gimbal lock: put everything in c
         a = 0.0
         c = math.atan2(R[1, 0], R[1, 1])
-    # Rounded to 1e-9 deg so that 90 is written 90.0, not 90.00000000000001.
-    return tuple(round(math.degrees(v), 9) + 0.0 for v in (a, b, c))  # type: ignore[return-value]
+    return tuple(_tidy(math.degrees(v)) for v in (a, b, c))  # type: ignore[return-value]
+
+
+def _tidy(deg: float) -> float:
+    """90.00000000000001 -> 90.0 (for people), other angles kept to full precision."""
+    r = round(deg, 6)
+    return (r if abs(deg - r) < 1e-9 else deg) + 0.0  # + 0.0 turns -0.0 into 0.0
 
 
 def map_to_dict(m: MarkerMap) -> dict:
