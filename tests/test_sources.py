@@ -108,6 +108,8 @@ def test_unknown_spec_and_bad_options(tmp_path: Path) -> None:
     cv2.imwrite(str(tmp_path / "a.png"), _numbered(0))
     with pytest.raises(SourceError, match="option 'width' is not supported"):
         open_source(f"images:{tmp_path}", width=640)
+    with pytest.raises(TypeError):  # callers that retry without size options catch TypeError
+        open_source(f"video:{tmp_path / 'a.png'}", fps=5)
     with pytest.raises(SourceError, match="not key=value"):
         open_source(f"images:{tmp_path}?gray")
 

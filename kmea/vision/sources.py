@@ -41,6 +41,7 @@ __all__ = [
     "ImageFolderSource",
     "PiCameraSource",
     "SourceError",
+    "SourceOptionError",
     "VideoSource",
     "open_source",
     "register_source",
@@ -56,6 +57,10 @@ PICAMERA2_MISSING = ("picamera2 is not installed: on Raspberry Pi OS run `sudo a
 
 class SourceError(RuntimeError):
     """A source cannot be opened or stopped delivering; the message names the source."""
+
+
+class SourceOptionError(SourceError, TypeError):
+    """An option the source does not take (a TypeError too, as for a wrong keyword)."""
 
 
 @dataclass
@@ -445,13 +450,17 @@ def _picamera(rest: str, **opts: Any) -> FrameSource:
 
 
 def _sim_fallback(rest: str, **opts: Any) -> FrameSource:
-    try:
-        from kmea import sim
-    except ImportError as e:  # pragma: no cover - kmea.sim is part of the package
-        raise SourceError(f"sim:{rest}: the simulator is not available: {e}") from None
-    if not (hasattr(sim, "SimSource") and hasattr(sim, "scene_from_spec")):
-        raise SourceError(f"sim:{rest}: kmea.sim provides no SimSource/scene_from_spec")
-    return sim.SimSource(sim.scene_from_spec(rest), **opts)
+    import importlib
+
+    for name in ("kmea.sim", "kmea.sim.source", "kmea.sim.sources"):
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:
+            continue
+        if hasattr(mod, "SimSource") and hasattr(mod, "scene_from_spec"):
+            return mod.SimSource(mod.scene_from_spec(rest), **opts)
+    raise SourceError(f"sim:{rest}: the simulator provides no SimSource/scene_from_spec "
+                      f"(kmea.sim)")
 
 
 _BUILTIN: dict[str, SourceFactory] = {"images": _images, "video": _video, "camera": _camera,
@@ -480,6 +489,6 @@ def open_source(spec: str, **options: Any) -> FrameSource:
         # An option the source does not take: name it rather than show a traceback.
         m = re.search(r"unexpected keyword argument '(\w+)'", str(e))
         if m:
-            raise SourceError(f"{spec}: option {m.group(1)!r} is not supported by "
-                              f"{prefix}:") from None
+            raise SourceOptionError(f"{spec}: option {m.group(1)!r} is not supported by "
+                                    f"{prefix}:") from None
         raise
