@@ -129,6 +129,10 @@ class Daemon:
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
         cfg = self.cfg
+        self.source = None
+        # Files named in the configuration first: their errors are configuration errors.
+        self.world_map = self._load_map() if cfg["map"]["file"] else None
+        camera = self._load_camera_file() if cfg["camera"]["file"] else None
         try:
             self.source = open_configured_source(cfg)
         except SourceError as e:
@@ -136,8 +140,9 @@ class Daemon:
         self.source_spec = cfg["source"]["spec"]
         self.replay = isinstance(self.source, ReplaySource)
         self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(self.source, cfg)
-        self.world_map = self._load_map()
-        camera = self._load_camera()
+        if self.world_map is None:
+            self.world_map = self._load_map()
+        camera = self._fit_camera(camera)
         try:
             self.pipeline = Pipeline(camera, self.world_map, cfg.data)
         except ValueError as e:  # detector parameters, dictionary, algorithm options
@@ -176,15 +181,17 @@ class Daemon:
         m = getattr(self.source, "world_map", None)
         return m if isinstance(m, MarkerMap) else default_map()
 
-    def _load_camera(self) -> CameraModel:
+    def _load_camera_file(self) -> CameraModel:
         path = self.cfg["camera"]["file"]
+        try:
+            return load_camera(path)
+        except CameraError as e:
+            raise StartupError(f"camera: {e}") from None
+
+    def _fit_camera(self, cam: CameraModel | None) -> CameraModel:
+        """The configured camera, else the source's, else a Pi Camera v2; at the frame size."""
         size = getattr(self.source, "size", None)
-        if path:
-            try:
-                cam = load_camera(path, image_size=size)
-            except CameraError as e:
-                raise StartupError(f"camera: {e}") from None
-        else:
+        if cam is None:
             cam = getattr(self.source, "camera", None)
             if not isinstance(cam, CameraModel):
                 scene = getattr(self.source, "scene", None)
@@ -195,7 +202,8 @@ class Daemon:
             try:
                 cam = cam.scaled_to(*size)
             except CameraError as e:
-                raise StartupError(f"camera: {path or 'default camera'}: {e}") from None
+                raise StartupError(f"camera: {self.cfg['camera']['file'] or 'default camera'}: "
+                                   f"{e}") from None
         return cam
 
     # ------------------------------------------------------------------ outputs on/off

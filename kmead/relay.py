@@ -12,12 +12,15 @@ pose (or 0 if never seen).
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 from dataclasses import dataclass, field
 from typing import Any
 
 from kmead.config import parse_destination
+
+log = logging.getLogger("kmead.relay")
 
 
 @dataclass
@@ -27,7 +30,7 @@ class RobotTrack:
     name: str
     markers: list[int]
     destinations: list[str]
-    addrs: list[tuple[str, int]]
+    addrs: list[tuple[str, int] | None]
     x: float = math.nan
     y: float = math.nan
     theta: float = math.nan
@@ -61,6 +64,17 @@ def parse_datagram(data: bytes) -> dict[str, Any]:
             "valid": out["valid"] == "1"}
 
 
+def _resolve(host: str, port: int) -> tuple[str, int] | None:
+    """Numeric address, resolved once: a DNS lookup must never happen in the frame loop."""
+    try:
+        info = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+    except (OSError, UnicodeError):
+        log.warning("relay destination udp:%s:%d does not resolve; datagrams to it are "
+                    "counted as errors", host, port)
+        return None
+    return info[0][4][0], port
+
+
 class Relay:
     """Sends robot poses; ``publish`` is called with (topic, body) for the telemetry topic."""
 
@@ -79,7 +93,8 @@ class Relay:
         old = self.tracks
         self.tracks = {}
         for r in robots:
-            addrs = [parse_destination(d, f"robot {r['name']}") for d in r["destinations"]]
+            addrs = [_resolve(*parse_destination(d, f"robot {r['name']}"))
+                     for d in r["destinations"]]
             tr = old.get(r["name"])
             if tr is None or tr.markers != r["markers"]:
                 tr = RobotTrack(r["name"], list(r["markers"]), list(r["destinations"]), addrs)
@@ -91,6 +106,9 @@ class Relay:
         tr.seq += 1
         data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid)
         for addr in tr.addrs:
+            if addr is None:  # a host name that did not resolve at configuration time
+                tr.errors += 1
+                continue
             try:
                 self.sock.sendto(data, addr)
                 tr.sent += 1
