@@ -270,21 +270,22 @@ class KmeaTui(App[None]):
         config_pane = self.query_one(ConfigPane)
         log_pane = self.query_one(LogPane)
         error = str(reply.get("error", "failed"))
-        if cmd == "get_state" and ok:
-            state = reply.get("state", reply)
-            algos = state.get("algorithms") if isinstance(state, dict) else None
-            if isinstance(algos, list):
-                config_pane.algorithms = [str(a) for a in algos]
-            target = state.get("save_target") if isinstance(state, dict) else None
-            if isinstance(target, str) and target:
-                config_pane.save_target = target
-            return
         if cmd == "get_state":
+            # The daemon's last status and frame: show them before the next telemetry.
+            if ok and isinstance(reply.get("status"), dict) and self.status is None:
+                self.status = reply["status"]
+                log_pane.update_status(reply["status"])
             return
         if cmd == "get_config":
             if ok and isinstance(reply.get("config"), dict):
                 self.config_loaded = True
-                config_pane.show_config(reply["config"])
+                overlay = reply.get("overlay_file")
+                config_pane.show_config(
+                    reply["config"],
+                    save_target=(f"{overlay} (an overlay with only the changed keys; "
+                                 f"the commented configuration file is never rewritten)"
+                                 if overlay else None),
+                    source=reply.get("config_file"))
             elif args:
                 config_pane.show_reply(f"get_config: {error}", False)
             return

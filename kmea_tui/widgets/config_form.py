@@ -20,8 +20,17 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-# Offered when the daemon does not list its algorithms (get_state "algorithms").
+# Offered when the kmea package (the daemon's estimator registry) is not importable here.
 DEFAULT_ALGORITHMS = ("kmea", "lmea", "umeyama")
+
+
+def known_algorithms() -> list[str]:
+    """Estimator names: the local registry (the daemon uses the same package)."""
+    try:
+        from kmea.estimators import available
+    except ImportError:
+        return list(DEFAULT_ALGORITHMS)
+    return list(available()) or list(DEFAULT_ALGORITHMS)
 
 
 def parse_value(text: str) -> Any:
@@ -35,11 +44,17 @@ def parse_value(text: str) -> Any:
 
 
 def show_value(value: Any) -> str:
+    """``value`` in TOML syntax (inline tables for dicts), as :func:`parse_value` reads it."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
         return json.dumps(value)
-    return json.dumps(value) if isinstance(value, (list, dict)) else str(value)
+    if isinstance(value, dict):
+        inner = ", ".join(f"{k} = {show_value(v)}" for k, v in value.items())
+        return f"{{ {inner} }}" if inner else "{}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(show_value(v) for v in value) + "]"
+    return str(value)
 
 
 def robot_row(r: dict[str, Any]) -> tuple[str, str, str, str, str]:
@@ -88,7 +103,7 @@ class ConfigPane(VerticalScroll):
     def __init__(self, id: str | None = None) -> None:
         super().__init__(id=id)
         self.config: dict[str, Any] = {}
-        self.algorithms: list[str] = list(DEFAULT_ALGORITHMS)
+        self.algorithms: list[str] = known_algorithms()
         self.robots: list[dict[str, Any]] = []
         self.save_target = "the daemon's configuration file"
 
@@ -116,7 +131,7 @@ class ConfigPane(VerticalScroll):
 
     # -- showing the daemon's configuration ----------------------------------------------
     def show_config(self, config: dict[str, Any], algorithms: list[str] | None = None,
-                    save_target: str | None = None) -> None:
+                    save_target: str | None = None, source: str | None = None) -> None:
         self.config = config
         if algorithms:
             self.algorithms = list(algorithms)
@@ -145,13 +160,13 @@ class ConfigPane(VerticalScroll):
         self.query_one("#save-note", Static).update(
             f"Save writes {self.save_target}.")
         self.query_one("#config-status", Static).update(Text.assemble(
-            ("configuration", "bold"), f" of {config.get('_source', 'the daemon')}: ",
+            ("configuration", "bold"), f" ({source or 'the daemon'}): ",
             "Enter applies a value live; Save makes changes permanent"))
 
     def _show_detector(self, detector: Any) -> None:
         box = self.query_one("#detector-options", Vertical)
         options = {k: v for k, v in (detector or {}).items()
-                   if isinstance(v, (str, int, float, bool))}
+                   if isinstance(v, (str, int, float, bool, dict, list))}
         existing = {inp.name for inp in box.query(Input)}
         if existing == set(options):
             for inp in box.query(Input):

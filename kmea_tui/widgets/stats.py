@@ -27,7 +27,7 @@ def stats_cells(s: dict[str, Any]) -> list[str | Text]:
         str(s.get("id")), str(s.get("n", DASH)),
         fmt(s.get("rmse"), ".2f", 1000.0), fmt(s.get("std"), ".2f", 1000.0),
         fmt(s.get("mae"), ".2f", 1000.0), fmt(s.get("maxae"), ".2f", 1000.0),
-        fmt(s.get("mre"), ".3f", 100.0),
+        fmt(s.get("mre"), ".3f"),
     ]
 
 

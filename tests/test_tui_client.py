@@ -1,0 +1,83 @@
+"""DaemonClient on real ZeroMQ sockets: the lazy-pirate REQ never hangs and recovers."""
+
+from __future__ import annotations
+
+import asyncio
+
+import zmq
+import zmq.asyncio
+
+from kmea_tui.client import DaemonClient
+from kmead import protocol
+
+
+async def test_request_times_out_then_recovers_with_a_fresh_socket() -> None:
+    ctx = zmq.asyncio.Context()
+    rep = ctx.socket(zmq.REP)
+    rep.setsockopt(zmq.LINGER, 0)
+    port = rep.bind_to_random_port("tcp://127.0.0.1")
+    client = DaemonClient("tcp://127.0.0.1:1", f"tcp://127.0.0.1:{port}", timeout=0.3)
+    await client.open()
+    try:
+        # 1) The server reads the request but never answers: the client gives up.
+        pending = asyncio.ensure_future(client.request("ping"))
+        first = protocol.decode_body(await rep.recv())
+        reply = await pending
+        assert first["cmd"] == "ping"
+        assert reply["ok"] is False and "no reply" in reply["error"]
+        # The REP socket must answer before it can read again; the answer goes nowhere
+        # (that REQ socket was closed), which is exactly what the lazy pirate expects.
+        await rep.send(protocol.encode_body({"ok": True}))
+
+        # 2) The next request goes through a new REQ socket and gets its reply.
+        async def serve_once() -> dict:
+            req = protocol.decode_body(await rep.recv())
+            await rep.send(protocol.encode_body({"ok": True, "cmd": req["cmd"], "echo": req}))
+            return req
+
+        server = asyncio.ensure_future(serve_once())
+        reply = await client.request("set", key="filter.alpha", value=0.5)
+        got = await server
+        assert reply["ok"] is True and reply["cmd"] == "set"
+        assert got == {"v": 1, "cmd": "set", "key": "filter.alpha", "value": 0.5}
+
+        # 3) A reply that is not protocol JSON is reported, not raised.
+        async def serve_garbage() -> None:
+            await rep.recv()
+            await rep.send(b"\xff garbage")
+
+        server = asyncio.ensure_future(serve_garbage())
+        reply = await client.request("ping")
+        await server
+        assert reply["ok"] is False and "bad reply" in reply["error"]
+    finally:
+        client.close()
+        rep.close(linger=0)
+        ctx.term()
+
+
+async def test_recv_decodes_and_counts_bad_messages() -> None:
+    ctx = zmq.asyncio.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    client = DaemonClient(f"tcp://127.0.0.1:{port}", "tcp://127.0.0.1:1", timeout=0.2)
+    await client.open()
+    try:
+        got: list = []
+        # Publish until the subscription is through (PUB drops while SUB is joining).
+        for i in range(200):
+            await pub.send_multipart(protocol.encode("frame", {"frame": i}))
+            await pub.send_multipart([b"frame", b"not json"])
+            await pub.send_multipart(protocol.encode("robot.amr1", {"seq": i}))
+            got += await client.recv(0.02)
+            if got:
+                break
+        assert got, "no telemetry received"
+        assert all(t == "frame" and "frame" in b for t, b in got)  # robot.* not subscribed
+        got += await client.recv(0.1)
+        assert client.bad_messages >= 1 and "not UTF-8 JSON" in client.last_error
+    finally:
+        client.close()
+        pub.close(linger=0)
+        ctx.term()

@@ -1,0 +1,145 @@
+"""kmea-tui building blocks: braille canvas, viewport, magnification, form parsing, status line."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from kmea_tui.app import floor_extent, terminal_has_16_colours
+from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnification
+from kmea_tui.client import RecordingClient
+from kmea_tui.screens.robot_edit import parse_robot
+from kmea_tui.widgets.config_form import parse_value, show_value
+from kmea_tui.widgets.floor_map import marker_error_vector
+from kmea_tui.widgets.log_panel import human_bytes
+from kmea_tui.widgets.markers import flags_of, misplaced_ids, misplaced_threshold
+from kmea_tui.widgets.status_bar import status_text
+
+
+def test_braille_dots_map_to_unicode_bits() -> None:
+    c = BrailleCanvas(2, 1)
+    c.dot(0, 0)  # top-left dot of cell 0: bit 0x01
+    c.dot(3, 3)  # bottom-right dot of cell 1: bit 0x80
+    assert c.render().plain == chr(0x2801) + chr(0x2880)
+    assert c.is_set(0, 0) and c.is_set(3, 3) and not c.is_set(1, 0)
+    c.dot(-1, 0)
+    c.dot(4, 0)  # outside: ignored, no exception
+    assert c.render().plain == chr(0x2801) + chr(0x2880)
+
+
+def test_text_replaces_dots_and_is_clipped() -> None:
+    c = BrailleCanvas(3, 2)
+    c.line(0, 0, 5, 0)
+    c.text(2, 0, "42")  # the second character falls outside
+    rows = c.render().plain.split("\n")
+    assert rows[0][2] == "4" and len(rows[0]) == 3
+    assert rows[1] == "   "
+    assert not c.free(2, 0, 1) and c.free(0, 1, 3) and not c.free(2, 1, 2)
+
+
+def test_viewport_is_to_scale_and_flips_y() -> None:
+    vp = Viewport(-0.85, 0.85, -0.6, 0.6, 160, 80)
+    x0, y0 = vp.to_dots(-0.85, 0.6)
+    x1, y1 = vp.to_dots(0.85, -0.6)
+    # Same dots per metre on both axes: the floor's aspect ratio is kept.
+    assert (x1 - x0) / (y1 - y0) == pytest.approx(1.7 / 1.2)
+    assert y0 < y1  # world +y is up on screen
+    assert x0 >= -1e-9 and x1 <= 159 + 1e-9 and y0 >= -1e-9 and y1 <= 79 + 1e-9
+    # Height-limited here: the rectangle fills the height.
+    assert y1 - y0 == pytest.approx(79)
+
+
+@pytest.mark.parametrize(("err", "target", "expected"), [
+    (0.001, 0.136, 100.0), (0.002, 0.136, 50.0), (0.0001, 0.136, 1000.0),
+    (0.036, 0.136, 2.0), (0.5, 0.136, 1.0), (0.0, 0.136, 100.0), (1e-9, 0.1, 10000.0),
+])
+def test_nice_magnification(err: float, target: float, expected: float) -> None:
+    m = nice_magnification(err, target)
+    assert m == expected
+    if err > 0 and 1 < m < 10000:
+        assert m * err <= target + 1e-12  # never longer than the target
+
+
+def test_heading_arrow() -> None:
+    assert [heading_arrow(k * math.pi / 4) for k in range(8)] == list("→↗↑↖←↙↓↘")
+    assert heading_arrow(-math.pi / 2) == "↓"
+
+
+def test_misplaced_threshold_and_flags() -> None:
+    markers = [{"id": i, "in_map": True, "error": 0.002} for i in range(10)]
+    markers.append({"id": 99, "in_map": True, "error": 0.05})
+    markers.append({"id": 7, "in_map": False, "error": None})
+    assert misplaced_threshold(markers) == pytest.approx(0.010)  # floor beats 3 x 2 mm
+    assert misplaced_ids(markers) == {99}
+    noisy = [{"id": i, "in_map": True, "error": 0.008} for i in range(10)]
+    noisy.append({"id": 50, "in_map": True, "error": 0.02})
+    assert misplaced_threshold(noisy) == pytest.approx(0.024)
+    assert misplaced_ids(noisy) == set()
+    assert flags_of({"ambiguous": True, "rejected": True}, True) == "!AR"
+
+
+def test_error_vector_needs_estimate_and_map() -> None:
+    assert marker_error_vector({"detected": True, "x": 1.0, "y": 2.0,
+                                "map_x": 0.9, "map_y": 2.05}) == pytest.approx((0.1, -0.05))
+    assert marker_error_vector({"detected": False, "x": None, "y": None,
+                                "map_x": 0.9, "map_y": 2.0}) is None
+    assert marker_error_vector({"detected": True, "x": 1.0, "y": 2.0,
+                                "map_x": None, "map_y": None}) is None
+
+
+def test_parse_robot() -> None:
+    r = parse_robot("amr3", "40, 41", "0.25", "", "udp:127.0.0.1:9001, udp:10.0.0.2:9000")
+    assert r == {"name": "amr3", "markers": [40, 41], "height": 0.25, "length": 0.06,
+                 "destinations": ["udp:127.0.0.1:9001", "udp:10.0.0.2:9000"]}
+    assert parse_robot("a", "42", "", "0.05", "")["markers"] == [42]
+    for bad, field in ((("", "42", "", "", ""), "name"), (("a", "1,2,3", "", "", ""), "markers"),
+                       (("a", "x", "", "", ""), "markers"), (("a", "4,4", "", "", ""), "markers"),
+                       (("a", "4", "high", "", ""), "height"),
+                       (("a", "4", "", "0", ""), "length")):
+        with pytest.raises(ValueError, match=field):
+            parse_robot(*bad)
+
+
+def test_parse_and_show_values_round_trip() -> None:
+    for v in (1.0, 3, True, "DICT_6X6_250", [1, 2], {"adaptiveThreshWinSizeMax": 31}, {}):
+        assert parse_value(show_value(v)) == v
+    assert parse_value("subpix") == "subpix"  # a bare word is a string
+
+
+def test_status_text_fits_and_orders() -> None:
+    frame = {"fps": 29.94, "dropped": 3,
+             "timings_ms": {"capture": 1.0, "detect": 12.0, "pose": 0.5, "estimate": 0.2,
+                            "loo": 0.4, "filter": 0.0, "robots": 0.1, "output": 0.3,
+                            "total": 14.5}}
+    narrow = status_text("connected", frame, width=60).plain
+    wide = status_text("connected", frame, width=200).plain
+    assert narrow.startswith("● connected  29.9 fps  dropped 3  14.5 ms: det 12.0")
+    assert len(narrow) <= 60 and "cap 1.0" in wide and "cap" not in narrow
+    assert "disconnected (no reply" in status_text("disconnected", None, 80,
+                                                   "no reply from x").plain
+
+
+def test_floor_extent_and_colours() -> None:
+    assert floor_extent({"map": {"name": "m", "n": 3}}) is None
+    assert floor_extent({"map": {"floor": [-1, 1, -0.5, 0.5]}}) == (-1, 1, -0.5, 0.5)
+    assert terminal_has_16_colours({"TERM": "xterm"})
+    assert terminal_has_16_colours({"TERM": "linux"})
+    assert not terminal_has_16_colours({"TERM": "xterm-256color"})
+    assert not terminal_has_16_colours({"TERM": "xterm", "COLORTERM": "truecolor"})
+    assert human_bytes(123) == "123 B" and human_bytes(123456) == "123.5 kB"
+
+
+def test_recording_client_names_bad_lines(tmp_path) -> None:
+    good = {"topic": "frame", "body": {"v": 1, "frame": 1}, "dt": 0.0}
+    p = tmp_path / "rec.jsonl"
+    p.write_text(json.dumps(good) + "\n" + "{not json\n")
+    with pytest.raises(ValueError, match=r"rec.jsonl:2: not JSON"):
+        RecordingClient(p)
+    p.write_text(json.dumps({"topic": "frame", "body": {"v": 2}}) + "\n")
+    with pytest.raises(ValueError, match=r"rec.jsonl:1: field 'v'"):
+        RecordingClient(p)
+    p.write_text(json.dumps({"header": {"config": {"a": 1}}}) + "\n" + json.dumps(good) + "\n")
+    rc = RecordingClient(p)
+    assert rc.header["config"] == {"a": 1} and len(rc.messages) == 1
