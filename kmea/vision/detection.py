@@ -35,9 +35,12 @@ DEFAULT_PARAMETERS: dict[str, float | int | bool] = {
     "adaptiveThreshWinSizeMin": 5,
     "adaptiveThreshWinSizeMax": 21,
     "adaptiveThreshWinSizeStep": 8,
-    # Sub-pixel search: window at most 5 px and at most 0.3 module (OpenCV's relative rule),
-    # so the search never reaches the inner bit corners; iterate to 0.01 px.
-    "cornerRefinementWinSize": 5,
+    # Sub-pixel search half-window = min(6 px, 0.3 module): 3 px for 60 mm markers at
+    # 1640x1232 (8-10 px modules), inside the one-module black border so the inner bits
+    # never pull the corner. 0.7 module halves the inward bias of blurred corners on
+    # rendered frames but moves the real tutorial photo's corners ~1.1 px from OpenCV's
+    # reference; see docs/vision.md. Iterate to 0.01 px (OpenCV: 0.1 px, 30 iterations).
+    "cornerRefinementWinSize": 6,
     "cornerRefinementMaxIterations": 50,
     "cornerRefinementMinAccuracy": 0.01,
 }
