@@ -1,0 +1,69 @@
+"""The simulator as a frame source (``sim`` and ``sim:SCENE`` specs of ``open_source``)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import cv2
+
+from kmea.sim.renderer import Renderer, SimFrame
+from kmea.sim.scene import Scene
+from kmea.sim.scenes import apply_options, scene_from_spec
+from kmea.vision.sources import FrameSource
+
+__all__ = ["SimSource"]
+
+
+class SimSource(FrameSource):
+    """Frames of ``scene`` from frame ``start`` on, forever (or ``frames`` of them).
+
+    ``realtime``: ``read`` waits so frames come at the scene's fps (a live source); otherwise
+    frames come as fast as they render, timestamps still index / fps. ``gray`` False gives
+    BGR images. Other keyword options adjust the scene (:func:`kmea.sim.scenes.apply_options`:
+    width, height, fps, seed, noise, blur, ...).
+    """
+
+    def __init__(self, scene: Scene | str = "sim", start: int = 0, *, frames: int | None = None,
+                 realtime: bool = False, gray: bool = True, **options: Any) -> None:
+        super().__init__()
+        if isinstance(scene, str):
+            scene = scene_from_spec(scene)
+        self.scene = apply_options(scene, **options)
+        if start < 0:
+            raise ValueError(f"sim: start must be >= 0, got {start}")
+        self.spec = f"sim:{self.scene.name}"
+        self.renderer = Renderer(self.scene)
+        self.size = self.scene.size
+        self.fps = self.scene.fps
+        self.camera = self.scene.camera
+        self.live = bool(realtime)
+        self.gray = bool(gray)
+        self.start = int(start)
+        self.frames = frames
+        self._next = self.start
+        self._t0: float | None = None
+
+    def read(self) -> SimFrame | None:
+        if self._closed:
+            return None
+        if self.frames is not None and self._next - self.start >= self.frames:
+            return None
+        i = self._next
+        self._next += 1
+        if self.live:
+            now = time.monotonic()
+            if self._t0 is None:
+                self._t0 = now
+            due = self._t0 + (i - self.start) / self.fps
+            if due > now:
+                time.sleep(due - now)
+        frame = self.renderer.render(i)
+        if not self.gray:
+            frame.image = cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
+        return frame
+
+    def seek(self, index: int) -> None:
+        """Make the next ``read`` return frame ``index``."""
+        self._next = int(index)
+        self._t0 = None
