@@ -52,7 +52,7 @@ def _err(msg: str) -> int:
 def run(args: argparse.Namespace) -> int:
     from kmea.vision.calibration import BoardError, Calibrator, parse_board
     from kmea.vision.camera import FILESTORAGE_SUFFIXES, CameraError, save_camera
-    from kmea.vision.sources import SourceError, open_source
+    from kmea.vision.sources import ImageFolderSource, SourceError, open_source
 
     out = Path(args.out)
     if out.suffix.lower() not in (*FILESTORAGE_SUFFIXES, ".toml"):
@@ -74,12 +74,14 @@ def run(args: argparse.Namespace) -> int:
         return _err("--subpix-window must be >= 1")
     cal = Calibrator(board, blur_threshold=args.blur_threshold, min_move_px=args.min_move,
                      subpix_window=args.subpix_window)
+    per_file = isinstance(source, ImageFolderSource)
     total = len(source) if hasattr(source, "__len__") else None  # type: ignore[arg-type]
     interrupted = False
     with source:
         try:
             for frame in source:
-                name = Path(frame.meta["path"]).name if "path" in frame.meta \
+                # one file per frame: its name; videos and cameras: the frame number
+                name = Path(frame.meta["path"]).name if per_file and "path" in frame.meta \
                     else f"frame {frame.index}"
                 check = cal.add(frame.image, name)
                 if not args.quiet and (check.accepted or not source.live):
@@ -89,6 +91,10 @@ def run(args: argparse.Namespace) -> int:
                         detail = f" ({frame.error})"
                     print(f"{where} {name}: {check.status}{detail}; views {len(cal.views)}/"
                           f"{cal.seen} seen, coverage {100 * cal.coverage():.0f}%", flush=True)
+                elif not args.quiet and source.live and cal.seen % 30 == 0:
+                    print(f"[{frame.index + 1}] views {len(cal.views)}/{cal.seen} seen, coverage "
+                          f"{100 * cal.coverage():.0f}%; move the board (Ctrl+C to finish)",
+                          flush=True)
                 if len(cal.views) >= args.max_views:
                     print(f"reached --max-views {args.max_views}")
                     break
