@@ -23,8 +23,11 @@ noisiest coordinate and leaks sideways off the optical axis. Here instead:
 Optional intrinsics refinement (``refine_intrinsics``): a common multiplier of fx and fy
 and k1 join the LM, with a weak Gaussian prior at the calibrated values (``f`` 5 %, k1
 0.1: real calibrations are a few percent off, and the prior keeps a fronto-parallel
-view, where focal length and camera height are not separable, well-posed). ``"auto"``
-turns it on when at least ``refine_min_references`` references are in the consensus.
+view, where focal length and camera height are not separable, well-posed). ``"auto"`` (the
+default) turns it on when at least ``refine_min_references`` (12) references are in the
+consensus: with a perfect calibration it costs about 2 % of floor accuracy (simulated
+floor, 0.15 px noise: 0.098 instead of 0.096 mm leave-one-out), with the tutorial photo's
+rough calibration it divides the error by 5.
 
 Uncertainty (``MarkerEstimate.sigma``, m): the RMS position error predicted by first-order
 propagation of (a) the pose (and intrinsics) covariance ``sigma_px^2 (J^T J)^-1`` of the LM
@@ -104,7 +107,7 @@ class CornerPnP:
     name = "corner-pnp"
 
     def __init__(self, threshold: float = 0.01, start_threshold: float = 0.02,
-                 huber_px: float = 1.0, refine_intrinsics: bool | str = False,
+                 huber_px: float = 1.0, refine_intrinsics: bool | str = "auto",
                  refine_min_references: int = 12, max_iterations: int = 50,
                  min_references: int = 3, prior_f: float = 0.05, prior_k1: float = 0.1,
                  prior_px: float = 0.5) -> None:
