@@ -131,6 +131,24 @@ def test_outlier_view_is_dropped(chess_views: list[np.ndarray]) -> None:
     assert abs(res.model.fx / K_TRUE[0, 0] - 1) < 0.01
 
 
+def test_cli_from_a_video(chess_views: list[np.ndarray], tmp_path: Path,
+                          capsys: pytest.CaptureFixture) -> None:
+    video = tmp_path / "views.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (W, H))
+    for img in chess_views:
+        writer.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    out = tmp_path / "cam.toml"
+    rc = main(["calibrate", "--source", f"video:{video}", "--board", "chessboard:9x7:0.02",
+               "--out", str(out), "--max-views", "10"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "reached --max-views 10" in text and "[1] frame 0: accepted" in text
+    m = load_camera(out)
+    assert (m.width, m.height) == (W, H)
+    assert abs(m.fx / K_TRUE[0, 0] - 1) < 0.02 and abs(m.cx - K_TRUE[0, 2]) < 5
+
+
 def test_rendered_charuco_recovers_the_camera() -> None:
     views, spec = _charuco_views(12, seed=11)
     cal = Calibrator(parse_board(spec))
