@@ -243,3 +243,11 @@ def test_picamera2_missing(monkeypatch: pytest.MonkeyPatch) -> None:
         open_source("picamera")
     assert PICAMERA2_MISSING in str(e.value)
     assert "sudo apt install python3-picamera2" in str(e.value)
+
+
+def test_sim_spec_reaches_the_simulator() -> None:
+    """``sim`` is not built in: open_source finds kmea.sim's SimSource and passes options."""
+    with open_source("sim?width=320&height=240&frames=2") as src:
+        frames = list(src)
+    assert len(frames) == 2 and src.size == (320, 240)
+    assert frames[0].image.shape == (240, 320) and frames[1].index == 1
