@@ -105,7 +105,8 @@ def test_parameter_overrides_are_validated() -> None:
     assert p.adaptiveThreshConstant == 9.0 and p.detectInvertedMarker and p.minDistanceToBorder == 1
     assert p.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX
     # Our defaults are applied where not overridden.
-    assert p.adaptiveThreshWinSizeMin == DEFAULT_PARAMETERS["adaptiveThreshWinSizeMin"]
+    assert p.minMarkerPerimeterRate == DEFAULT_PARAMETERS["minMarkerPerimeterRate"]
+    assert p.cornerRefinementWinSize == DEFAULT_PARAMETERS["cornerRefinementWinSize"]
     assert DetectorConfig(corner_refinement="none").detector_parameters() \
         .cornerRefinementMethod == cv2.aruco.CORNER_REFINE_NONE
     bad = [

@@ -25,22 +25,21 @@ _REFINEMENT = {
 }
 
 # Our defaults over OpenCV's (attribute name -> value); every other parameter keeps OpenCV's.
+# Measured on rendered RobotAtFactory frames (kmea.sim) and the real tutorial photo; see
+# docs/vision.md. OpenCV's adaptive-threshold windows (3, 13, 23 px) stay: dropping the 3 px
+# pass or the 23 px one lost far, oblique markers in the scenario-2 view.
 DEFAULT_PARAMETERS: dict[str, float | int | bool] = {
-    # Smallest marker we care about is a 40 mm wall marker at ~2 m in a 640x480 frame,
-    # about 13 px wide -> perimeter 52 px = 0.08 of 640; 0.04 keeps a margin while
-    # skipping the many tiny contours of texture and noise.
+    # A 5x5 marker needs >= ~1 px per module (7 modules incl. border), i.e. >= 7 px sides,
+    # perimeter 28 px = 0.044 of a 640 px frame: 0.04 (OpenCV 0.03) skips only contours
+    # too small to decode, so fewer candidates are warped and read.
     "minMarkerPerimeterRate": 0.04,
-    # Windows 5, 13, 21 px: modules are 8-10 px at 1640x1232 (60 mm, 7 modules incl.
-    # border) and 3-4 px at 640x480; the 3 px OpenCV window only adds noise contours.
-    "adaptiveThreshWinSizeMin": 5,
-    "adaptiveThreshWinSizeMax": 21,
-    "adaptiveThreshWinSizeStep": 8,
     # Sub-pixel search half-window = min(6 px, 0.3 module): 3 px for 60 mm markers at
     # 1640x1232 (8-10 px modules), inside the one-module black border so the inner bits
     # never pull the corner. 0.7 module halves the inward bias of blurred corners on
     # rendered frames but moves the real tutorial photo's corners ~1.1 px from OpenCV's
-    # reference; see docs/vision.md. Iterate to 0.01 px (OpenCV: 0.1 px, 30 iterations).
+    # reference, so the relative size stays OpenCV's 0.3.
     "cornerRefinementWinSize": 6,
+    # Iterate to 0.01 px (OpenCV: 0.1 px, 30 iterations): no measurable time cost.
     "cornerRefinementMaxIterations": 50,
     "cornerRefinementMinAccuracy": 0.01,
 }
