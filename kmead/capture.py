@@ -120,3 +120,38 @@ class Capture:
             self._thread.join(timeout=2.0)
         with contextlib.suppress(Exception):
             self.source.close()
+
+
+class SimFrames(FrameSource):
+    """The simulated floor as a frame source (``sim``, ``sim:SCENE?options``).
+
+    Renders frame i of the scene at t = i / scene.fps with :class:`kmea.sim.renderer.Renderer`.
+    It never ends; pacing (or not) is the daemon's business (``source.fps``). ``scene``,
+    ``camera`` (the true camera) and ``world_map`` (the scene's surveyed map) are exposed.
+    """
+
+    live = False
+
+    def __init__(self, spec: str, width: int = 0, height: int = 0) -> None:
+        super().__init__()
+        from kmea.sim.renderer import Renderer
+        from kmea.sim.scenes import scene_from_spec
+
+        self.spec = spec
+        opts = {"width": width, "height": height} if width and height else {}
+        try:
+            self.scene = scene_from_spec(spec, **opts)
+        except ValueError as e:
+            raise SourceError(f"{spec}: {e}") from None
+        self.renderer = Renderer(self.scene)
+        self.camera = self.scene.camera
+        self.world_map = self.scene.effective_map()
+        self.size = self.scene.size
+        self._next = 0
+
+    def read(self) -> Frame | None:
+        if self._closed:
+            return None
+        i = self._next
+        self._next += 1
+        return self.renderer.render(i)

@@ -15,7 +15,6 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,6 +35,7 @@ from kmead.telemetry import Telemetry, TelemetryLogHandler
 log = logging.getLogger("kmead")
 
 EXIT_OK, EXIT_RUNTIME, EXIT_CONFIG = 0, 1, 2
+DISPLACED_QUIET_S = 30.0
 
 
 class StartupError(Exception):
@@ -69,10 +69,10 @@ class RunTotals:
 def _source_options(cfg: Config, prefix: str) -> dict[str, Any]:
     s = cfg["source"]
     opts: dict[str, Any] = {}
-    if prefix in ("camera", "picamera", "sim"):
+    if prefix in ("camera", "picamera"):
         if s["width"] and s["height"]:
             opts.update(width=s["width"], height=s["height"])
-        if prefix != "sim" and s["fps"]:
+        if s["fps"]:
             opts["fps"] = s["fps"]
     if prefix in ("images", "video", "camera"):
         opts["gray"] = True  # detection works on grey: convert once at decode time
@@ -82,14 +82,11 @@ def _source_options(cfg: Config, prefix: str) -> dict[str, Any]:
 def open_configured_source(cfg: Config) -> FrameSource:
     spec = cfg["source"]["spec"]
     prefix = spec.split(":", 1)[0].split("?", 1)[0]
-    opts = _source_options(cfg, prefix)
-    try:
-        return open_source(spec, **opts)
-    except TypeError as e:  # a source without width/height options: retry without them
-        if prefix == "sim" and opts:
-            log.warning("sim source takes no size option (%s); using its default size", e)
-            return open_source(spec)
-        raise
+    if prefix == "sim":
+        from kmead.capture import SimFrames
+
+        return SimFrames(spec, cfg["source"]["width"], cfg["source"]["height"])
+    return open_source(spec, **_source_options(cfg, prefix))
 
 
 def is_paced_sim(source: FrameSource, cfg: Config) -> bool:
@@ -115,7 +112,7 @@ class Daemon:
         self.last_frame_body: dict = {}
         self.last_result: FrameResult | None = None
         self.frame_times: collections.deque[float] = collections.deque(maxlen=31)
-        self.displaced: set[int] = set()
+        self.displaced: dict[int, float] = {}
         self._last_stats_pub = 0.0
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
@@ -408,6 +405,10 @@ class Daemon:
             self.csv.write_rows(self._csv_lines(res))
         if self.recorder is not None:
             truth = res.meta.get("truth")
+            if truth is not None and hasattr(truth, "robots"):
+                # Compact: the robots' true poses and the camera pose (markers are static).
+                truth = {"t": getattr(truth, "t", None), "robots": truth.robots,
+                         "cam2world": getattr(truth, "cam2world", None)}
             self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
                                       res.observations, res.diagnostics,
                                       _truth_json(truth) if truth is not None else None)
@@ -427,17 +428,17 @@ class Daemon:
         self.last_result = res
 
     def _displacement_events(self, res: FrameResult) -> None:
+        # Event when a map marker's LOO error exceeds the threshold or a robust estimator
+        # rejects it; then quiet for that marker for DISPLACED_QUIET_S (noise near the
+        # threshold must not flood the technician's log).
         thr = self.cfg["stats"]["displaced_threshold"]
         bad = {mid: e for mid, e in res.loo.items() if e > thr}
         bad.update({mid: d for mid, d in res.estimate.rejected.items() if mid not in bad})
+        now = time.monotonic()
         for mid, e in sorted(bad.items()):
-            if mid not in self.displaced:
-                self.displaced.add(mid)
+            if now - self.displaced.get(mid, -math.inf) >= DISPLACED_QUIET_S:
+                self.displaced[mid] = now
                 self.event("warning", f"marker {mid} looks displaced by {e * 1e3:.0f} mm")
-        # Markers estimated well again may warn again later.
-        for mid in list(self.displaced):
-            if mid in res.loo and mid not in bad:
-                self.displaced.discard(mid)
 
     def _csv_lines(self, res: FrameResult) -> list[str]:
         est = res.estimate
@@ -616,7 +617,3 @@ def _truth_json(truth: Any) -> Any:
     if isinstance(truth, (str, int, float, bool)) or truth is None:
         return truth
     return str(truth)
-
-
-def _unused(_: Path) -> None:  # pragma: no cover - keeps Path imported for type hints
-    pass
