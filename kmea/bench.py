@@ -11,6 +11,7 @@ from importlib import import_module
 # name -> "module:function"
 BENCHES: dict[str, str] = {
     "estimators": "kmea.benchmarks.estimators:run",
+    "estimator-cost": "kmea.benchmarks.robust:run",
     "detection": "kmea.benchmarks.detection:run",
     "render": "kmea.benchmarks.render:run",
     "pipeline": "kmead.bench:run_pipeline",

@@ -10,6 +10,8 @@ estimators stay free of cv2; the tests check it against ``cv2.projectPoints`` an
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["dist14", "distort", "project", "skew", "so3_exp", "undistort"]
@@ -38,12 +40,19 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) of the rotation vector ``w`` (3,) (Rodrigues)."""
-    w = np.asarray(w, dtype=float)
-    th = float(np.linalg.norm(w))
-    K = skew(w)
-    if th < 1e-8:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th ** 2 * K @ K
+    x, y, z = (float(v) for v in w)
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-16:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        th = math.sqrt(th2)
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    # I + a K + b K^2 with K = [w]x and K^2 = w w^T - th2 I.
+    return np.array([
+        [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+        [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+        [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+    ])
 
 
 def distort(xy: np.ndarray, d: np.ndarray, jac: bool = False):
@@ -85,22 +94,21 @@ def project(Pc: np.ndarray, K: np.ndarray, d: np.ndarray, jac: bool = False):
     """
     Z = Pc[:, 2]
     xy = Pc[:, :2] / Z[:, None]
-    fx, s, cx, fy, cy = K[0, 0], 0.0, K[0, 2], K[1, 1], K[1, 2]
+    f = np.array([K[0, 0], K[1, 1]])
+    c = np.array([K[0, 2], K[1, 2]])
+    fx, fy = f
     if not jac:
-        xd = distort(xy, d)
-        return np.stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy], axis=1)
+        return distort(xy, d) * f + c
     xd, Jd, dk1 = distort(xy, d, jac=True)
-    uv = np.stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy], axis=1)
-    A = np.array([[fx, s], [0.0, fy]])
+    uv = xd * f + c
     iz = 1.0 / Z
-    Jxy = np.zeros((len(Z), 2, 3))
-    Jxy[:, 0, 0] = iz
-    Jxy[:, 1, 1] = iz
-    Jxy[:, 0, 2] = -xy[:, 0] * iz
-    Jxy[:, 1, 2] = -xy[:, 1] * iz
-    J_pc = np.einsum("ij,njk,nkl->nil", A, Jd, Jxy)
-    J_f = np.stack([fx * xd[:, 0] + s * xd[:, 1], fy * xd[:, 1]], axis=1)
-    J_k1 = dk1 @ A.T
+    M = Jd * np.array([fx, fy])[None, :, None]  # A @ Jd with A = diag(fx, fy)
+    J_pc = np.empty((len(Z), 2, 3))
+    J_pc[:, :, 0] = M[:, :, 0] * iz[:, None]
+    J_pc[:, :, 1] = M[:, :, 1] * iz[:, None]
+    J_pc[:, :, 2] = -(M[:, :, 0] * xy[:, 0:1] + M[:, :, 1] * xy[:, 1:2]) * iz[:, None]
+    J_f = np.stack([fx * xd[:, 0], fy * xd[:, 1]], axis=1)
+    J_k1 = dk1 * np.array([fx, fy])
     return uv, J_pc, J_f, J_k1
 
 
@@ -112,10 +120,7 @@ def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20
     for any distortion the calibration can produce inside the image.
     """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    fx, s, cx, fy, cy = K[0, 0], 0.0, K[0, 2], K[1, 1], K[1, 2]
-    yd = (uv[:, 1] - cy) / fy
-    xd = (uv[:, 0] - cx - s * yd) / fx
-    target = np.stack([xd, yd], axis=1)
+    target = (uv - np.array([K[0, 2], K[1, 2]])) / np.array([K[0, 0], K[1, 1]])
     if not np.any(d[:12]):
         return target
     xy = target.copy()

@@ -52,10 +52,11 @@ from kmea.estimators.base import (
     MarkerObservation,
     check_observations,
 )
-from kmea.estimators.camera_np import dist14, distort, project, skew, so3_exp, undistort
+from kmea.estimators.camera_np import dist14, distort, project, so3_exp, undistort
+from kmea.estimators.common import reference_problem
 from kmea.estimators.robust import KMEARobust, describe_rejected
 from kmea.maps import MarkerMap
-from kmea.transforms import make_transform, marker_corners_local, rot_z, yaw_of
+from kmea.transforms import make_transform, marker_corners_local, yaw_of
 
 __all__ = ["CornerPnP"]
 
@@ -137,7 +138,13 @@ class CornerPnP:
         if not jac:
             return (project(Pc, K, d) - uv).reshape(-1)
         proj, J_pc, J_f, J_k1 = project(Pc, K, d, jac=True)
-        cols = [np.einsum("nij,njk->nik", J_pc, -skew(Pc - t)), J_pc]
+        # d Pc / d w = -[R X]x for the left increment R <- exp(w) R: column k is e_k x (R X).
+        v = Pc - t
+        J_w = np.empty_like(J_pc)
+        J_w[:, :, 0] = J_pc[:, :, 2] * v[:, None, 1] - J_pc[:, :, 1] * v[:, None, 2]
+        J_w[:, :, 1] = J_pc[:, :, 0] * v[:, None, 2] - J_pc[:, :, 2] * v[:, None, 0]
+        J_w[:, :, 2] = J_pc[:, :, 1] * v[:, None, 0] - J_pc[:, :, 0] * v[:, None, 1]
+        cols = [J_w, J_pc]
         if refine:
             # project() differentiates a multiplier of the current K; the parameter multiplies K0.
             cols += [J_f[:, :, None] * (K0[0, 0] / K[0, 0]), J_k1[:, :, None]]
@@ -179,9 +186,11 @@ class CornerPnP:
         return R2, t2, K2, d2
 
     def _lm(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
-            K0: np.ndarray, d0: np.ndarray, refine: bool) -> _Fit | None:
-        """Minimize the Huber reprojection cost (plus the intrinsics prior) from (R, t)."""
-        K, d = K0.copy(), d0.copy()
+            K0: np.ndarray, d0: np.ndarray, refine: bool,
+            start: tuple[np.ndarray, np.ndarray] | None = None) -> _Fit | None:
+        """Minimize the Huber reprojection cost (plus the intrinsics prior, centred on the
+        calibration K0, d0) from the pose (R, t) and the intrinsics ``start`` (default K0, d0)."""
+        K, d = (K0.copy(), d0.copy()) if start is None or not refine else start
 
         def cost_of(r, K, d):
             c = self._huber_cost(r)
@@ -193,7 +202,7 @@ class CornerPnP:
         if r is None:
             return None
         cost = cost_of(r, K, d)
-        lam = 1e-4
+        lam = 1e-6
         iterations = 0
         for it in range(1, self.max_iterations + 1):
             iterations = it
@@ -216,7 +225,8 @@ class CornerPnP:
                 c2 = math.inf if r2 is None else cost_of(r2, K2, d2)
                 if c2 <= cost:
                     R, t, K, d = R2, t2, K2, d2
-                    small = float(np.max(np.abs(delta))) < 1e-13 or cost - c2 <= 1e-18 * cost
+                    # Steps of 1e-10 (rad, m, relative focal) leave errors of ~1e-20 behind.
+                    small = float(np.max(np.abs(delta))) < 1e-10 or cost - c2 <= 1e-14 * cost
                     cost = c2
                     lam = max(lam / 10.0, 1e-12)
                     done = small
@@ -293,23 +303,29 @@ class CornerPnP:
             d0 = dist14(camera.dist_coeffs)
         except ValueError as e:
             return Estimate.failed(self.name, f"camera: {e}")
-        start = self._start.estimate([obs[i] for i in refs], world_map)
-        if not start.ok:
-            return Estimate.failed(self.name, f"robust start: {start.reason}")
-        C = start.cam2world
-        Rc2w = C[:3, :3] / start.scale
-        R, t = Rc2w.T, -Rc2w.T @ C[:3, 3]
+        P = np.array([obs[i].marker2cam_t for i in refs], dtype=float)
+        Q = world_map.positions(refs)
+        problem = reference_problem(Q, P, self.min_references)
+        if problem:
+            return Estimate.failed(self.name, f"robust start: {problem}")
+        try:
+            start_inl, (_, Rc2w, C), _ = self._start.consensus(P, Q, refs, world_map.origin_id)
+        except ValueError as e:
+            return Estimate.failed(self.name, f"robust start: {e}")
+        # The similarity maps the camera origin to C; its rotation is the camera's.
+        R, t = Rc2w.T, -Rc2w.T @ C
         uv_refs = self._stack_corners(refs, obs)
         row = {i: k for k, i in enumerate(refs)}
         X_refs = np.concatenate([world_map[i].corners_world() for i in refs])
         xy_refs = undistort(uv_refs, K0, d0)
-        inliers = list(start.references)
+        inliers = [i for i, k in zip(refs, start_inl, strict=True) if k]
         fit = None
         for _ in range(6):
             refine = (self.refine_intrinsics is True or (
                 self.refine_intrinsics == "auto" and len(inliers) >= self.refine_min_references))
             sel = np.concatenate([np.arange(4 * row[i], 4 * row[i] + 4) for i in inliers])
-            fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, refine)
+            fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, refine,
+                           None if fit is None else (fit.K, fit.d))
             if fit is None:
                 return Estimate.failed(self.name, "reprojection fit failed (camera behind markers)")
             R, t = fit.R, fit.t
@@ -378,18 +394,27 @@ class CornerPnP:
         P = self._intersect(fit.R, fit.t, xy, F, O).reshape(-1, 4, 3)
         centres = P.mean(axis=1)
         sig = self._sigmas(fit, xy, F, O)
+        # In-plane rotation of each square: 2D Procrustes of its local corners onto the
+        # intersected ones, all markers at once.
+        Fm = F[::4]
+        a = np.einsum("nki,nij->nkj", P - centres[:, None, :], Fm[:, :, :2])
+        lengths = np.array([world_map[i].length if i in world_map else obs[i].length
+                            for i in ids])
+        c = marker_corners_local(1.0)[None, :, :2] * lengths[:, None, None]
+        ang = np.arctan2(np.sum(c[:, :, 0] * a[:, :, 1] - c[:, :, 1] * a[:, :, 0], axis=1),
+                         np.sum(c[:, :, 0] * a[:, :, 0] + c[:, :, 1] * a[:, :, 1], axis=1))
+        Rz = np.zeros((len(ids), 3, 3))
+        Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(ang)
+        Rz[:, 1, 0] = np.sin(ang)
+        Rz[:, 0, 1] = -Rz[:, 1, 0]
+        Rz[:, 2, 2] = 1.0
+        Rw = Fm @ Rz
+        good = np.all(np.isfinite(P), axis=(1, 2))
         for k, i in enumerate(ids):
-            if not np.all(np.isfinite(P[k])):  # plane behind the camera: fall back to PnP
+            if not good[k]:  # plane behind the camera or parallel to the rays: PnP pose
                 out[i] = by_pnp(obs[i])
-                continue
-            frame = frames[i][0]
-            length = world_map[i].length if i in world_map else obs[i].length
-            a = (P[k] - centres[k]) @ frame[:, :2]  # in-plane coordinates about the centre
-            c = marker_corners_local(length)[:, :2]
-            ang = math.atan2(float(np.sum(c[:, 0] * a[:, 1] - c[:, 1] * a[:, 0])),
-                             float(np.sum(c[:, 0] * a[:, 0] + c[:, 1] * a[:, 1])))
-            Rw = frame @ rot_z(ang)
-            out[i] = MarkerEstimate(i, centres[k], Rw, yaw_of(Rw), float(sig[k]))
+            else:
+                out[i] = MarkerEstimate(i, centres[k], Rw[k], yaw_of(Rw[k]), float(sig[k]))
         return out
 
     def _sigmas(self, fit: _Fit, xy: np.ndarray, F: np.ndarray, O: np.ndarray) -> np.ndarray:

@@ -67,20 +67,20 @@ def umeyama_batch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
     if w is None:
         w = np.ones(P.shape[:2])
     w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    mp = np.einsum("mk,mkd->md", w, P)
-    mq = np.einsum("mk,mkd->md", w, Q)
+    wc = w[:, :, None]
+    mp = (wc * P).sum(axis=1)
+    mq = (wc * Q).sum(axis=1)
     Pc = P - mp[:, None, :]
     Qc = Q - mq[:, None, :]
-    C = np.einsum("mk,mki,mkj->mij", w, Qc, Pc)  # cross-covariance, map x camera
+    C = np.swapaxes(wc * Qc, 1, 2) @ Pc  # (M, 3, 3) cross-covariance, map x camera
     U, S, Vt = np.linalg.svd(C)
     d = np.sign(np.linalg.det(U @ Vt))
     d[d == 0] = 1.0
-    D = np.ones((len(P), 3))
-    D[:, 2] = d
-    R = np.einsum("mij,mj,mjk->mik", U, D, Vt)
-    var_p = np.einsum("mk,mkd,mkd->m", w, Pc, Pc)
-    s = np.einsum("mj,mj->m", S, D) / np.maximum(var_p, 1e-300)
-    t = mq - s[:, None] * np.einsum("mij,mj->mi", R, mp)
+    U[:, :, 2] *= d[:, None]
+    R = U @ Vt
+    var_p = (wc * Pc * Pc).sum(axis=(1, 2))
+    s = (S[:, 0] + S[:, 1] + d * S[:, 2]) / np.maximum(var_p, 1e-300)
+    t = mq - s[:, None] * (R @ mp[:, :, None])[:, :, 0]
     return s, R, t
 
 
@@ -111,6 +111,8 @@ class KMEARobust:
     Options:
         threshold: consensus residual (m) between an aligned reference and its map position.
         trials: RANSAC budget; all 3-subsets are enumerated when there are at most this many.
+            100 random triples all contain an outlier with probability 0.875^100 = 2e-6
+            even when half the references are displaced.
         seed: seed of the sampling generator (deterministic results).
         irls_iterations: maximum Tukey-reweighting iterations.
         min_references: fewer consensus references give "not estimated" (>= 3).
@@ -118,7 +120,7 @@ class KMEARobust:
 
     name = "kmea-robust"
 
-    def __init__(self, threshold: float = 0.02, trials: int = 300, seed: int = 0,
+    def __init__(self, threshold: float = 0.02, trials: int = 100, seed: int = 0,
                  irls_iterations: int = 20, min_references: int = 3) -> None:
         if not threshold > 0:
             raise ValueError(f"kmea-robust: threshold must be > 0 m, got {threshold}")
@@ -159,7 +161,7 @@ class KMEARobust:
             raise ValueError("references are collinear")
         tri, Pt, Qt = tri[good], Pt[good], Qt[good]
         s, R, t = umeyama_batch(Pt, Qt)
-        pred = s[:, None, None] * np.einsum("mij,nj->mni", R, P) + t[:, None, :]
+        pred = s[:, None, None] * (P @ np.swapaxes(R, 1, 2)) + t[:, None, :]
         r2 = np.sum((pred - Q[None]) ** 2, axis=2)
         score = np.minimum(r2, th2).sum(axis=1)
         best = int(np.argmin(score))

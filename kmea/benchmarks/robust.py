@@ -1,0 +1,78 @@
+"""``kmea bench estimator-cost``: cost per frame of every estimator for 33 markers.
+
+One synthetic frame of the RobotAtFactory floor: the nominal Pi Camera v2 1.35 m above the
+floor centre looking down, the 33 floor markers' corners projected with 0.15 px of Gaussian
+noise, per-marker poses from ``cv2.solvePnP`` (IPPE_SQUARE). For each estimator: the median
+time of one estimate, of the leave-one-out of all markers as the daemon runs it
+(``loo_positions``: the estimator's ``estimate_loo`` fast path when it has one), and of the
+plain loop of N estimates with one marker excluded each.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from kmea.estimators import get
+from kmea.estimators.base import MarkerObservation
+from kmea.estimators.camera_np import dist14, project
+from kmea.estimators.loo import loo_positions
+from kmea.maps import MarkerMap, default_map
+from kmea.transforms import marker_corners_local
+from kmea.vision.camera import CameraModel, pi_camera_v2
+
+NAMES = ("kmea", "lmea", "umeyama", "kmea-robust", "corner-pnp")
+
+
+def floor_frame(noise_px: float = 0.15, seed: int = 0
+                ) -> tuple[list[MarkerObservation], MarkerMap, CameraModel]:
+    """Observations of the 33 floor markers from 1.35 m above the floor centre."""
+    full = default_map()
+    m = MarkerMap({i: full[i] for i in full.ids if full[i].on_floor}, reference_length=2.081)
+    cam = pi_camera_v2()
+    x0, x1, y0, y1 = m.floor_extent()
+    R = np.diag([1.0, -1.0, -1.0])  # world2cam: looking down
+    t = -R @ np.array([(x0 + x1) / 2, (y0 + y1) / 2, 1.35])
+    rng = np.random.default_rng(seed)
+    obs = []
+    for i in m.ids:
+        uv = project(m[i].corners_world() @ R.T + t, cam.camera_matrix, dist14(cam.dist_coeffs))
+        uv = uv + rng.normal(0.0, noise_px, uv.shape)
+        _, rv, tv = cv2.solvePnP(marker_corners_local(m[i].length), uv, cam.camera_matrix,
+                                  cam.dist_coeffs, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        obs.append(MarkerObservation(i, cv2.Rodrigues(rv)[0], tv.reshape(3), corners=uv,
+                                     length=m[i].length))
+    return obs, m, cam
+
+
+def _median_ms(fn: Callable[[], object], reps: int) -> float:
+    fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e3
+
+
+def run(quick: bool = False) -> None:
+    obs, m, cam = floor_frame()
+    K = cam.intrinsics
+    reps = 5 if quick else 30
+    print(f"{len(obs)} markers, median ms per frame ({reps} repetitions)")
+    print(f"{'estimator':<13} {'estimate':>9} {'LOO (daemon)':>13} {'LOO (N loops)':>14}")
+    for name in NAMES:
+        est = get(name)
+        one = _median_ms(lambda est=est: est.estimate(obs, m, camera=K), reps)
+        loo = _median_ms(lambda est=est: loo_positions(est, obs, m, camera=K), reps)
+
+        def loop(est=est) -> None:
+            for o in obs:
+                est.estimate(obs, m, exclude=(o.id,), camera=K)
+
+        plain = _median_ms(loop, max(3, reps // 6))
+        print(f"{name:<13} {one:>9.2f} {loo:>13.2f} {plain:>14.1f}")
