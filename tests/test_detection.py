@@ -101,8 +101,8 @@ def test_bad_dictionaries_name_the_problem(tmp_path, shared_dir) -> None:
 
 def test_parameter_overrides_are_validated() -> None:
     p = DetectorConfig(parameters={"adaptiveThreshConstant": 9, "detectInvertedMarker": True,
-                                   "minDistanceToBorder": 1}).detector_parameters()
-    assert p.adaptiveThreshConstant == 9.0 and p.detectInvertedMarker and p.minDistanceToBorder == 1
+                                   "minDistanceToBorder": 2}).detector_parameters()
+    assert p.adaptiveThreshConstant == 9.0 and p.detectInvertedMarker and p.minDistanceToBorder == 2
     assert p.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX
     # Our defaults are applied where not overridden.
     assert p.minMarkerPerimeterRate == DEFAULT_PARAMETERS["minMarkerPerimeterRate"]

@@ -5,7 +5,8 @@ the floor, the two default robots moving) at 640x480, 1280x960 and 1640x1232. Fo
 resolution and corner refinement (sub-pixel / none): the median detection time per frame,
 how many of the visible markers (nothing hides them, all corners in the image) were found,
 false ids, the corner error against the exact rendered corners, and the time of the
-per-marker poses (both IPPE solutions + the scene choice) for the markers found.
+per-marker poses (both IPPE solutions + the scene choice) for the markers found, with the
+number of poses the scene flipped (lowest-error IPPE solution rejected) and left ambiguous.
 """
 
 from __future__ import annotations
@@ -42,13 +43,14 @@ def run(quick: bool = False) -> None:
         print(f"one thread, {n_frames} rendered frames per resolution (scene 'default'), "
               f"median of {reps} runs per frame; OpenCV {cv2.__version__}")
         print(f"{'resolution':>10} {'refine':>7} {'detect ms':>9} {'found/visible':>13} "
-              f"{'false':>5} {'corner err px (median / p95)':>29} {'poses ms':>8}")
+              f"{'false':>5} {'corner err px (median / p95)':>29} {'poses ms':>8} "
+              f"{'flipped':>7} {'ambiguous':>9}")
         for w, h in RESOLUTIONS:
             frames, camera = _frames(w, h, n_frames)
             for refine in ("subpix", "none"):
                 det = MarkerDetector(DetectorConfig(world_map.dictionary, refine))
                 times, pose_times, errs = [], [], []
-                found = visible = false = 0
+                found = visible = false = flipped = ambiguous = 0
                 for f in frames:
                     truth = f.truth
                     t_frame = []
@@ -67,13 +69,17 @@ def run(quick: bool = False) -> None:
                     t_pose = []
                     for _ in range(reps):
                         t0 = time.perf_counter()
-                        estimate_marker_poses(d.ids, d.corners, camera, lengths, world_map)
+                        _, diag = estimate_marker_poses(d.ids, d.corners, camera, lengths,
+                                                        world_map)
                         t_pose.append(time.perf_counter() - t0)
+                    flipped += diag.n_flipped
+                    ambiguous += diag.n_ambiguous
                     pose_times.append(statistics.median(t_pose))
                 e = np.concatenate(errs) if errs else np.array([np.nan])
                 pose = f"{statistics.median(pose_times) * 1e3:8.2f}"
                 print(f"{w:>5}x{h:<4} {refine:>7} {statistics.median(times) * 1e3:9.1f} "
                       f"{found:>6}/{visible:<6} {false:>5} "
-                      f"{np.median(e):>14.2f} / {np.percentile(e, 95):<12.2f} {pose}", flush=True)
+                      f"{np.median(e):>14.2f} / {np.percentile(e, 95):<12.2f} {pose} "
+                      f"{flipped:>7} {ambiguous:>9}", flush=True)
     finally:
         cv2.setNumThreads(threads)
