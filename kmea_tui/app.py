@@ -211,6 +211,10 @@ class KmeaTui(App[None]):
     # -- connection state ----------------------------------------------------------------------
     @work(exclusive=True, group="ping")
     async def ping_loop(self) -> None:
+        if not self.client.control:
+            # No control socket (network.control = ""): judge by telemetry alone.
+            self.post_message(ConnectionChanged(True, "control socket off"))
+            return
         while True:
             reply = await self.client.request("ping", timeout=min(0.5, self.ping_period))
             ok = bool(reply.get("ok"))

@@ -26,6 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="record the daemon's telemetry to FILE for --replay (no UI)")
     p.add_argument("--seconds", type=float, default=5.0,
                    help="how long --save-stream records (default %(default)s s)")
+    p.add_argument("--keep-frames", type=int, default=0, metavar="N",
+                   help="--save-stream keeps only the last N frames (and every status, "
+                        "event and log message); 0 keeps everything")
     p.add_argument("--theme", default="auto",
                    help="Textual theme; 'auto' picks ansi-dark on 16-colour terminals "
                         "and textual-dark otherwise")
@@ -38,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.save_stream:
         n = asyncio.run(record_stream(args.telemetry, args.control, args.save_stream,
-                                      args.seconds))
+                                      args.seconds, keep_frames=args.keep_frames))
         print(f"kmea-tui: wrote {n} messages to {args.save_stream}")
         return 0 if n else 1
     from kmea_tui.app import KmeaTui

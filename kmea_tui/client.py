@@ -13,8 +13,8 @@ unchanged against either:
   ``bad_messages`` (telemetry that did not follow the protocol, skipped).
 
 Recording format (``tests/data/telemetry_*.jsonl``, written by :func:`record_stream`): JSON
-lines; an optional first line ``{"header": {"telemetry": ..., "config": {...},
-"state": {...}}}`` with the control replies a replay can answer, then one line per
+lines; an optional first line ``{"header": {"telemetry": ..., "get_config": {...},
+"get_state": {...}}}`` with the control replies a replay can answer, then one line per
 telemetry message ``{"topic": str, "body": {...}, "dt": seconds since the previous line}``.
 """
 
@@ -133,6 +133,8 @@ class DaemonClient:
         """Send one control command; the reply, or ``{"ok": False, "error": ...}``."""
         if self._ctx is None or self._lock is None:
             return {"ok": False, "error": "not connected (client not open)"}
+        if not self.control:
+            return {"ok": False, "error": "the daemon's control socket is off"}
         wait = self.timeout if timeout is None else timeout
         async with self._lock:
             if self._req is None:
@@ -258,18 +260,46 @@ class RecordingClient:
     async def request(self, cmd: str, timeout: float | None = None, **args: Any) -> Reply:
         if cmd == "ping":
             return {"ok": True, "pong": True}
-        if cmd == "get_config" and "config" in self.header:
-            return {"ok": True, "config": self.header["config"]}
-        if cmd == "get_state" and "state" in self.header:
-            return {"ok": True, "state": self.header["state"]}
+        if cmd in ("get_config", "get_state") and isinstance(self.header.get(cmd), dict):
+            return dict(self.header[cmd])
         return {"ok": False, "error": f"replaying {self.path.name}: no daemon to {cmd}"}
 
 
+PER_FRAME_TOPICS = (protocol.TOPIC_FRAME, protocol.TOPIC_MARKERS, protocol.TOPIC_ROBOTS)
+
+
+def _round_floats(obj: Any, digits: int = 6) -> Any:
+    if isinstance(obj, float):
+        return round(obj, digits)
+    if isinstance(obj, dict):
+        return {k: _round_floats(v, digits) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_round_floats(v, digits) for v in obj]
+    return obj
+
+
+def trim_messages(messages: list[dict[str, Any]], keep_frames: int) -> list[dict[str, Any]]:
+    """Keep the last ``keep_frames`` messages of each per-frame topic and of ``stats``,
+    every ``status``, ``event`` and ``log``; floats rounded to 6 digits (a small file)."""
+    counts: dict[str, int] = {}
+    keep: list[dict[str, Any]] = []
+    for rec in reversed(messages):
+        topic = rec["topic"]
+        if topic in (*PER_FRAME_TOPICS, protocol.TOPIC_STATS):
+            counts[topic] = counts.get(topic, 0) + 1
+            if counts[topic] > keep_frames:
+                continue
+        keep.append(_round_floats(rec))
+    keep.reverse()
+    return keep
+
+
 async def record_stream(telemetry: str, control: str, path: str | Path, seconds: float,
-                        topics: Iterable[str] = UI_TOPICS) -> int:
+                        topics: Iterable[str] = UI_TOPICS, keep_frames: int = 0) -> int:
     """Record ``seconds`` of a daemon's telemetry into ``path`` (the replay format).
 
     The header holds the daemon's ``get_config`` and ``get_state`` replies when it answers.
+    ``keep_frames`` > 0 trims the file with :func:`trim_messages`.
     Returns the number of messages written.
     """
     client = DaemonClient(telemetry, control)
@@ -277,13 +307,11 @@ async def record_stream(telemetry: str, control: str, path: str | Path, seconds:
     wanted = tuple(topics)
     try:
         header: dict[str, Any] = {"telemetry": telemetry}
-        cfg = await client.request("get_config")
-        if cfg.get("ok"):
-            header["config"] = cfg.get("config", {})
-        st = await client.request("get_state")
-        if st.get("ok"):
-            header["state"] = st.get("state", {})
-        lines = [json.dumps({"header": header}, separators=(",", ":"))]
+        for cmd in ("get_config", "get_state"):
+            reply = await client.request(cmd)
+            if reply.get("ok"):
+                header[cmd] = reply
+        records: list[dict[str, Any]] = []
         end = time.monotonic() + seconds
         last: float | None = None
         while (now := time.monotonic()) < end:
@@ -293,9 +321,12 @@ async def record_stream(telemetry: str, control: str, path: str | Path, seconds:
                 t = time.monotonic()
                 dt = 0.0 if last is None else t - last
                 last = t
-                lines.append(json.dumps({"topic": topic, "body": body, "dt": round(dt, 4)},
-                                        separators=(",", ":")))
+                records.append({"topic": topic, "body": body, "dt": round(dt, 4)})
     finally:
         client.close()
+    if keep_frames > 0:
+        records = trim_messages(records, keep_frames)
+    lines = [json.dumps({"header": header}, separators=(",", ":"))]
+    lines += [json.dumps(r, separators=(",", ":")) for r in records]
     Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return len(lines) - 1
+    return len(records)

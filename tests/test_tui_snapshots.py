@@ -15,7 +15,7 @@ import pytest
 from kmea_tui.app import TABS, KmeaTui
 from kmea_tui.client import RecordingClient
 
-RECORDING = Path(__file__).parent / "data" / "telemetry_synthetic.jsonl"
+RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
 KEYS = {tab: str(i + 1) for i, (tab, _) in enumerate(TABS)}
 
 

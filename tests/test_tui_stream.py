@@ -22,7 +22,7 @@ from kmea_tui.widgets.markers import MarkersTable
 from kmea_tui.widgets.robots import RobotsTable
 from kmead import protocol
 
-RECORDING = Path(__file__).parent / "data" / "telemetry_synthetic.jsonl"
+RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
 RATE_HZ = 100
 SECONDS = 2.0
 

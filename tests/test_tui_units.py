@@ -131,7 +131,7 @@ def test_floor_extent_and_colours() -> None:
     assert human_bytes(123) == "123 B" and human_bytes(123456) == "123.5 kB"
 
 
-def test_recording_client_names_bad_lines(tmp_path) -> None:
+async def test_recording_client_names_bad_lines(tmp_path) -> None:
     good = {"topic": "frame", "body": {"v": 1, "frame": 1}, "dt": 0.0}
     p = tmp_path / "rec.jsonl"
     p.write_text(json.dumps(good) + "\n" + "{not json\n")
@@ -140,6 +140,14 @@ def test_recording_client_names_bad_lines(tmp_path) -> None:
     p.write_text(json.dumps({"topic": "frame", "body": {"v": 2}}) + "\n")
     with pytest.raises(ValueError, match=r"rec.jsonl:1: field 'v'"):
         RecordingClient(p)
-    p.write_text(json.dumps({"header": {"config": {"a": 1}}}) + "\n" + json.dumps(good) + "\n")
+    cfg = {"ok": True, "config": {"a": 1}, "overlay_file": "x.local.toml"}
+    p.write_text(json.dumps({"header": {"get_config": cfg}}) + "\n" + json.dumps(good) + "\n")
     rc = RecordingClient(p)
-    assert rc.header["config"] == {"a": 1} and len(rc.messages) == 1
+    assert len(rc.messages) == 1
+    await rc.open()
+    assert await rc.request("get_config") == cfg
+    assert (await rc.request("ping"))["ok"] is True
+    reply = await rc.request("log_start", path="x.csv")
+    assert reply["ok"] is False and "no daemon" in reply["error"]
+    assert await rc.recv(0.01) == [("frame", good["body"])]
+    assert rc.ended and await rc.recv(0.01) == []

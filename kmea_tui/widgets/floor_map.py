@@ -143,13 +143,23 @@ class FloorMap(Widget):
             hx, hy = x + ROBOT_HEADING_M * math.cos(th), y + ROBOT_HEADING_M * math.sin(th)
             canvas.line(*vp.to_dots(x, y), *vp.to_dots(hx, hy), style)
 
-        def rank(m: dict[str, Any]) -> int:
-            # Later labels win where they overlap: misplaced, then detected, then the rest.
-            if m.get("id") in self.data.misplaced:
-                return 3
-            return 2 if m.get("detected") else 1
+        # Robots first: their arrow and name stand for their markers.
+        on_robots: set[int] = set()
+        for r in self.data.robots:
+            on_robots.update(i for i in (r.get("markers") or []) if isinstance(i, int))
 
+        def rank(m: dict[str, Any]) -> int:
+            # Labels are placed in this order; a later one that would touch an earlier one
+            # becomes a dot. Misplaced first, then seen floor markers, then the rest.
+            if m.get("id") in self.data.misplaced:
+                return 0
+            floor = abs(_num(m.get("map_z")) or 0.0) < 1e-6
+            return (1 if floor else 2) if m.get("detected") else (3 if floor else 4)
+
+        self._draw_robots(canvas, vp)
         for m in sorted(markers, key=rank):
+            if m.get("id") in on_robots:
+                continue
             in_map = _num(m.get("map_x")) is not None and _num(m.get("map_y")) is not None
             if in_map:
                 px, py = float(m["map_x"]), float(m["map_y"])
@@ -168,11 +178,13 @@ class FloorMap(Widget):
             label = str(m.get("id"))
             cx, cy = vp.to_cell(px, py)
             lx = cx - (len(label) - 1) // 2
-            if canvas.free(lx, cy, len(label)) or rank(m) == 3:
+            # One free cell either side keeps neighbouring ids apart ("11 56", not "1156").
+            if canvas.free(lx - 1, cy, len(label) + 2) or rank(m) == 0:
                 canvas.text(lx, cy, label, style)
             else:
-                # Too close to a label already drawn (stacked wall markers): a dot only.
                 canvas.dot(*vp.to_dots(px, py), style)
+
+    def _draw_robots(self, canvas: BrailleCanvas, vp: Viewport) -> None:
         for r in self.data.robots:
             x, y, th = _num(r.get("x")), _num(r.get("y")), _num(r.get("theta"))
             if x is None or y is None or th is None:
@@ -181,8 +193,10 @@ class FloorMap(Widget):
             cx, cy = vp.to_cell(x, y)
             canvas.text(cx, cy, heading_arrow(th), style)
             name = str(r.get("name", ""))
-            # The name goes where it hides no marker label: right, left, below or above.
-            for nx, ny in ((cx + 1, cy), (cx - len(name), cy), (cx, cy + 1), (cx, cy - 1)):
+            # The name goes behind the robot (not over its heading line), else below/above.
+            right, left = (cx + 1, cy), (cx - len(name), cy)
+            sides = (left, right) if math.cos(th) >= 0 else (right, left)
+            for nx, ny in (*sides, (cx, cy + 1), (cx, cy - 1)):
                 if canvas.free(nx, ny, len(name)):
                     canvas.text(nx, ny, name, style)
                     break

@@ -18,9 +18,13 @@ def fmt(value: Any, spec: str = ".3f", scale: float = 1.0) -> str:
     if value is None or isinstance(value, bool):
         return DASH if value is None else ("yes" if value else "no")
     try:
-        return format(float(value) * scale, spec)
+        text = format(float(value) * scale, spec)
     except (TypeError, ValueError):
         return str(value)
+    # "-0.000" says nothing more than "0.000" and makes columns flicker.
+    if text.startswith("-") and not text.strip("-0."):
+        text = text[1:]
+    return text
 
 
 class LiveTable(DataTable):
