@@ -47,6 +47,9 @@ class PartSpec:
     evaluated: marker ids whose estimates are scored (each left out of the references).
     raised: id -> height (m) of the evaluated markers lifted on a support (Part II).
     displaced: id -> true displacement of a reference marker the map does not know about.
+    camera_height: scenario 1 camera height above the floor centre, m (paper: 1.25-1.45).
+    camera_position, camera_target: scenario 2 camera centre and the point it looks at,
+        world metres.
     """
 
     name: str
@@ -55,6 +58,9 @@ class PartSpec:
     evaluated: tuple[int, ...]
     raised: dict[int, float] = field(default_factory=dict)
     displaced: dict[int, Displacement] = field(default_factory=dict)
+    camera_height: float = 1.35
+    camera_position: tuple[float, float, float] = (-0.75, 1.10, 1.25)
+    camera_target: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def scaled(self, k: float) -> PartSpec:
         """The same Part with every displacement multiplied by ``k``."""
@@ -71,7 +77,10 @@ PARTS: dict[str, PartSpec] = {
     "II": PartSpec(
         "II", "scenario 1, markers raised on a 20 cm support", 1,
         (5, 12, 15, 18, 22, 30, 33, 35),
-        raised={i: _RAISE for i in (5, 12, 15, 18, 22, 30, 33, 35)}),
+        raised={i: _RAISE for i in (5, 12, 15, 18, 22, 30, 33, 35)},
+        # Raised 20 cm, markers 5 and 35 (x = 0.695 m) leave a 1.35 m camera's view; 1.45 m
+        # (the top of the paper's range) keeps them about 20 px inside the image.
+        camera_height=1.45),
     "III": PartSpec(
         "III", "scenario 1, anchors 4, 13, 16 slightly displaced", 1,
         (*_PART1_MARKERS, 34),
@@ -85,7 +94,11 @@ PARTS: dict[str, PartSpec] = {
         (0, 3, 5, 10, 12, 21, 22, 26, 30, 34),
         displaced={4: Displacement(0.06, -0.08, _deg(10.0)),
                    13: Displacement(-0.07, 0.06, _deg(-12.0)),
-                   16: Displacement(0.08, 0.07, _deg(15.0))}),
+                   16: Displacement(0.08, 0.07, _deg(15.0))},
+        # Beyond the floor's top-left corner, pointing at the origin: the whole floor in
+        # view (the far corner's markers about 30 px wide at 1640x1232), the left column
+        # (0, 34, 10, 21) included, at least 80 px inside the image.
+        camera_position=(-0.75, 1.10, 1.25), camera_target=(0.0, 0.0, 0.0)),
 }
 
 _ALIASES = {"1": "I", "2": "II", "3": "III", "4": "IV"}

@@ -29,7 +29,7 @@ __all__ = ["build", "build_scene", "describe", "observe"]
 
 def build_scene(config: ExperimentConfig):
     """The true :class:`kmea.sim.Scene` of ``config.part`` (no robots, default effects)."""
-    from kmea.sim import get_scene, raised_overrides
+    from kmea.sim import get_scene, look_at, raised_overrides, scenario1_camera
 
     spec = config.part
     world_map = default_map()
@@ -39,8 +39,13 @@ def build_scene(config: ExperimentConfig):
         overrides.update(raised_overrides(world_map, [mid], h))
     misplaced = {mid: ((d.dx, d.dy, 0.0), (0.0, 0.0, math.degrees(d.dyaw)))
                  for mid, d in spec.displaced.items()}
+    if spec.scenario == 1:
+        cam2world = scenario1_camera(spec.camera_height)
+    else:
+        cam2world = look_at(spec.camera_position, spec.camera_target)
     return get_scene(name, world_map=world_map, width=config.width, height=config.height,
-                     seed=config.seed, overrides=overrides, misplaced=misplaced)
+                     seed=config.seed, overrides=overrides, misplaced=misplaced,
+                     cam2world=cam2world)
 
 
 def estimator_map(config: ExperimentConfig, nominal: MarkerMap) -> MarkerMap:
