@@ -104,6 +104,22 @@ def test_random_similarities_are_recovered_exactly(name: str, coplanar: bool) ->
         assert np.allclose(e.cam2world @ T, np.eye(4), atol=1e-9)
 
 
+@pytest.mark.parametrize("name", ["kmea", "lmea", "umeyama"])
+@pytest.mark.parametrize("R", [np.eye(3), rot_x(np.pi), rot_z(np.pi), rot_x(np.pi) @ rot_z(np.pi),
+                               rotvec_to_matrix([0.0, np.pi / 2, 0.0])])
+def test_special_rotations_on_the_real_floor(name: str, R: np.ndarray) -> None:
+    # Half turns (a camera looking straight down is Rx(180 deg)) make H's singular vectors
+    # sign-ambiguous; the coplanar floor leaves one singular value at zero.
+    m = default_map()
+    floor = [i for i in m.ids if m[i].on_floor]
+    extra = {40: (np.array([0.3, 0.2, 0.2]), rot_z(0.5))}
+    e = get(name).estimate(observe(m, floor, 1.3, R, np.array([0.1, 0.0, 2.0]), extra), m)
+    assert e.ok
+    assert pos_err(e, m) < 1e-9
+    assert np.allclose(e.markers[40].position, [0.3, 0.2, 0.2], atol=1e-9)
+    assert np.allclose(e.markers[40].rotation, rot_z(0.5), atol=1e-9)
+
+
 def test_lmea_recovers_random_similarities_exactly() -> None:
     rng = np.random.default_rng(77)
     for _ in range(100):
