@@ -309,7 +309,8 @@ class CornerPnP:
         if problem:
             return Estimate.failed(self.name, f"robust start: {problem}")
         try:
-            start_inl, (_, Rc2w, C), _ = self._start.consensus(P, Q, refs, world_map.origin_id)
+            start_inl, (_, Rc2w, C), _ = self._start.consensus(
+                P, Q, refs, world_map.origin_id, np.array([world_map[i].normal for i in refs]))
         except ValueError as e:
             return Estimate.failed(self.name, f"robust start: {e}")
         # The similarity maps the camera origin to C; its rotation is the camera's.

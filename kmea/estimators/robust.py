@@ -4,10 +4,13 @@ The paper's KMEA aligns every visible reference marker, so one reference that wa
 or re-taped pulls the whole frame. Here the alignment is wrapped in:
 
 1. **RANSAC (MSAC scoring) over minimal sets of 3 references.** Each triple gives a closed
-   form similarity (Umeyama); every reference's residual ``|s R p + t - q|`` (metres, map
-   frame) is scored with the truncated square ``min(r^2, threshold^2)``. All triples are
-   tried when there are at most ``trials`` of them, otherwise ``trials`` random ones from a
-   seeded generator (deterministic).
+   form similarity (Umeyama); every reference's residual (metres) is scored with the
+   truncated square ``min(r^2, threshold^2)``. All triples are tried when there are at most
+   ``trials`` of them, otherwise ``trials`` random ones from a seeded generator
+   (deterministic). The residual is measured in the reference's map plane: its aligned
+   position slid along its camera ray onto the plane, minus its map position
+   (:func:`plane_residuals`), because a single marker's PnP depth is its noisiest
+   coordinate while its direction is good.
 2. **Iteratively reweighted Umeyama** with Tukey biweights ``(1 - (r/c)^2)^2`` whose cut-off
    ``c`` is the consensus threshold, so a reference beyond the threshold has weight 0.
    It refines the rough 3-point model until the consensus set stops changing.
@@ -15,15 +18,15 @@ or re-taped pulls the whole frame. Here the alignment is wrapped in:
    Kabsch rotation), repeated while the consensus set changes. With no outlier the result
    is exactly plain KMEA's.
 
-References outside the consensus are reported in ``Estimate.rejected`` (id -> distance in
-metres between where the alignment puts them and their map position, i.e. how far they
-look displaced) and, for people, in ``Estimate.info["displaced"]``.
+References outside the consensus are reported in ``Estimate.rejected`` (id -> that in-plane
+distance in metres: how far they look displaced) and, for people, in
+``Estimate.info["displaced"]``.
 
-Threshold default, 0.02 m: KMEA's reference residuals come from single-marker PnP depth
-noise, a few millimetres for 60 mm markers seen from 1.3-2 m (depth error of a marker
-``w`` pixels wide is about ``Z * sigma_px / w``, 60 px wide and 0.2-0.5 px of corner noise
-give 4-10 mm once it leaks sideways off the optical axis). 20 mm stays clear of that noise
-while catching the centimetre displacements that matter on a 1.7 x 1.2 m floor.
+Threshold default, 0.02 m. Simulated RobotAtFactory floor, camera 1.35 m above it, 60 mm
+markers: the raw 3-D residuals of undisturbed references reach 7, 20, 33 and 69 mm with
+0.1, 0.3, 0.5 and 1 px of corner noise (PnP depth), the in-plane ones only 0.8, 2.5, 4.3 and
+9 mm. 20 mm keeps false alarms away up to about 2 px of corner noise while a reference moved
+by 2-3 cm, the kind of displacement that matters on a 1.7 x 1.2 m floor, is caught.
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ from kmea.estimators.common import (
 )
 from kmea.maps import MarkerMap
 
-__all__ = ["KMEARobust", "describe_rejected", "kmea_align", "umeyama_batch"]
+__all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "umeyama_batch"]
 
 # Relative size below which 3 points count as collinear (area / longest side^2).
 _COLLINEAR = 1e-6
@@ -116,12 +119,15 @@ class KMEARobust:
         seed: seed of the sampling generator (deterministic results).
         irls_iterations: maximum Tukey-reweighting iterations.
         min_references: fewer consensus references give "not estimated" (>= 3).
+        in_plane: measure residuals in each reference's map plane, along its camera ray
+            (:func:`plane_residuals`); False: plain 3-D distances.
     """
 
     name = "kmea-robust"
 
     def __init__(self, threshold: float = 0.02, trials: int = 100, seed: int = 0,
-                 irls_iterations: int = 20, min_references: int = 3) -> None:
+                 irls_iterations: int = 20, min_references: int = 3,
+                 in_plane: bool = True) -> None:
         if not threshold > 0:
             raise ValueError(f"kmea-robust: threshold must be > 0 m, got {threshold}")
         if min_references < 3:
@@ -131,6 +137,7 @@ class KMEARobust:
         self.seed = int(seed)
         self.irls_iterations = int(irls_iterations)
         self.min_references = int(min_references)
+        self.in_plane = bool(in_plane)
 
     # ------------------------------------------------------------------ consensus
     def _triples(self, n: int) -> np.ndarray:
@@ -140,14 +147,21 @@ class KMEARobust:
         # Three distinct indices per trial: argsort of uniform keys, first three columns.
         return np.argsort(rng.random((self.trials, n)), axis=1)[:, :3]
 
-    def consensus(self, P: np.ndarray, Q: np.ndarray, ids: Sequence[int], origin_id: int
+    def consensus(self, P: np.ndarray, Q: np.ndarray, ids: Sequence[int], origin_id: int,
+                  normals: np.ndarray | None = None
                   ) -> tuple[np.ndarray, tuple[float, np.ndarray, np.ndarray], int]:
         """Robust fit of map = s R cam + t. Returns (inlier mask (N,), (s, R, t), trials).
 
-        Raises ``ValueError`` with the reason when no non-degenerate consensus of
-        ``min_references`` exists.
+        normals: (N, 3) map normals of the references; with them the residuals are measured
+        in each reference's plane (see :func:`plane_residuals`). Raises ``ValueError`` with
+        the reason when no non-degenerate consensus of ``min_references`` exists.
         """
         n = len(P)
+
+        def residuals(s: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+            pred = s[:, None, None] * (P @ np.swapaxes(R, 1, 2)) + t[:, None, :]
+            return plane_residuals(pred, t, Q, normals)
+
         th2 = self.threshold ** 2
         tri = self._triples(n)
         Pt, Qt = P[tri], Q[tri]
@@ -161,11 +175,10 @@ class KMEARobust:
             raise ValueError("references are collinear")
         tri, Pt, Qt = tri[good], Pt[good], Qt[good]
         s, R, t = umeyama_batch(Pt, Qt)
-        pred = s[:, None, None] * (P @ np.swapaxes(R, 1, 2)) + t[:, None, :]
-        r2 = np.sum((pred - Q[None]) ** 2, axis=2)
-        score = np.minimum(r2, th2).sum(axis=1)
+        r_all = residuals(s, R, t)
+        score = np.minimum(r_all ** 2, th2).sum(axis=1)
         best = int(np.argmin(score))
-        r = np.sqrt(r2[best])
+        r = r_all[best]
         model = (float(s[best]), R[best], t[best])
 
         # Tukey-reweighted Umeyama from the best minimal model.
@@ -178,7 +191,7 @@ class KMEARobust:
             w = np.maximum(w, 1e-6) * inl
             sb, Rb, tb = umeyama_batch(P[None], Q[None], w[None])
             model = (float(sb[0]), Rb[0], tb[0])
-            r = np.linalg.norm(model[0] * P @ model[1].T + model[2] - Q, axis=1)
+            r = residuals(sb, Rb, tb)[0]
             new = r < self.threshold
             if np.array_equal(new, inl):
                 break
@@ -192,12 +205,17 @@ class KMEARobust:
                                  f"within {self.threshold * 1e3:.0f} mm ({problem})")
             sel = [ids[i] for i in np.flatnonzero(inl)]
             model = kmea_align(P[inl], Q[inl], sel, origin_id)
-            r = np.linalg.norm(model[0] * P @ model[1].T + model[2] - Q, axis=1)
+            r = residuals(np.array([model[0]]), model[1][None], model[2][None])[0]
             new = r < self.threshold
             if np.array_equal(new, inl):
                 break
             inl = new
         return inl, model, len(tri)
+
+    def _normals(self, world_map: MarkerMap, ids: Sequence[int]) -> np.ndarray | None:
+        if not self.in_plane:
+            return None
+        return np.array([world_map[i].normal for i in ids]).reshape(-1, 3)
 
     # ------------------------------------------------------------------ estimate
     def estimate(
@@ -220,10 +238,12 @@ class KMEARobust:
             return Estimate.failed(self.name, problem)
         try:
             inl, (s, R, t), trials = self.consensus(refs.cam, refs.world, refs.ids,
-                                                    world_map.origin_id)
+                                                    world_map.origin_id,
+                                                    self._normals(world_map, refs.ids))
         except ValueError as e:
             return Estimate.failed(self.name, str(e))
-        r = np.linalg.norm(s * refs.cam @ R.T + t - refs.world, axis=1)
+        r = plane_residuals((s * refs.cam @ R.T + t)[None], t[None], refs.world,
+                            self._normals(world_map, refs.ids))[0]
         rejected = {i: float(ri) for i, ri, k in zip(refs.ids, r, inl, strict=True) if not k}
         used = References(tuple(i for i, k in zip(refs.ids, inl, strict=True) if k),
                           refs.cam[inl], refs.world[inl])
@@ -256,7 +276,8 @@ class KMEARobust:
             return out
         P, Q, ids = refs.cam, refs.world, refs.ids
         try:
-            inl, (s, R, t), _ = self.consensus(P, Q, ids, world_map.origin_id)
+            inl, (s, R, t), _ = self.consensus(P, Q, ids, world_map.origin_id,
+                                               self._normals(world_map, ids))
         except ValueError:
             return out
         for j, mid in enumerate(ids):
@@ -271,6 +292,34 @@ class KMEARobust:
             sj, Rj, tj = kmea_align(P[keep], Q[keep], sel, world_map.origin_id)
             out[mid] = sj * Rj @ P[j] + tj
         return out
+
+
+def plane_residuals(pred: np.ndarray, C: np.ndarray, Q: np.ndarray,
+                    normals: np.ndarray | None, min_cos: float = 0.3) -> np.ndarray:
+    """Disagreement (m) of aligned references with the map, measured in their map planes.
+
+    pred: (M, N, 3) aligned positions under M candidate alignments; C: (M, 3) where each
+    puts the camera centre; Q: (N, 3) map positions; normals: (N, 3) map normals or None.
+    A single marker's PnP depth is its noisiest coordinate (tens of millimetres for a small
+    or distant marker) while its direction from the camera is good to a fraction of that.
+    So each aligned reference is slid along its camera ray onto its map plane and compared
+    there: depth noise drops out, and a marker that really moved shows its in-plane
+    displacement. Where the ray meets the plane at a grazing angle (|cos| < min_cos, wall
+    markers seen from above) the distance perpendicular to the ray is used instead.
+    Returns (M, N).
+    """
+    diff = pred - Q[None]
+    if normals is None:
+        return np.linalg.norm(diff, axis=2)
+    ray = pred - C[:, None, :]
+    u = ray / np.maximum(np.linalg.norm(ray, axis=2, keepdims=True), 1e-300)
+    raw = np.linalg.norm(diff - np.sum(diff * u, axis=2, keepdims=True) * u, axis=2)
+    den = np.einsum("mni,ni->mn", ray, normals)
+    cos = np.abs(den) / np.maximum(np.linalg.norm(ray, axis=2), 1e-300)
+    ok = cos >= min_cos
+    lam = np.einsum("mni,ni->mn", Q[None] - C[:, None, :], normals) / np.where(ok, den, 1.0)
+    on_plane = C[:, None, :] + lam[:, :, None] * ray
+    return np.where(ok & (lam > 0), np.linalg.norm(on_plane - Q[None], axis=2), raw)
 
 
 def describe_rejected(rejected: Mapping[int, float]) -> list[str]:
