@@ -122,6 +122,64 @@ class Capture:
             self.source.close()
 
 
+class DetectPool:
+    """Detection on worker threads for in-order sources (files, unpaced simulator).
+
+    OpenCV releases the GIL in ``detectMarkers``, so ``workers`` threads detect that many
+    frames at once while the main thread runs the rest of the pipeline; results come back
+    in frame order. Each thread has its own detector, rebuilt when the pipeline's detector
+    configuration changes (``detector_generation``).
+    """
+
+    def __init__(self, capture: Capture, pipeline, workers: int) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.capture = capture
+        self.pipeline = pipeline
+        self.workers = workers
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="kmead-detect")
+        self._local = threading.local()
+
+    def _detect(self, frame: Frame):
+        from kmea.vision.detection import MarkerDetector
+
+        if frame.image is None:
+            return None, 0.0
+        gen = self.pipeline.detector_generation
+        loc = self._local
+        if getattr(loc, "gen", None) != gen:
+            loc.det, loc.gen = MarkerDetector(self.pipeline.detector_config), gen
+        t0 = time.perf_counter()
+        d = loc.det.detect(frame.image)
+        return (d.ids, d.corners), (time.perf_counter() - t0) * 1e3
+
+    def __iter__(self):
+        from collections import deque
+
+        pending: deque = deque()
+        ended = False
+        while True:
+            while not ended and len(pending) < self.workers + 1:
+                try:
+                    item = self.capture.get()
+                except CaptureEnded:
+                    ended = True
+                    break
+                if item is not None:
+                    pending.append((item, self._pool.submit(self._detect, item[0])))
+            if not pending:
+                return
+            item, fut = pending.popleft()
+            try:
+                det, ms = fut.result()
+            except Exception:  # the main thread detects again and reports the problem
+                det, ms = None, 0.0
+            yield item, det, ms
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 class SimFrames(FrameSource):
     """The simulated floor as a frame source (``sim``, ``sim:SCENE?options``).
 

@@ -64,6 +64,7 @@ class RunTotals:
     csv_paths: list[str] = field(default_factory=list)
     record_paths: list[str] = field(default_factory=list)
     latency_ms: list[float] = field(default_factory=list)
+    timing_sums: dict[str, float] = field(default_factory=dict)
 
 
 def _source_options(cfg: Config, prefix: str) -> dict[str, Any]:
@@ -250,7 +251,7 @@ class Daemon:
     def apply_setting(self, key: str, value: Any) -> Any:
         """Validate and apply one key live (``ConfigError``/``ValueError`` if not allowed)."""
         section = key.partition(".")[0]
-        if key not in LIVE_KEYS and section not in LIVE_SECTIONS:
+        if (key not in LIVE_KEYS and section not in LIVE_SECTIONS) or key == "detector.workers":
             raise ConfigError(f"control: key {key!r} cannot change while running "
                               f"(live keys: {', '.join(sorted(LIVE_KEYS))}, detector.*); "
                               "save it and restart kmead")
@@ -356,7 +357,8 @@ class Daemon:
         return FrameInput(frame.index, ts, frame.image, meta=frame.meta, t_capture=t_cap,
                           capture_ms=capture_ms)
 
-    def process_frame(self, frame, capture_ms: float, t_cap: float) -> FrameResult | None:
+    def process_frame(self, frame, capture_ms: float, t_cap: float,
+                      detections=None, detect_ms: float = 0.0) -> FrameResult | None:
         """One frame through the pipeline and every output (caller holds ``self.lock``)."""
         if frame.image is None and "replay" not in frame.meta:
             self.totals.bad_frames += 1
@@ -364,6 +366,8 @@ class Daemon:
                                   "; skipped")
             return None
         inp = self._frame_input(frame, capture_ms, t_cap)
+        if detections is not None:
+            inp.detections, inp.detect_ms = detections, detect_ms
         try:
             res = self.pipeline.process(inp, loo=self.cfg["stats"]["loo"])
         except Exception as e:  # a frame the detector or pose cannot digest: report, go on
@@ -423,6 +427,8 @@ class Daemon:
         self._last_frame_wall = time.time()
         res.timings["output"] = (time.perf_counter() - t_out) * 1e3
         res.timings["total"] = sum(v for k, v in res.timings.items() if k != "total")
+        for k, v in res.timings.items():
+            tot.timing_sums[k] = tot.timing_sums.get(k, 0.0) + v
         self.last_frame_body = self._frame_body(res)
         self.publish(P.TOPIC_FRAME, self.last_frame_body)
         self.last_result = res
@@ -545,7 +551,11 @@ class Daemon:
         self.publish(P.TOPIC_STATUS, self.status_body())
         log.info("running: source %s, algorithm %s, map %s (%d markers)", self.source_spec,
                  self.pipeline.algorithm, self.world_map.name, len(self.world_map))
+        workers = self.cfg["detector"]["workers"]
         try:
+            if workers > 1 and not self.live and not self.replay:
+                self._run_pool(workers)
+                return self.exit_code
             while not self.stop_event.is_set():
                 if self.max_frames is not None and self.totals.frames >= self.max_frames:
                     break
@@ -563,6 +573,24 @@ class Daemon:
         finally:
             self.totals.t_end = time.perf_counter()
         return self.exit_code
+
+    def _run_pool(self, workers: int) -> None:
+        from kmead.capture import DetectPool
+
+        pool = DetectPool(self.capture, self.pipeline, workers)
+        try:
+            for (frame, cap_ms, t_cap), det, det_ms in pool:
+                if self.stop_event.is_set():
+                    break
+                if self.max_frames is not None and self.totals.frames >= self.max_frames:
+                    break
+                with self.lock:
+                    self.process_frame(frame, cap_ms, t_cap, det, det_ms)
+        finally:
+            pool.close()
+        if self.capture.error:
+            self.event("error", f"source stopped: {self.capture.error}")
+            self.exit_code = EXIT_RUNTIME
 
     def stop(self) -> None:
         self.stop_event.set()

@@ -43,6 +43,8 @@ class FrameInput:
     meta: dict = field(default_factory=dict)
     t_capture: float = 0.0
     capture_ms: float = 0.0
+    detections: tuple[np.ndarray, np.ndarray] | None = None  # done by a worker thread
+    detect_ms: float = 0.0
 
 
 @dataclass
@@ -113,9 +115,11 @@ class Pipeline:
         from kmea.vision.detection import DetectorConfig, MarkerDetector
 
         d = self.config["detector"]
-        self.detector = MarkerDetector(DetectorConfig(
+        self.detector_config = DetectorConfig(
             dictionary=d["dictionary"] or self.world_map.dictionary,
-            corner_refinement=d["corner_refinement"], parameters=dict(d["parameters"])))
+            corner_refinement=d["corner_refinement"], parameters=dict(d["parameters"]))
+        self.detector = MarkerDetector(self.detector_config)
+        self.detector_generation = getattr(self, "detector_generation", 0) + 1
 
     def set_algorithm(self, name: str) -> None:
         self.estimator = estimators.get(name)
@@ -168,9 +172,14 @@ class Pipeline:
                 raise ValueError(f"frame {inp.index}: no image")
             h, w = inp.image.shape[:2]
             self.camera_for(w, h)
-            ids, corners = self.detect(inp.image)
-            t1 = time.perf_counter()
-            tm["detect"] = (t1 - t0) * 1e3
+            if inp.detections is not None:
+                ids, corners = inp.detections
+                t1 = time.perf_counter()
+                tm["detect"] = inp.detect_ms
+            else:
+                ids, corners = self.detect(inp.image)
+                t1 = time.perf_counter()
+                tm["detect"] = (t1 - t0) * 1e3
             obs, diag = self.poses(ids, corners)
             t2 = time.perf_counter()
             tm["pose"] = (t2 - t1) * 1e3

@@ -421,3 +421,14 @@ def test_picamera2_missing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch,
     monkeypatch.setitem(sys.modules, "picamera2", None)
     assert cli.main(["--source", "picamera", "--headless", "--frames", "1", *NET]) == 1
     assert "apt install python3-picamera2" in capsys.readouterr().err
+
+
+def test_detection_worker_pool_gives_the_same_rows(tmp_path: Path) -> None:
+    outs = []
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}.csv"
+        assert cli.main(["--source", "sim", "--headless", "--frames", "12", "--log", str(out),
+                         "--set", f"detector.workers={workers}", *FAST, *NET]) == 0
+        outs.append(out.read_text())
+    assert outs[0] == outs[1]
+    assert len({line.split(",")[0] for line in outs[0].splitlines()[1:]}) == 12

@@ -1,0 +1,146 @@
+"""Daemon benchmarks (``kmea bench pipeline`` / ``kmea bench latency``): figures, no asserts.
+
+pipeline: frames/s of the whole daemon (detection, pose, estimator, leave-one-out, filter,
+robots, relay, CSV, telemetry) on pre-rendered 1640x1232 simulator frames (rendering not
+counted), beside the rate of bare ``detectMarkers`` on the same frames, with 1 and 2
+detection threads (``detector.workers``).
+latency: frame-to-UDP-datagram latency at 30 frames/s from the paced simulator, measured by
+a real UDP receiver (arrival time minus the datagram's capture timestamp).
+"""
+
+from __future__ import annotations
+
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kmea.vision.sources import Frame, FrameSource, register_source
+from kmead.config import load_config
+from kmead.daemon import Daemon
+from kmead.relay import parse_datagram
+
+NET = ['network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"']
+
+
+class _Frames(FrameSource):
+    live = False
+
+    def __init__(self, frames: list[np.ndarray], scene) -> None:
+        super().__init__()
+        self.frames, self.scene = frames, scene
+        self.camera, self.world_map = scene.camera, scene.effective_map()
+        self.size = scene.size
+        self.spec = "bench"
+        self._i = 0
+
+    def read(self) -> Frame | None:
+        if self._i >= len(self.frames):
+            return None
+        i = self._i
+        self._i += 1
+        return Frame(i, i / 30.0, self.frames[i], {})
+
+
+_BENCH: dict = {}
+register_source("bench", lambda rest, **o: _Frames(_BENCH["frames"], _BENCH["scene"]))
+
+
+def _render(n: int):
+    from kmea.sim.renderer import Renderer
+    from kmea.sim.scenes import get_scene
+
+    scene = get_scene("default")
+    r = Renderer(scene)
+    return [r.render(i).image for i in range(n)], scene
+
+
+def run_pipeline(quick: bool = False) -> None:
+    import cv2
+
+    from kmea.vision.detection import DetectorConfig, MarkerDetector
+
+    n = 20 if quick else 90
+    t0 = time.perf_counter()
+    frames, scene = _render(n)
+    print(f"pre-rendered {n} frames {scene.size[0]}x{scene.size[1]} in "
+          f"{time.perf_counter() - t0:.1f} s (not counted)")
+    _BENCH.update(frames=frames, scene=scene)
+    det = MarkerDetector(DetectorConfig(scene.world_map.dictionary))
+    raw = det._detector
+    found = 0
+    raw.detectMarkers(frames[0])  # warm-up
+    t0 = time.perf_counter()
+    for f in frames:
+        _, ids, _ = raw.detectMarkers(f)
+        found += 0 if ids is None else len(ids)
+    bare = n / (time.perf_counter() - t0)
+    print(f"bare detectMarkers (cv2 threads {cv2.getNumThreads()}): {bare:6.1f} frames/s, "
+          f"{found / n:.1f} markers/frame")
+    with tempfile.TemporaryDirectory() as tmp:
+        for workers in (1, 2):
+            cfg = load_config(None, ["source.spec=bench", f"detector.workers={workers}", *NET,
+                                     f'log.csv="{Path(tmp) / f"w{workers}.csv"}"'])
+            d = Daemon(cfg)
+            try:
+                d.run()
+            finally:
+                d.close()
+            t = d.totals
+            fps = t.frames / (t.t_end - t.t_start)
+            ms = {k: v / t.frames for k, v in t.timing_sums.items()}
+            rest = ms["total"] - ms["detect"] - ms["capture"]
+            print(f"pipeline, detector.workers={workers}: {fps:6.1f} frames/s "
+                  f"({fps / bare * 100:5.1f} % of bare detection); per frame ms: "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in ms.items())
+                  + f"; all but detection {rest:.2f} ms = {rest / ms['total'] * 100:.1f} %"
+                  f" of the frame's stage time")
+            print(f"  markers seen {len(t.markers_seen)}, LOO mean "
+                  f"{t.loo_sum / max(t.loo_n, 1) * 1e3:.3f} mm")
+
+
+def run_latency(quick: bool = False) -> None:
+    n = 60 if quick else 300
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.5)
+    port = rx.getsockname()[1]
+    lat: list[float] = []
+    stop = threading.Event()
+
+    def receive() -> None:
+        while not stop.is_set():
+            try:
+                data = rx.recv(256)
+            except TimeoutError:
+                continue
+            m = parse_datagram(data)
+            if m["valid"]:
+                lat.append((time.time() - m["t"]) * 1e3)
+
+    robots = (f'robots=[{{name="amr1", markers=[40, 41], destinations=["udp:127.0.0.1:{port}"]}},'
+              f' {{name="amr2", markers=[42], destinations=["udp:127.0.0.1:{port}"]}}]')
+    for w, h in ((640, 480), (1640, 1232)):
+        lat.clear()
+        stop.clear()
+        th = threading.Thread(target=receive, daemon=True)
+        th.start()
+        cfg = load_config(None, ["source.spec=sim", "source.fps=30", f"source.width={w}",
+                                 f"source.height={h}", robots, *NET])
+        d = Daemon(cfg, max_frames=n)
+        try:
+            d.run()
+        finally:
+            d.close()
+            stop.set()
+            th.join()
+        t = d.totals
+        a = np.asarray(lat)
+        print(f"sim {w}x{h} paced at 30 frames/s: {t.frames} frames processed, "
+              f"{d.capture.captured if d.capture else 0} captured, "
+              f"{d.dropped} dropped; frame-to-datagram latency over {a.size} datagrams: "
+              f"median {np.median(a):.1f} ms, p99 {np.percentile(a, 99):.1f} ms")
+    rx.close()
