@@ -239,3 +239,18 @@ def test_degenerate_inputs_are_not_estimated():
     assert cp.estimate_loo(obs, sc.map) == {}
     with pytest.raises(ValueError, match="refine_intrinsics"):
         CornerPnP(refine_intrinsics="sometimes")
+
+
+def test_turned_reference_is_rejected_and_described():
+    from kmea.maps import Marker
+    from kmea.transforms import rot_z
+
+    sc = scenario1()
+    mk = sc.map[16]
+    sc.true[16] = Marker(16, mk.position, rot_z(math.radians(12.0)), mk.length)  # turned in place
+    est = CornerPnP().estimate(observe(sc, noise_px=0.1, seed=16), sc.map,
+                               camera=sc.camera.intrinsics)
+    assert set(est.rejected) == {16}
+    assert est.rejected[16] < 1e-3  # its centre did not move
+    assert math.degrees(est.info["turned"][16]) == pytest.approx(12.0, abs=0.2)
+    assert est.info["displaced"] == ["marker 16 looks displaced by 0 mm, turned +12 deg"]

@@ -360,8 +360,17 @@ class CornerPnP:
         fit, refs, inliers, dis, obs = res
         markers = self._markers(fit, obs, world_map, dict(plane_heights or {}))
         Rc2w = fit.R.T
-        rejected = {i: dis[i] for i in refs if i not in inliers}
-        info = {"displaced": describe_rejected(rejected), "reprojection_rms_px": fit.rms_px,
+        # A rejected reference is reported by how far its centre moved in its map plane and
+        # how much it turned there (it was rejected on its corners' RMS disagreement).
+        rejected, turned = {}, {}
+        for i in refs:
+            if i not in inliers:
+                mk, me = world_map[i], markers[i]
+                rejected[i] = float(np.linalg.norm(me.position - mk.position))
+                M = mk.rotation.T @ me.rotation
+                turned[i] = math.atan2(M[1, 0], M[0, 0])
+        info = {"displaced": describe_rejected(rejected, turned), "turned": turned,
+                "reprojection_rms_px": fit.rms_px,
                 "sigma_px": fit.sigma_px, "iterations": fit.iterations,
                 "threshold": self.threshold, "intrinsics_refined": fit.refine}
         if fit.refine:

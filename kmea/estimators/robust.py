@@ -322,7 +322,16 @@ def plane_residuals(pred: np.ndarray, C: np.ndarray, Q: np.ndarray,
     return np.where(ok & (lam > 0), np.linalg.norm(on_plane - Q[None], axis=2), raw)
 
 
-def describe_rejected(rejected: Mapping[int, float]) -> list[str]:
-    """Human-readable lines, largest disagreement first: "marker 16 looks displaced by 28 mm"."""
-    return [f"marker {i} looks displaced by {d * 1e3:.0f} mm"
-            for i, d in sorted(rejected.items(), key=lambda kv: -kv[1])]
+def describe_rejected(rejected: Mapping[int, float],
+                      turned: Mapping[int, float] | None = None) -> list[str]:
+    """Human-readable lines, largest disagreement first: "marker 16 looks displaced by 28 mm"
+    (rejected: id -> metres), with ", turned 5 deg" when ``turned`` (id -> radians) says it
+    turned by at least a degree."""
+    out = []
+    for i, d in sorted(rejected.items(), key=lambda kv: -kv[1]):
+        line = f"marker {i} looks displaced by {d * 1e3:.0f} mm"
+        a = (turned or {}).get(i)
+        if a is not None and abs(math.degrees(a)) >= 1.0:
+            line += f", turned {math.degrees(a):+.0f} deg"
+        out.append(line)
+    return out
