@@ -247,10 +247,11 @@ def test_turned_reference_is_rejected_and_described():
 
     sc = scenario1()
     mk = sc.map[16]
-    sc.true[16] = Marker(16, mk.position, rot_z(math.radians(12.0)), mk.length)  # turned in place
+    # Corners move by 2 sin(10 deg) x 42 mm = 15 mm RMS, beyond the 10 mm threshold.
+    sc.true[16] = Marker(16, mk.position, rot_z(math.radians(20.0)), mk.length)  # turned in place
     est = CornerPnP().estimate(observe(sc, noise_px=0.1, seed=16), sc.map,
                                camera=sc.camera.intrinsics)
     assert set(est.rejected) == {16}
     assert est.rejected[16] < 1e-3  # its centre did not move
-    assert math.degrees(est.info["turned"][16]) == pytest.approx(12.0, abs=0.2)
-    assert est.info["displaced"] == ["marker 16 looks displaced by 0 mm, turned +12 deg"]
+    assert math.degrees(est.info["turned"][16]) == pytest.approx(20.0, abs=0.2)
+    assert est.info["displaced"] == ["marker 16 looks displaced by 0 mm, turned +20 deg"]
