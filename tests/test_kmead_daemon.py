@@ -432,3 +432,25 @@ def test_detection_worker_pool_gives_the_same_rows(tmp_path: Path) -> None:
         outs.append(out.read_text())
     assert outs[0] == outs[1]
     assert len({line.split(",")[0] for line in outs[0].splitlines()[1:]}) == 12
+
+
+def test_robust_estimator_rejected_reference_in_csv_and_events(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # The map says marker 16 is 5 cm further right than it is on the floor.
+    m = default_map()
+    moved = tmp_path / "moved.csv"
+    moved.write_text("id,x,y,z\n" + "".join(
+        f"{mid},{float(mk.position[0]) + (0.05 if mid == 16 else 0.0)!r},"
+        f"{float(mk.position[1])!r},0\n" for mid, mk in m.markers.items() if mk.on_floor))
+    out = tmp_path / "robust.csv"
+    assert cli.main(["--source", "sim", "--map", str(moved), "--algorithm", "kmea-robust",
+                     "--frames", "3", "--headless", "--log", str(out), *FAST, *NET]) == 0
+    assert "marker 16 looks displaced by" in capsys.readouterr().err
+    rows = read_csv(out)
+    rejected = [r for r in rows if r["kind"] == "rejected"]
+    assert {r["id"] for r in rejected} == {"16"}
+    assert {r["frame"] for r in rejected} == {"0", "1", "2"}
+    assert all(0.03 < float(r["error"]) < 0.07 for r in rejected)
+    # its estimate is still logged as a marker row, near where it really is
+    m16 = [r for r in rows if r["kind"] == "marker" and r["id"] == "16"]
+    assert len(m16) == 3 and all(abs(float(r["x"]) - m[16].position[0]) < 0.02 for r in m16)
