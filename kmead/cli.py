@@ -115,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run_with_ui(daemon) -> int:
     """Daemon in a background thread, the Textual UI in the foreground on its sockets."""
     try:
-        from kmea_tui.app import run_tui
+        from kmea_tui.app import KmeaTui
+        from kmea_tui.client import DaemonClient
     except ImportError as e:
         logging.getLogger("kmead").warning("terminal UI unavailable (%s); running headless", e)
         signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
@@ -126,14 +127,21 @@ def _run_with_ui(daemon) -> int:
     quiet = [h for h in root.handlers if getattr(h, "_kmead", False)]
     for h in quiet:
         root.removeHandler(h)
+    app = KmeaTui(DaemonClient(_connectable(daemon.telemetry.bound),
+                               _connectable(daemon.control.bound if daemon.control else "")))
     t = threading.Thread(target=lambda: result.setdefault("code", daemon.run()),
                          name="kmead-main", daemon=True)
     t.start()
-    signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
+
+    def terminate(*_: object) -> None:
+        daemon.stop()
+        app.exit()
+
+    previous = signal.signal(signal.SIGTERM, terminate)
     try:
-        run_tui(telemetry=_connectable(daemon.telemetry.bound),
-               control=_connectable(daemon.control.bound if daemon.control else ""))
+        app.run()  # until the user quits (q) or SIGTERM
     finally:
+        signal.signal(signal.SIGTERM, previous)
         daemon.stop()
         t.join(timeout=5.0)
         for h in quiet:
