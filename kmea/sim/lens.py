@@ -137,7 +137,7 @@ def ray_map(camera: CameraModel, tile: int = 16) -> RayMap:
         return _CACHE[key]
     W, H = camera.width, camera.height
     u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
-    x, y, *jac = undistort_pixels(u, v, camera, jacobian=True)
+    x, y, *jac = undistort_pixels(u, v, camera, newton_steps=1, jacobian=True)
     dxdu, dxdv, dydu, dydv = (j.astype(np.float32) for j in jac)
     # Tile bounds include each pixel's square: extend by half a pixel's ray step both ways.
     ex = 0.5 * (np.abs(dxdu) + np.abs(dxdv)) * 1.01

@@ -193,6 +193,20 @@ def _edges(a: np.ndarray) -> np.ndarray:
     return m
 
 
+_STATIC_BIT = np.int64(1) << np.int64(62)
+
+
+def _or_dilate(a: np.ndarray) -> np.ndarray:
+    """Bitwise OR of each value with its 8 neighbours."""
+    m = a.copy()
+    m[:, 1:] |= a[:, :-1]
+    m[:, :-1] |= a[:, 1:]
+    h = m.copy()
+    m[1:, :] |= h[:-1, :]
+    m[:-1, :] |= h[1:, :]
+    return m
+
+
 def _overlap(a: Rect, b: Rect) -> bool:
     return a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]
 
@@ -226,6 +240,7 @@ class Renderer:
         self._textures: dict[int, np.ndarray] = {}
         self._static_markers = scene.static_markers()
         self._idx = np.full((self.height, self.width), -1, dtype=np.int64)
+        self._dyn_cache: tuple[float, list[list[_Quad]]] | None = None
         self._build_static()
 
     # ------------------------------------------------------------ scene content
@@ -294,11 +309,12 @@ class Renderer:
             if not facing_up:
                 wall.append(m)
             elif sc.supports and mid in sc.overrides and m.position[2] > 0.005:
-                side = m.length * 9 / 7
+                side = m.length * 9 / 7 + 0.03  # a 1.5 cm rim around the paper
                 yaw = math.atan2(m.rotation[1, 0], m.rotation[0, 0])
                 quads += _box_quads((m.position[0], m.position[1]), yaw, side, side, 0.0,
                                     m.position[2], PALETTE["support"], PALETTE["side"])
         quads += self._wall_panels(wall)
+        decals = self._line_quads() + decals
         for occ in sc.effects.occluders:
             if not occ.moving:
                 quads += self._occluder_quads(occ, 0.0)
@@ -308,12 +324,11 @@ class Renderer:
 
         H, W = self.height, self.width
         full = (0, H, 0, W)
-        t, alb = self._cast_rect(full, self.static_quads, self.static_rects, floor=True)
+        t, alb, _ = self._cast_rect(full, self.static_quads, self.static_rects, floor=True)
         edges = _edges(alb)
         rows, cols = np.nonzero(edges)
         if rows.size:
-            alb[rows, cols] = self._supersample(rows, cols, _STATIC_SAMPLES, [],
-                                                dynamic_only=False)
+            alb[rows, cols] = self._supersample(rows, cols, _STATIC_SAMPLES)
         self.static_albedo = alb
         self.static_depth = t
         self.light = self._light(t, full)
@@ -326,6 +341,21 @@ class Renderer:
         lit = alb if self.light is None else alb * self.light
         self.static_image = self._blur(lit) * self.gain
         self._noise_bank: np.ndarray | None = None
+
+    def _line_quads(self, half_width: float = 0.004) -> list[_Quad]:
+        """The faint floor lines (8 mm) as decals on the floor."""
+        out = []
+        for a, b in self.scene.lines():
+            a, b = np.array([a[0], a[1], 0.0]), np.array([b[0], b[1], 0.0])
+            d = b - a
+            L = float(np.linalg.norm(d))
+            if L < 1e-9:
+                continue
+            ex = d / L
+            ey = np.array([-ex[1], ex[0], 0.0])
+            out.append(_Quad((a + b) / 2, ex, ey, L / 2 + half_width, half_width,
+                             PALETTE["line"], decal=True, occludes=False))
+        return out
 
     def _occluder_quads(self, occ: Occluder, t: float) -> list[_Quad]:
         p = occ.path.pose(t)
@@ -355,7 +385,6 @@ class Renderer:
         self._c2w = self.cam2world[:3, :3]
         self._o = self.cam2world[:3, 3]
         self._rect_floor = self.scene.floor_rect()
-        self._lines = [(np.array(a, float), np.array(b, float)) for a, b in self.scene.lines()]
 
     def _floor(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = self._fn
@@ -371,21 +400,6 @@ class Renderer:
         x0, x1, y0, y1 = self._rect_floor
         inside = (xw >= x0) & (xw <= x1) & (yw >= y0) & (yw <= y1)
         alb = np.where(inside, np.float32(PALETTE["canvas"]), np.float32(PALETTE["surround"]))
-        if ok.any() and self._lines:
-            lo_x, hi_x = float(xw[ok].min()), float(xw[ok].max())
-            lo_y, hi_y = float(yw[ok].min()), float(yw[ok].max())
-            hw = 0.004  # 8 mm lines
-            for a, b in self._lines:
-                if (min(a[0], b[0]) - hw > hi_x or max(a[0], b[0]) + hw < lo_x
-                        or min(a[1], b[1]) - hw > hi_y or max(a[1], b[1]) + hw < lo_y):
-                    continue
-                d = b - a
-                L2 = float(d @ d)
-                s = np.clip(((xw - a[0]) * d[0] + (yw - a[1]) * d[1]) / L2, 0.0, 1.0)
-                ex = xw - a[0] - s * d[0]
-                ey = yw - a[1] - s * d[1]
-                on = (ex * ex + ey * ey <= hw * hw) & inside
-                alb = np.where(on, np.float32(PALETTE["line"]), alb)
         alb = np.where(ok, alb, np.float32(0.0))
         return t, alb.astype(np.float32)
 
@@ -403,8 +417,9 @@ class Renderer:
 
     # ------------------------------------------------------------ casting
     def _cast_rect(self, r: Rect, quads: list[_Quad], rects: list[Rect | None],
-                   floor: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Depth and albedo at the pixel centres of rectangle ``r``."""
+                   floor: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Depth, albedo and winning quad index (-1: floor or nothing) at the pixel centres
+        of rectangle ``r``."""
         r0, r1, c0, c1 = r
         x = self.rays.x[r0:r1, c0:c1]
         y = self.rays.y[r0:r1, c0:c1]
@@ -413,7 +428,8 @@ class Renderer:
         else:
             t = np.full(x.shape, np.inf)
             alb = np.zeros(x.shape, dtype=np.float32)
-        for q, qr in zip(quads, rects, strict=True):
+        qid = np.full(x.shape, -1, dtype=np.int64)
+        for i, (q, qr) in enumerate(zip(quads, rects, strict=True)):
             if qr is None or not _overlap(qr, r):
                 continue
             a0, a1, b0, b1 = max(qr[0], r0), min(qr[1], r1), max(qr[2], c0), min(qr[3], c1)
@@ -423,7 +439,8 @@ class Renderer:
             win = tq <= tcur * (1 + 1e-9) if q.decal else tq < tcur
             tcur[win] = tq[win]
             alb[sl][win] = aq[win]
-        return t, alb
+            qid[sl][win] = i
+        return t, alb, qid
 
     def _cast_samples(self, x: np.ndarray, y: np.ndarray, ids_in: callable, quads: list[_Quad],
                       rects: list[Rect | None], floor: bool,
@@ -456,10 +473,11 @@ class Renderer:
         return t, alb
 
     def _supersample(self, rows: np.ndarray, cols: np.ndarray,
-                     pattern: tuple[np.ndarray, np.ndarray], dyn: list[_Quad],
-                     dynamic_only: bool, dyn_rects: list[Rect | None] | None = None,
+                     pattern: tuple[np.ndarray, np.ndarray], dyn: list[_Quad] | None = None,
+                     dyn_rects: list[Rect | None] | None = None, static: bool = True,
                      static_sel: list[int] | None = None, chunk: int = 20000) -> np.ndarray:
-        """Box-filtered albedo of pixels (rows, cols): static scene plus ``dyn`` quads."""
+        """Box-filtered albedo of pixels (rows, cols): the static scene (unless ``static`` is
+        False) and the ``dyn`` quads."""
         du, dv = pattern
         out = np.empty(rows.size, dtype=np.float32)
         rm = self.rays
@@ -480,7 +498,11 @@ class Renderer:
                 return block[block >= 0]
 
             try:
-                t, alb = self._cast_samples(x, y, ids_in, sq, sr, floor=True)
+                if static:
+                    t, alb = self._cast_samples(x, y, ids_in, sq, sr, floor=True)
+                else:
+                    t = np.full(x.shape, np.inf)
+                    alb = np.zeros(x.shape, dtype=np.float32)
                 if dyn:
                     t, alb = self._cast_samples(x, y, ids_in, dyn, dyn_rects or [], False, t, alb)
             finally:
@@ -517,6 +539,13 @@ class Renderer:
     # ------------------------------------------------------------ frames
     def dynamic_quads(self, t: float) -> list[list[_Quad]]:
         """Camera-frame quads of each moving object (robots, moving occluders) at ``t``."""
+        if self._dyn_cache is not None and self._dyn_cache[0] == t:
+            return self._dyn_cache[1]
+        objs = self._dynamic_quads(t)
+        self._dyn_cache = (t, objs)
+        return objs
+
+    def _dynamic_quads(self, t: float) -> list[list[_Quad]]:
         sc = self.scene
         poses = sc.robot_poses(t)
         objs = [self._robot_quads(r, poses[r.name]) for r in sc.robots]
@@ -558,7 +587,7 @@ class Renderer:
         shape = (self.height, self.width)
         rects = [self._rect(q) for q in quads]
         r0, r1, c0, c1 = box
-        td, ad = self._cast_rect(box, quads, rects, floor=False)
+        td, ad, qd = self._cast_rect(box, quads, rects, floor=False)
         hit = td < self.static_depth[r0:r1, c0:c1]
         if not hit.any():
             return
@@ -570,8 +599,19 @@ class Renderer:
         if rows.size:
             sel = [i for i, qr in enumerate(self.static_rects)
                    if qr is not None and _overlap(qr, box)]
-            comp[rows, cols] = self._supersample(rows + r0, cols + c0, _DYNAMIC_SAMPLES, quads,
-                                                 False, rects, sel)
+            # What a pixel's square can show is what its 3 x 3 neighbours' centres show (the
+            # surfaces are convex and larger than a pixel): cast only those surfaces.
+            if len(quads) <= 62:
+                bits = np.where(hit, np.left_shift(np.int64(1), np.maximum(qd, 0)), _STATIC_BIT)
+                masks = _or_dilate(bits)[rows, cols]
+            else:
+                masks = np.full(rows.size, -1, dtype=np.int64)
+            for m in np.unique(masks):
+                k = np.flatnonzero(masks == m)
+                use = [i for i in range(len(quads)) if m == -1 or (m >> i) & 1]
+                comp[rows[k], cols[k]] = self._supersample(
+                    rows[k] + r0, cols[k] + c0, _DYNAMIC_SAMPLES, [quads[i] for i in use],
+                    [rects[i] for i in use], bool(m & _STATIC_BIT), sel)
         k = self._blur_radius
         out = _grow(box, k, shape)
         big = _grow(out, k, shape)
@@ -623,19 +663,21 @@ class Renderer:
         occluders = [q for q in self.static_quads if q.occludes]
         occluders += [q for obj in self.dynamic_quads(t) for q in obj if q.occludes]
         visible = set()
-        for mid in corners:
-            T = markers[mid]
-            probe = np.vstack([local[mid] * 0.98, np.zeros((1, 3))]) @ T[:3, :3].T + T[:3, 3]
-            Pc = probe @ self.world2cam[:3, :3].T + self.world2cam[:3, 3]
+        cand = sorted(corners)
+        if cand:
+            probes = []
+            for mid in cand:
+                T = markers[mid]
+                pts = np.vstack([local[mid] * 0.98, np.zeros((1, 3))])
+                probes.append(pts @ T[:3, :3].T + T[:3, 3])
+            Pc = np.concatenate(probes) @ self.world2cam[:3, :3].T + self.world2cam[:3, 3]
             x, y, zc = Pc[:, 0] / Pc[:, 2], Pc[:, 1] / Pc[:, 2], Pc[:, 2]
-            hidden = False
+            hidden = np.zeros(len(Pc), dtype=bool)
             for q in occluders:
                 tq, _ = q.hit(x, y)
-                if np.any(tq < zc * (1 - 1e-7)):
-                    hidden = True
-                    break
-            if not hidden:
-                visible.add(mid)
+                hidden |= tq < zc * (1 - 1e-7)
+            hidden_marker = hidden.reshape(len(cand), 5).any(axis=1)
+            visible = {mid for mid, h in zip(cand, hidden_marker, strict=True) if not h}
         return FrameTruth(self.cam2world.copy(), markers, lengths, corners, visible, robots, t)
 
     def render(self, index: int) -> SimFrame:

@@ -46,7 +46,7 @@ PALETTE: dict[str, float] = {
     "wall": 0.82,        # wall panels carrying wall markers
     "plate": 0.52,       # robot top plate
     "side": 0.30,        # robot and support sides
-    "support": 0.60,     # top of a support under a raised marker
+    "support": 0.74,     # top of a support under a raised marker
     "occluder": 0.42,    # arms, people, sheets
 }
 
@@ -230,7 +230,7 @@ class Effects:
     """
 
     noise_sigma: float = 2.0
-    blur_sigma: float = 0.7
+    blur_sigma: float = 0.5
     exposure: float = 1.0
     vignetting: float = 0.2
     gradient: tuple[float, float] = (0.0, 0.0)

@@ -39,9 +39,9 @@ DEFAULT_FLEET = (
 # Loops between the incoming warehouse (top left), the machines (centre) and the outgoing
 # warehouse (bottom right), clear of the machines' wall panels; metres.
 _LOOPS = {
-    "amr1": [(-0.52, 0.42), (0.0, 0.42), (0.15, 0.30), (0.0, 0.18), (-0.52, 0.18)],
-    "amr2": [(0.58, -0.42), (0.0, -0.42), (-0.15, -0.28), (0.05, -0.18), (0.22, -0.05),
-             (0.45, -0.22)],
+    "amr1": [(-0.50, 0.36), (0.0, 0.36), (0.14, 0.27), (0.0, 0.18), (-0.50, 0.18)],
+    "amr2": [(0.55, -0.37), (0.0, -0.37), (-0.15, -0.26), (0.05, -0.17), (0.22, -0.05),
+             (0.45, -0.20)],
 }
 
 
