@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-__all__ = ["dist14", "distort", "project", "skew", "so3_exp", "undistort"]
+__all__ = ["dist14", "distort", "project", "skew", "so3_exp", "so3_exp_batch", "undistort"]
 
 
 def dist14(dist: np.ndarray) -> np.ndarray:
@@ -53,6 +53,18 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
         [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
         [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
     ])
+
+
+def so3_exp_batch(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (M, 3, 3) of rotation vectors ``w`` (M, 3) (Rodrigues)."""
+    w = np.asarray(w, dtype=float).reshape(-1, 3)
+    th2 = np.sum(w * w, axis=1)
+    small = th2 < 1e-16
+    th = np.sqrt(np.where(small, 1.0, th2))
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / th)
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    K = skew(w)
+    return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
 def distort(xy: np.ndarray, d: np.ndarray, jac: bool = False):

@@ -52,7 +52,14 @@ from kmea.estimators.base import (
     MarkerObservation,
     check_observations,
 )
-from kmea.estimators.camera_np import dist14, distort, project, so3_exp, undistort
+from kmea.estimators.camera_np import (
+    dist14,
+    distort,
+    project,
+    so3_exp,
+    so3_exp_batch,
+    undistort,
+)
 from kmea.estimators.common import reference_problem
 from kmea.estimators.robust import KMEARobust, describe_rejected
 from kmea.maps import MarkerMap
@@ -464,6 +471,39 @@ class CornerPnP:
         return np.sqrt(np.trace(cov_c, axis1=1, axis2=2))
 
     # ------------------------------------------------------------------ leave-one-out
+    def _loo_steps(self, fit: _Fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full, frames,
+                   origins) -> dict[int, np.ndarray]:
+        """One Gauss-Newton step per left-out consensus reference, all at once."""
+        n, p = len(inliers), J.shape[1]
+        Jk, Jwk, rk = J.reshape(n, 8, p), Jw.reshape(n, 8, p), r.reshape(n, 8)
+        Hs = fit.H[None] - np.swapaxes(Jwk, 1, 2) @ Jk
+        gs = g[None] - np.einsum("nkp,nk->np", Jwk, rk)
+        try:
+            deltas = -np.linalg.solve(Hs, gs[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            return {}
+        R = so3_exp_batch(deltas[:, :3]) @ fit.R
+        t = fit.t[None] + deltas[:, 3:6]
+        pos = {i: k for k, i in enumerate(refs)}
+        rows = np.array([np.arange(4 * pos[i], 4 * pos[i] + 4) for i in inliers])  # (n, 4)
+        xy0 = xy_full[rows]
+        xy = xy0.copy()
+        if fit.refine:
+            # The intrinsics move by ~1e-4 relative: first order in (f, k1) is exact enough.
+            h = 1e-6
+            uv = uv_refs[rows].reshape(-1, 2)
+            for col, (dK, dd) in ((6, (h, 0.0)), (7, (0.0, h))):
+                K2, d2 = fit.K.copy(), fit.d.copy()
+                K2[0, 0] *= 1.0 + dK * fit.K0[0, 0] / fit.K[0, 0]
+                K2[1, 1] *= 1.0 + dK * fit.K0[0, 0] / fit.K[0, 0]
+                d2[0] += dd
+                dxy = (undistort(uv, K2, d2).reshape(n, 4, 2) - xy0) / h
+                xy = xy + dxy * deltas[:, col, None, None]
+        P = _batched_plane_points(R, t, xy, frames[rows[:, 0]], origins[rows[:, 0]])
+        ok = np.all(np.isfinite(P), axis=(1, 2))
+        centres = P.mean(axis=1)
+        return {i: centres[k] for k, i in enumerate(inliers) if ok[k]}
+
     def estimate_loo(
         self,
         observations: Sequence[MarkerObservation],
@@ -505,27 +545,28 @@ class CornerPnP:
             if i not in inliers:
                 out[i] = full[k].mean(axis=0)
         if len(inliers) - 1 >= self.min_references:
-            pos = {i: k for k, i in enumerate(refs)}
-            for k, i in enumerate(inliers):
-                rows = slice(8 * k, 8 * k + 8)
-                Hj = fit.H - Jw[rows].T @ J[rows]
-                gj = g - Jw[rows].T @ r[rows]
-                try:
-                    delta = -np.linalg.solve(Hj, gj)
-                except np.linalg.LinAlgError:
-                    continue
-                R2, t2, K2, d2 = self._update(fit.R, fit.t, fit.K, fit.d, delta, fit.refine,
-                                              fit.K0)
-                q = slice(4 * pos[i], 4 * pos[i] + 4)
-                xy = xy_full[q] if not fit.refine else undistort(uv_refs[q], K2, d2)
-                P = self._intersect(R2, t2, xy, frames[q], origins[q])
-                if np.all(np.isfinite(P)):
-                    out[i] = P.mean(axis=0)
+            out.update(self._loo_steps(fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full,
+                                       frames, origins))
         Rc2w = fit.R.T
         for i, o in obs.items():  # map markers without corners: their PnP pose
             if i in world_map and i not in out and o.corners is None:
                 out[i] = Rc2w @ (np.asarray(o.marker2cam_t, float) - fit.t)
         return dict(sorted(out.items()))
+
+
+def _batched_plane_points(R: np.ndarray, t: np.ndarray, xy: np.ndarray, frames: np.ndarray,
+                          origins: np.ndarray) -> np.ndarray:
+    """Ray-plane points (M, 4, 3) of M poses (R (M, 3, 3) world2cam, t (M, 3)) for each one's
+    4 normalized corners xy (M, 4, 2) and plane (frames (M, 3, 3), origins (M, 3))."""
+    rays = np.concatenate([xy, np.ones((*xy.shape[:2], 1))], axis=2) @ R  # R^T ray, world
+    C = -np.einsum("mji,mj->mi", R, t)
+    n = frames[:, :, 2]
+    den = np.einsum("mki,mi->mk", rays, n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.einsum("mi,mi->m", n, origins - C)[:, None] / den
+    P = C[:, None, :] + lam[:, :, None] * rays
+    P[~(lam > 0) | ~np.isfinite(lam)] = np.nan
+    return P
 
 
 def project_back(xy: np.ndarray, K: np.ndarray, d: np.ndarray) -> np.ndarray:

@@ -50,6 +50,7 @@ from kmea.estimators.common import (
     reference_problem,
     select_references,
 )
+from kmea.estimators.kmea import KMEA
 from kmea.maps import MarkerMap
 
 __all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "umeyama_batch"]
@@ -264,10 +265,9 @@ class KMEARobust:
         without itself (the convention of :func:`kmea.estimators.loo.loo_positions`).
 
         One consensus for the frame, then for each consensus member the closed-form KMEA on
-        the consensus without it; a rejected reference is not in the consensus, so its
-        position is the full alignment's. N Kabsch solves instead of N robust loops; it
-        differs from ``estimate(exclude={j})`` only if removing j would change which other
-        references agree.
+        the consensus without it (batched, :meth:`KMEA.estimate_loo`); a rejected reference
+        is not in the consensus, so its position is the full alignment's. It differs from
+        ``estimate(exclude={j})`` only if removing j would change which others agree.
         """
         obs = check_observations(observations)
         refs = select_references(obs, world_map)
@@ -280,17 +280,12 @@ class KMEARobust:
                                                self._normals(world_map, ids))
         except ValueError:
             return out
-        for j, mid in enumerate(ids):
-            if not inl[j]:
-                out[mid] = s * R @ P[j] + t
-                continue
-            keep = inl.copy()
-            keep[j] = False
-            if reference_problem(Q[keep], P[keep], self.min_references):
-                continue
-            sel = [ids[i] for i in np.flatnonzero(keep)]
-            sj, Rj, tj = kmea_align(P[keep], Q[keep], sel, world_map.origin_id)
-            out[mid] = sj * Rj @ P[j] + tj
+        for j in np.flatnonzero(~inl):
+            out[ids[j]] = s * R @ P[j] + t
+        # Each consensus member without itself: the paper's KMEA on the others, which
+        # KMEA.estimate_loo computes for all of them at once.
+        members = [o for o in obs if o.id in set(np.asarray(ids)[inl].tolist())]
+        out.update(KMEA().estimate_loo(members, world_map))
         return out
 
 
