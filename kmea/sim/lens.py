@@ -29,7 +29,9 @@ def _coeffs(camera: CameraModel) -> np.ndarray:
 
 
 def distort(x: np.ndarray, y: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised undistorted (x, y) -> pixel (u, v), OpenCV's model (k1..k6, p1, p2, s1..s4)."""
+    """Normalised undistorted (x, y) -> pixel (u, v), OpenCV's model (k1..k6, p1, p2, s1..s4).
+
+    Like ``cv2.projectPoints``, the skew K[0, 1] is ignored."""
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = _coeffs(camera)[:12]
     r2 = x * x + y * y
     r4 = r2 * r2
@@ -39,7 +41,8 @@ def distort(x: np.ndarray, y: np.ndarray, camera: CameraModel) -> tuple[np.ndarr
     xd = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2 + s3 * r2 + s4 * r4
     K = camera.camera_matrix
-    return K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]
+    # K[0, 1] (skew) is ignored, as cv2.projectPoints and solvePnP do.
+    return K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]
 
 
 def project(points_world: np.ndarray, world2cam: np.ndarray,

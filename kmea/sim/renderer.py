@@ -241,6 +241,9 @@ class Renderer:
         self._static_markers = scene.static_markers()
         self._idx = np.full((self.height, self.width), -1, dtype=np.int64)
         self._dyn_cache: tuple[float, list[list[_Quad]]] | None = None
+        for robot in scene.robots:
+            for mid in robot.markers:
+                self.texture(mid)  # unknown ids fail here, naming the marker
         self._build_static()
 
     # ------------------------------------------------------------ scene content

@@ -193,7 +193,7 @@ class Occluder:
                    CrossingPath((x_from, y), (x_to, y), t0, duration, period), name="arm")
 
     @classmethod
-    def person(cls, x: float = -0.95, y_from: float = -0.9, y_to: float = 0.9,
+    def person(cls, x: float = -0.75, y_from: float = -0.9, y_to: float = 0.9,
                t0: float = 0.0, duration: float = 6.0, period: float = 0.0) -> Occluder:
         """Someone walking past the floor's edge (0.30 x 0.50 m, 1.1 m tall: under the
         camera, only the part that enters the view matters)."""
