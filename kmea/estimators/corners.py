@@ -325,7 +325,7 @@ class CornerPnP:
         uv_refs = self._stack_corners(refs, obs)
         row = {i: k for k, i in enumerate(refs)}
         X_refs = np.concatenate([world_map[i].corners_world() for i in refs])
-        xy_refs = undistort(uv_refs, K0, d0)
+        xy_refs = None
         inliers = [i for i, k in zip(refs, start_inl, strict=True) if k]
         fit = None
         for _ in range(6):
@@ -337,7 +337,10 @@ class CornerPnP:
             if fit is None:
                 return Estimate.failed(self.name, "reprojection fit failed (camera behind markers)")
             R, t = fit.R, fit.t
-            xy = undistort(uv_refs, fit.K, fit.d) if refine else xy_refs
+            if refine:
+                xy = undistort(uv_refs, fit.K, fit.d)
+            else:
+                xy = xy_refs = undistort(uv_refs, K0, d0) if xy_refs is None else xy_refs
             dis = self._disagreement(fit, refs, xy, world_map)
             new = [i for i in refs if dis[i] <= self.threshold]
             if new == inliers:
@@ -447,26 +450,33 @@ class CornerPnP:
         except np.linalg.LinAlgError:
             return np.full(n, np.nan)
         base = self._intersect(fit.R, fit.t, xy, F, O)
-        Jc = np.empty((n, 3, p))
         h = 1e-7
-        for k in range(p):
-            delta = np.zeros(p)
-            delta[k] = h
-            R2, t2, K2, d2 = self._update(fit.R, fit.t, fit.K, fit.d, delta, fit.refine, fit.K0)
-            xy2 = xy if k < 6 else undistort(project_back(xy, fit.K, fit.d), K2, d2)
-            Pk = self._intersect(R2, t2, xy2, F, O)
-            Jc[:, :, k] = ((Pk - base) / h).reshape(n, 4, 3).mean(axis=1)
-        cov_c = np.einsum("nik,kl,njl->nij", Jc, cov, Jc)
-        # Own corner noise: d P / d uv = d P / d xy @ (d uv / d xy)^-1, per corner.
+        # d P / d xy per corner (numerical, the plane intersection is cheap).
         dP_dxy = np.empty((len(xy), 3, 2))
         for axis in range(2):
             xy2 = xy.copy()
             xy2[:, axis] += h
             dP_dxy[:, :, axis] = (self._intersect(fit.R, fit.t, xy2, F, O) - base) / h
-        Jd = distort(xy, fit.d, jac=True)[1]
-        A = fit.K[:2, :2]
-        duv_dxy = np.einsum("ij,njk->nik", A, Jd)
-        dP_duv = np.einsum("nij,njk->nik", dP_dxy, np.linalg.inv(duv_dxy)).reshape(n, 4, 3, 2)
+        xd, Jd, dk1 = distort(xy, fit.d, jac=True)
+        Jd_inv = np.linalg.inv(Jd)
+        Jc = np.empty((n, 3, p))
+        for k in range(6):  # pose: the rays stay, the camera moves
+            delta = np.zeros(p)
+            delta[k] = h
+            R2, t2 = self._update(fit.R, fit.t, fit.K, fit.d, delta, False, fit.K0)[:2]
+            Pk = self._intersect(R2, t2, xy, F, O)
+            Jc[:, :, k] = ((Pk - base) / h).reshape(n, 4, 3).mean(axis=1)
+        if fit.refine:
+            # Intrinsics move the rays: distort(xy) = (uv - c) / (K0 m) at fixed pixels, so
+            # d xy / d m = -Jd^-1 xd / m and d xy / d k1 = -Jd^-1 d distort / d k1.
+            m = fit.K[0, 0] / fit.K0[0, 0]
+            for k, rhs in ((6, -xd / m), (7, -dk1)):
+                dxy = np.einsum("nij,nj->ni", Jd_inv, rhs)
+                Jc[:, :, k] = np.einsum("nij,nj->ni", dP_dxy, dxy).reshape(n, 4, 3).mean(axis=1)
+        cov_c = np.einsum("nik,kl,njl->nij", Jc, cov, Jc)
+        # Own corner noise: d P / d uv = d P / d xy @ (d uv / d xy)^-1, per corner.
+        A_inv = np.diag([1.0 / fit.K[0, 0], 1.0 / fit.K[1, 1]])
+        dP_duv = np.einsum("nij,njk,kl->nil", dP_dxy, Jd_inv, A_inv).reshape(n, 4, 3, 2)
         cov_c += fit.sigma_px ** 2 / 16.0 * np.einsum("nkia,nkja->nij", dP_duv, dP_duv)
         return np.sqrt(np.trace(cov_c, axis1=1, axis2=2))
 
@@ -567,8 +577,3 @@ def _batched_plane_points(R: np.ndarray, t: np.ndarray, xy: np.ndarray, frames: 
     P = C[:, None, :] + lam[:, :, None] * rays
     P[~(lam > 0) | ~np.isfinite(lam)] = np.nan
     return P
-
-
-def project_back(xy: np.ndarray, K: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) of normalized undistorted points xy (N, 2) (inverse of ``undistort``)."""
-    return project(np.concatenate([xy, np.ones((len(xy), 1))], axis=1), K, d)
