@@ -14,11 +14,14 @@ import asyncio
 import os
 import time
 from collections import deque
+from pathlib import Path
+from contextlib import suppress
 from typing import Any
 
 from textual import work
 from textual.app import App, ComposeResult
 from textual.binding import Binding
+from textual.css.query import NoMatches
 from textual.widgets import Footer, TabbedContent, TabPane
 
 from kmea_tui.client import DaemonClient, RecordingClient
@@ -175,6 +178,8 @@ class KmeaTui(App[None]):
     def on_telemetry_batch(self, msg: TelemetryBatch) -> None:
         try:
             self.apply_batch(msg)
+        except NoMatches:
+            pass  # shutting down: the widgets are gone, messages may still arrive
         finally:
             self._ui_ready.set()
 
@@ -223,6 +228,10 @@ class KmeaTui(App[None]):
             await asyncio.sleep(self.ping_period)
 
     def on_connection_changed(self, msg: ConnectionChanged) -> None:
+        with suppress(NoMatches):  # shutting down
+            self._connection_changed(msg)
+
+    def _connection_changed(self, msg: ConnectionChanged) -> None:
         was = self.ping_ok
         self.ping_ok, self.ping_detail = msg.ok, msg.detail
         if (msg.ok and was is False) or (msg.ok and not self.config_loaded):
@@ -253,7 +262,8 @@ class KmeaTui(App[None]):
     def update_connection_state(self) -> None:
         state, detail = self.compute_state()
         self.connection_state = state
-        self.query_one(StatusBar).show(state, self.frame, detail)
+        with suppress(NoMatches):  # shutting down
+            self.query_one(StatusBar).show(state, self.frame, detail)
 
     # -- control -------------------------------------------------------------------------------
     def control(self, cmd: str, **args: Any) -> None:
@@ -269,6 +279,10 @@ class KmeaTui(App[None]):
         self.control(msg.cmd, **msg.args)
 
     def on_control_reply(self, msg: ControlReply) -> None:
+        with suppress(NoMatches):  # shutting down
+            self._control_reply(msg)
+
+    def _control_reply(self, msg: ControlReply) -> None:
         cmd, args, reply = msg.cmd, msg.args, msg.reply
         ok = bool(reply.get("ok"))
         config_pane = self.query_one(ConfigPane)
@@ -349,6 +363,28 @@ class KmeaTui(App[None]):
         # Robots and statistics summaries show the sort; re-render them from the last data.
         if self.robots_body is not None:
             self.query_one(RobotsPane).update_robots(self.robots_body)
+
+
+async def save_screenshots(recording: str | Path, out_dir: str | Path,
+                           size: tuple[int, int] = (80, 24),
+                           theme: str = "textual-dark") -> list[Path]:
+    """SVG of every tab after replaying ``recording`` at once: ``out_dir/tui-TAB.svg``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    app = KmeaTui(RecordingClient(recording), theme=theme)
+    files: list[Path] = []
+    async with app.run_test(size=size) as pilot:
+        for _ in range(1000):
+            if app.replay_done and app.config_loaded:
+                break
+            await pilot.pause(0.01)
+        for i, (tab, _) in enumerate(TABS):
+            await pilot.press(str(i + 1))
+            await pilot.pause(0.1)
+            path = out / f"tui-{tab}.svg"
+            path.write_text(app.export_screenshot(title=f"kmea-tui: {tab}"), encoding="utf-8")
+            files.append(path)
+    return files
 
 
 def run_tui(telemetry: str = protocol.DEFAULT_TELEMETRY,

@@ -29,6 +29,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-frames", type=int, default=0, metavar="N",
                    help="--save-stream keeps only the last N frames (and every status, "
                         "event and log message); 0 keeps everything")
+    p.add_argument("--screenshots", metavar="DIR",
+                   help="with --replay: write an SVG of every tab (tui-TAB.svg) to DIR "
+                        "after the whole recording was shown, then exit")
+    p.add_argument("--size", default="80x24", metavar="COLSxROWS",
+                   help="terminal size for --screenshots (default %(default)s)")
     p.add_argument("--theme", default="auto",
                    help="Textual theme; 'auto' picks ansi-dark on 16-colour terminals "
                         "and textual-dark otherwise")
@@ -46,6 +51,22 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if n else 1
     from kmea_tui.app import KmeaTui
 
+    theme = None if args.theme == "auto" else args.theme
+    if args.screenshots:
+        if not args.replay:
+            print("kmea-tui: --screenshots needs --replay FILE", file=sys.stderr)
+            return 2
+        from kmea_tui.app import save_screenshots
+
+        try:
+            cols, rows = (int(v) for v in args.size.lower().split("x"))
+            files = asyncio.run(save_screenshots(args.replay, args.screenshots, (cols, rows),
+                                                 theme or "textual-dark"))
+        except ValueError as e:
+            print(f"kmea-tui: {e}", file=sys.stderr)
+            return 2
+        print("\n".join(f"kmea-tui: wrote {f}" for f in files))
+        return 0
     if args.replay:
         try:
             client: DaemonClient | RecordingClient = RecordingClient(
@@ -55,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     else:
         client = DaemonClient(args.telemetry, args.control)
-    KmeaTui(client, theme=None if args.theme == "auto" else args.theme).run()
+    KmeaTui(client, theme=theme).run()
     return 0
 
 

@@ -39,13 +39,6 @@ def test_tab_snapshot(snap_compare, tab: str, size: tuple[int, int]) -> None:
                         run_before=_until_replayed)
 
 
-def test_markers_sorted_by_error_snapshot(snap_compare) -> None:
-    """Sorting by a column (here the LOO error, largest first) with the keyboard."""
-    keys = ["1", *["s"] * 8, "S"]  # id -> ... -> LOO mm, then reverse
-    assert snap_compare(_app(), press=keys, terminal_size=(80, 24),
-                        run_before=_until_replayed)
-
-
 def test_ansi_theme_snapshot(snap_compare) -> None:
     """The 16-colour theme used on terminals without 256 colours."""
     assert snap_compare(_app("ansi-dark"), press=["1"], terminal_size=(80, 24),

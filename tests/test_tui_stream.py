@@ -1,7 +1,7 @@
 """kmea-tui keeps up with a fast telemetry stream on a real PUB socket.
 
 A publisher sends the recorded frame/markers/robots/stats messages at 100 frames/s (faster
-than any camera here) for 2 s, every frame with a new frame number and moved estimates.
+than any camera here) for 1.5 s, every frame with a new frame number and moved estimates.
 The UI must coalesce (drop stale messages), end up showing the last frame, and update the
 tables in place: same rows, no clear(), cells updated. No wall-clock assertions.
 """
@@ -24,7 +24,7 @@ from kmead import protocol
 
 RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
 RATE_HZ = 100
-SECONDS = 2.0
+SECONDS = 1.5
 
 
 def _templates() -> dict[str, dict]:

@@ -179,7 +179,7 @@ class FloorMap(Widget):
             cx, cy = vp.to_cell(px, py)
             lx = cx - (len(label) - 1) // 2
             # One free cell either side keeps neighbouring ids apart ("11 56", not "1156").
-            if canvas.free(lx - 1, cy, len(label) + 2) or rank(m) == 0:
+            if canvas.free(lx - 1, cy, len(label) + 2):
                 canvas.text(lx, cy, label, style)
             else:
                 canvas.dot(*vp.to_dots(px, py), style)

@@ -51,6 +51,7 @@ class LogPane(Vertical):
         super().__init__(id=id)
         self.logging: dict[str, Any] = {}
         self.recording: dict[str, Any] = {}
+        self._recent: dict[tuple[str, str], float] = {}
 
     def compose(self) -> ComposeResult:
         yield Static("CSV log: (no status from the daemon yet)", id="log-state")
@@ -81,8 +82,19 @@ class LogPane(Vertical):
             self._state_line("recording", self.recording, "frames", "frames"))
 
     def add_events(self, events: list[tuple[str, dict[str, Any]]]) -> None:
+        """Append events and log lines; a log line repeating an event shown within a
+        second (the daemon publishes warnings both ways) is left out."""
         log = self.query_one("#events", RichLog)
         for topic, body in events:
+            text, t = str(body.get("text", "")), body.get("t")
+            other = "log" if topic == "event" else "event"
+            seen = self._recent.get((other, text))
+            if isinstance(t, (int, float)) and seen is not None and abs(t - seen) < 1.0:
+                continue
+            if isinstance(t, (int, float)):
+                self._recent[(topic, text)] = t
+                if len(self._recent) > 200:
+                    self._recent.pop(next(iter(self._recent)))
             log.write(event_line(topic, body))
 
     def note(self, text: str, ok: bool = True) -> None:
