@@ -255,3 +255,16 @@ def test_turned_reference_is_rejected_and_described():
     assert est.rejected[16] < 1e-3  # its centre did not move
     assert math.degrees(est.info["turned"][16]) == pytest.approx(20.0, abs=0.2)
     assert est.info["displaced"] == ["marker 16 looks displaced by 0 mm, turned +20 deg"]
+
+
+def test_solve_cache_is_reused_only_for_the_same_frame():
+    sc = scenario1()
+    cam = sc.camera.intrinsics
+    a, b = observe(sc, noise_px=0.2, seed=17), observe(sc, noise_px=0.2, seed=18)
+    cp = CornerPnP()
+    cp.estimate(a, sc.map, camera=cam)
+    for frame in (a, b):  # same frame: cache hit; another frame: fresh fit
+        got = cp.estimate_loo(frame, sc.map, camera=cam)
+        want = CornerPnP().estimate_loo(frame, sc.map, camera=cam)
+        assert got.keys() == want.keys()
+        assert all(np.array_equal(got[i], want[i]) for i in got)

@@ -132,6 +132,7 @@ class CornerPnP:
         self.min_references = max(3, int(min_references))
         self.prior = (float(prior_f), float(prior_k1), float(prior_px))
         self._start = KMEARobust(threshold=start_threshold, min_references=self.min_references)
+        self._cache: tuple | None = None
 
     # ------------------------------------------------------------------ LM
     def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -290,7 +291,11 @@ class CornerPnP:
     # ------------------------------------------------------------------ estimate
     def _solve(self, observations, world_map, exclude, camera):
         """Shared part of estimate and estimate_loo: (fit, refs, inliers, disagreement, obs),
-        or an ``Estimate.failed``."""
+        or an ``Estimate.failed``.
+
+        The last full-reference solve is remembered, keyed on everything it depends on, so
+        the daemon's ``estimate`` then ``estimate_loo`` on the same frame fits once.
+        """
         if camera is None:
             return Estimate.failed(self.name, "corner-pnp needs the camera intrinsics "
                                               "(camera matrix and distortion)")
@@ -298,6 +303,23 @@ class CornerPnP:
         excl = set(exclude)
         refs = sorted(i for i in obs
                       if i in world_map and i not in excl and obs[i].corners is not None)
+        key = None
+        if not excl:
+            key = (id(world_map), world_map.positions(refs).tobytes(),
+                   np.asarray(camera.camera_matrix, float).tobytes(),
+                   np.asarray(camera.dist_coeffs, float).tobytes(),
+                   tuple((o.id, None if o.corners is None else
+                          np.asarray(o.corners, float).tobytes(),
+                          np.asarray(o.marker2cam_t, float).tobytes(),
+                          np.asarray(o.marker2cam_R, float).tobytes()) for o in obs.values()))
+            if self._cache is not None and self._cache[0] == key:
+                return self._cache[1]
+        res = self._solve_uncached(obs, refs, world_map, camera)
+        if key is not None:
+            self._cache = (key, res)
+        return res
+
+    def _solve_uncached(self, obs, refs, world_map, camera):
         if len(refs) < self.min_references:
             return Estimate.failed(self.name, f"{len(refs)} reference marker(s) with corners "
                                               f"visible, need {self.min_references}")
