@@ -139,6 +139,7 @@ class KMEARobust:
         self.irls_iterations = int(irls_iterations)
         self.min_references = int(min_references)
         self.in_plane = bool(in_plane)
+        self._cache: tuple | None = None
 
     # ------------------------------------------------------------------ consensus
     def _triples(self, n: int) -> np.ndarray:
@@ -155,8 +156,19 @@ class KMEARobust:
 
         normals: (N, 3) map normals of the references; with them the residuals are measured
         in each reference's plane (see :func:`plane_residuals`). Raises ``ValueError`` with
-        the reason when no non-degenerate consensus of ``min_references`` exists.
+        the reason when no non-degenerate consensus of ``min_references`` exists. The last
+        result is remembered (it is a pure function of the inputs), so ``estimate`` then
+        ``estimate_loo`` on the same frame run the robust loop once.
         """
+        key = (np.asarray(P, float).tobytes(), np.asarray(Q, float).tobytes(), tuple(ids),
+               origin_id, None if normals is None else np.asarray(normals, float).tobytes())
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        res = self._consensus(P, Q, ids, origin_id, normals)
+        self._cache = (key, res)
+        return res
+
+    def _consensus(self, P, Q, ids, origin_id, normals):
         n = len(P)
 
         def residuals(s: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
