@@ -116,8 +116,14 @@ def test_part_two_markers_are_really_raised_and_scored_on_their_floor_position()
     m = default_map()
     for mid in spec.evaluated:
         np.testing.assert_allclose(result.truth[mid], m[mid].position[:2])
-        # KMEA places each marker from its own PnP pose: it sees it 20 cm up.
-        assert abs(result.heights[("kmea", mid)].mean() - 0.20) < 0.03
+        # Not references, not in the estimators' map: KMEA places each marker from its own
+        # PnP pose and sees it 20 cm up.
+        z = result.heights[("kmea", mid)]
+        assert abs(z.mean() - 0.20) < 0.03 and np.all(z != 0.20)
+    known = run_simulation(_config("II", samples=2, known_heights=True))
+    for mid in spec.evaluated:
+        # Told the height, KMEA slides the marker along its ray onto that plane.
+        np.testing.assert_allclose(known.heights[("kmea", mid)], 0.20, atol=1e-9)
 
 
 def test_miscalibration_is_given_to_the_estimators_only():

@@ -45,6 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="error added to the first radial distortion coefficient")
     p.add_argument("--displacement-scale", type=float, default=1.0, metavar="K",
                    help="multiply the anchors' displacements of Parts III and IV by K")
+    p.add_argument("--known-heights", action="store_true",
+                   help="Part II: tell the estimators the raised markers' height, as the "
+                        "daemon does for robots (the paper's algorithms do not)")
     p.add_argument("--replay", metavar="FILE",
                    help="score a kmead recording instead (truth = the map's positions)")
     p.add_argument("--markers", default=None,
@@ -162,7 +165,8 @@ def run(args: argparse.Namespace) -> int:
             spec = replace(spec, evaluated=markers)
         cfg = ExperimentConfig(part=spec, algorithms=algorithms, baseline=args.baseline,
                                samples=args.samples, seed=args.seed, width=w, height=h,
-                               focal_error=focal / 100.0, k1_error=k1, jobs=max(1, args.jobs))
+                               focal_error=focal / 100.0, k1_error=k1,
+                               known_heights=args.known_heights, jobs=max(1, args.jobs))
         bar = Progress(cfg.samples, f"Part {spec.name}", enabled=not args.quiet)
         try:
             result = run_simulation(cfg, progress=bar.update)

@@ -85,7 +85,7 @@ def write_plots(result: RunResult, out_dir: str | Path, scores: Scores | None = 
     x = np.arange(len(result.markers))
     width = 0.8 / max(len(algs), 1)
     for title, fieldname, k, unit in METRICS:
-        fig, ax = plt.subplots(figsize=(max(6.0, 0.7 * len(x) + 2), 3.6))
+        fig, ax = plt.subplots(figsize=(max(6.0, 0.7 * len(x) + 2), 4.0))
         for j, a in enumerate(algs):
             vals = [getattr(scores.per_marker[(a, m)], fieldname) * k
                     if (a, m) in scores.per_marker else np.nan for m in result.markers]
@@ -96,7 +96,8 @@ def write_plots(result: RunResult, out_dir: str | Path, scores: Scores | None = 
         ax.set_title(f"Part {result.part}: {title} per marker")
         if any(v > 0 for a in algs for v in _finite(scores, a, result.markers, fieldname)):
             ax.set_yscale("log")
-        ax.legend(fontsize="small", ncols=min(len(algs), 5))
+        ax.legend(fontsize="small", ncols=min(len(algs), 5), loc="upper center",
+                  bbox_to_anchor=(0.5, -0.2), frameon=False)
         ax.grid(axis="y", alpha=0.3)
         fig.tight_layout()
         p = out / f"{stem}-bars-{fieldname}.png"

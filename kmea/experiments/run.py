@@ -41,6 +41,8 @@ class ExperimentConfig:
     width, height: rendered image size (the Pi Camera v2 model is scaled to it).
     focal_error: relative error of the focal length the estimators believe (0.02 = +2 %).
     k1_error: absolute error added to the first radial coefficient the estimators believe.
+    known_heights: give the estimators Part II's support height as ``plane_heights`` (as the
+        daemon does for a robot's top plate); off by default, as in the paper.
     """
 
     part: PartSpec
@@ -52,6 +54,7 @@ class ExperimentConfig:
     height: int = 1232
     focal_error: float = 0.0
     k1_error: float = 0.0
+    known_heights: bool = False
     jobs: int = 1
     chunk: int = 8
 
@@ -243,6 +246,7 @@ def run_simulation(config: ExperimentConfig,
         "samples": config.samples, "seed": config.seed,
         "image": f"{config.width}x{config.height}",
         "focal_error": config.focal_error, "k1_error": config.k1_error,
+        **({"known_heights": True} if config.known_heights and config.part.raised else {}),
         **info["settings"],
     }
     return RunResult(

@@ -7,10 +7,11 @@ Truth versus what the estimators are told:
 - the estimators get the *nominal* map (the anchors keep their surveyed poses: that is the
   point of Parts III and IV) and, optionally, a slightly wrong calibration;
 - Part II's raised markers are treated like robot markers: removed from the estimators' map
-  (they are not where the map says, so they must never be references) and their height is
-  given as ``plane_heights`` (as the daemon does for a robot's top plate). KMEA, LMEA and
-  Umeyama ignore it (they place every marker from its own PnP pose); corner-pnp intersects
-  the marker's corner rays with that plane.
+  (they are not where the map says, so they must never be references). As in the paper,
+  every estimator then places them from their own PnP pose. With ``known_heights`` their
+  height is given as ``plane_heights``, as the daemon does for a robot's top plate: the
+  Kabsch-family estimators slide each along its camera ray to that height, corner-pnp
+  intersects its corner rays with that plane.
 """
 
 from __future__ import annotations
@@ -72,7 +73,8 @@ def build(config: ExperimentConfig) -> dict[str, Any]:
         "believed": miscalibrated(scene.camera, config.focal_error, config.k1_error),
         "estimator_map": emap,
         "lengths": lengths,
-        "plane_heights": {int(i): float(h) for i, h in config.part.raised.items()},
+        "plane_heights": ({int(i): float(h) for i, h in config.part.raised.items()}
+                          if config.known_heights else {}),
         "never_reference": (),
     }
 
