@@ -14,8 +14,8 @@ import asyncio
 import os
 import time
 from collections import deque
-from pathlib import Path
 from contextlib import suppress
+from pathlib import Path
 from typing import Any
 
 from textual import work
