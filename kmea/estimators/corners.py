@@ -15,10 +15,11 @@ noisiest coordinate and leaks sideways off the optical axis. Here instead:
    in ``Estimate.rejected`` (id -> that RMS distance, m; for a shifted marker it is the
    shift) and ``info["displaced"]``.
 4. **Every marker from its corners**: the rays of its 4 corners (pixel -> undistorted
-   normalized ray) intersect its plane: its map plane for a map marker (what leave-one-out
-   evaluates), ``z = plane_heights[id]`` for a robot's marker; centre = mean of the 4 points,
-   in-plane rotation from a 2D Procrustes fit of the square. A marker with no known plane
-   (or no corners) gets its own PnP pose moved by the fitted camera pose.
+   normalized ray) intersect its plane: ``z = plane_heights[id]`` when the caller gives a
+   height (a robot's top plate), else its map plane for a map marker (what leave-one-out
+   evaluates); centre = mean of the 4 points, in-plane rotation from a 2D Procrustes fit of
+   the square. A marker with no known plane (or no corners) gets its own PnP pose moved by
+   the fitted camera pose.
 
 Optional intrinsics refinement (``refine_intrinsics``): a common multiplier of fx and fy
 and k1 join the LM, with a weak Gaussian prior at the calibrated values (``f`` 5 %, k1
@@ -87,14 +88,18 @@ class _Fit:
 
 def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mapping[int, float]
                   ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """id -> (frame (3, 3) with columns e1, e2, normal; origin (3,)) for markers with a plane."""
+    """id -> (frame (3, 3) with columns e1, e2, normal; origin (3,)) for markers with a plane.
+
+    An explicit height wins over the map (the caller knows the marker was lifted, e.g. a
+    map marker put on a robot); otherwise a map marker lies in its surveyed plane.
+    """
     out = {}
     for i in ids:
-        if i in world_map:
+        if i in plane_heights:
+            out[i] = (np.eye(3), np.array([0.0, 0.0, float(plane_heights[i])]))
+        elif i in world_map:
             m = world_map[i]
             out[i] = (m.rotation, m.position)
-        elif i in plane_heights:
-            out[i] = (np.eye(3), np.array([0.0, 0.0, float(plane_heights[i])]))
     return out
 
 
