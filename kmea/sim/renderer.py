@@ -116,6 +116,13 @@ class _Quad:
         q.nc = float(q.n @ c)
         q.exk, q.eyk = ex, ey
         q.exc, q.eyc = float(ex @ c), float(ey @ c)
+        q._n = tuple(float(v) for v in q.n)
+        q._ex = tuple(float(v) for v in ex)
+        q._ey = tuple(float(v) for v in ey)
+        if self.tex is not None:
+            if abs(self.hx - self.hl * (self.tex.shape[0] + 2) / self.tex.shape[0]) > 1e-12:
+                raise ValueError("marker quad: the quiet zone must be one cell wide")
+            q._padded = np.pad(self.tex, 1, constant_values=np.float32(self.albedo))
         P = self.corners() @ R.T + t
         if np.all(P[:, 2] > 1e-6):
             x, y = P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]
@@ -123,27 +130,44 @@ class _Quad:
         return q
 
     def hit(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Depth z of the hit (inf where none) and albedo, for normalised rays (x, y, 1)."""
-        n = self.n
-        nd = n[0] * x + n[1] * y + n[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        """Depth z of the hit (inf where none) and albedo, for normalised rays (x, y, 1).
+
+        Works in the dtype of ``x`` (float32 rays: ~1e-7 m in a marker's plane)."""
+        n0, n1, n2 = self._n
+        e0, e1, e2 = self._ex
+        f0, f1, f2 = self._ey
+        nd = n0 * x + n1 * y + n2
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             t = self.nc / nd
-            a = t * (self.exk[0] * x + self.exk[1] * y + self.exk[2]) - self.exc
-            b = t * (self.eyk[0] * x + self.eyk[1] * y + self.eyk[2]) - self.eyc
+            a = e0 * x
+            a += e1 * y
+            a += e2
+            a *= t
+            a -= self.exc
+            b = f0 * x
+            b += f1 * y
+            b += f2
+            b *= t
+            b -= self.eyc
         ok = t > 1e-9
         if not self.two_sided:
             ok &= nd < 0
-        ok &= (np.abs(a) <= self.hx) & (np.abs(b) <= self.hy)
-        t = np.where(ok, t, np.inf)
+        ok &= np.abs(a) <= self.hx
+        ok &= np.abs(b) <= self.hy
+        t[~ok] = np.inf
         if self.tex is None:
             return t, np.full(np.shape(x), self.albedo, dtype=np.float32)
-        cells = self.tex.shape[0]
-        k = cells / (2.0 * self.hl)
-        inner = (np.abs(a) < self.hl) & (np.abs(b) < self.hl)
-        col = np.clip(((a + self.hl) * k).astype(np.int64), 0, cells - 1)
-        row = np.clip(((self.hl - b) * k).astype(np.int64), 0, cells - 1)
-        alb = np.where(inner, self.tex[row, col], np.float32(self.albedo))
-        return t, alb.astype(np.float32)
+        # The texture with its one-cell quiet zone maps uniformly onto the whole quad.
+        tex = self._padded
+        cells = tex.shape[0]
+        k = cells / (2.0 * self.hx)
+        a += self.hx
+        a *= k
+        b -= self.hy
+        b *= -k
+        col = np.clip(a.astype(np.int32), 0, cells - 1)
+        row = np.clip(b.astype(np.int32), 0, cells - 1)
+        return t, tex[row, col]
 
 
 def _box_quads(center_xy: tuple[float, float], yaw: float, lx: float, ly: float,
@@ -171,8 +195,8 @@ def _fib_pattern(n: int, g: int) -> tuple[np.ndarray, np.ndarray]:
     return ((k + 0.5) / n - 0.5), (((k * g) % n) + 0.5) / n - 0.5
 
 
-_STATIC_SAMPLES = _fib_pattern(89, 55)
-_DYNAMIC_SAMPLES = _fib_pattern(34, 21)
+_STATIC_SAMPLES = tuple(a.astype(np.float32) for a in _fib_pattern(89, 55))
+_DYNAMIC_SAMPLES = tuple(a.astype(np.float32) for a in _fib_pattern(34, 21))
 
 
 def _edges(a: np.ndarray) -> np.ndarray:
@@ -390,21 +414,26 @@ class Renderer:
         self._rect_floor = self.scene.floor_rect()
 
     def _floor(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n = self._fn
-        nd = n[0] * x + n[1] * y + n[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        n0, n1, n2 = (float(v) for v in self._fn)
+        nd = n0 * x + n1 * y + n2
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             t = self._fnc / nd
         ok = (t > 1e-9) & (nd < 0)
-        t = np.where(ok, t, np.inf)
-        R, o = self._c2w, self._o
-        tt = np.where(ok, t, 0.0)
-        xw = o[0] + tt * (R[0, 0] * x + R[0, 1] * y + R[0, 2])
-        yw = o[1] + tt * (R[1, 0] * x + R[1, 1] * y + R[1, 2])
+        t[~ok] = np.inf
+        R = [[float(v) for v in row] for row in self._c2w]
+        o = [float(v) for v in self._o]
+        tt = np.where(ok, t, 0.0).astype(t.dtype)
+        xw = R[0][0] * x + R[0][1] * y + R[0][2]
+        xw *= tt
+        xw += o[0]
+        yw = R[1][0] * x + R[1][1] * y + R[1][2]
+        yw *= tt
+        yw += o[1]
         x0, x1, y0, y1 = self._rect_floor
         inside = (xw >= x0) & (xw <= x1) & (yw >= y0) & (yw <= y1)
         alb = np.where(inside, np.float32(PALETTE["canvas"]), np.float32(PALETTE["surround"]))
-        alb = np.where(ok, alb, np.float32(0.0))
-        return t, alb.astype(np.float32)
+        alb[~ok] = 0.0
+        return t, alb
 
     def _light(self, t: np.ndarray, r: Rect) -> np.ndarray | None:
         gx, gy = self.scene.effects.gradient
@@ -488,8 +517,11 @@ class Renderer:
         sr = self.static_rects if static_sel is None else [self.static_rects[i] for i in static_sel]
         for s in range(0, rows.size, chunk):
             r, c = rows[s:s + chunk], cols[s:s + chunk]
-            x = (rm.x[r, c][:, None] + rm.dxdu[r, c][:, None] * du + rm.dxdv[r, c][:, None] * dv)
-            y = (rm.y[r, c][:, None] + rm.dydu[r, c][:, None] * du + rm.dydv[r, c][:, None] * dv)
+            # float32 rays: 4e-8 relative, i.e. ~1e-4 px and ~0.1 um on a marker
+            x = (rm.x[r, c][:, None] + rm.dxdu[r, c][:, None] * du
+                 + rm.dxdv[r, c][:, None] * dv).astype(np.float32)
+            y = (rm.y[r, c][:, None] + rm.dydu[r, c][:, None] * du
+                 + rm.dydv[r, c][:, None] * dv).astype(np.float32)
             self._idx[r, c] = np.arange(r.size)
 
             def ids_in(q: Rect, _r: np.ndarray = r, _c: np.ndarray = c) -> np.ndarray:
