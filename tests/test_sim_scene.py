@@ -176,3 +176,31 @@ def test_static_occluder_and_moving_occluder_in_truth():
     r = Renderer(sc)
     seen = [len(r.truth(i).visible) for i in range(0, 300, 15)]
     assert min(seen) < max(seen)  # someone walked past and hid some markers for a while
+
+
+def test_image_effects():
+    def canvas_mean(img: np.ndarray, truth, x: float, y: float) -> float:
+        # a 10 x 10 px patch of bare canvas at world (x, y) (between marker rows)
+        from kmea.sim.lens import project
+
+        uv, _ = project(np.array([[x, y, 0.0]]), np.linalg.inv(truth.cam2world),
+                        pi_camera_v2(320, 240))
+        u, v = np.round(uv[0]).astype(int)
+        return float(img[v - 5:v + 5, u - 5:u + 5].mean())
+
+    plain = {"width": 320, "height": 240, "noise": 0, "blur": 0, "vignetting": 0}
+    base = Renderer(get_scene("scenario1", **plain)).render(0)
+    c0 = canvas_mean(base.image, base.truth, 0.1, 0.075)
+    assert abs(c0 - 0.74 * 255) < 1.0  # the canvas albedo
+    dark = Renderer(get_scene("scenario1", **{**plain, "exposure": 0.5})).render(0)
+    assert abs(canvas_mean(dark.image, dark.truth, 0.1, 0.075) - c0 / 2) < 1.0
+    lit = Renderer(get_scene("scenario1", **{**plain, "gradient": (0.5, 0.0)})).render(0)
+    left = canvas_mean(lit.image, lit.truth, -0.6, 0.075)
+    right = canvas_mean(lit.image, lit.truth, 0.6, 0.075)
+    assert abs(left - c0 * 0.7) < 1.5 and abs(right - c0 * 1.3) < 1.5
+    vig = Renderer(get_scene("scenario1", **{**plain, "vignetting": 0.3})).render(0)
+    centre = canvas_mean(vig.image, vig.truth, 0.1, 0.075)
+    corner = canvas_mean(vig.image, vig.truth, -0.6, 0.075)  # far from the image centre
+    assert corner < centre - 10
+    with pytest.raises(ValueError, match="frame index"):
+        Renderer(get_scene("scenario1", **plain)).render(-1)

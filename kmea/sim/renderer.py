@@ -589,6 +589,8 @@ class Renderer:
 
     def render_image(self, index: int) -> np.ndarray:
         """(H, W) uint8 image of frame ``index``."""
+        if index < 0:
+            raise ValueError(f"frame index must be >= 0, got {index}")
         t = index / self.scene.fps
         frame = self.static_image.copy()
         objs = self.dynamic_quads(t)
