@@ -58,48 +58,66 @@ def _render(n: int):
     return [r.render(i).image for i in range(n)], scene
 
 
+TUNED = {"adaptiveThreshWinSizeMin": 13, "adaptiveThreshWinSizeMax": 13}
+
+
+def _bare(frames: list[np.ndarray], params: dict, dictionary: str) -> tuple[float, list[set]]:
+    from kmea.vision.detection import DetectorConfig, MarkerDetector
+
+    raw = MarkerDetector(DetectorConfig(dictionary, parameters=params))._detector
+    raw.detectMarkers(frames[0])  # warm-up
+    found = []
+    t0 = time.perf_counter()
+    for f in frames:
+        _, ids, _ = raw.detectMarkers(f)
+        found.append(set() if ids is None else set(ids.ravel().tolist()))
+    return len(frames) / (time.perf_counter() - t0), found
+
+
+def _daemon_fps(tmp: str, workers: int, params: dict) -> tuple[float, dict, object]:
+    """Frames/s of a whole daemon on the pre-rendered frames, and mean stage times (ms)."""
+    sets = ["source.spec=bench", f"detector.workers={workers}", *NET,
+            f'log.csv="{Path(tmp) / f"w{workers}.csv"}"']
+    if params:
+        sets.append("detector.parameters={"
+                    + ", ".join(f"{k} = {v}" for k, v in params.items()) + "}")
+    d = Daemon(load_config(None, sets))
+    try:
+        d.run()
+    finally:
+        d.close()
+    t = d.totals
+    return t.frames / (t.t_end - t.t_start), {k: v / t.frames for k, v in t.timing_sums.items()}, t
+
+
 def run_pipeline(quick: bool = False) -> None:
     import cv2
-
-    from kmea.vision.detection import DetectorConfig, MarkerDetector
 
     n = 20 if quick else 90
     t0 = time.perf_counter()
     frames, scene = _render(n)
-    print(f"pre-rendered {n} frames {scene.size[0]}x{scene.size[1]} in "
-          f"{time.perf_counter() - t0:.1f} s (not counted)")
+    print(f"pre-rendered {n} frames {scene.size[0]}x{scene.size[1]} (default scene, 2 robots) "
+          f"in {time.perf_counter() - t0:.1f} s (not counted); cv2 threads "
+          f"{cv2.getNumThreads()}, {len(__import__('os').sched_getaffinity(0))} cores")
     _BENCH.update(frames=frames, scene=scene)
-    det = MarkerDetector(DetectorConfig(scene.world_map.dictionary))
-    raw = det._detector
-    found = 0
-    raw.detectMarkers(frames[0])  # warm-up
-    t0 = time.perf_counter()
-    for f in frames:
-        _, ids, _ = raw.detectMarkers(f)
-        found += 0 if ids is None else len(ids)
-    bare = n / (time.perf_counter() - t0)
-    print(f"bare detectMarkers (cv2 threads {cv2.getNumThreads()}): {bare:6.1f} frames/s, "
-          f"{found / n:.1f} markers/frame")
+    dic = scene.world_map.dictionary
+    bare, full_sets = _bare(frames, {}, dic)
+    tuned, tuned_sets = _bare(frames, TUNED, dic)
+    lost = sum(len(a - b) for a, b in zip(full_sets, tuned_sets, strict=True))
+    print(f"bare detectMarkers, default parameters: {bare:6.1f} frames/s, "
+          f"{np.mean([len(s) for s in full_sets]):.1f} markers/frame")
+    print(f"bare detectMarkers, tuned {TUNED}: {tuned:6.1f} frames/s, {lost} of "
+          f"{sum(len(s) for s in full_sets)} markers of the default detection lost")
     with tempfile.TemporaryDirectory() as tmp:
-        for workers in (1, 2):
-            cfg = load_config(None, ["source.spec=bench", f"detector.workers={workers}", *NET,
-                                     f'log.csv="{Path(tmp) / f"w{workers}.csv"}"'])
-            d = Daemon(cfg)
-            try:
-                d.run()
-            finally:
-                d.close()
-            t = d.totals
-            fps = t.frames / (t.t_end - t.t_start)
-            ms = {k: v / t.frames for k, v in t.timing_sums.items()}
+        for workers, params, ref in ((0, {}, bare), (1, {}, bare), (2, {}, bare),
+                                     (1, TUNED, tuned)):
+            fps, ms, _ = _daemon_fps(tmp, workers, params)
             rest = ms["total"] - ms["detect"] - ms["capture"]
-            print(f"pipeline, detector.workers={workers}: {fps:6.1f} frames/s "
-                  f"({fps / bare * 100:5.1f} % of bare detection); per frame ms: "
-                  + ", ".join(f"{k} {v:.2f}" for k, v in ms.items())
-                  + f"; all but detection {rest:.2f} ms = {rest / ms['total'] * 100:.1f} %"
-                  f" of the frame's stage time")
-            print(f"  markers seen {len(t.markers_seen)}, LOO mean "
-                  f"{t.loo_sum / max(t.loo_n, 1) * 1e3:.3f} mm")
+            print(f"pipeline workers={workers} {'tuned' if params else 'default'}: "
+                  f"{fps:6.1f} frames/s = {fps / ref * 100:5.1f} % of bare detection "
+                  f"(same parameters); stage ms/frame: "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
+                  + f"; non-detection stages {rest:.2f} ms")
 
 
 def run_latency(quick: bool = False) -> None:

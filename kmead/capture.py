@@ -180,6 +180,83 @@ class DetectPool:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
+class LiveDetect:
+    """Detection on its own thread for live sources: capture -> detect -> main thread.
+
+    Takes the newest captured frame, detects it, and leaves the result in a one-slot
+    mailbox for the main thread (newest wins; replaced results are counted in ``dropped``
+    with the capture's own drops). Detection of frame i+1 then overlaps the rest of the
+    pipeline on frame i: two cores busy instead of one.
+    """
+
+    def __init__(self, capture: Capture, pipeline) -> None:
+        self.capture = capture
+        self.pipeline = pipeline
+        self._dropped = 0
+        self._slot = None
+        self._ended = False
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="kmead-detect", daemon=True)
+        self._thread.start()
+
+    @property
+    def dropped(self) -> int:
+        return self.capture.dropped + self._dropped
+
+    def _run(self) -> None:
+        from kmea.vision.detection import MarkerDetector
+
+        det, gen = None, None
+        try:
+            while not self._stop.is_set():
+                try:
+                    item = self.capture.get(timeout=0.1)
+                except CaptureEnded:
+                    break
+                if item is None:
+                    continue
+                frame = item[0]
+                result, ms = None, 0.0
+                if frame.image is not None:
+                    if gen != self.pipeline.detector_generation:
+                        det, gen = (MarkerDetector(self.pipeline.detector_config),
+                                    self.pipeline.detector_generation)
+                    t0 = time.perf_counter()
+                    try:
+                        d = det.detect(frame.image)
+                        result = (d.ids, d.corners)
+                    except Exception:  # the main thread detects again and reports it
+                        result = None
+                    ms = (time.perf_counter() - t0) * 1e3
+                with self._cond:
+                    if self._slot is not None:
+                        self._dropped += 1
+                    self._slot = (item, result, ms)
+                    self._cond.notify()
+        finally:
+            with self._cond:
+                self._ended = True
+                self._cond.notify_all()
+
+    def get(self, timeout: float = 0.1):
+        """((frame, capture_ms, t_capture), detections, detect_ms), None on timeout;
+        :class:`CaptureEnded` when the source is finished or failed."""
+        with self._cond:
+            if self._slot is None and not self._ended:
+                self._cond.wait(timeout)
+            if self._slot is not None:
+                out, self._slot = self._slot, None
+                return out
+            if self._ended:
+                raise CaptureEnded(self.capture.error)
+            return None
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+
+
 class SimFrames(FrameSource):
     """The simulated floor as a frame source (``sim``, ``sim:SCENE?options``).
 

@@ -177,7 +177,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
     "map": {"file": _str},
     "detector": {"dictionary": _dictionary, "marker_length": _positive,
                  "corner_refinement": _choice("subpix", "none", "contour", "apriltag"),
-                 "parameters": _detector_parameters, "workers": _int_ge(1)},
+                 "parameters": _detector_parameters, "workers": _int_ge(0)},
     "estimator": {"algorithm": _algorithm},
     "filter": {"alpha": _alpha, "reset_after_s": _positive},
     "stats": {"loo": _bool, "window": _int_ge(1), "displaced_threshold": _positive},

@@ -110,6 +110,7 @@ class Daemon:
         self.control = None
         self.relay: Relay | None = None
         self.capture: Capture | None = None
+        self.detect_stage = None
         self.last_frame_body: dict = {}
         self.last_result: FrameResult | None = None
         self.frame_times: collections.deque[float] = collections.deque(maxlen=31)
@@ -326,6 +327,8 @@ class Daemon:
 
     @property
     def dropped(self) -> int:
+        if self.detect_stage is not None:
+            return self.detect_stage.dropped
         return self.capture.dropped if self.capture else 0
 
     def fps(self) -> float:
@@ -553,8 +556,11 @@ class Daemon:
                  self.pipeline.algorithm, self.world_map.name, len(self.world_map))
         workers = self.cfg["detector"]["workers"]
         try:
-            if workers > 1 and not self.live and not self.replay:
-                self._run_pool(workers)
+            if workers >= 1 and not self.replay:
+                if self.live:
+                    self._run_live_detect()
+                else:
+                    self._run_pool(workers)
                 return self.exit_code
             while not self.stop_event.is_set():
                 if self.max_frames is not None and self.totals.frames >= self.max_frames:
@@ -562,9 +568,7 @@ class Daemon:
                 try:
                     item = self.capture.get(timeout=0.1)
                 except CaptureEnded as e:
-                    if e.args and e.args[0]:
-                        self.event("error", f"source stopped: {e.args[0]}")
-                        self.exit_code = EXIT_RUNTIME
+                    self._source_ended(e)
                     break
                 if item is None:
                     continue
@@ -573,6 +577,33 @@ class Daemon:
         finally:
             self.totals.t_end = time.perf_counter()
         return self.exit_code
+
+    def _source_ended(self, e: CaptureEnded) -> None:
+        if e.args and e.args[0]:
+            self.event("error", f"source stopped: {e.args[0]}")
+            self.exit_code = EXIT_RUNTIME
+
+    def _run_live_detect(self) -> None:
+        from kmead.capture import LiveDetect
+
+        stage = LiveDetect(self.capture, self.pipeline)
+        self.detect_stage = stage
+        try:
+            while not self.stop_event.is_set():
+                if self.max_frames is not None and self.totals.frames >= self.max_frames:
+                    break
+                try:
+                    got = stage.get(timeout=0.1)
+                except CaptureEnded as e:
+                    self._source_ended(e)
+                    break
+                if got is None:
+                    continue
+                (frame, cap_ms, t_cap), det, det_ms = got
+                with self.lock:
+                    self.process_frame(frame, cap_ms, t_cap, det, det_ms)
+        finally:
+            stage.close()
 
     def _run_pool(self, workers: int) -> None:
         from kmead.capture import DetectPool
