@@ -263,7 +263,7 @@ class Renderer:
         self._dictionary = get_dictionary(scene.world_map.dictionary)
         self._textures: dict[int, np.ndarray] = {}
         self._static_markers = scene.static_markers()
-        self._idx = np.full((self.height, self.width), -1, dtype=np.int64)
+        self._idx = np.full((self.height, self.width), -1, dtype=np.int32)
         self._dyn_cache: tuple[float, list[list[_Quad]]] | None = None
         for robot in scene.robots:
             for mid in robot.markers:
@@ -357,7 +357,7 @@ class Renderer:
         if rows.size:
             alb[rows, cols] = self._supersample(rows, cols, _STATIC_SAMPLES)
         self.static_albedo = alb
-        self.static_depth = t
+        self.static_depth = t.astype(np.float32)
         self.light = self._light(t, full)
         cam = self.scene.camera
         uu = (np.arange(W) - cam.cx) / max(cam.cx, W - 1 - cam.cx)
@@ -527,7 +527,7 @@ class Renderer:
             def ids_in(q: Rect, _r: np.ndarray = r, _c: np.ndarray = c) -> np.ndarray:
                 if not (q[0] <= _r.max() and _r.min() < q[1] and q[2] <= _c.max()
                         and _c.min() < q[3]):
-                    return np.empty(0, dtype=np.int64)
+                    return np.empty(0, dtype=np.int32)
                 block = self._idx[max(q[0], _r.min()):min(q[1], _r.max() + 1),
                                   max(q[2], _c.min()):min(q[3], _c.max() + 1)]
                 return block[block >= 0]
