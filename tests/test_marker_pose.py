@@ -366,3 +366,20 @@ def test_exact_corners_of_the_whole_map_give_exact_poses() -> None:
     assert not diag.failed_ids and diag.n_flipped == 0 and diag.n_ambiguous == 0
     for o in obs:
         assert normal_angle(o.marker2cam_R, truth[o.id]) < 0.01, o.id
+
+
+def test_non_map_marker_normal_can_be_given() -> None:
+    """A non-map marker tilted 35 deg: assumed horizontal it contradicts the scene (flagged);
+    told its real normal, it is judged against that and accepted."""
+    R_tilted = rot_y(math.radians(35.0)) @ rot_z(0.4)
+    ids, cs, R_true = scene_with(77, R_tilted, np.array([0.5, 0.3, 0.0]), 0.06, 0.05, seed=3)
+    obs, diag = estimate_marker_poses(ids, cs, CAM, None, REF_MAP)
+    assert obs[-1].ambiguous and diag.conflicts_by_id == {77: 1}
+    obs, diag = estimate_marker_poses(ids, cs, CAM, None, REF_MAP,
+                                      expected_normals={77: R_tilted[:, 2]})
+    o = obs[-1]
+    assert not o.ambiguous and not o.flipped and diag.n_conflicts == 0
+    assert normal_angle(o.marker2cam_R, R_true) < 3.0
+    # No assumption at all: errors alone (decisive here), nothing flagged.
+    obs, diag = estimate_marker_poses(ids, cs, CAM, None, REF_MAP, expected_normals={77: None})
+    assert not obs[-1].ambiguous and diag.n_conflicts == 0
