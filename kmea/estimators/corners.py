@@ -136,7 +136,9 @@ class CornerPnP:
         self.max_iterations = int(max_iterations)
         self.min_references = max(3, int(min_references))
         self.prior = (float(prior_f), float(prior_k1), float(prior_px))
-        self._start = KMEARobust(threshold=start_threshold, min_references=self.min_references)
+        # The start only has to find a consensus; the corner stage re-checks every reference.
+        self._start = KMEARobust(threshold=start_threshold, trials=50,
+                                 min_references=self.min_references)
         self._cache: tuple | None = None
 
     # ------------------------------------------------------------------ LM
