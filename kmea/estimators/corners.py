@@ -115,6 +115,8 @@ class CornerPnP:
         refine_min_references: consensus size from which "auto" refines.
         max_iterations: LM iterations per fit.
         min_references: fewer consensus references give "not estimated" (>= 3).
+        prior_f, prior_k1: 1-sigma of the intrinsics prior (relative focal length, k1).
+        prior_px: corner noise (px) the prior is weighed against.
     """
 
     name = "corner-pnp"
