@@ -27,8 +27,8 @@ from kmea.vision.detection import DetectorConfig
 from kmea.vision.dictionary import get_dictionary
 from kmea.vision.marker_pose import estimate_marker_poses
 
-__all__ = ["ESTIMATORS", "GridboardResult", "correcting_dictionary", "evaluate_image",
-           "format_table", "gridboard_map", "run_all"]
+__all__ = ["DEFAULT_DIR", "ESTIMATORS", "GridboardResult", "correcting_dictionary",
+           "evaluate_image", "format_table", "gridboard_map", "main", "run_all"]
 
 COLS, ROWS, LENGTH, GAP = 5, 7, 0.04, 0.01
 # (label, registry name, options)
@@ -154,7 +154,23 @@ def format_table(results: list[GridboardResult]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # pragma: no cover - manual use
+# Where the data lives next to a checkout: ../shared/data/opencv-gridboard.
+DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "opencv-gridboard"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m kmea.experiments.gridboard [DIR]``: print the table."""
     import sys
 
-    print(format_table(run_all(Path(sys.argv[1]))))
+    args = sys.argv[1:] if argv is None else argv
+    data_dir = Path(args[0]) if args else DEFAULT_DIR
+    if not (data_dir / "tutorial_camera_params.yml").is_file():
+        print(f"gridboard: {data_dir}: no tutorial_camera_params.yml (give the "
+              f"opencv-gridboard data directory)")
+        return 2
+    print(format_table(run_all(data_dir)))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover - manual use
+    raise SystemExit(main())
