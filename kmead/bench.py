@@ -74,24 +74,23 @@ def _bare(frames: list[np.ndarray], params: dict, dictionary: str) -> tuple[floa
     return len(frames) / (time.perf_counter() - t0), found
 
 
-def _daemon_fps(tmp: str, workers: int, params: dict) -> tuple[float, dict, object]:
+def _daemon_fps(tmp: str, sets: list[str]) -> tuple[float, dict, Daemon]:
     """Frames/s of a whole daemon on the pre-rendered frames, and mean stage times (ms)."""
-    sets = ["source.spec=bench", f"detector.workers={workers}", *NET,
-            f'log.csv="{Path(tmp) / f"w{workers}.csv"}"']
-    if params:
-        sets.append("detector.parameters={"
-                    + ", ".join(f"{k} = {v}" for k, v in params.items()) + "}")
-    d = Daemon(load_config(None, sets))
+    d = Daemon(load_config(None, ["source.spec=bench", *NET,
+                                  f'log.csv="{Path(tmp) / "bench.csv"}"', *sets]))
     try:
         d.run()
     finally:
         d.close()
     t = d.totals
-    return t.frames / (t.t_end - t.t_start), {k: v / t.frames for k, v in t.timing_sums.items()}, t
+    return t.frames / (t.t_end - t.t_start), {k: v / t.frames for k, v in t.timing_sums.items()}, d
 
 
 def run_pipeline(quick: bool = False) -> None:
     import cv2
+
+    from kmea.vision.detection import DetectorConfig
+    from kmead.fastdetect import FastDetector
 
     n = 20 if quick else 90
     t0 = time.perf_counter()
@@ -102,22 +101,34 @@ def run_pipeline(quick: bool = False) -> None:
     _BENCH.update(frames=frames, scene=scene)
     dic = scene.world_map.dictionary
     bare, full_sets = _bare(frames, {}, dic)
-    tuned, tuned_sets = _bare(frames, TUNED, dic)
-    lost = sum(len(a - b) for a, b in zip(full_sets, tuned_sets, strict=True))
     print(f"bare detectMarkers, default parameters: {bare:6.1f} frames/s, "
           f"{np.mean([len(s) for s in full_sets]):.1f} markers/frame")
-    print(f"bare detectMarkers, tuned {TUNED}: {tuned:6.1f} frames/s, {lost} of "
+    tuned, tuned_sets = _bare(frames, TUNED, dic)
+    lost = sum(len(a - b) for a, b in zip(full_sets, tuned_sets, strict=True))
+    print(f"bare detectMarkers, one 13 px window only: {tuned:6.1f} frames/s, {lost} of "
           f"{sum(len(s) for s in full_sets)} markers of the default detection lost")
+    fast = FastDetector(DetectorConfig(dic))
+    t0 = time.perf_counter()
+    fast_sets = [set(fast.detect(f).ids.tolist()) for f in frames]
+    fast_rate = n / (time.perf_counter() - t0)
+    lost = sum(len(a - b) for a, b in zip(full_sets, fast_sets, strict=True))
+    print(f"fast detection (detector.fast): {fast_rate:6.1f} frames/s, {fast.fast} fast / "
+          f"{fast.full} full frames, {lost} markers of the default detection lost")
     with tempfile.TemporaryDirectory() as tmp:
-        for workers, params, ref in ((0, {}, bare), (1, {}, bare), (2, {}, bare),
-                                     (1, TUNED, tuned)):
-            fps, ms, _ = _daemon_fps(tmp, workers, params)
+        for label, sets in (("main thread only (workers=0)", ["detector.workers=0"]),
+                            ("detection thread ahead (workers=1)", ["detector.workers=1"]),
+                            ("two detection threads (workers=2)", ["detector.workers=2"]),
+                            ("fast detection, workers=0", ["detector.workers=0",
+                                                           "detector.fast=true"]),
+                            ("fast detection, workers=1", ["detector.workers=1",
+                                                           "detector.fast=true"])):
+            fps, ms, d = _daemon_fps(tmp, sets)
             rest = ms["total"] - ms["detect"] - ms["capture"]
-            print(f"pipeline workers={workers} {'tuned' if params else 'default'}: "
-                  f"{fps:6.1f} frames/s = {fps / ref * 100:5.1f} % of bare detection "
-                  f"(same parameters); stage ms/frame: "
-                  + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
-                  + f"; non-detection stages {rest:.2f} ms")
+            print(f"pipeline, {label}: {fps:6.1f} frames/s = {fps / bare * 100:5.1f} % of bare "
+                  f"default detection; markers seen {len(d.totals.markers_seen)}; stage "
+                  "ms/frame: " + ", ".join(f"{k} {v:.2f}" for k, v in ms.items()
+                                           if k != "capture")
+                  + f"; non-detection stages {rest:.2f} ms = {rest / ms['total'] * 100:.0f} %")
 
 
 def run_latency(quick: bool = False) -> None:

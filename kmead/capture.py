@@ -141,14 +141,12 @@ class DetectPool:
         self._local = threading.local()
 
     def _detect(self, frame: Frame):
-        from kmea.vision.detection import MarkerDetector
-
         if frame.image is None:
             return None, 0.0
         gen = self.pipeline.detector_generation
         loc = self._local
         if getattr(loc, "gen", None) != gen:
-            loc.det, loc.gen = MarkerDetector(self.pipeline.detector_config), gen
+            loc.det, loc.gen = self.pipeline.new_detector(), gen
         t0 = time.perf_counter()
         d = loc.det.detect(frame.image)
         return (d.ids, d.corners), (time.perf_counter() - t0) * 1e3
@@ -205,8 +203,6 @@ class LiveDetect:
         return self.capture.dropped + self._dropped
 
     def _run(self) -> None:
-        from kmea.vision.detection import MarkerDetector
-
         det, gen = None, None
         try:
             while not self._stop.is_set():
@@ -220,7 +216,7 @@ class LiveDetect:
                 result, ms = None, 0.0
                 if frame.image is not None:
                     if gen != self.pipeline.detector_generation:
-                        det, gen = (MarkerDetector(self.pipeline.detector_config),
+                        det, gen = (self.pipeline.new_detector(),
                                     self.pipeline.detector_generation)
                     t0 = time.perf_counter()
                     try:

@@ -608,6 +608,9 @@ class Daemon:
     def _run_pool(self, workers: int) -> None:
         from kmead.capture import DetectPool
 
+        if self.cfg["detector"]["fast"]:
+            workers = 1  # the fast detector follows the frames in order: one thread
+
         pool = DetectPool(self.capture, self.pipeline, workers)
         try:
             for (frame, cap_ms, t_cap), det, det_ms in pool:

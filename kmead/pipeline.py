@@ -112,14 +112,25 @@ class Pipeline:
         self.configure_robots()
 
     def configure_detector(self) -> None:
-        from kmea.vision.detection import DetectorConfig, MarkerDetector
+        from kmea.vision.detection import DetectorConfig
 
         d = self.config["detector"]
         self.detector_config = DetectorConfig(
             dictionary=d["dictionary"] or self.world_map.dictionary,
             corner_refinement=d["corner_refinement"], parameters=dict(d["parameters"]))
-        self.detector = MarkerDetector(self.detector_config)
+        self.detector = self.new_detector()
         self.detector_generation = getattr(self, "detector_generation", 0) + 1
+
+    def new_detector(self):
+        """A detector as configured: :class:`MarkerDetector`, or the stateful
+        :class:`kmead.fastdetect.FastDetector` when ``detector.fast`` is on."""
+        from kmea.vision.detection import MarkerDetector
+        from kmead.fastdetect import FastDetector
+
+        d = self.config["detector"]
+        if d["fast"]:
+            return FastDetector(self.detector_config, d["fast_window"], d["full_every"])
+        return MarkerDetector(self.detector_config)
 
     def set_algorithm(self, name: str) -> None:
         self.estimator = estimators.get(name)
