@@ -161,7 +161,8 @@ class Daemon:
                 self.control = ControlServer(net["control"], self)
             except OSError as e:
                 raise StartupError(str(e), EXIT_RUNTIME) from None
-        self._log_handler = TelemetryLogHandler(self.telemetry)
+        self._log_handler = TelemetryLogHandler(self.telemetry, logging.NOTSET)
+        logging.getLogger("kmead").setLevel(cfg["log"]["level"].upper())
         logging.getLogger("kmead").addHandler(self._log_handler)
         if cfg["log"]["csv"]:
             self.start_csv(cfg["log"]["csv"])

@@ -225,6 +225,9 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
         while daemon.totals.frames < n_before + 3 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert _cmd(ctx, ctrl, "set", key="filter.alpha", value=0.5)["ok"]
+        logs = sub.collect(0.5).get("log", [])  # the daemon's own log lines
+        assert any(m["text"] == "set filter.alpha = 0.5" and m["level"] == "info"
+                   and m["logger"] == "kmead" for m in logs), logs
         saved = _cmd(ctx, ctrl, "save_config")
         assert saved["ok"] and saved["path"] == str(tmp_path / "site.local.toml")
         assert _cmd(ctx, ctrl, "reset_stats")["ok"]
