@@ -356,6 +356,7 @@ class Renderer:
         rows, cols = np.nonzero(edges)
         if rows.size:
             alb[rows, cols] = self._supersample(rows, cols, _STATIC_SAMPLES)
+        self.static_edges = edges
         self.static_albedo = alb
         self.static_depth = t.astype(np.float32)
         self.light = self._light(t, full)
@@ -483,13 +484,19 @@ class Renderer:
         if floor:
             t, alb = self._floor(x, y)
         elif t is None:
-            t = np.full(x.shape, np.inf)
+            t = np.full(x.shape, np.inf, dtype=x.dtype)
             alb = np.zeros(x.shape, dtype=np.float32)
         for q, qr in zip(quads, rects, strict=True):
             if qr is None:
                 continue
             ids = ids_in(qr)
             if ids.size == 0:
+                continue
+            if ids.size == x.shape[0]:  # every pixel: no gather/scatter
+                tq, aq = q.hit(x, y)
+                win = tq <= t * (1 + 1e-9) if q.decal else tq < t
+                t[win] = tq[win]
+                alb[win] = aq[win]
                 continue
             xs, ys = x[ids], y[ids]
             tq, aq = q.hit(xs, ys)
@@ -507,9 +514,11 @@ class Renderer:
     def _supersample(self, rows: np.ndarray, cols: np.ndarray,
                      pattern: tuple[np.ndarray, np.ndarray], dyn: list[_Quad] | None = None,
                      dyn_rects: list[Rect | None] | None = None, static: bool = True,
-                     static_sel: list[int] | None = None, chunk: int = 20000) -> np.ndarray:
+                     static_sel: list[int] | None = None, chunk: int = 20000,
+                     uniform: bool = False) -> np.ndarray:
         """Box-filtered albedo of pixels (rows, cols): the static scene (unless ``static`` is
-        False) and the ``dyn`` quads."""
+        False) and the ``dyn`` quads. ``uniform``: the static scene is uniform over these
+        pixels, take its value and depth at the centre instead of casting it."""
         du, dv = pattern
         out = np.empty(rows.size, dtype=np.float32)
         rm = self.rays
@@ -533,10 +542,13 @@ class Renderer:
                 return block[block >= 0]
 
             try:
-                if static:
+                if static and uniform:
+                    t = np.repeat(self.static_depth[r, c][:, None], x.shape[1], axis=1)
+                    alb = np.repeat(self.static_albedo[r, c][:, None], x.shape[1], axis=1)
+                elif static:
                     t, alb = self._cast_samples(x, y, ids_in, sq, sr, floor=True)
                 else:
-                    t = np.full(x.shape, np.inf)
+                    t = np.full(x.shape, np.inf, dtype=x.dtype)
                     alb = np.zeros(x.shape, dtype=np.float32)
                 if dyn:
                     t, alb = self._cast_samples(x, y, ids_in, dyn, dyn_rects or [], False, t, alb)
@@ -643,12 +655,19 @@ class Renderer:
                 masks = _or_dilate(bits)[rows, cols]
             else:
                 masks = np.full(rows.size, -1, dtype=np.int64)
+            # Where the static image has no edge around a pixel, the static scene is uniform
+            # over its square: its centre value and depth stand for every sub-sample.
+            flat = ~self.static_edges[rows + r0, cols + c0]
             for m in np.unique(masks):
-                k = np.flatnonzero(masks == m)
                 use = [i for i in range(len(quads)) if m == -1 or (m >> i) & 1]
-                comp[rows[k], cols[k]] = self._supersample(
-                    rows[k] + r0, cols[k] + c0, _DYNAMIC_SAMPLES, [quads[i] for i in use],
-                    [rects[i] for i in use], bool(m & _STATIC_BIT), sel)
+                static = bool(m & _STATIC_BIT)
+                for part in ((True, False) if static else (False,)):
+                    k = np.flatnonzero((masks == m) & ((flat == part) | (not static)))
+                    if k.size == 0:
+                        continue
+                    comp[rows[k], cols[k]] = self._supersample(
+                        rows[k] + r0, cols[k] + c0, _DYNAMIC_SAMPLES, [quads[i] for i in use],
+                        [rects[i] for i in use], static, sel, uniform=part)
         k = self._blur_radius
         out = _grow(box, k, shape)
         big = _grow(out, k, shape)
