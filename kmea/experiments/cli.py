@@ -136,12 +136,16 @@ def run(args: argparse.Namespace) -> int:
 
         if args.part not in (None, "replay"):
             print("kmea experiment: PART is ignored with --replay", file=sys.stderr)
+        bar = Progress(min(args.samples, _count_frames(args.replay)), "replay",
+                       enabled=not args.quiet)
         try:
             result = replay(args.replay, algorithms, baseline=args.baseline, markers=markers,
-                            max_frames=args.samples)
+                            max_frames=args.samples, progress=bar.update)
         except ValueError as e:
             print(f"kmea experiment: {e}", file=sys.stderr)
             return 2
+        finally:
+            bar.close()
         paths = write_outputs(result, out, plots=not args.no_plots, quiet=args.quiet)
         _report(result, paths)
         return 0
@@ -178,6 +182,15 @@ def run(args: argparse.Namespace) -> int:
         paths = write_outputs(result, out, plots=not args.no_plots, quiet=args.quiet)
         _report(result, paths)
     return 0
+
+
+def _count_frames(path: str) -> int:
+    """Frame lines in a recording (for the progress bar; 0 when unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            return max(sum(1 for _ in f) - 1, 0)
+    except OSError:
+        return 0
 
 
 def _report(result, paths: dict) -> None:

@@ -8,7 +8,7 @@ so only markers in the map are scored: a real floor whose markers were surveyed.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +20,14 @@ __all__ = ["replay"]
 
 
 def replay(path: str | Path, algorithms: Sequence[str], baseline: str = "lmea",
-           markers: Sequence[int] | None = None, max_frames: int | None = None) -> RunResult:
+           markers: Sequence[int] | None = None, max_frames: int | None = None,
+           progress: Callable[[int], None] | None = None) -> RunResult:
     """Score the recording at ``path``.
 
     markers: ids to evaluate; default every map marker detected at least once, except the
     map's origin, x and y anchors (LMEA's references, never evaluated in the paper).
     max_frames: stop after this many frames (None: all).
+    progress: called with 1 after each frame is estimated.
     """
     from kmea.vision.sources import SourceError
     from kmead.recording import ReplaySource
@@ -61,9 +63,12 @@ def replay(path: str | Path, algorithms: Sequence[str], baseline: str = "lmea",
     if not markers:
         raise ValueError(f"{path}: no map marker to evaluate in the recording")
     ests = {a: est_registry.get(a) for a in algorithms}
-    results: list[FrameResult] = [
-        estimate_frame(k, obs, ests, world_map, markers, camera=camera.intrinsics)
-        for k, (_, obs) in enumerate(frames_obs)]
+    results: list[FrameResult] = []
+    for k, (_, obs) in enumerate(frames_obs):
+        results.append(estimate_frame(k, obs, ests, world_map, markers,
+                                      camera=camera.intrinsics))
+        if progress:
+            progress(1)
     samples, heights, failures, rejected = collect(results, algorithms, markers)
     truth = {m: np.asarray(world_map[m].position[:2], dtype=float) for m in markers}
     return RunResult(
