@@ -7,6 +7,7 @@ PUB drops messages for slow subscribers at the high-water mark).
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from typing import Any
@@ -17,14 +18,22 @@ from kmead.protocol import TOPIC_EVENT, TOPIC_LOG, encode
 
 
 class Telemetry:
-    """PUB socket bound to ``endpoint`` ("" = publish nowhere, still counted)."""
+    """PUB socket bound to ``endpoint`` ("" = publish nowhere).
 
-    def __init__(self, endpoint: str, context: zmq.Context | None = None) -> None:
+    ``publish`` only queues the body: a sender thread encodes (JSON, the costly part for a
+    50-marker body) and sends, so the frame loop does not pay for it. Order is kept; when
+    the queue is full (a stalled sender) messages are dropped and counted, never blocking.
+    """
+
+    def __init__(self, endpoint: str, context: zmq.Context | None = None,
+                 queue_size: int = 2000) -> None:
         self.endpoint = endpoint
         self.bound = ""
-        self._lock = threading.Lock()
         self.sent = 0
+        self.dropped = 0
         self.sock = None
+        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        self._thread: threading.Thread | None = None
         if endpoint:
             ctx = context or zmq.Context.instance()
             self.sock = ctx.socket(zmq.PUB)
@@ -34,30 +43,55 @@ class Telemetry:
                 self.sock.bind(endpoint)
             except zmq.ZMQError as e:
                 self.sock.close()
+                self.sock = None
                 raise OSError(f"network.telemetry: cannot bind {endpoint}: {e}") from None
             self.bound = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+            self._thread = threading.Thread(target=self._run, name="kmead-telemetry",
+                                            daemon=True)
+            self._thread.start()
 
     def publish(self, topic: str, body: dict[str, Any]) -> None:
-        if self.sock is None:
+        if self._thread is None:
             return
-        frames = encode(topic, body)
-        with self._lock:
-            if self.sock is None:
+        try:
+            self._queue.put_nowait((topic, body))
+        except queue.Full:
+            self.dropped += 1
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
                 return
+            try:
+                frames = encode(*item)
+            except Exception:  # a body that cannot be encoded is a bug: drop it, go on
+                self.dropped += 1
+                continue
             try:
                 self.sock.send_multipart(frames, flags=zmq.NOBLOCK)
                 self.sent += 1
             except zmq.ZMQError:
-                pass  # HWM reached or shutting down: telemetry is best effort
+                self.dropped += 1  # HWM reached: telemetry is best effort
+
+    def flush(self, timeout: float = 2.0) -> None:
+        """Wait until the queued messages are sent (or ``timeout`` s)."""
+        end = time.monotonic() + timeout
+        while not self._queue.empty() and time.monotonic() < end:
+            time.sleep(0.005)
 
     def event(self, level: str, text: str) -> None:
         self.publish(TOPIC_EVENT, {"t": time.time(), "level": level, "text": text})
 
     def close(self) -> None:
-        with self._lock:
-            if self.sock is not None:
-                self.sock.close(linger=0)
-                self.sock = None
+        if self._thread is not None:
+            self.flush()
+            self._queue.put(None)
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        if self.sock is not None:
+            self.sock.close(linger=0)
+            self.sock = None
 
 
 class TelemetryLogHandler(logging.Handler):
