@@ -289,3 +289,25 @@ def test_moving_robot_rendered_like_the_same_geometry_in_the_static_pass():
     # (identical with 89 rays); a pixel sampled wrongly would differ by up to ~200
     diff = np.abs(a - b)
     assert diff.max() <= 16 and diff.mean() < 1.0, (diff.max(), diff.mean())
+
+
+def test_any_map_any_dictionary():
+    from kmea.maps import MarkerMap
+
+    markers = {i: Marker(i, np.array([x, y, 0.0]), rot_z(yaw), 0.08)
+               for i, (x, y, yaw) in enumerate([(-0.3, 0.1, 0.0), (0.2, -0.1, 0.6),
+                                                (0.1, 0.25, -2.0)])}
+    m = MarkerMap(markers, dictionary="DICT_4X4_50", default_length=0.08, origin_id=0,
+                  x_id=1, y_id=2, name="three")
+    sc = Scene(m, pi_camera_v2(640, 480), scenario1_camera(1.0), [], _plain())
+    assert sc.floor_rect() == pytest.approx((-0.45, 0.35, -0.25, 0.4))
+    f = Renderer(sc).render(0)
+    p = cv2.aruco.DetectorParameters()
+    p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    p.relativeCornerRefinmentWinSize = 0.7
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), p)
+    corners, ids, _ = det.detectMarkers(f.image)
+    found = {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
+    assert set(found) == {0, 1, 2}
+    for i in found:
+        assert np.abs(found[i] - f.truth.corners[i]).max() < 0.5
