@@ -22,7 +22,7 @@ DEFAULT_ALGORITHMS = ("kmea", "lmea", "umeyama", "kmea-robust", "corner-pnp")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = __doc__.splitlines()[0]
+    p.description = "Reproduce the paper's validation, Parts I-IV, or score a recording."
     p.add_argument("part", nargs="?", metavar="PART",
                    help="I, II, III, IV (or 1-4) or 'all'; omit with --replay")
     p.add_argument("--samples", "-n", type=int, default=256,
