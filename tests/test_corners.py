@@ -268,3 +268,23 @@ def test_solve_cache_is_reused_only_for_the_same_frame():
         want = CornerPnP().estimate_loo(frame, sc.map, camera=cam)
         assert got.keys() == want.keys()
         assert all(np.array_equal(got[i], want[i]) for i in got)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_random_displacements_exact_corners(seed):
+    rng = np.random.default_rng(seed)
+    floor = [i for i in scenario1().map.ids if scenario1().map[i].on_floor]
+    bad = [int(i) for i in rng.choice(floor, size=4, replace=False)]
+    moves = {}
+    for i in bad:
+        a, d = rng.uniform(0, 2 * math.pi), rng.uniform(0.015, 0.1)
+        moves[i] = (d * math.cos(a), d * math.sin(a))
+    sc = scenario1(displaced=moves)
+    obs = observe(sc)
+    est = CornerPnP().estimate(obs, sc.map, camera=sc.camera.intrinsics)
+    seen = {o.id for o in obs}
+    assert set(est.rejected) == {i for i in bad if i in seen}
+    for i in est.rejected:
+        assert est.rejected[i] == pytest.approx(math.hypot(*moves[i]), abs=1e-9)
+        assert np.linalg.norm(est.markers[i].position - sc.true[i].position) < 1e-9
+    assert np.abs(est.cam2world - sc.cam2world).max() < 1e-9
