@@ -152,13 +152,15 @@ def run_latency(quick: bool = False) -> None:
 
     robots = (f'robots=[{{name="amr1", markers=[40, 41], destinations=["udp:127.0.0.1:{port}"]}},'
               f' {{name="amr2", markers=[42], destinations=["udp:127.0.0.1:{port}"]}}]')
-    for w, h in ((640, 480), (1640, 1232)):
+    for (w, h), workers in (((640, 480), 0), ((640, 480), 1), ((1640, 1232), 0),
+                            ((1640, 1232), 1)):
         lat.clear()
         stop.clear()
         th = threading.Thread(target=receive, daemon=True)
         th.start()
         cfg = load_config(None, ["source.spec=sim", "source.fps=30", f"source.width={w}",
-                                 f"source.height={h}", robots, *NET])
+                                 f"source.height={h}", f"detector.workers={workers}", robots,
+                                 *NET])
         d = Daemon(cfg, max_frames=n)
         try:
             d.run()
@@ -168,7 +170,8 @@ def run_latency(quick: bool = False) -> None:
             th.join()
         t = d.totals
         a = np.asarray(lat)
-        print(f"sim {w}x{h} paced at 30 frames/s: {t.frames} frames processed, "
+        print(f"sim {w}x{h} paced at 30 frames/s, detector.workers={workers}: "
+              f"{t.frames} frames processed, "
               f"{d.capture.captured if d.capture else 0} captured, "
               f"{d.dropped} dropped; frame-to-datagram latency over {a.size} datagrams: "
               f"median {np.median(a):.1f} ms, p99 {np.percentile(a, 99):.1f} ms")
