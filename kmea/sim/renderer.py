@@ -531,14 +531,18 @@ class Renderer:
                  + rm.dxdv[r, c][:, None] * dv).astype(np.float32)
             y = (rm.y[r, c][:, None] + rm.dydu[r, c][:, None] * du
                  + rm.dydv[r, c][:, None] * dv).astype(np.float32)
-            self._idx[r, c] = np.arange(r.size)
+            self._idx[r, c] = np.arange(r.size, dtype=np.int32)
 
-            def ids_in(q: Rect, _r: np.ndarray = r, _c: np.ndarray = c) -> np.ndarray:
-                if not (q[0] <= _r.max() and _r.min() < q[1] and q[2] <= _c.max()
-                        and _c.min() < q[3]):
-                    return np.empty(0, dtype=np.int32)
-                block = self._idx[max(q[0], _r.min()):min(q[1], _r.max() + 1),
-                                  max(q[2], _c.min()):min(q[3], _c.max() + 1)]
+            rlo, rhi, clo, chi = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
+            everyone = np.arange(r.size, dtype=np.int32)
+
+            def ids_in(q: Rect, rlo: int = rlo, rhi: int = rhi, clo: int = clo,
+                       chi: int = chi, everyone: np.ndarray = everyone) -> np.ndarray:
+                if not (q[0] < rhi and rlo < q[1] and q[2] < chi and clo < q[3]):
+                    return everyone[:0]
+                if q[0] <= rlo and rhi <= q[1] and q[2] <= clo and chi <= q[3]:
+                    return everyone
+                block = self._idx[max(q[0], rlo):min(q[1], rhi), max(q[2], clo):min(q[3], chi)]
                 return block[block >= 0]
 
             try:
@@ -729,7 +733,11 @@ class Renderer:
             Pc = np.concatenate(probes) @ self.world2cam[:3, :3].T + self.world2cam[:3, 3]
             x, y, zc = Pc[:, 0] / Pc[:, 2], Pc[:, 1] / Pc[:, 2], Pc[:, 2]
             hidden = np.zeros(len(Pc), dtype=bool)
+            x0, x1, y0, y1 = x.min(), x.max(), y.min(), y.max()
             for q in occluders:
+                b = q.bbox
+                if b is not None and (b[1] < x0 or b[0] > x1 or b[3] < y0 or b[2] > y1):
+                    continue
                 tq, _ = q.hit(x, y)
                 hidden |= tq < zc * (1 - 1e-7)
             hidden_marker = hidden.reshape(len(cand), 5).any(axis=1)
