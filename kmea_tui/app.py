@@ -40,6 +40,10 @@ Client = DaemonClient | RecordingClient
 
 TABS = (("markers", "1 Markers"), ("robots", "2 Robots"), ("stats", "3 Statistics"),
         ("map", "4 Map"), ("config", "5 Config"), ("log", "6 Log"))
+# Tables refresh at most this often. Each refresh re-renders every visible DataTable cell
+# (30-70 ms of CPU here for a full markers table), and on the Pi the UI shares the CPU
+# (and, inside kmead, the GIL) with the pipeline: 4 Hz is plenty for a person.
+UI_PERIOD_S = 0.25
 # event/log messages are a history, not a state: kept (not coalesced), up to this many
 # per batch; older ones beyond it are dropped and counted.
 EVENT_BACKLOG = 500
@@ -80,7 +84,8 @@ class KmeaTui(App[None]):
         Binding("a", "auto_magnification", "Auto ×"),
     ]
 
-    def __init__(self, client: Client, *, theme: str | None = None, ui_period: float = 0.1,
+    def __init__(self, client: Client, *, theme: str | None = None,
+                 ui_period: float = UI_PERIOD_S,
                  stale_after: float = 2.0, ping_period: float = 1.0) -> None:
         super().__init__()
         self.client = client

@@ -84,21 +84,38 @@ class BrailleCanvas:
         return (cx >= 0 and cx + n <= self.cols and 0 <= cy < self.rows
                 and all((cx + i, cy) not in self._text for i in range(n)))
 
-    def render(self) -> Text:
-        out = Text(no_wrap=True, overflow="crop", end="")
+    def runs(self) -> list[list[tuple[str, Style | str | None]]]:
+        """Per row, the (text, style) runs of cells that share a style."""
+        rows = []
         for cy in range(self.rows):
-            if cy:
-                out.append("\n")
+            row: list[tuple[str, Style | str | None]] = []
+            run: list[str] = []
+            run_style: Style | str | None = None
             for cx in range(self.cols):
                 if (cx, cy) in self._text:
                     ch, style = self._text[(cx, cy)]
-                    out.append(ch, style or "")
                 else:
                     bits = self._bits[cy][cx]
-                    if bits:
-                        out.append(chr(_BRAILLE_BASE + bits), self._style[cy][cx] or "")
-                    else:
-                        out.append(" ")
+                    ch = chr(_BRAILLE_BASE + bits) if bits else " "
+                    style = self._style[cy][cx] if bits else None
+                if style != run_style and run:
+                    row.append(("".join(run), run_style))
+                    run = []
+                run_style = style
+                run.append(ch)
+            if run:
+                row.append(("".join(run), run_style))
+            rows.append(row)
+        return rows
+
+    def render(self) -> Text:
+        """The canvas as Rich text (rows joined by newlines)."""
+        out = Text(no_wrap=True, overflow="crop", end="")
+        for cy, row in enumerate(self.runs()):
+            if cy:
+                out.append("\n")
+            for text, style in row:
+                out.append(text, style or "")
         return out
 
 

@@ -34,6 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "after the whole recording was shown, then exit")
     p.add_argument("--size", default="80x24", metavar="COLSxROWS",
                    help="terminal size for --screenshots (default %(default)s)")
+    p.add_argument("--rate", type=float, default=4.0, metavar="HZ",
+                   help="table and map refreshes per second, at most (default %(default)s)")
     p.add_argument("--theme", default="auto",
                    help="Textual theme; 'auto' picks ansi-dark on 16-colour terminals "
                         "and textual-dark otherwise")
@@ -76,7 +78,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     else:
         client = DaemonClient(args.telemetry, args.control)
-    KmeaTui(client, theme=theme).run()
+    if not 0.5 <= args.rate <= 30:
+        print("kmea-tui: --rate: give 0.5 to 30 refreshes per second", file=sys.stderr)
+        return 2
+    KmeaTui(client, theme=theme, ui_period=1.0 / args.rate).run()
     return 0
 
 

@@ -6,7 +6,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from rich.segment import Segment
+from rich.style import Style
 from rich.text import Text
+from textual.strip import Strip
 from textual.widget import Widget
 
 from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnification
@@ -62,6 +65,7 @@ class FloorMap(Widget):
         self.magnification: float | None = None
         self._auto_mag = 100.0
         self.extent_is_floor = False
+        self._strips: list[Strip] | None = None
 
     def set_data(self, data: MapData) -> None:
         self.data = data
@@ -110,12 +114,38 @@ class FloorMap(Widget):
         x0, x1, y0, y1 = self.extent()
         return 2.0 / Viewport(x0, x1, y0, y1, c.width, c.height).scale
 
-    def render(self) -> Text:
-        canvas = BrailleCanvas(self.size.width, self.size.height)
-        if canvas.cols < 4 or canvas.rows < 2:
-            return Text("")
-        self.draw(canvas)
-        return canvas.render()
+    # Line API with strips cached until the data or the size changes: the map is thousands
+    # of cells and is redrawn only when a new batch of telemetry arrives.
+    def refresh(self, *args: Any, **kwargs: Any) -> FloorMap:
+        self._strips = None
+        return super().refresh(*args, **kwargs)
+
+    def on_resize(self) -> None:
+        self._strips = None
+
+    def _render_strips(self) -> list[Strip]:
+        width, height = self.size.width, self.size.height
+        canvas = BrailleCanvas(width, height)
+        if canvas.cols >= 4 and canvas.rows >= 2:
+            self.draw(canvas)
+        base = self.rich_style
+        cache: dict[str | Style | None, Style] = {}
+
+        def style_of(s: str | Style | None) -> Style:
+            if s not in cache:
+                cache[s] = base + (Style.parse(s) if isinstance(s, str) else (s or Style()))
+            return cache[s]
+
+        strips = [Strip([Segment(text, style_of(st)) for text, st in row], width)
+                  for row in canvas.runs()]
+        return strips or [Strip.blank(width, base)]
+
+    def render_line(self, y: int) -> Strip:
+        if self._strips is None or len(self._strips) != self.size.height:
+            self._strips = self._render_strips()
+        if 0 <= y < len(self._strips):
+            return self._strips[y]
+        return Strip.blank(self.size.width, self.rich_style)
 
     def draw(self, canvas: BrailleCanvas) -> None:
         x0, x1, y0, y1 = self.extent()

@@ -76,10 +76,11 @@ class LogPane(Vertical):
     def update_status(self, body: dict[str, Any]) -> None:
         self.logging = body.get("logging") or {}
         self.recording = body.get("recording") or {}
+        # Both lines are one row high whatever they say: no layout pass needed.
         self.query_one("#log-state", Static).update(
-            self._state_line("CSV log", self.logging, "rows", "rows"))
+            self._state_line("CSV log", self.logging, "rows", "rows"), layout=False)
         self.query_one("#record-state", Static).update(
-            self._state_line("recording", self.recording, "frames", "frames"))
+            self._state_line("recording", self.recording, "frames", "frames"), layout=False)
 
     def add_events(self, events: list[tuple[str, dict[str, Any]]]) -> None:
         """Append events and log lines; a log line repeating an event shown within a

@@ -57,7 +57,7 @@ class StatusBar(Static):
         self.state, self.detail = state, detail
         if frame is not None:
             self.frame = frame
-        self.update(status_text(state, self.frame, self.size.width or 80, detail))
+        self.update(status_text(state, self.frame, self.size.width or 80, detail), layout=False)
 
     def on_resize(self) -> None:
         self.show(self.state, None, self.detail)
