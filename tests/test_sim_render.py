@@ -254,6 +254,17 @@ def test_extra_marker_and_robot_truth_conventions():
     assert np.allclose(left[:2], [x, y] + 0.05 * lft)
     assert np.allclose(right[:2], [x, y] - 0.04 * lft)
     assert abs(np.dot(tr.markers[40][:2, 0], fwd) - 1) < 1e-12  # x axis forward
+    # the robots' own pose rule (kmea.robots) recovers the true pose from the true markers
+    from kmea.estimators.base import MarkerEstimate
+    from kmea.robots import robot_pose
+
+    spec = {s.name: s for s in sc.robot_specs()}["amr1"]
+    R40 = tr.markers[40][:3, :3]
+    est = {40: MarkerEstimate(40, tr.markers[40][:3, 3], R40, math.atan2(R40[1, 0], R40[0, 0]))}
+    rp = robot_pose(spec, est)
+    assert np.allclose((rp.x, rp.y, rp.theta), (x, y, th), atol=1e-9)
+    T = tr.marker2cam(42)
+    assert np.allclose(tr.cam2world @ T, tr.markers[42])
     x2, y2, th2 = tr.robots["amr2"]
     assert np.allclose(tr.markers[42][:3, 3], [x2, y2, 0.20])
     assert abs(math.atan2(tr.markers[42][1, 0], tr.markers[42][0, 0]) - th2) < 1e-12

@@ -57,6 +57,10 @@ class FrameTruth:
         T = self.markers[mid]
         return T[:3, :3].copy(), T[:3, 3].copy()
 
+    def marker2cam(self, mid: int) -> np.ndarray:
+        """(4, 4) true marker2cam of marker ``mid`` (what a perfect PnP would give)."""
+        return np.linalg.inv(self.cam2world) @ self.markers[mid]
+
 
 @dataclass
 class SimFrame(Frame):

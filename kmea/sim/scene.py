@@ -389,6 +389,14 @@ class Scene:
             out[mid] = pose_matrix(Rm, np.array([x, y, robot.height]) + R @ local)
         return out
 
+    def robot_specs(self) -> list:
+        """The robots as :class:`kmea.robots.RobotSpec` (what the daemon's configuration
+        would say)."""
+        from kmea.robots import RobotSpec
+
+        return [RobotSpec(r.name, tuple(r.markers), r.height, r.length, r.separation)
+                for r in self.robots]
+
     def marker_length(self, mid: int) -> float:
         for r in self.robots:
             if mid in r.markers:
