@@ -315,6 +315,10 @@ class CornerPnP:
         key = None
         if not excl:
             key = (id(world_map), world_map.positions(refs).tobytes(),
+                   np.array([world_map[i].rotation for i in refs]).tobytes(),
+                   tuple(world_map[i].length for i in refs), world_map.origin_id,
+                   self.threshold, self.huber_px, self.refine_intrinsics, self.prior,
+                   self.refine_min_references, self.max_iterations, self.min_references,
                    np.asarray(camera.camera_matrix, float).tobytes(),
                    np.asarray(camera.dist_coeffs, float).tobytes(),
                    tuple((o.id, None if o.corners is None else

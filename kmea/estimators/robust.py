@@ -161,7 +161,9 @@ class KMEARobust:
         ``estimate_loo`` on the same frame run the robust loop once.
         """
         key = (np.asarray(P, float).tobytes(), np.asarray(Q, float).tobytes(), tuple(ids),
-               origin_id, None if normals is None else np.asarray(normals, float).tobytes())
+               origin_id, None if normals is None else np.asarray(normals, float).tobytes(),
+               self.threshold, self.trials, self.seed, self.irls_iterations,
+               self.min_references)
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
         res = self._consensus(P, Q, ids, origin_id, normals)
