@@ -32,14 +32,34 @@ def distort(x: np.ndarray, y: np.ndarray, camera: CameraModel) -> tuple[np.ndarr
     """Normalised undistorted (x, y) -> pixel (u, v), OpenCV's model (k1..k6, p1, p2, s1..s4).
 
     Like ``cv2.projectPoints``, the skew K[0, 1] is ignored."""
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = _coeffs(camera)[:12]
-    r2 = x * x + y * y
-    r4 = r2 * r2
-    r6 = r4 * r2
-    radial = (1.0 + k1 * r2 + k2 * r4 + k3 * r6) / (1.0 + k4 * r2 + k5 * r4 + k6 * r6)
-    xy2 = 2.0 * x * y
-    xd = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2 + s3 * r2 + s4 * r4
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (float(v) for v in _coeffs(camera)[:12])
+    r2 = x * x
+    r2 += y * y
+    # Horner: 1 + r2 (k1 + r2 (k2 + r2 k3)); terms whose coefficients are zero are skipped
+    radial = k3 * r2 if k3 else np.zeros_like(r2)
+    radial += k2
+    radial *= r2
+    radial += k1
+    radial *= r2
+    radial += 1.0
+    if k4 or k5 or k6:
+        den = k6 * r2
+        den += k5
+        den *= r2
+        den += k4
+        den *= r2
+        den += 1.0
+        radial /= den
+    xd = x * radial
+    yd = y * radial
+    if p1 or p2:
+        xy2 = 2.0 * x * y
+        xd += p1 * xy2 + p2 * (r2 + 2.0 * x * x)
+        yd += p1 * (r2 + 2.0 * y * y) + p2 * xy2
+    if s1 or s2 or s3 or s4:
+        r4 = r2 * r2
+        xd += s1 * r2 + s2 * r4
+        yd += s3 * r2 + s4 * r4
     K = camera.camera_matrix
     # K[0, 1] (skew) is ignored, as cv2.projectPoints and solvePnP do.
     return K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]
