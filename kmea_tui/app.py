@@ -57,6 +57,26 @@ def terminal_has_16_colours(env: dict[str, str] | None = None) -> bool:
     return "256" not in env.get("TERM", "")
 
 
+def connection_state(ping_ok: bool | None, ping_detail: str, last_telemetry: float | None,
+                     now: float, stale_after: float) -> tuple[str, str]:
+    """(state, detail) of a daemon connection.
+
+    ``disconnected``: the control ping fails; ``stale``: it answers but no telemetry came
+    for ``stale_after`` s (or none yet); ``connected``; ``connecting`` before the first ping.
+    Times are ``time.monotonic()`` seconds.
+    """
+    if ping_ok is None:
+        return "connecting", ""
+    if not ping_ok:
+        return "disconnected", ping_detail or "control ping failed"
+    if last_telemetry is None:
+        return "stale", "no telemetry yet"
+    age = now - last_telemetry
+    if age > stale_after:
+        return "stale", f"no telemetry for {age:.0f} s"
+    return "connected", ""
+
+
 def floor_extent(status: dict[str, Any] | None) -> tuple[float, float, float, float] | None:
     """The floor rectangle (xmin, xmax, ymin, ymax) m if the daemon's status gives one."""
     m = (status or {}).get("map") or {}
@@ -252,17 +272,8 @@ class KmeaTui(App[None]):
     def compute_state(self, now: float | None = None) -> tuple[str, str]:
         if not self.client.live:
             return ("replay end" if self.replay_done else "replay"), self.client.name
-        now = time.monotonic() if now is None else now
-        if self.ping_ok is None:
-            return "connecting", self.client.control
-        if not self.ping_ok:
-            return "disconnected", self.ping_detail or "control ping failed"
-        if self.last_telemetry is None:
-            return "stale", "no telemetry yet"
-        age = now - self.last_telemetry
-        if age > self.stale_after:
-            return "stale", f"no telemetry for {age:.0f} s"
-        return "connected", ""
+        return connection_state(self.ping_ok, self.ping_detail, self.last_telemetry,
+                                time.monotonic() if now is None else now, self.stale_after)
 
     def update_connection_state(self) -> None:
         state, detail = self.compute_state()

@@ -115,6 +115,12 @@ async def test_marker_and_robot_tables_fill(daemon: Daemon) -> None:
                        "robots amr1 and amr2")
         status = str(app.query_one("#status").render())
         assert "connected" in status and "fps" in status
+        # Statistics tab: x resets the daemon's statistics (the reply is noted in the Log).
+        await pilot.press("3", "x", "6")
+        log = app.query_one("#events")
+        await wait_for(pilot, lambda: any("reset_stats" in str(line.text)
+                                          for line in log.lines), "reset_stats reply")
+        assert any("✓ reset_stats" in str(line.text) for line in log.lines)
 
 
 async def test_algorithm_change_from_config_tab(daemon: Daemon) -> None:

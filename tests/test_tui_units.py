@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from kmea_tui.app import floor_extent, terminal_has_16_colours
+from kmea_tui.app import connection_state, floor_extent, terminal_has_16_colours
 from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnification
 from kmea_tui.client import RecordingClient
 from kmea_tui.screens.robot_edit import parse_robot
@@ -151,3 +151,12 @@ async def test_recording_client_names_bad_lines(tmp_path) -> None:
     assert reply["ok"] is False and "no daemon" in reply["error"]
     assert await rc.recv(0.01) == [("frame", good["body"])]
     assert rc.ended and await rc.recv(0.01) == []
+
+
+def test_connection_state() -> None:
+    assert connection_state(None, "", None, 10.0, 2.0)[0] == "connecting"
+    assert connection_state(False, "no reply from x", 9.9, 10.0, 2.0) == (
+        "disconnected", "no reply from x")
+    assert connection_state(True, "", None, 10.0, 2.0) == ("stale", "no telemetry yet")
+    assert connection_state(True, "", 9.0, 10.0, 2.0) == ("connected", "")
+    assert connection_state(True, "", 7.5, 10.0, 2.0) == ("stale", "no telemetry for 2 s")
