@@ -104,5 +104,5 @@ def _read_file(path: str) -> cv2.aruco.Dictionary:
     p = Path(path).expanduser()
     if not p.is_file():
         raise DictionaryError(f"dictionary file {p}: no such file")
-    bytes_list, size, max_corr = _read_file_cached(str(p.resolve()), p.stat().st_mtime_ns)
+    bytes_list, size, max_corr = _read_file_cached(str(p), p.stat().st_mtime_ns)
     return cv2.aruco.Dictionary(bytes_list.copy(), size, max_corr)
