@@ -15,6 +15,7 @@ rectangles where robots and moving occluders are, then adds the image effects.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -105,6 +106,10 @@ class _Quad:
     exk: np.ndarray = field(default_factory=lambda: np.zeros(3))
     eyk: np.ndarray = field(default_factory=lambda: np.zeros(3))
     bbox: tuple[float, float, float, float] | None = None
+    _n: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    _ex: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    _ey: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    _padded: np.ndarray | None = None  # texture with its quiet-zone ring
 
     def corners(self) -> np.ndarray:
         s = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]], dtype=float)
@@ -479,7 +484,8 @@ class Renderer:
             qid[sl][win] = i
         return t, alb, qid
 
-    def _cast_samples(self, x: np.ndarray, y: np.ndarray, ids_in: callable, quads: list[_Quad],
+    def _cast_samples(self, x: np.ndarray, y: np.ndarray,
+                      ids_in: Callable[[Rect], np.ndarray], quads: list[_Quad],
                       rects: list[Rect | None], floor: bool,
                       t: np.ndarray | None = None,
                       alb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
