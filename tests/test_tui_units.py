@@ -92,7 +92,11 @@ def test_error_vector_needs_estimate_and_map() -> None:
 def test_parse_robot() -> None:
     r = parse_robot("amr3", "40, 41", "0.25", "", "udp:127.0.0.1:9001, udp:10.0.0.2:9000")
     assert r == {"name": "amr3", "markers": [40, 41], "height": 0.25, "length": 0.06,
+                 "separation": 0.10,
                  "destinations": ["udp:127.0.0.1:9001", "udp:10.0.0.2:9000"]}
+    assert parse_robot("a", "1,2", "", "", "", "0.2")["separation"] == 0.2
+    with pytest.raises(ValueError, match="separation"):
+        parse_robot("a", "1,2", "", "", "", "0")
     assert parse_robot("a", "42", "", "0.05", "")["markers"] == [42]
     for bad, field in ((("", "42", "", "", ""), "name"), (("a", "1,2,3", "", "", ""), "markers"),
                        (("a", "x", "", "", ""), "markers"), (("a", "4,4", "", "", ""), "markers"),

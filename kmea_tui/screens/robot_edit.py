@@ -13,13 +13,15 @@ from textual.widgets import Button, Input, Label, Static
 
 DEFAULT_HEIGHT = 0.20
 DEFAULT_LENGTH = 0.06
+DEFAULT_SEPARATION = 0.10
 
 
 def parse_robot(name: str, markers: str, height: str, length: str,
-                destinations: str) -> dict[str, Any]:
+                destinations: str, separation: str = "") -> dict[str, Any]:
     """A robot table from the form's text; ``ValueError`` names the bad field.
 
-    ``markers``: one id (``42``) or a pair left,right (``40,41`` or ``40+41``).
+    ``markers``: one id (``42``) or a pair left,right (``40,41`` or ``40+41``);
+    ``separation``: distance between a pair's marker centres (m).
     """
     name = name.strip()
     if not name or any(c.isspace() for c in name):
@@ -33,12 +35,13 @@ def parse_robot(name: str, markers: str, height: str, length: str,
         raise ValueError(f"markers: {markers!r} is not one id or a pair of different ids")
     out: dict[str, Any] = {"name": name, "markers": ids}
     for field, text, default in (("height", height, DEFAULT_HEIGHT),
-                                 ("length", length, DEFAULT_LENGTH)):
+                                 ("length", length, DEFAULT_LENGTH),
+                                 ("separation", separation, DEFAULT_SEPARATION)):
         try:
             v = float(text) if text.strip() else default
         except ValueError:
             raise ValueError(f"{field}: {text!r} is not a number of metres") from None
-        if (field == "length" and v <= 0) or v < 0:
+        if (field in ("length", "separation") and v <= 0) or v < 0:
             raise ValueError(f"{field}: must be positive (metres)")
         out[field] = v
     out["destinations"] = [d.strip() for d in destinations.split(",") if d.strip()]
@@ -65,6 +68,8 @@ class RobotEditScreen(ModalScreen[dict[str, Any] | None]):
                 ("markers", "markers", markers_s, "42 or left,right e.g. 40,41"),
                 ("height", "height m", str(r.get("height", DEFAULT_HEIGHT)), "plate height"),
                 ("length", "length m", str(r.get("length", DEFAULT_LENGTH)), "marker side"),
+                ("separation", "separation m", str(r.get("separation", DEFAULT_SEPARATION)),
+                 "pair: distance between the marker centres"),
                 ("destinations", "destinations", ", ".join(r.get("destinations", []) or []),
                  "udp host:port, comma separated"),
             ):
@@ -84,7 +89,8 @@ class RobotEditScreen(ModalScreen[dict[str, Any] | None]):
     def _ok(self) -> None:
         try:
             robot = parse_robot(*(self._value(k) for k in
-                                  ("name", "markers", "height", "length", "destinations")))
+                                  ("name", "markers", "height", "length", "destinations",
+                                   "separation")))
         except ValueError as e:
             self.query_one("#robot-error", Static).update(str(e))
             return

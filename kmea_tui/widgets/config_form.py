@@ -57,15 +57,18 @@ def show_value(value: Any) -> str:
     return str(value)
 
 
-def robot_row(r: dict[str, Any]) -> tuple[str, str, str, str, str]:
+def robot_row(r: dict[str, Any]) -> tuple[str, ...]:
     markers = r.get("markers")
     if isinstance(markers, list):
         markers_s = "+".join(map(str, markers))
     else:
         markers_s = str(markers)
     dests = r.get("destinations") or []
+    sep = r.get("separation")
     return (str(r.get("name", "?")), markers_s, f"{float(r.get('height', 0.0)):.3f}",
             f"{float(r.get('length', 0.0)):.3f}",
+            f"{float(sep):.3f}" if isinstance(markers, list) and len(markers) == 2
+            and isinstance(sep, (int, float)) else "-",
             ", ".join(map(str, dests)) if isinstance(dests, list) else str(dests))
 
 
@@ -79,7 +82,8 @@ class RobotsConfigTable(DataTable):
     def on_mount(self) -> None:
         self.cursor_type = "row"
         for key, label in (("name", "name"), ("markers", "markers"), ("height", "height m"),
-                           ("length", "length m"), ("destinations", "destinations")):
+                           ("length", "length m"), ("separation", "pair sep m"),
+                           ("destinations", "destinations")):
             self.add_column(label, key=key)
 
     def action_add(self) -> None:
