@@ -204,3 +204,25 @@ def test_image_effects():
     assert corner < centre - 10
     with pytest.raises(ValueError, match="frame index"):
         Renderer(get_scene("scenario1", **plain)).render(-1)
+
+
+def test_write_frames_and_truth(tmp_path, capsys):
+    import json
+
+    from kmea.sim.__main__ import main
+
+    assert main(["sim:default?width=160&height=120", "--frames", "2", "--start", "30",
+                 "--step", "15", "--out", str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "frame_000030.png", "frame_000045.png", "truth.jsonl"]
+    img = cv2.imread(str(tmp_path / "frame_000045.png"), cv2.IMREAD_UNCHANGED)
+    ref = Renderer(get_scene("default", width=160, height=120)).render(45)
+    assert np.array_equal(img, ref.image)
+    lines = [json.loads(s) for s in (tmp_path / "truth.jsonl").read_text().splitlines()]
+    assert [d["index"] for d in lines] == [30, 45]
+    assert lines[1]["t"] == pytest.approx(1.5)
+    assert np.allclose(lines[1]["robots"]["amr1"], ref.truth.robots["amr1"])
+    assert set(lines[1]["visible"]) == ref.truth.visible
+    assert np.allclose(lines[1]["corners"]["13"], ref.truth.corners[13])
+    assert main(["sim:nope", "--out", str(tmp_path)]) == 2
+    assert "unknown scene" in capsys.readouterr().err
