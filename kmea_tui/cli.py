@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import re
 import sys
 
 from kmead import protocol
@@ -44,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from kmea_tui.client import DaemonClient, RecordingClient, record_stream
+    from kmea_tui.client import DaemonClient, RecordingClient, check_endpoint, record_stream
 
     if args.save_stream:
         n = asyncio.run(record_stream(args.telemetry, args.control, args.save_stream,
@@ -60,8 +61,13 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         from kmea_tui.app import save_screenshots
 
+        m = re.fullmatch(r"(\d+)x(\d+)", args.size.strip().lower())
+        if not m or int(m.group(1)) < 40 or int(m.group(2)) < 10:
+            print(f"kmea-tui: --size {args.size!r}: give COLSxROWS, at least 40x10",
+                  file=sys.stderr)
+            return 2
+        cols, rows = int(m.group(1)), int(m.group(2))
         try:
-            cols, rows = (int(v) for v in args.size.lower().split("x"))
             files = asyncio.run(save_screenshots(args.replay, args.screenshots, (cols, rows),
                                                  theme or "textual-dark"))
         except ValueError as e:
@@ -77,6 +83,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"kmea-tui: {e}", file=sys.stderr)
             return 2
     else:
+        for opt, endpoint in (("--telemetry", args.telemetry), ("--control", args.control)):
+            problem = check_endpoint(endpoint)
+            if problem:
+                print(f"kmea-tui: {opt} {endpoint!r}: {problem}", file=sys.stderr)
+                return 2
         client = DaemonClient(args.telemetry, args.control)
     if not 0.5 <= args.rate <= 30:
         print("kmea-tui: --rate: give 0.5 to 30 refreshes per second", file=sys.stderr)

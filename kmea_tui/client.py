@@ -50,6 +50,20 @@ Message = tuple[str, dict[str, Any]]
 MAX_BATCH = 2000
 
 
+def check_endpoint(endpoint: str) -> str | None:
+    """None if ZeroMQ accepts ``endpoint`` for connecting, else the reason."""
+    ctx = zmq.Context.instance()
+    s = ctx.socket(zmq.REQ)
+    s.setsockopt(zmq.LINGER, 0)
+    try:
+        s.connect(endpoint)
+    except zmq.ZMQError as e:
+        return f"{e} (expected e.g. tcp://127.0.0.1:5555)"
+    finally:
+        s.close(linger=0)
+    return None
+
+
 class DaemonClient:
     """SUB (telemetry) + REQ (control) sockets to one kmead.
 
@@ -88,7 +102,8 @@ class DaemonClient:
         sub.setsockopt(zmq.RCVHWM, 1000)
         for topic in UI_TOPICS:
             sub.setsockopt(zmq.SUBSCRIBE, topic.encode())
-        sub.connect(self.telemetry)
+        if self.telemetry:  # "" = the daemon's telemetry is off: nothing to read
+            sub.connect(self.telemetry)
         self._sub = sub
 
     def close(self) -> None:

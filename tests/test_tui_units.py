@@ -9,6 +9,7 @@ import pytest
 
 from kmea_tui.app import connection_state, floor_extent, terminal_has_16_colours
 from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnification
+from kmea_tui.cli import main as tui_main
 from kmea_tui.client import RecordingClient
 from kmea_tui.screens.robot_edit import parse_robot
 from kmea_tui.widgets.config_form import parse_value, show_value
@@ -164,3 +165,19 @@ def test_connection_state() -> None:
     assert connection_state(True, "", None, 10.0, 2.0) == ("stale", "no telemetry yet")
     assert connection_state(True, "", 9.0, 10.0, 2.0) == ("connected", "")
     assert connection_state(True, "", 7.5, 10.0, 2.0) == ("stale", "no telemetry for 2 s")
+
+
+def test_cli_refuses_bad_arguments_with_one_line(tmp_path, capsys) -> None:
+    cases = [
+        (["--telemetry", "localhost:5555"], "--telemetry 'localhost:5555'"),
+        (["--replay", str(tmp_path / "missing.jsonl")], "cannot read recording"),
+        (["--screenshots", str(tmp_path)], "--screenshots needs --replay"),
+        (["--replay", str(tmp_path / "r.jsonl"), "--screenshots", str(tmp_path),
+          "--size", "80"], "--size '80'"),
+        (["--rate", "100"], "--rate"),
+    ]
+    (tmp_path / "r.jsonl").write_text("")
+    for argv, message in cases:
+        assert tui_main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, (argv, err)
