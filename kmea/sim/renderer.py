@@ -24,7 +24,7 @@ import numpy as np
 from kmea.maps import Marker
 from kmea.sim import lens
 from kmea.sim.scene import PALETTE, Occluder, Scene, SimRobot, pose_matrix
-from kmea.transforms import marker_corners_local, rot_z
+from kmea.transforms import rot_z
 from kmea.vision.dictionary import get_dictionary
 from kmea.vision.sources import Frame
 
@@ -381,6 +381,7 @@ class Renderer:
         lit = alb if self.light is None else alb * self.light
         self.static_image = self._blur(lit) * self.gain
         self._noise_bank: np.ndarray | None = None
+        self._static_truth()
 
     def _line_quads(self, half_width: float = 0.004) -> list[_Quad]:
         """The faint floor lines (8 mm) as decals on the floor."""
@@ -741,61 +742,85 @@ class Renderer:
         frame[out[0]:out[1], out[2]:out[3]] = inner * self.gain[out[0]:out[1], out[2]:out[3]]
 
     # ------------------------------------------------------------ truth
+    def _corners_and_probes(self, markers: dict[int, np.ndarray], lengths: dict[int, float]
+                            ) -> tuple[dict[int, np.ndarray], list[int], np.ndarray]:
+        """Projected corners of the markers facing the camera with all corners in the image,
+        their ids, and their occlusion probes (5 per marker: corners 2 % inside and the
+        centre) in the camera frame, (5 N, 3)."""
+        ids = sorted(markers)
+        if not ids:
+            return {}, [], np.zeros((0, 3))
+        T = np.stack([markers[m] for m in ids])  # (N, 4, 4)
+        half = np.array([lengths[m] / 2 for m in ids])
+        s = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1], [0, 0]], dtype=float)
+        local = np.zeros((len(ids), 5, 3))
+        local[:, :, :2] = s[None] * half[:, None, None]
+        world = np.einsum("nij,nkj->nki", T[:, :3, :3], local) + T[:, None, :3, 3]
+        uv, z = lens.project(world[:, :4].reshape(-1, 3), self.world2cam, self.scene.camera)
+        uv, z = uv.reshape(-1, 4, 2), z.reshape(-1, 4)
+        cam = self.cam2world[:3, 3]
+        facing = np.einsum("ni,ni->n", T[:, :3, 2], cam - T[:, :3, 3]) > 0
+        W, H = self.width, self.height
+        with np.errstate(invalid="ignore"):
+            inside = ((uv >= -0.5).all(axis=(1, 2)) & (uv[..., 0] <= W - 0.5).all(axis=1)
+                      & (uv[..., 1] <= H - 0.5).all(axis=1))
+        keep = np.flatnonzero(facing & inside & (z > 1e-6).all(axis=1))
+        corners = {ids[i]: uv[i] for i in keep}
+        probes = world[keep].copy()
+        probes[:, :4] = probes[:, 4:5] + 0.98 * (probes[:, :4] - probes[:, 4:5])
+        Pc = probes.reshape(-1, 3) @ self.world2cam[:3, :3].T + self.world2cam[:3, 3]
+        return corners, [ids[i] for i in keep], Pc
+
+    @staticmethod
+    def _hidden(Pc: np.ndarray, occluders: list[_Quad]) -> np.ndarray:
+        """(N,) whether each marker (5 probes each) is hidden by one of ``occluders``."""
+        hidden = np.zeros(len(Pc), dtype=bool)
+        if len(Pc) == 0:
+            return hidden
+        x, y, zc = Pc[:, 0] / Pc[:, 2], Pc[:, 1] / Pc[:, 2], Pc[:, 2]
+        x0, x1, y0, y1 = x.min(), x.max(), y.min(), y.max()
+        for q in occluders:
+            b = q.bbox
+            if b is not None and (b[1] < x0 or b[0] > x1 or b[3] < y0 or b[2] > y1):
+                continue
+            tq, _ = q.hit(x, y)
+            hidden |= tq < zc * (1 - 1e-7)
+        return hidden.reshape(-1, 5).any(axis=1)
+
+    def _static_truth(self) -> None:
+        """What does not change between frames: static markers, corners, static occlusion."""
+        self._truth_T = {mid: pose_matrix(m.rotation, m.position)
+                         for mid, m in self._static_markers.items()}
+        self._truth_len = {mid: m.length for mid, m in self._static_markers.items()}
+        corners, ids, Pc = self._corners_and_probes(self._truth_T, self._truth_len)
+        hidden = self._hidden(Pc, [q for q in self.static_quads if q.occludes])
+        self._truth_corners = corners
+        keep = ~hidden
+        self._truth_open = [m for m, k in zip(ids, keep, strict=True) if k]
+        self._truth_probes = Pc.reshape(-1, 5, 3)[keep].reshape(-1, 3)
+
     def truth(self, index: int) -> FrameTruth:
         """Ground truth of frame ``index`` (cheap: no image)."""
         sc = self.scene
         t = index / sc.fps
         robots = sc.robot_poses(t)
-        markers = {mid: pose_matrix(m.rotation, m.position)
-                   for mid, m in self._static_markers.items()}
-        lengths = {mid: m.length for mid, m in self._static_markers.items()}
+        markers = {mid: T.copy() for mid, T in self._truth_T.items()}
+        lengths = dict(self._truth_len)
+        moving: dict[int, np.ndarray] = {}
         for r in sc.robots:
             for mid, T in sc.robot_marker_poses(r, robots[r.name]).items():
-                markers[mid] = T
+                moving[mid] = T
                 lengths[mid] = r.length
-        ids = sorted(markers)
-        local = {}
-        pts = []
-        for mid in ids:
-            lc = marker_corners_local(lengths[mid])
-            local[mid] = lc
-            pts.append(lc @ markers[mid][:3, :3].T + markers[mid][:3, 3])
-        P = np.concatenate(pts) if pts else np.zeros((0, 3))
-        uv, z = lens.project(P, self.world2cam, sc.camera)
-        W, H = self.width, self.height
-        cam = self.cam2world[:3, 3]
-        corners: dict[int, np.ndarray] = {}
-        for i, mid in enumerate(ids):
-            c = uv[4 * i:4 * i + 4]
-            zz = z[4 * i:4 * i + 4]
-            T = markers[mid]
-            facing = T[:3, 2] @ (cam - T[:3, 3]) > 0
-            inside = (np.all(c >= -0.5) and np.all(c[:, 0] <= W - 0.5)
-                      and np.all(c[:, 1] <= H - 0.5))
-            if facing and np.all(zz > 1e-6) and inside:
-                corners[mid] = c
-        occluders = [q for q in self.static_quads if q.occludes]
-        occluders += [q for obj in self.dynamic_quads(t) for q in obj if q.occludes]
-        visible = set()
-        cand = sorted(corners)
-        if cand:
-            probes = []
-            for mid in cand:
-                T = markers[mid]
-                pts = np.vstack([local[mid] * 0.98, np.zeros((1, 3))])
-                probes.append(pts @ T[:3, :3].T + T[:3, 3])
-            Pc = np.concatenate(probes) @ self.world2cam[:3, :3].T + self.world2cam[:3, 3]
-            x, y, zc = Pc[:, 0] / Pc[:, 2], Pc[:, 1] / Pc[:, 2], Pc[:, 2]
-            hidden = np.zeros(len(Pc), dtype=bool)
-            x0, x1, y0, y1 = x.min(), x.max(), y.min(), y.max()
-            for q in occluders:
-                b = q.bbox
-                if b is not None and (b[1] < x0 or b[0] > x1 or b[3] < y0 or b[2] > y1):
-                    continue
-                tq, _ = q.hit(x, y)
-                hidden |= tq < zc * (1 - 1e-7)
-            hidden_marker = hidden.reshape(len(cand), 5).any(axis=1)
-            visible = {mid for mid, h in zip(cand, hidden_marker, strict=True) if not h}
+        markers.update(moving)
+        rc, rids, rPc = self._corners_and_probes(moving, lengths)
+        corners = {m: c.copy() for m, c in self._truth_corners.items()}
+        corners.update(rc)
+        dyn = [q for obj in self.dynamic_quads(t) for q in obj if q.occludes]
+        statics = [q for q in self.static_quads if q.occludes]
+        visible = {m for m, h in zip(self._truth_open, self._hidden(self._truth_probes, dyn),
+                                     strict=True) if not h}
+        visible |= {m for m, h in zip(rids, self._hidden(rPc, statics + dyn), strict=True)
+                    if not h}
         return FrameTruth(self.cam2world.copy(), markers, lengths, corners, visible, robots, t)
 
     def render(self, index: int) -> SimFrame:
