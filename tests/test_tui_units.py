@@ -122,6 +122,8 @@ def test_status_text_fits_and_orders() -> None:
     wide = status_text("connected", frame, width=200).plain
     assert narrow.startswith("● connected  29.9 fps  dropped 3  14.5 ms: det 12.0")
     assert len(narrow) <= 60 and "cap 1.0" in wide and "cap" not in narrow
+    bad = status_text("connected", {**frame, "ok": False, "reason": "2 references"}, 200).plain
+    assert "not estimated: 2 references" in bad
     assert "disconnected (no reply" in status_text("disconnected", None, 80,
                                                    "no reply from x").plain
 

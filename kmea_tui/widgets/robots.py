@@ -35,6 +35,14 @@ def _sort_value(raw: dict[str, Any], col: str) -> Any:
     return v if isinstance(v, (int, float)) else None
 
 
+def sent_cell(r: dict[str, Any]) -> str | Text:
+    """Messages sent, with the failed sends (``send_errors``) when there are any."""
+    sent, errors = r.get("sent", DASH), r.get("send_errors")
+    if isinstance(errors, int) and errors > 0:
+        return Text(f"{sent} ✗{errors}", style="bold yellow")
+    return str(sent)
+
+
 def robot_cells(r: dict[str, Any]) -> list[str | Text]:
     th = r.get("theta")
     markers = r.get("markers") or []
@@ -49,7 +57,7 @@ def robot_cells(r: dict[str, Any]) -> list[str | Text]:
         fmt(r.get("age_s"), ".1f"),
         Text(state, style="bold red" if state == "STALE" else
              ("green" if state == "ok" else "yellow")),
-        str(r.get("sent", DASH)),
+        sent_cell(r),
         ", ".join(map(str, dests)) if isinstance(dests, list) else str(dests),
     ]
     return cells

@@ -29,6 +29,8 @@ def status_text(state: str, frame: dict[str, Any] | None, width: int = 80,
         t.append(f"  {fps:.1f} fps" if isinstance(fps, (int, float)) else "  - fps")
         dropped = frame.get("dropped", 0)
         t.append(f"  dropped {dropped}", "bold yellow" if dropped else "")
+        if frame.get("ok") is False:
+            t.append(f"  not estimated: {frame.get('reason') or '?'}", "bold red")
         timings = frame.get("timings_ms") or {}
         total = timings.get("total")
         if isinstance(total, (int, float)):
