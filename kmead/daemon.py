@@ -164,10 +164,13 @@ class Daemon:
         self._log_handler = TelemetryLogHandler(self.telemetry, logging.NOTSET)
         logging.getLogger("kmead").setLevel(cfg["log"]["level"].upper())
         logging.getLogger("kmead").addHandler(self._log_handler)
-        if cfg["log"]["csv"]:
-            self.start_csv(cfg["log"]["csv"])
-        if cfg["log"]["record"]:
-            self.start_recording(cfg["log"]["record"])
+        try:
+            if cfg["log"]["csv"]:
+                self.start_csv(cfg["log"]["csv"])
+            if cfg["log"]["record"]:
+                self.start_recording(cfg["log"]["record"])
+        except ValueError as e:  # an unwritable path: name the key, do not start
+            raise StartupError(f"key 'log.{'record' if self.csv else 'csv'}': {e}") from None
 
     def _load_map(self) -> MarkerMap:
         cfg = self.cfg
