@@ -116,6 +116,7 @@ class Daemon:
         self.frame_times: collections.deque[float] = collections.deque(maxlen=31)
         self.displaced: dict[int, float] = {}
         self._last_stats_pub = 0.0
+        self._last_status_pub = 0.0
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
         self._log_handler: logging.Handler | None = None
@@ -427,6 +428,10 @@ class Daemon:
         self.publish(P.TOPIC_MARKERS, self._markers_body(res))
         self.publish(P.TOPIC_ROBOTS, self._robots_body(res))
         now = time.perf_counter()
+        if self.control is None and now - self._last_status_pub >= \
+                self.cfg["network"]["status_period_s"]:
+            self._last_status_pub = now  # no service thread: status from the frame loop
+            self.publish(P.TOPIC_STATUS, self.status_body())
         if now - self._last_stats_pub >= 0.2:
             self._last_stats_pub = now
             self.publish(P.TOPIC_STATS, self._stats_body(res))
