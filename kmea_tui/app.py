@@ -277,6 +277,10 @@ class KmeaTui(App[None]):
 
     def update_connection_state(self) -> None:
         state, detail = self.compute_state()
+        bad = getattr(self.client, "bad_messages", 0)
+        if state == "stale" and bad:
+            # Telemetry arrives but is not understood (e.g. another protocol version).
+            detail = f"{bad} messages not understood: {getattr(self.client, 'last_error', '')}"
         self.connection_state = state
         with suppress(NoMatches):  # shutting down
             self.query_one(StatusBar).show(state, self.frame, detail)

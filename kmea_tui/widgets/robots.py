@@ -15,7 +15,7 @@ from kmea_tui.widgets.live_table import DASH, LiveTable, fmt
 COLUMNS = [
     ("name", "name"), ("markers", "markers"), ("x", "x m"), ("y", "y m"),
     ("theta", "θ°"), ("sigma", "σ mm"), ("age_s", "age s"), ("state", "state"),
-    ("sent", "sent"), ("destinations", "destinations"),
+    ("sent", "sent"), ("destinations", "UDP to"),
 ]
 
 
@@ -58,7 +58,9 @@ def robot_cells(r: dict[str, Any]) -> list[str | Text]:
         Text(state, style="bold red" if state == "STALE" else
              ("green" if state == "ok" else "yellow")),
         sent_cell(r),
-        ", ".join(map(str, dests)) if isinstance(dests, list) else str(dests),
+        # UDP is the only kind of destination: the prefix costs columns at 80x24.
+        ", ".join(str(d).removeprefix("udp:") for d in dests)
+        if isinstance(dests, list) else str(dests),
     ]
     return cells
 
