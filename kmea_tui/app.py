@@ -323,7 +323,8 @@ class KmeaTui(App[None]):
                     save_target=(f"{overlay} (an overlay with only the changed keys; "
                                  f"the commented configuration file is never rewritten)"
                                  if overlay else None),
-                    source=reply.get("config_file"))
+                    source=reply.get("config_file")
+                    or ", ".join(map(str, reply.get("config_files") or [])) or None)
             elif args:
                 config_pane.show_reply(f"get_config: {error}", False)
             return
