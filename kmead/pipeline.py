@@ -19,6 +19,7 @@ from kmea.estimators.loo import loo_errors
 from kmea.filters import PoseFilter
 from kmea.maps import MarkerMap
 from kmea.robots import RobotSpec, robot_pose
+from kmea.transforms import wrap_angle
 from kmea.vision.camera import CameraModel
 
 STAGES = ("capture", "detect", "pose", "estimate", "loo", "filter", "robots", "output")
@@ -219,9 +220,13 @@ class Pipeline:
         t4 = time.perf_counter()
         tm["loo"] = (t4 - t3) * 1e3
         markers: dict[int, tuple[np.ndarray, float]] = {}
-        for mid, me in sorted(est.markers.items()):
-            p, yaw = self.filter.update(("marker", mid), inp.timestamp, me.position, me.yaw)
-            markers[mid] = (np.asarray(p, dtype=float), float(yaw))
+        if self.filter.alpha == 1.0:  # no filtering: skip the per-marker bookkeeping
+            for mid, me in sorted(est.markers.items()):
+                markers[mid] = (np.asarray(me.position, dtype=float), float(wrap_angle(me.yaw)))
+        else:
+            for mid, me in sorted(est.markers.items()):
+                p, yaw = self.filter.update(("marker", mid), inp.timestamp, me.position, me.yaw)
+                markers[mid] = (np.asarray(p, dtype=float), float(yaw))
         t5 = time.perf_counter()
         tm["filter"] = (t5 - t4) * 1e3
         robots = self.robot_fixes(est, inp.timestamp)
