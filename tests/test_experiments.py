@@ -90,6 +90,9 @@ def test_csv_and_table_are_the_core_metrics_of_the_returned_samples(tmp_path):
     h, table = tables.summary_rows(result, sc)
     kmea_row = next(t for t in table if t[0] == "kmea")
     assert kmea_row[h.index("MAE (mm)")] == f"{sc.average['kmea'].mae * 1e3:.2f}"
+    changes = [percent_change(getattr(sc.average["kmea"], f), getattr(sc.average["lmea"], f))
+               for f in ("rmse", "std", "mae", "maxae", "mre")]
+    assert kmea_row[h.index("mean Δ")] == f"{np.mean(changes):+.1f} %"
 
 
 def test_part_three_shows_the_papers_conclusion_and_flags_the_displaced_anchors(tmp_path):

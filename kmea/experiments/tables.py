@@ -83,16 +83,23 @@ def _md_table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(out)
 
 
+def mean_change(scores: Scores, algorithm: str) -> float:
+    """Mean of the five metrics' % changes (the paper's "average" reduction, as we read it)."""
+    v = [scores.change[algorithm][f] for _, f, _, _ in METRICS]
+    return float(np.mean(v)) if all(math.isfinite(x) for x in v) else math.nan
+
+
 def summary_rows(result: RunResult, scores: Scores) -> tuple[list[str], list[list[str]]]:
     """The paper's table: averaged metrics per algorithm and their % change vs the baseline."""
     header = ["Algorithm", *[f"{t} ({u})" for t, _, _, u in METRICS],
-              *[f"Δ{t}" for t, _, _, _ in METRICS], "samples"]
+              *[f"Δ{t}" for t, _, _, _ in METRICS], "mean Δ", "samples"]
     rows = []
     for a in result.algorithms:
         m = scores.average[a]
         vals = [_f(getattr(m, f) * k, 3 if f == "mre" else 2) if m else "n/a"
                 for _, f, k, _ in METRICS]
         ch = ["—" if a == result.baseline else _pct(scores.change[a][f]) for _, f, _, _ in METRICS]
+        ch.append("—" if a == result.baseline else _pct(mean_change(scores, a)))
         n = m.n if m else 0
         total = result.frames * len(result.markers)
         note = f"{n}/{total}" + ("" if scores.complete[a] else " (markers missing)")
