@@ -117,6 +117,7 @@ class Daemon:
         self.displaced: dict[int, float] = {}
         self._last_stats_pub = 0.0
         self._last_status_pub = 0.0
+        self._t_capture = 0.0
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
         self._log_handler: logging.Handler | None = None
@@ -374,10 +375,12 @@ class Daemon:
                                   "; skipped")
             return None
         inp = self._frame_input(frame, capture_ms, t_cap)
+        self._t_capture = t_cap
         if detections is not None:
             inp.detections, inp.detect_ms = detections, detect_ms
         try:
-            res = self.pipeline.process(inp, loo=self.cfg["stats"]["loo"])
+            res = self.pipeline.process(inp, loo=self.cfg["stats"]["loo"],
+                                        on_robots=self._relay_robots)
         except Exception as e:  # a frame the detector or pose cannot digest: report, go on
             self.totals.bad_frames += 1
             self.event("error", f"frame {frame.index}: {type(e).__name__}: {e}; skipped")
@@ -391,17 +394,6 @@ class Daemon:
         tot = self.totals
         tot.frames += 1
         est = res.estimate
-        # 1. robots first: the relay is the latency-critical output.
-        for fix in res.robots.values():
-            self.relay.update(fix.name, res.timestamp, fix.x, fix.y, fix.theta, fix.sigma)
-            tot.robots_seen.add(fix.name)
-        for name in self.relay.tick(res.timestamp):
-            self.event("warning", f"robot {name} not seen for "
-                                  f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
-        if res.t_capture:
-            tot.latency_ms.append((time.perf_counter() - res.t_capture) * 1e3)
-            if len(tot.latency_ms) > 100000:
-                del tot.latency_ms[:50000]
         # 2. statistics
         tot.markers_seen.update(int(i) for i in res.ids)
         if not est.ok:
@@ -444,6 +436,21 @@ class Daemon:
         self.last_frame_body = self._frame_body(res)
         self.publish(P.TOPIC_FRAME, self.last_frame_body)
         self.last_result = res
+
+    def _relay_robots(self, t: float, fixes: dict) -> None:
+        """Robot messages, sent from inside the pipeline as soon as the poses are known."""
+        tot = self.totals
+        for fix in fixes.values():
+            self.relay.update(fix.name, t, fix.x, fix.y, fix.theta, fix.sigma)
+            tot.robots_seen.add(fix.name)
+        for name in self.relay.tick(t):
+            self.event("warning", f"robot {name} not seen for "
+                                  f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
+        t_cap = self._t_capture
+        if t_cap:
+            tot.latency_ms.append((time.perf_counter() - t_cap) * 1e3)
+            if len(tot.latency_ms) > 100000:
+                del tot.latency_ms[:50000]
 
     def _displacement_events(self, res: FrameResult) -> None:
         # Event when a map marker's LOO error exceeds the threshold or a robust estimator

@@ -8,6 +8,7 @@ CSV rows, telemetry and datagrams. Every stage is timed in milliseconds.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -174,8 +175,14 @@ class Pipeline:
             self.config["detector"]["marker_length"])
         return list(obs), _diag_dict(diag)
 
-    def process(self, inp: FrameInput, loo: bool = True) -> FrameResult:
-        """Run every stage on one frame; see :class:`FrameResult`."""
+    def process(self, inp: FrameInput, loo: bool = True,
+                on_robots: Callable[[float, dict[str, RobotFix]], None] | None = None
+                ) -> FrameResult:
+        """Run every stage on one frame; see :class:`FrameResult`.
+
+        on_robots(t, fixes): called as soon as the robot poses are known, before the
+        leave-one-out estimates (the relay's latency must not pay for the statistics).
+        """
         tm: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         tm["capture"] = inp.capture_ms
         t0 = time.perf_counter()
@@ -210,15 +217,6 @@ class Pipeline:
             est = Estimate.failed(self.algorithm, str(e))
         t3 = time.perf_counter()
         tm["estimate"] = (t3 - t2) * 1e3
-        loo_err: dict[int, float] = {}
-        if loo and est.ok:
-            try:
-                loo_err = loo_errors(self.estimator, obs, self.world_map, camera=intr,
-                                     plane_heights=self.plane_heights)
-            except ValueError:
-                loo_err = {}
-        t4 = time.perf_counter()
-        tm["loo"] = (t4 - t3) * 1e3
         markers: dict[int, tuple[np.ndarray, float]] = {}
         if self.filter.alpha == 1.0:  # no filtering: skip the per-marker bookkeeping
             for mid, me in sorted(est.markers.items()):
@@ -227,11 +225,21 @@ class Pipeline:
             for mid, me in sorted(est.markers.items()):
                 p, yaw = self.filter.update(("marker", mid), inp.timestamp, me.position, me.yaw)
                 markers[mid] = (np.asarray(p, dtype=float), float(yaw))
-        t5 = time.perf_counter()
-        tm["filter"] = (t5 - t4) * 1e3
+        t4 = time.perf_counter()
+        tm["filter"] = (t4 - t3) * 1e3
         robots = self.robot_fixes(est, inp.timestamp)
-        t6 = time.perf_counter()
-        tm["robots"] = (t6 - t5) * 1e3
+        if on_robots is not None:
+            on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
+        t5 = time.perf_counter()
+        tm["robots"] = (t5 - t4) * 1e3
+        loo_err: dict[int, float] = {}
+        if loo and est.ok:
+            try:
+                loo_err = loo_errors(self.estimator, obs, self.world_map, camera=intr,
+                                     plane_heights=self.plane_heights)
+            except ValueError:
+                loo_err = {}
+        tm["loo"] = (time.perf_counter() - t5) * 1e3
         return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
                            est, markers, loo_err, robots, tm, inp.t_capture, inp.meta)
 
