@@ -88,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"kmead: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
+    except KeyboardInterrupt:  # Ctrl-C while starting (the simulator builds its floor)
+        return 130
 
     endpoints = [f"telemetry {daemon.telemetry.bound or 'off'}",
                  f"control {daemon.control.bound if daemon.control else 'off'}"]
