@@ -13,15 +13,15 @@ import numpy as np
 __all__ = [
     "check_rotation",
     "euler_zyx_fixed_deg",
+    "make_transform",
     "marker_corners_local",
+    "matrix_to_rotvec",
     "rot_x",
     "rot_y",
     "rot_z",
     "rotvec_to_matrix",
-    "matrix_to_rotvec",
     "wrap_angle",
     "yaw_of",
-    "make_transform",
 ]
 
 
