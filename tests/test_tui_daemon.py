@@ -176,7 +176,7 @@ async def test_log_started_from_log_tab_creates_the_file(daemon: Daemon) -> None
                        "the Log tab to show the running log")
         state = str(app.query_one("#log-state").render())
         assert "● on" in state and "tui-log.csv" in state and "rows" in state
-        await pilot.press("enter")  # the same button stops it
+        await pilot.press("l")  # the Log tab's key toggles it off
         await wait_for(pilot, lambda: pane.logging.get("active") is False, "log stopped")
         rows = len(csv.read_text().splitlines())
         assert rows > 5
