@@ -181,7 +181,8 @@ SCHEMA: dict[str, dict[str, Check]] = {
                  "fast": _bool, "fast_window": _int_ge(0), "full_every": _int_ge(1)},
     "estimator": {"algorithm": _algorithm},
     "filter": {"alpha": _alpha, "reset_after_s": _positive},
-    "stats": {"loo": _bool, "window": _int_ge(1), "displaced_threshold": _positive},
+    "stats": {"loo": _bool, "window": _int_ge(1), "displaced_threshold": _positive,
+              "displaced_frames": _int_ge(1)},
     "relay": {"stale_after_s": _positive, "stale_repeat_s": _nonneg},
     "network": {"telemetry": _endpoint, "control": _endpoint, "status_period_s": _positive},
     "log": {"csv": _str, "record": _str,
@@ -194,7 +195,7 @@ ROBOT_KEYS = ("name", "markers", "height", "length", "separation", "destinations
 LIVE_KEYS = {
     "estimator.algorithm", "filter.alpha", "filter.reset_after_s", "robots",
     "relay.stale_after_s", "relay.stale_repeat_s", "stats.window", "stats.loo",
-    "stats.displaced_threshold", "log.level",
+    "stats.displaced_threshold", "stats.displaced_frames", "log.level",
 }
 LIVE_SECTIONS = {"detector"}
 

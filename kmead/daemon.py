@@ -27,6 +27,7 @@ from kmead import protocol as P
 from kmead.capture import Capture, CaptureEnded
 from kmead.config import LIVE_KEYS, LIVE_SECTIONS, Config, ConfigError, save_overlay
 from kmead.csvlog import CsvLog, row
+from kmead.displacement import DisplacementMonitor
 from kmead.pipeline import FrameInput, FrameResult, Pipeline
 from kmead.recording import ReplaySource
 from kmead.relay import Relay
@@ -149,6 +150,8 @@ class Daemon:
         except ValueError as e:  # detector parameters, dictionary, algorithm options
             raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
         self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
+        self.monitor = DisplacementMonitor(cfg["stats"]["displaced_threshold"],
+                                           cfg["stats"]["displaced_frames"])
         net = cfg["network"]
         try:
             self.telemetry = Telemetry(net["telemetry"])
@@ -280,6 +283,9 @@ class Daemon:
                 self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
             elif key == "stats.window":
                 self.stats = WindowStats(v, self.world_map.ref_length())
+            elif key in ("stats.displaced_threshold", "stats.displaced_frames"):
+                self.monitor = DisplacementMonitor(self.cfg["stats"]["displaced_threshold"],
+                                                   self.cfg["stats"]["displaced_frames"])
             elif key == "log.level":
                 logging.getLogger("kmead").setLevel(v.upper())
         except Exception as e:
@@ -300,6 +306,7 @@ class Daemon:
         self.pipeline.set_map(new)
         self.stats = WindowStats(self.cfg["stats"]["window"], new.ref_length())
         self.displaced.clear()
+        self.monitor.clear()
         log.info("map reloaded: %s (%d markers)", new.name, len(new))
         return new
 
@@ -453,12 +460,15 @@ class Daemon:
                 del tot.latency_ms[:50000]
 
     def _displacement_events(self, res: FrameResult) -> None:
-        # Event when a map marker's LOO error exceeds the threshold or a robust estimator
-        # rejects it; then quiet for that marker for DISPLACED_QUIET_S (noise near the
-        # threshold must not flood the technician's log).
-        thr = self.cfg["stats"]["displaced_threshold"]
-        bad = {mid: e for mid, e in res.loo.items() if e > thr}
-        bad.update({mid: d for mid, d in res.estimate.rejected.items() if mid not in bad})
+        # Event when a map marker's LOO error (or a robust estimator's rejection distance)
+        # stays above the threshold over most of the last stats.displaced_frames frames it
+        # was measured in (kmead.displacement: one bad frame is not a moved marker); then
+        # quiet for that marker for DISPLACED_QUIET_S (noise near the threshold must not
+        # flood the technician's log). Suspect markers are in neither figure.
+        figures = dict(res.loo)
+        for mid, d in res.estimate.rejected.items():
+            figures[mid] = max(figures.get(mid, 0.0), d)
+        bad = self.monitor.update(figures)
         now = time.monotonic()
         for mid, e in sorted(bad.items()):
             if now - self.displaced.get(mid, -math.inf) >= DISPLACED_QUIET_S:
@@ -497,6 +507,7 @@ class Daemon:
                 "fps": self.fps(), "dropped": self.dropped,
                 "timings_ms": {k: round(v, 4) for k, v in res.timings.items()},
                 "flips": int(d.get("n_flipped", 0)), "ambiguous": int(d.get("n_ambiguous", 0)),
+                "suspect": int(d.get("n_suspect", 0)),
                 "bad_frames": self.totals.bad_frames, "scale": res.estimate.scale,
                 "rejected": sorted(res.estimate.rejected)}
 
@@ -518,7 +529,8 @@ class Daemon:
                 "map_y": None if mk is None else mk.position[1],
                 "map_z": None if mk is None else mk.position[2],
                 "error": res.loo.get(mid), "ambiguous": bool(o.ambiguous) if o else False,
-                "flipped": bool(o.flipped) if o else False, "rejected": mid in est.rejected,
+                "flipped": bool(o.flipped) if o else False,
+                "suspect": bool(o.suspect) if o else False, "rejected": mid in est.rejected,
                 "displacement": est.rejected.get(mid),
                 "reference": mid in est.references,
             })

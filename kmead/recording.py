@@ -7,7 +7,8 @@ A recording is JSON lines (UTF-8, one object per line):
    raw rotation matrices (so replay sees bit-identical numbers), and the configuration;
 2. one line per frame ``{"frame", "t", "ids", "corners", "markers", "diag"[, "truth"]}``:
    ``markers`` holds every per-marker pose (both IPPE solutions, reprojection errors,
-   ``ambiguous`` and ``flipped``); ``truth`` is the simulator's ground truth when known.
+   ``ambiguous``, ``flipped`` and ``suspect``); ``truth`` is the simulator's ground truth
+   when known.
 
 Floats are written with Python's shortest round-trip repr, so replaying with the same
 settings reproduces the recorded run's estimates exactly. NaN is written as ``null``.
@@ -84,7 +85,7 @@ def obs_to_json(o: MarkerObservation) -> dict:
             "corners": _arr(o.corners), "length": float(o.length),
             "reproj": _num(o.reproj_error), "alt_R": _arr(o.alt_R), "alt_t": _arr(o.alt_t),
             "alt_reproj": _num(o.alt_reproj_error), "ambiguous": bool(o.ambiguous),
-            "flipped": bool(o.flipped)}
+            "flipped": bool(o.flipped), "suspect": bool(o.suspect)}
 
 
 def obs_from_json(d: dict) -> MarkerObservation:
@@ -97,7 +98,8 @@ def obs_from_json(d: dict) -> MarkerObservation:
         corners=arr("corners", (4, 2)), length=float(d["length"]),
         reproj_error=_unnum(d.get("reproj")), alt_R=arr("alt_R", (3, 3)),
         alt_t=arr("alt_t", (3,)), alt_reproj_error=_unnum(d.get("alt_reproj")),
-        ambiguous=bool(d.get("ambiguous", False)), flipped=bool(d.get("flipped", False)))
+        ambiguous=bool(d.get("ambiguous", False)), flipped=bool(d.get("flipped", False)),
+        suspect=bool(d.get("suspect", False)))
 
 
 def _jsonable(obj: Any) -> Any:

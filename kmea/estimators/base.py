@@ -61,6 +61,9 @@ class MarkerObservation:
         alt_reproj_error: its RMS reprojection error, pixels.
         ambiguous: the choice between the two solutions is uncertain.
         flipped: the scene-consistent choice differs from the lowest-error one.
+        suspect: the detected quadrilateral is not trustworthy (a corner hidden, e.g. by a
+            passing robot, or at the image border: see ``docs/vision.md``). The marker is
+            still estimated and published, but never used as an alignment reference.
     """
 
     id: int
@@ -74,6 +77,7 @@ class MarkerObservation:
     alt_reproj_error: float = math.nan
     ambiguous: bool = False
     flipped: bool = False
+    suspect: bool = False
 
 
 @dataclass

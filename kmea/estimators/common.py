@@ -37,7 +37,8 @@ COINCIDENT_TOL = 1e-9
 
 
 class References:
-    """The reference markers of one frame: observed, in the map, not excluded; sorted by id.
+    """The reference markers of one frame: observed, in the map, not excluded, not suspect;
+    sorted by id.
 
     Attributes: ids (tuple of int), cam (N, 3) camera-frame centres (m), world (N, 3) map
     centres (m).
@@ -63,10 +64,11 @@ class References:
 
 def select_references(observations: Sequence[MarkerObservation], world_map: MarkerMap,
                       exclude: Collection[int] = ()) -> References:
-    """Observed map markers not in ``exclude``, sorted by id (so results do not depend on the
-    detection order)."""
+    """Observed map markers not in ``exclude`` and not ``suspect``, sorted by id (so results
+    do not depend on the detection order)."""
     excl = set(exclude)
-    obs = sorted((o for o in observations if o.id in world_map and o.id not in excl),
+    obs = sorted((o for o in observations
+                  if o.id in world_map and o.id not in excl and not o.suspect),
                  key=lambda o: o.id)
     ids = tuple(o.id for o in obs)
     cam = np.array([np.asarray(o.marker2cam_t, dtype=float) for o in obs]).reshape(-1, 3)

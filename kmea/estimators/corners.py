@@ -311,7 +311,8 @@ class CornerPnP:
         obs = {o.id: o for o in check_observations(observations)}
         excl = set(exclude)
         refs = sorted(i for i in obs
-                      if i in world_map and i not in excl and obs[i].corners is not None)
+                      if i in world_map and i not in excl and obs[i].corners is not None
+                      and not obs[i].suspect)
         key = None
         if not excl:
             key = (id(world_map), world_map.positions(refs).tobytes(),

@@ -29,7 +29,7 @@ def loo_positions(estimator: Estimator, observations: Sequence[MarkerObservation
         return fast(observations, world_map, camera=camera, plane_heights=plane_heights)
     out: dict[int, np.ndarray] = {}
     for o in observations:
-        if o.id not in world_map:
+        if o.id not in world_map or o.suspect:  # never a reference: no statistics either
             continue
         est = estimator.estimate(observations, world_map, exclude=(o.id,), camera=camera,
                                  plane_heights=plane_heights)

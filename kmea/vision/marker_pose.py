@@ -19,11 +19,20 @@ one consistent with the scene:
 ``flipped`` = the scene overrode the lowest-error solution (counted in the diagnostics);
 ``ambiguous`` = the errors are close and the scene could not decide, or the marker's clear
 photometric answer contradicts the scene (a tilted or moved marker: we keep the photometric
-answer, flag it and count a conflict). See ``docs/vision.md``.
+answer, flag it and count a conflict).
+
+``suspect`` = the detected quadrilateral is not a square seen by this camera: the chosen
+pose's RMS reprojection error is above ``max(floor_px, ratio x the frame's median)``, or a
+corner lies within ``border_px`` of the image border. A marker partly hidden (a passing
+robot's plate over one of its corners) is often still decoded, with that corner a few
+pixels off; its pose is then off by centimetres. Suspect markers are still returned, but the
+estimators never use them as references (:func:`kmea.estimators.common.select_references`).
+See ``docs/vision.md``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -36,7 +45,7 @@ from kmea.maps import MarkerMap
 from kmea.transforms import marker_corners_local
 from kmea.vision.camera import CameraModel
 
-__all__ = ["DisambiguationSettings", "PoseDiagnostics", "estimate_marker_poses"]
+__all__ = ["DisambiguationSettings", "PoseDiagnostics", "QualitySettings", "estimate_marker_poses"]
 
 _Z = np.array([0.0, 0.0, 1.0])
 # Above this RMS reprojection error (px) of the best IPPE solution, SQPnP is tried too.
@@ -69,12 +78,30 @@ class DisambiguationSettings:
     agree_deg: float = 5.0
 
 
+@dataclass(frozen=True)
+class QualitySettings:
+    """When a detected quadrilateral is ``suspect`` (pixels).
+
+    floor_px: a chosen-pose RMS reprojection error above this may be suspect (an unoccluded
+        marker's stays below ~0.3 px on rendered 1640x1232 frames; a corner hidden by a
+        robot gives 0.6-2.3 px).
+    ratio: ... and it must also exceed ``ratio`` times the frame's median error, so a
+        noisier camera (a higher median) raises the bar with its noise.
+    border_px: a corner closer than this to the image border (truncated marker).
+    """
+
+    floor_px: float = 0.3
+    ratio: float = 5.0
+    border_px: float = 2.0
+
+
 @dataclass
 class PoseDiagnostics:
     """What the IPPE choice did in one frame (or, after :meth:`merge`, over many).
 
-    n_markers: poses estimated; n_ambiguous / n_flipped / n_conflicts: markers flagged
-    ambiguous / scene-corrected / contradicting the scene; *_by_id: the same per id (counts).
+    n_markers: poses estimated; n_ambiguous / n_flipped / n_conflicts / n_suspect: markers
+    flagged ambiguous / scene-corrected / contradicting the scene / suspect (see the module
+    docstring); *_by_id: the same per id (counts).
     failed_ids: ids whose corners gave no pose (degenerate quadrilateral).
     consensus: "map" (world2cam rotation from map markers), "horizontal" (floor normal from
     markers assumed horizontal) or "none"; n_support: markers agreeing with it.
@@ -86,9 +113,11 @@ class PoseDiagnostics:
     n_ambiguous: int = 0
     n_flipped: int = 0
     n_conflicts: int = 0
+    n_suspect: int = 0
     flips_by_id: dict[int, int] = field(default_factory=dict)
     ambiguous_by_id: dict[int, int] = field(default_factory=dict)
     conflicts_by_id: dict[int, int] = field(default_factory=dict)
+    suspect_by_id: dict[int, int] = field(default_factory=dict)
     failed_ids: list[int] = field(default_factory=list)
     consensus: str = "none"
     n_support: int = 0
@@ -101,9 +130,11 @@ class PoseDiagnostics:
         self.n_ambiguous += other.n_ambiguous
         self.n_flipped += other.n_flipped
         self.n_conflicts += other.n_conflicts
+        self.n_suspect += other.n_suspect
         for mine, theirs in ((self.flips_by_id, other.flips_by_id),
                              (self.ambiguous_by_id, other.ambiguous_by_id),
-                             (self.conflicts_by_id, other.conflicts_by_id)):
+                             (self.conflicts_by_id, other.conflicts_by_id),
+                             (self.suspect_by_id, other.suspect_by_id)):
             for k, v in theirs.items():
                 mine[k] = mine.get(k, 0) + v
         self.failed_ids.extend(other.failed_ids)
@@ -211,6 +242,7 @@ def estimate_marker_poses(
     *,
     expected_normals: Mapping[int, np.ndarray | None] | None = None,
     settings: DisambiguationSettings | None = None,
+    quality: QualitySettings | None = None,
 ) -> tuple[list[MarkerObservation], PoseDiagnostics]:
     """Pose of every detected marker in the camera frame (OpenCV axes, metres).
 
@@ -220,6 +252,7 @@ def estimate_marker_poses(
     world_map: surveyed markers, whose rotations give their expected normals.
     expected_normals: id -> (3,) world normal for markers not in the map (default world +z:
     robots' markers lie flat); a None value means "no assumption" for that id.
+    quality: when a marker is flagged ``suspect`` (:class:`QualitySettings`).
     Returns the observations (in input order, minus ``failed_ids``) and the diagnostics.
     """
     s = settings or DisambiguationSettings()
@@ -377,7 +410,31 @@ def estimate_marker_poses(
         if conflict:
             diag.n_conflicts += 1
             diag.conflicts_by_id[mid] = diag.conflicts_by_id.get(mid, 0) + 1
+    for i in _suspects(obs, camera, quality or QualitySettings()):
+        obs[i] = dataclasses.replace(obs[i], suspect=True)
+        mid = obs[i].id
+        diag.n_suspect += 1
+        diag.suspect_by_id[mid] = diag.suspect_by_id.get(mid, 0) + 1
     return obs, diag
+
+
+def _suspects(obs: list[MarkerObservation], camera: CameraModel | CameraIntrinsics,
+              q: QualitySettings) -> list[int]:
+    """Indexes of the observations whose quadrilateral is not trustworthy (module docstring)."""
+    if not obs:
+        return []
+    err = np.array([o.reproj_error for o in obs])
+    bar = max(q.floor_px, q.ratio * float(np.median(err)))
+    bad = ~(err <= bar)  # NaN is suspect too
+    w, h = getattr(camera, "width", 0), getattr(camera, "height", 0)
+    if w and h and q.border_px > 0:
+        c = np.array([o.corners for o in obs]).reshape(-1, 4, 2)
+        b = q.border_px
+        # Pixel centres at integer coordinates: the image spans -0.5 .. w - 0.5.
+        near = ((c[..., 0] < b - 0.5) | (c[..., 0] > w - 0.5 - b)
+                | (c[..., 1] < b - 0.5) | (c[..., 1] > h - 0.5 - b)).any(axis=1)
+        bad |= near
+    return np.flatnonzero(bad).tolist()
 
 
 def _expected_normals(
