@@ -140,6 +140,16 @@ def test_miscalibration_is_given_to_the_estimators_only():
     assert off.settings["focal_error"] == 0.02
 
 
+def test_floor_only_keeps_wall_markers_out_of_the_references():
+    from kmea.experiments import simscene
+    from kmea.maps import default_map
+
+    cfg = _config("IV", floor_only=True)
+    emap = simscene.estimator_map(cfg, default_map())
+    assert set(emap.ids) == {i for i, m in default_map().markers.items() if m.on_floor}
+    assert len(emap) < len(default_map())
+
+
 def test_jobs_do_not_change_the_results():
     one = run_simulation(_config("I", algorithms=("kmea",), samples=4))
     two = run_simulation(_config("I", algorithms=("kmea",), samples=4, jobs=2))

@@ -48,6 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--known-heights", action="store_true",
                    help="Part II: tell the estimators the raised markers' height, as the "
                         "daemon does for robots (the paper's algorithms do not)")
+    p.add_argument("--floor-only", action="store_true",
+                   help="give the estimators the floor markers only (wall markers are drawn "
+                        "and detected but never references)")
     p.add_argument("--replay", metavar="FILE",
                    help="score a kmead recording instead (truth = the map's positions)")
     p.add_argument("--markers", default=None,
@@ -170,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
         cfg = ExperimentConfig(part=spec, algorithms=algorithms, baseline=args.baseline,
                                samples=args.samples, seed=args.seed, width=w, height=h,
                                focal_error=focal / 100.0, k1_error=k1,
-                               known_heights=args.known_heights, jobs=max(1, args.jobs))
+                               known_heights=args.known_heights, floor_only=args.floor_only,
+                               jobs=max(1, args.jobs))
         bar = Progress(cfg.samples, f"Part {spec.name}", enabled=not args.quiet)
         try:
             result = run_simulation(cfg, progress=bar.update)

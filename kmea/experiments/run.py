@@ -43,6 +43,8 @@ class ExperimentConfig:
     k1_error: absolute error added to the first radial coefficient the estimators believe.
     known_heights: give the estimators Part II's support height as ``plane_heights`` (as the
         daemon does for a robot's top plate); off by default, as in the paper.
+    floor_only: the estimators' map keeps the floor markers only (wall markers are still
+        drawn and detected, but never references).
     """
 
     part: PartSpec
@@ -55,6 +57,7 @@ class ExperimentConfig:
     focal_error: float = 0.0
     k1_error: float = 0.0
     known_heights: bool = False
+    floor_only: bool = False
     jobs: int = 1
     chunk: int = 8
 
@@ -247,6 +250,7 @@ def run_simulation(config: ExperimentConfig,
         "image": f"{config.width}x{config.height}",
         "focal_error": config.focal_error, "k1_error": config.k1_error,
         **({"known_heights": True} if config.known_heights and config.part.raised else {}),
+        **({"map": "floor markers only"} if config.floor_only else {}),
         **info["settings"],
     }
     return RunResult(

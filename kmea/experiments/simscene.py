@@ -50,10 +50,12 @@ def build_scene(config: ExperimentConfig):
 
 
 def estimator_map(config: ExperimentConfig, nominal: MarkerMap) -> MarkerMap:
-    """The map the estimators get: nominal, minus Part II's raised markers."""
-    if not config.part.raised:
+    """The map the estimators get: nominal, minus Part II's raised markers (and minus the wall
+    markers with ``floor_only``)."""
+    if not config.part.raised and not config.floor_only:
         return nominal
-    markers = {i: m for i, m in nominal.markers.items() if i not in config.part.raised}
+    markers = {i: m for i, m in nominal.markers.items()
+               if i not in config.part.raised and (m.on_floor or not config.floor_only)}
     return replace(nominal, markers=markers, extra=dict(nominal.extra))
 
 
