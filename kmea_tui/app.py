@@ -22,7 +22,7 @@ from textual import work
 from textual.app import App, ComposeResult
 from textual.binding import Binding
 from textual.css.query import NoMatches
-from textual.widgets import Footer, TabbedContent, TabPane
+from textual.widgets import Footer, HelpPanel, TabbedContent, TabPane
 
 from kmea_tui.client import DaemonClient, RecordingClient
 from kmea_tui.messages import ConnectionChanged, ControlReply, ControlRequest, TelemetryBatch
@@ -102,6 +102,7 @@ class KmeaTui(App[None]):
         Binding("plus,equals_sign", "magnify(1)", "Error ×"),
         Binding("minus", "magnify(-1)", "Error ÷"),
         Binding("a", "auto_magnification", "Auto ×"),
+        Binding("question_mark", "toggle_help", "Help", show=False),
     ]
 
     def __init__(self, client: Client, *, theme: str | None = None,
@@ -370,6 +371,13 @@ class KmeaTui(App[None]):
                  "log": "#events"}[tab]
         self.query_one(focus).focus()  # type: ignore[call-overload]
         self.refresh_bindings()
+
+    def action_toggle_help(self) -> None:
+        """Textual's help panel: the focused widget's HELP (e.g. the markers' flags), keys."""
+        if self.screen.query(HelpPanel):
+            self.action_hide_help_panel()
+        else:
+            self.action_show_help_panel()
 
     def action_reset_stats(self) -> None:
         self.control("reset_stats")

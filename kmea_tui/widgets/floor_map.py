@@ -20,6 +20,9 @@ STYLE_DETECTED = "bold green"
 STYLE_UNSEEN = "bright_black"
 STYLE_MISPLACED = "bold red"
 STYLE_FOREIGN = "bold cyan"
+# Suspect markers (corners hidden or at the image border: not references this frame) stand
+# out from the yellow error vectors by their background.
+STYLE_SUSPECT = "bold black on yellow"
 STYLE_VECTOR = "yellow"
 STYLE_ROBOT = "bold magenta"
 STYLE_STALE = "magenta"
@@ -47,9 +50,10 @@ def _num(v: Any) -> float | None:
 
 
 def marker_error_vector(m: dict[str, Any]) -> tuple[float, float] | None:
-    """(dx, dy) m from the map position to the estimated one, or None if unknown."""
+    """(dx, dy) m from the map position to the estimated one, or None if unknown or the
+    marker is suspect (its estimate is not trustworthy: no vector rather than a false one)."""
     x, y, mx, my = (_num(m.get(k)) for k in ("x", "y", "map_x", "map_y"))
-    if None in (x, y, mx, my) or not m.get("detected", x is not None):
+    if None in (x, y, mx, my) or not m.get("detected", x is not None) or m.get("suspect"):
         return None
     return x - mx, y - my  # type: ignore[operator]
 
@@ -186,21 +190,20 @@ class FloorMap(Widget):
             floor = abs(_num(m.get("map_z")) or 0.0) < 1e-6
             return (1 if floor else 2) if m.get("detected") else (3 if floor else 4)
 
-        self._draw_robots(canvas, vp)
-        for m in sorted(markers, key=rank):
-            if m.get("id") in on_robots:
-                continue
+        def place(m: dict[str, Any]) -> None:
             in_map = _num(m.get("map_x")) is not None and _num(m.get("map_y")) is not None
             if in_map:
                 px, py = float(m["map_x"]), float(m["map_y"])
             elif _num(m.get("x")) is not None and _num(m.get("y")) is not None:
                 px, py = float(m["x"]), float(m["y"])
             else:
-                continue
+                return
             if not in_map:
                 style = STYLE_FOREIGN
             elif m.get("id") in self.data.misplaced:
                 style = STYLE_MISPLACED
+            elif m.get("detected") and m.get("suspect"):
+                style = STYLE_SUSPECT
             elif m.get("detected"):
                 style = STYLE_DETECTED
             else:
@@ -213,6 +216,17 @@ class FloorMap(Widget):
                 canvas.text(lx, cy, label, style)
             else:
                 canvas.dot(*vp.to_dots(px, py), style)
+
+        # Suspect markers are usually partly under a robot: their labels go before the
+        # robots' names, which would hide them, then the rest.
+        ordered = [m for m in sorted(markers, key=rank) if m.get("id") not in on_robots]
+        first = [m for m in ordered if m.get("detected") and m.get("suspect")]
+        for m in first:
+            place(m)
+        self._draw_robots(canvas, vp)
+        for m in ordered:
+            if not (m.get("detected") and m.get("suspect")):
+                place(m)
 
     def _draw_robots(self, canvas: BrailleCanvas, vp: Viewport) -> None:
         for r in self.data.robots:
@@ -264,7 +278,8 @@ class MapPane(Widget):
         outline = "floor" if fm.extent_is_floor else "map extent"
         self.query_one("#map-legend", Static).update(Text.assemble(
             ("■", STYLE_DETECTED), " seen ", ("■", STYLE_UNSEEN), " unseen ",
-            ("■", STYLE_MISPLACED), " misplaced ", ("■", STYLE_FOREIGN), " not in map ",
+            ("■", STYLE_MISPLACED), " misplaced ", ("■", STYLE_SUSPECT), " suspect ",
+            ("■", STYLE_FOREIGN), " not in map ",
             ("→", STYLE_ROBOT), " robot  ", ("⠤", STYLE_VECTOR),
             f" error ×{mag:g} ({auto}, +/-/a) · □ {outline} · cell {cell:.1f} cm"))
 

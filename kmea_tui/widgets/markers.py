@@ -40,10 +40,17 @@ def misplaced_ids(markers: list[dict[str, Any]]) -> set[int]:
             if isinstance(m.get("error"), (int, float)) and m["error"] > thr}
 
 
+FLAGS_HELP = (("!", "misplaced"), ("A", "ambiguous pose"), ("F", "pose flipped"),
+              ("S", "suspect: corners hidden or at the image border, not a reference"),
+              ("R", "rejected by a robust estimator"))
+
+
 def flags_of(m: dict[str, Any], misplaced: bool) -> str:
-    """``!`` misplaced, ``A`` ambiguous pose, ``F`` pose flipped, ``R`` rejected as outlier."""
+    """``!`` misplaced, ``A`` ambiguous pose, ``F`` pose flipped, ``S`` suspect (detected
+    corners not trustworthy this frame: estimated, not a reference), ``R`` rejected."""
     return "".join(ch for ch, on in (("!", misplaced), ("A", m.get("ambiguous")),
-                                     ("F", m.get("flipped")), ("R", m.get("rejected")))
+                                     ("F", m.get("flipped")), ("S", m.get("suspect")),
+                                     ("R", m.get("rejected")))
                    if on)
 
 
@@ -59,6 +66,18 @@ def _sort_value(raw: dict[str, Any], col: str) -> Any:
 
 
 class MarkersTable(LiveTable):
+    # Shown by Textual's help panel (``?`` or Ctrl+P "Keys") while the table has focus.
+    HELP = "\n".join([
+        "**Markers**: every map marker and every detected marker outside the map.",
+        "",
+        "*LOO mm*: leave-one-out error of this frame. Flags:",
+        "",
+        *(f"- `{ch}` {text}" for ch, text in FLAGS_HELP),
+        "",
+        "Rows: **red** misplaced, dim unseen, yellow suspect, cyan not in the map.",
+        "`s` sorts by the next column, `S` reverses.",
+    ])
+
     def __init__(self, id: str | None = None) -> None:
         super().__init__(COLUMNS, sort_value=_sort_value, sort_column="id", id=id)
 
@@ -79,6 +98,8 @@ def marker_cells(m: dict[str, Any], misplaced: bool) -> list[str | Text]:
         return [Text(c, style="bold red") if isinstance(c, str) else c for c in cells]
     if not m.get("detected"):
         return [Text(c, style="bright_black") if isinstance(c, str) else c for c in cells]
+    if m.get("suspect"):
+        return [Text(c, style="yellow") if isinstance(c, str) else c for c in cells]
     if not m.get("in_map"):
         return [Text(c, style="cyan") if isinstance(c, str) else c for c in cells]
     return cells
@@ -109,11 +130,18 @@ class MarkersPane(Vertical):
         foreign = sum(1 for m in markers if not m.get("in_map") and m.get("detected"))
         errs = [m["error"] for m in markers if isinstance(m.get("error"), (int, float))]
         med = f"{1000 * statistics.median(errs):.1f} mm" if errs else DASH
+        # This frame's suspect markers, counted from the rows shown (the same frame); a
+        # daemon from before the field existed sends no "suspect": then no count.
+        suspect: tuple[str, str] | str = ""
+        if any("suspect" in m for m in markers):
+            n = sum(1 for m in markers if m.get("suspect"))
+            suspect = (f"suspect {n}", "bold yellow" if n else "")
         summary = Text.assemble(
             (f"frame {body.get('frame', DASH)}", "bold"),
             f" · seen {seen}/{len(in_map)} map, {foreign} other · median LOO {med} · ",
             (f"misplaced {len(bad)}", "bold red" if bad else ""),
-            f" (>{1000 * thr:.0f} mm) · ", (table.sort_label() + " [s/S]", "italic"),
+            f" (>{1000 * thr:.0f} mm) · ", *((suspect, " · ") if suspect else ()),
+            (table.sort_label() + " [s/S]", "italic"),
         )
         self.query_one("#markers-summary", Static).update(summary)
         return bad
