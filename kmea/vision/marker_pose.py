@@ -32,7 +32,6 @@ See ``docs/vision.md``.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -226,6 +225,219 @@ def _exact_corners(corners: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndar
     return err_px < 1e-3
 
 
+def _solve_one(obj: np.ndarray, c: np.ndarray, K: np.ndarray, D: np.ndarray, exact: bool
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Both poses of one marker with OpenCV (IPPE_SQUARE, then SQPnP if IPPE looks
+    degenerate): R (2, 3, 3), t (2, 3), errors (2,) px lowest first; None if no pose."""
+    try:
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    except cv2.error:
+        n = 0
+    if n:
+        best = float(np.min(errs))
+        if not best < (1e-3 if exact else _FALLBACK_PX):  # also NaN
+            m, rv2, tv2, er2 = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_SQPNP)
+            if (m and float(np.min(er2)) < best) or not math.isfinite(best):
+                n, rvecs, tvecs, errs = m, rv2, tv2, er2
+    if not n:
+        return None
+    rv = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)[:2]
+    R2 = [cv2.Rodrigues(r)[0] for r in rv]
+    t2 = list(np.asarray(tvecs, dtype=np.float64).reshape(-1, 3)[:2])
+    e2 = np.asarray(errs, dtype=np.float64).reshape(-1)[:2].tolist()
+    if len(R2) == 1:
+        R2.append(R2[0])
+        t2.append(t2[0])
+        e2.append(e2[0])
+    if e2[1] < e2[0]:  # OpenCV sorts them; do not rely on it
+        R2, t2, e2 = R2[::-1], t2[::-1], e2[::-1]
+    return np.array(R2), np.array(t2), np.array(e2)
+
+
+def _rodrigues(rv: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vectors -> (N, 3, 3) matrices, OpenCV's ``Rodrigues`` formula."""
+    theta = np.sqrt((rv * rv).sum(axis=1))
+    # libm's cos/sin as OpenCV (numpy's SIMD ones differ in the last bit).
+    tl = theta.tolist()
+    c = np.array([math.cos(a) for a in tl])
+    s = np.array([math.sin(a) for a in tl])
+    small = theta < np.finfo(float).eps
+    itheta = np.where(small, 0.0, 1.0 / np.where(small, 1.0, theta))
+    r = rv * itheta[:, None]
+    c1 = 1.0 - c
+    rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
+    R = c1[:, None, None] * (r[:, :, None] * r[:, None, :])
+    R[:, 0, 0] += c
+    R[:, 1, 1] += c
+    R[:, 2, 2] += c
+    R[:, 0, 1] -= s * rz
+    R[:, 0, 2] += s * ry
+    R[:, 1, 0] += s * rz
+    R[:, 1, 2] -= s * rx
+    R[:, 2, 0] -= s * ry
+    R[:, 2, 1] += s * rx
+    R[small] = np.eye(3)
+    return R
+
+
+def _rot2vec(R: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) -> (N, 3) rotation vectors, as IPPE's ``rot2vec`` (not cv2.Rodrigues)."""
+    tr = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
+    # libm's acos/sin as OpenCV: near a half turn the result is ill-conditioned.
+    w = np.array([math.acos(a) if -1.0 <= a <= 1.0 else math.nan
+                  for a in ((tr - 1.0) / 2.0).tolist()])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = 1.0 / (2.0 * np.array([math.sin(a) for a in w.tolist()])) * w
+    c = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]],
+                 axis=1)
+    rv = d[:, None] * c
+    rv[w < np.finfo(np.float32).eps] = 0.0
+    return rv
+
+
+def _ippe_square(corners: np.ndarray, half: np.ndarray, K: np.ndarray, D: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Both ``SOLVEPNP_IPPE_SQUARE`` solutions of every marker at once.
+
+    corners: (N, 4, 2) px; half: (N,) half side (m). Returns R (N, 2, 3, 3) marker2cam,
+    t (N, 2, 3) m and RMS reprojection errors (N, 2) px, lowest error first, equal to
+    ``cv2.solvePnPGeneric(..., SOLVEPNP_IPPE_SQUARE)`` to rounding (same steps as OpenCV's
+    ippe.cpp: undistorted corners, closed-form square homography, the two rotations from its
+    Jacobian at the centre, least-squares translations, rotation vectors and back, projection
+    with distortion). None when the distortion model has a tilted sensor (not replicated).
+    Degenerate markers come out non-finite; the caller re-solves those with OpenCV.
+    """
+    D = D.reshape(-1)
+    if D.size > 12 and np.any(D[12:] != 0.0):
+        return None
+    N = len(corners)
+    u = cv2.undistortPoints(np.ascontiguousarray(corners.reshape(-1, 1, 2)), K, D
+                            ).reshape(N, 4, 2)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        p1x, p1y = -u[:, 0, 0], -u[:, 0, 1]
+        p2x, p2y = -u[:, 1, 0], -u[:, 1, 1]
+        p3x, p3y = -u[:, 2, 0], -u[:, 2, 1]
+        p4x, p4y = -u[:, 3, 0], -u[:, 3, 1]
+        hl = half
+        dets_inv = -1 / (hl * (p1x * p2y - p2x * p1y - p1x * p4y + p2x * p3y - p3x * p2y
+                               + p4x * p1y + p3x * p4y - p4x * p3y))
+        h00 = dets_inv * (p1x * p3x * p2y - p2x * p3x * p1y - p1x * p4x * p2y + p2x * p4x * p1y
+                          - p1x * p3x * p4y + p1x * p4x * p3y + p2x * p3x * p4y
+                          - p2x * p4x * p3y)
+        h01 = dets_inv * (p1x * p2x * p3y - p1x * p3x * p2y - p1x * p2x * p4y + p2x * p4x * p1y
+                          + p1x * p3x * p4y - p3x * p4x * p1y - p2x * p4x * p3y
+                          + p3x * p4x * p2y)
+        h02 = dets_inv * hl * (p1x * p2x * p3y - p2x * p3x * p1y - p1x * p2x * p4y
+                               + p1x * p4x * p2y - p1x * p4x * p3y + p3x * p4x * p1y
+                               + p2x * p3x * p4y - p3x * p4x * p2y)
+        h10 = dets_inv * (p1x * p2y * p3y - p2x * p1y * p3y - p1x * p2y * p4y + p2x * p1y * p4y
+                          - p3x * p1y * p4y + p4x * p1y * p3y + p3x * p2y * p4y
+                          - p4x * p2y * p3y)
+        h11 = dets_inv * (p2x * p1y * p3y - p3x * p1y * p2y - p1x * p2y * p4y + p4x * p1y * p2y
+                          + p1x * p3y * p4y - p4x * p1y * p3y - p2x * p3y * p4y
+                          + p3x * p2y * p4y)
+        h12 = dets_inv * hl * (p1x * p2y * p3y - p3x * p1y * p2y - p2x * p1y * p4y
+                               + p4x * p1y * p2y - p1x * p3y * p4y + p3x * p1y * p4y
+                               + p2x * p3y * p4y - p4x * p2y * p3y)
+        h20 = -dets_inv * (p1x * p3y - p3x * p1y - p1x * p4y - p2x * p3y + p3x * p2y
+                           + p4x * p1y + p2x * p4y - p4x * p2y)
+        h21 = dets_inv * (p1x * p2y - p2x * p1y - p1x * p3y + p3x * p1y + p2x * p4y
+                          - p4x * p2y - p3x * p4y + p4x * p3y)
+        # Jacobian of the homography at the centre, and the centre's image.
+        j00, j01 = h00 - h20 * h02, h01 - h21 * h02
+        j10, j11 = h10 - h20 * h12, h11 - h21 * h12
+        p, q = h02, h12
+        # rotateVec2ZAxis((p, q, 1)), transposed.
+        nrm = np.sqrt(p * p + q * q + 1.0)
+        ax, ay, az = p / nrm, q / nrm, 1.0 / nrm
+        d = 1.0 / (1.0 + az)
+        ax2, ay2, axay = ax * ax, ay * ay, ax * ay
+        rv00, rv01, rv02 = -ax2 * d + 1.0, -axay * d, ax
+        rv10, rv11, rv12 = -axay * d, -ay2 * d + 1.0, ay
+        rv20, rv21, rv22 = -ax, -ay, 1.0 - (ax2 + ay2) * d
+        b00, b01 = rv00 - p * rv20, rv01 - p * rv21
+        b10, b11 = rv10 - q * rv20, rv11 - q * rv21
+        dtinv = 1.0 / (b00 * b11 - b01 * b10)
+        bi00, bi01, bi10, bi11 = dtinv * b11, -dtinv * b01, -dtinv * b10, dtinv * b00
+        a00 = bi00 * j00 + bi01 * j10
+        a01 = bi00 * j01 + bi01 * j11
+        a10 = bi10 * j00 + bi11 * j10
+        a11 = bi10 * j01 + bi11 * j11
+        ata00 = a00 * a00 + a01 * a01
+        ata01 = a00 * a10 + a01 * a11
+        ata11 = a10 * a10 + a11 * a11
+        gamma = np.sqrt(0.5 * (ata00 + ata11 + np.sqrt((ata00 - ata11) * (ata00 - ata11)
+                                                      + 4.0 * ata01 * ata01)))
+        r00, r01, r10, r11 = a00 / gamma, a01 / gamma, a10 / gamma, a11 / gamma
+        b0 = np.sqrt(-r00 * r00 - r10 * r10 + 1)
+        b1 = np.sqrt(-r01 * r01 - r11 * r11 + 1)
+        b1 = np.where((-r00 * r01 - r10 * r11) < 0, -b1, b1)
+        R = np.empty((N, 2, 3, 3))
+        c2 = r00 * r11 - r01 * r10
+        for k, sgn in ((0, 1.0), (1, -1.0)):
+            # Same operation order as ippe.cpp: near a half turn its rotation vector is
+            # ill-conditioned, so the last bits matter.
+            c0 = (b1 * r10 - b0 * r11) if k == 0 else (b0 * r11 - b1 * r10)
+            c1 = (b0 * r01 - b1 * r00) if k == 0 else (b1 * r00 - b0 * r01)
+            bb0, bb1 = sgn * b0, sgn * b1
+            for row, (x0, x1, x2) in enumerate(((rv00, rv01, rv02), (rv10, rv11, rv12),
+                                                (rv20, rv21, rv22))):
+                R[:, k, row, 0] = r00 * x0 + r10 * x1 + bb0 * x2
+                R[:, k, row, 1] = r01 * x0 + r11 * x1 + bb1 * x2
+                R[:, k, row, 2] = c0 * x0 + c1 * x1 + c2 * x2
+        # Least-squares translations (computeTranslation), canonical corners = object x, y.
+        obj = np.stack([-half, half, half, -half, half, half, -half, -half], 1).reshape(N, 2, 4)
+        obj = obj.transpose(0, 2, 1)                                   # (N, 4, 2) x, y
+        a2, b2 = -u[:, :, 0], -u[:, :, 1]                              # (N, 4)
+        A02 = a2.sum(1)
+        A12 = b2.sum(1)
+        A22 = (a2 * a2 + b2 * b2).sum(1)
+        n = 4.0
+        det_inv = 1.0 / (n * n * A22 - n * A12 * A12 - A02 * n * A02)
+        S00, S01, S02 = n * A22 - A12 * A12, A02 * A12, -A02 * n
+        S10, S11, S12 = A12 * A02, n * A22 - A02 * A02, -n * A12
+        S20, S21, S22 = -n * A02, -n * A12, np.full_like(A02, n * n)
+        P = np.einsum("nkij,npj->nkpi", R[..., :2], obj)               # (N, 2, 4, 3)
+        bx = -a2[:, None] * P[..., 2] - P[..., 0]
+        by = -b2[:, None] * P[..., 2] - P[..., 1]
+        T0, T1 = bx.sum(2), by.sum(2)
+        T2 = (a2[:, None] * bx + b2[:, None] * by).sum(2)
+        di = det_inv[:, None]
+        t = np.stack([di * (S00[:, None] * T0 + S01[:, None] * T1 + S02[:, None] * T2),
+                      di * (S10[:, None] * T0 + S11[:, None] * T1 + S12[:, None] * T2),
+                      di * (S20[:, None] * T0 + S21[:, None] * T1 + S22[:, None] * T2)], -1)
+        # OpenCV hands out rotation vectors: go through them as it does.
+        R = _rodrigues(_rot2vec(R.reshape(-1, 3, 3))).reshape(N, 2, 3, 3)
+        err = _reproj_rms(R, t, obj, corners, K, D)
+    swap = err[:, 1] < err[:, 0]
+    R[swap] = R[swap][:, ::-1]
+    t[swap] = t[swap][:, ::-1]
+    err[swap] = err[swap][:, ::-1]
+    return R, t, err
+
+
+def _reproj_rms(R: np.ndarray, t: np.ndarray, obj: np.ndarray, corners: np.ndarray,
+                K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """(N, 2) RMS px error of poses R (N, 2, 3, 3), t (N, 2, 3) of the (N, 4, 2) square
+    corners, projected as ``cv2.projectPoints`` does (up to 12 distortion coefficients)."""
+    k = np.zeros(12)
+    k[:D.size] = D[:12]
+    X = np.einsum("nkij,npj->nkpi", R[..., :2], obj) + t[:, :, None, :]
+    z = np.where(X[..., 2] != 0, 1.0 / X[..., 2], 1.0)
+    x, y = X[..., 0] * z, X[..., 1] * z
+    r2 = x * x + y * y
+    r4, r6 = r2 * r2, r2 * r2 * r2
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = k
+    cdist = 1 + k1 * r2 + k2 * r4 + k3 * r6
+    icdist2 = 1.0 / (1 + k4 * r2 + k5 * r4 + k6 * r6)
+    a1, a2, a3 = 2 * x * y, r2 + 2 * x * x, r2 + 2 * y * y
+    xd = x * cdist * icdist2 + p1 * a1 + p2 * a2 + s1 * r2 + s2 * r4
+    yd = y * cdist * icdist2 + p1 * a3 + p2 * a1 + s3 * r2 + s4 * r4
+    u = xd * K[0, 0] + yd * K[0, 1] + K[0, 2]
+    v = yd * K[1, 1] + K[1, 2]
+    du, dv = u - corners[:, None, :, 0], v - corners[:, None, :, 1]
+    return np.sqrt((du * du + dv * dv).sum(axis=2) / 8.0)
+
 def _rot_angles(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Angles (rad) between rotations A (P, 3, 3) and B (Q, 3, 3) -> (P, Q)."""
     tr = np.einsum("pij,qij->pq", A, B)
@@ -262,56 +474,45 @@ def estimate_marker_poses(
     D = np.asarray(camera.dist_coeffs, dtype=np.float64)
     diag = PoseDiagnostics()
 
-    # ---- both IPPE solutions of every marker
-    keep_ids: list[int] = []
-    keep_corners: list[np.ndarray] = []
-    keep_len: list[float] = []
-    Rs, ts, es = [], [], []
+    # ---- both IPPE solutions of every marker: batched, OpenCV per marker only when needed
+    n_in = len(id_arr)
+    mids = id_arr.tolist()
+    lens: dict[int, float] = {}
+    keep_len_all = [lens.setdefault(mid, length_of(mid)) for mid in mids]
+    exact = _exact_corners(c_arr, K, D) if n_in else np.zeros(0, bool)
+    batched = _ippe_square(c_arr, np.array(keep_len_all) / 2.0, K, D) if n_in else None
+    if batched is None:
+        R_all = np.full((n_in, 2, 3, 3), np.nan)
+        t_all = np.full((n_in, 2, 3), np.nan)
+        e_all = np.full((n_in, 2), np.nan)
+    else:
+        R_all, t_all, e_all = batched
+    best_all = e_all[:, 0]
+    # IPPE degenerates on some exact (noise-free, synthetic) configurations, e.g. a marker
+    # parallel to the image plane: NaN, or both poses wrong by tens of degrees with a
+    # sub-pixel error. Real corners (noise >= 1e-3 px) never do. Those markers (and any
+    # non-finite batched result) go through OpenCV, with SQPnP (7x slower) as a second try.
+    redo = ~(best_all < np.where(exact, 1e-3, _FALLBACK_PX))
+    redo |= ~(np.isfinite(R_all).all(axis=(2, 3)) & np.isfinite(t_all).all(axis=2)
+              & np.isfinite(e_all)).all(axis=1)
+    ok = np.ones(n_in, bool)
     local: dict[float, np.ndarray] = {}
-    exact = _exact_corners(c_arr, K, D) if len(c_arr) else np.zeros(0, bool)
-    for mid, c, ex in zip(id_arr.tolist(), c_arr, exact.tolist(), strict=True):
-        L = length_of(mid)
+    for i in np.flatnonzero(redo).tolist():
+        L = keep_len_all[i]
         obj = local.get(L)
         if obj is None:
             obj = local[L] = marker_corners_local(L)
-        try:
-            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
-                obj, c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        except cv2.error:
-            n = 0
-        if n:
-            best = float(np.min(errs))
-            # IPPE degenerates on some exact (noise-free, synthetic) configurations, e.g. a
-            # marker parallel to the image plane: NaN, or both poses wrong by tens of
-            # degrees with a sub-pixel error. Real corners (noise >= 1e-3 px) never do.
-            # SQPnP (7x slower) is right there.
-            if not best < (1e-3 if ex else _FALLBACK_PX):  # also NaN
-                # A degenerate IPPE case the squareness test missed: try SQPnP too.
-                m, rv2, tv2, er2 = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_SQPNP)
-                if (m and float(np.min(er2)) < best) or not math.isfinite(best):
-                    n, rvecs, tvecs, errs = m, rv2, tv2, er2
-        if not n:
-            diag.failed_ids.append(mid)
-            continue
-        rv = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)[:2]
-        R2 = [cv2.Rodrigues(r)[0] for r in rv]
-        t2 = list(np.asarray(tvecs, dtype=np.float64).reshape(-1, 3)[:2])
-        e2 = np.asarray(errs, dtype=np.float64).reshape(-1)[:2].tolist()
-        if len(R2) == 1:
-            R2.append(R2[0])
-            t2.append(t2[0])
-            e2.append(e2[0])
-        if e2[1] < e2[0]:  # OpenCV sorts them; do not rely on it
-            R2, t2, e2 = R2[::-1], t2[::-1], e2[::-1]
-        keep_ids.append(mid)
-        keep_corners.append(c.copy())
-        keep_len.append(L)
-        Rs.append(R2)
-        ts.append(t2)
-        es.append(e2)
-    R = np.array(Rs).reshape(-1, 2, 3, 3)   # (N, 2, 3, 3) marker2cam
-    t = np.array(ts).reshape(-1, 2, 3)      # (N, 2, 3)
-    e = np.array(es).reshape(-1, 2)         # (N, 2) RMS px, e[:, 0] <= e[:, 1]
+        got = _solve_one(obj, c_arr[i], K, D, bool(exact[i]))
+        if got is None:
+            ok[i] = False
+            diag.failed_ids.append(mids[i])
+        else:
+            R_all[i], t_all[i], e_all[i] = got
+    keep = np.flatnonzero(ok)
+    keep_ids = [mids[i] for i in keep.tolist()]
+    keep_corners = list(c_arr[keep])
+    keep_len = [keep_len_all[i] for i in keep.tolist()]
+    R, t, e = R_all[keep], t_all[keep], e_all[keep]
     # IPPE_SQUARE returns NaN for an exactly fronto-parallel square: keep the finite
     # solution if one is, else the marker has no pose (failed, not a crash).
     finite = (np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
@@ -357,9 +558,11 @@ def estimate_marker_poses(
     theta = np.arccos(np.clip(np.einsum("nkj,nj->nk", normals, E), -1.0, 1.0)).tolist()
     n_facing = facing.sum(axis=1).tolist()
     ratios = ratio.tolist()
-    for i, mid in enumerate(keep_ids):
+    same_l = same.tolist()
+    flags: list[tuple[int, bool, bool, bool]] = []
+    for i in range(N):
         chosen, ambiguous, flipped, conflict = 0, False, False, False
-        if same[i]:
+        if same_l[i]:
             pass
         elif n_facing[i] == 1:
             chosen = int(np.argmax(facing[i]))
@@ -386,20 +589,31 @@ def estimate_marker_poses(
                 ambiguous = True
             elif not decided:
                 ambiguous = ratios[i] < s.ambiguity_ratio
-        alt = 1 - chosen
-        has_alt = not same[i]
+        flags.append((chosen, ambiguous, flipped, conflict))
+    # One gather for the chosen and alternative solutions of all markers (each observation
+    # gets its own rows of these fresh arrays: no per-marker copies).
+    rows = np.arange(N)
+    ch = np.array([f[0] for f in flags], dtype=np.intp)
+    Rc, tc, ec = R[rows, ch], t[rows, ch], e[rows, ch]
+    Ra, ta, ea = R[rows, 1 - ch], t[rows, 1 - ch], e[rows, 1 - ch]
+    sus = _suspect_mask(ec, keep_corners, camera, quality or QualitySettings()).tolist()
+    ec_l, ea_l = ec.tolist(), ea.tolist()
+    for i, mid in enumerate(keep_ids):
+        chosen, ambiguous, flipped, conflict = flags[i]
+        has_alt = not same_l[i]
         obs.append(MarkerObservation(
             id=mid,
-            marker2cam_R=R[i, chosen].copy(),
-            marker2cam_t=t[i, chosen].copy(),
+            marker2cam_R=Rc[i],
+            marker2cam_t=tc[i],
             corners=keep_corners[i],
             length=keep_len[i],
-            reproj_error=float(e[i, chosen]),
-            alt_R=R[i, alt].copy() if has_alt else None,
-            alt_t=t[i, alt].copy() if has_alt else None,
-            alt_reproj_error=float(e[i, alt]) if has_alt else math.nan,
+            reproj_error=ec_l[i],
+            alt_R=Ra[i] if has_alt else None,
+            alt_t=ta[i] if has_alt else None,
+            alt_reproj_error=ea_l[i] if has_alt else math.nan,
             ambiguous=ambiguous,
             flipped=flipped,
+            suspect=sus[i],
         ))
         if ambiguous:
             diag.n_ambiguous += 1
@@ -410,31 +624,29 @@ def estimate_marker_poses(
         if conflict:
             diag.n_conflicts += 1
             diag.conflicts_by_id[mid] = diag.conflicts_by_id.get(mid, 0) + 1
-    for i in _suspects(obs, camera, quality or QualitySettings()):
-        obs[i] = dataclasses.replace(obs[i], suspect=True)
-        mid = obs[i].id
-        diag.n_suspect += 1
-        diag.suspect_by_id[mid] = diag.suspect_by_id.get(mid, 0) + 1
+        if sus[i]:
+            diag.n_suspect += 1
+            diag.suspect_by_id[mid] = diag.suspect_by_id.get(mid, 0) + 1
     return obs, diag
 
 
-def _suspects(obs: list[MarkerObservation], camera: CameraModel | CameraIntrinsics,
-              q: QualitySettings) -> list[int]:
-    """Indexes of the observations whose quadrilateral is not trustworthy (module docstring)."""
-    if not obs:
-        return []
-    err = np.array([o.reproj_error for o in obs])
+def _suspect_mask(err: np.ndarray, corners: list[np.ndarray],
+                  camera: CameraModel | CameraIntrinsics, q: QualitySettings) -> np.ndarray:
+    """(N,) bool: the quadrilateral is not trustworthy (module docstring). err: (N,) RMS px
+    of the chosen poses; corners: N (4, 2) px."""
+    if not len(err):
+        return np.zeros(0, bool)
     bar = max(q.floor_px, q.ratio * float(np.median(err)))
     bad = ~(err <= bar)  # NaN is suspect too
     w, h = getattr(camera, "width", 0), getattr(camera, "height", 0)
     if w and h and q.border_px > 0:
-        c = np.array([o.corners for o in obs]).reshape(-1, 4, 2)
+        c = np.array(corners).reshape(-1, 4, 2)
         b = q.border_px
         # Pixel centres at integer coordinates: the image spans -0.5 .. w - 0.5.
         near = ((c[..., 0] < b - 0.5) | (c[..., 0] > w - 0.5 - b)
                 | (c[..., 1] < b - 0.5) | (c[..., 1] > h - 0.5 - b)).any(axis=1)
         bad |= near
-    return np.flatnonzero(bad).tolist()
+    return bad
 
 
 def _expected_normals(
@@ -532,7 +744,8 @@ def _vote(cands: np.ndarray, facing: np.ndarray, confident: np.ndarray, kernel: 
         return None
     A = angles(cands, cands).reshape(2 * M, M, 2)                 # seed x marker x candidate
     A = np.where(facing[None, :, :], A, np.inf)
-    nearest = A.min(axis=2)                                        # (2M, M)
+    # Two candidates: elementwise min/compare beat a reduction over an axis of length 2.
+    nearest = np.minimum(A[..., 0], A[..., 1])                     # (2M, M)
     # One vote per marker; a decisive lowest-error candidate counts a little more, so ties
     # between the two mirror families go to the photometrically better one.
     weight = np.where(confident, 1.05, 1.0)
@@ -540,7 +753,7 @@ def _vote(cands: np.ndarray, facing: np.ndarray, confident: np.ndarray, kernel: 
         np.isfinite(nearest), np.minimum(nearest, kernel), kernel).sum(axis=1)
     score = np.where(valid, score, -np.inf)
     seed = int(np.argmax(score))
-    pick = np.argmin(A[seed], axis=1)
+    pick = (A[seed, :, 1] < A[seed, :, 0]).astype(np.intp)  # = argmin, first on ties
     inlier = nearest[seed] < kernel
     # Two refinement passes around the mean of the inliers.
     for _ in range(2):
@@ -552,8 +765,8 @@ def _vote(cands: np.ndarray, facing: np.ndarray, confident: np.ndarray, kernel: 
             centre = (v / np.linalg.norm(v))[None]
         A2 = angles(centre, cands).reshape(M, 2)
         A2 = np.where(facing, A2, np.inf)
-        pick = np.argmin(A2, axis=1)
-        inlier = A2.min(axis=1) < kernel
+        pick = (A2[:, 1] < A2[:, 0]).astype(np.intp)
+        inlier = np.minimum(A2[:, 0], A2[:, 1]) < kernel
         if not inlier.any():
             return None
     return pick, inlier
