@@ -372,19 +372,20 @@ def _ippe_square(corners: np.ndarray, half: np.ndarray, K: np.ndarray, D: np.nda
         b0 = np.sqrt(-r00 * r00 - r10 * r10 + 1)
         b1 = np.sqrt(-r01 * r01 - r11 * r11 + 1)
         b1 = np.where((-r00 * r01 - r10 * r11) < 0, -b1, b1)
-        R = np.empty((N, 2, 3, 3))
+        # R_k = Rv @ M_k with M_k's columns (r00, r10, +-b0), (r01, r11, +-b1), (c0, c1, c2);
+        # summed in ippe.cpp's order: near a half turn the rotation vector OpenCV returns is
+        # ill-conditioned, so the last bits matter.
         c2 = r00 * r11 - r01 * r10
-        for k, sgn in ((0, 1.0), (1, -1.0)):
-            # Same operation order as ippe.cpp: near a half turn its rotation vector is
-            # ill-conditioned, so the last bits matter.
-            c0 = (b1 * r10 - b0 * r11) if k == 0 else (b0 * r11 - b1 * r10)
-            c1 = (b0 * r01 - b1 * r00) if k == 0 else (b1 * r00 - b0 * r01)
-            bb0, bb1 = sgn * b0, sgn * b1
-            for row, (x0, x1, x2) in enumerate(((rv00, rv01, rv02), (rv10, rv11, rv12),
-                                                (rv20, rv21, rv22))):
-                R[:, k, row, 0] = r00 * x0 + r10 * x1 + bb0 * x2
-                R[:, k, row, 1] = r01 * x0 + r11 * x1 + bb1 * x2
-                R[:, k, row, 2] = c0 * x0 + c1 * x1 + c2 * x2
+        col_x0 = np.stack([np.stack([r00, r01, b1 * r10 - b0 * r11], -1),
+                           np.stack([r00, r01, b0 * r11 - b1 * r10], -1)], 1)   # (N, 2, 3)
+        col_x1 = np.stack([np.stack([r10, r11, b0 * r01 - b1 * r00], -1),
+                           np.stack([r10, r11, b1 * r00 - b0 * r01], -1)], 1)
+        col_x2 = np.stack([np.stack([b0, b1, c2], -1), np.stack([-b0, -b1, c2], -1)], 1)
+        x0 = np.stack([rv00, rv10, rv20], -1)[:, None, :, None]                # (N, 1, 3, 1)
+        x1 = np.stack([rv01, rv11, rv21], -1)[:, None, :, None]
+        x2 = np.stack([rv02, rv12, rv22], -1)[:, None, :, None]
+        R = (col_x0[:, :, None, :] * x0 + col_x1[:, :, None, :] * x1
+             + col_x2[:, :, None, :] * x2)                                     # (N, 2, 3, 3)
         # Least-squares translations (computeTranslation), canonical corners = object x, y.
         obj = np.stack([-half, half, half, -half, half, half, -half, -half], 1).reshape(N, 2, 4)
         obj = obj.transpose(0, 2, 1)                                   # (N, 4, 2) x, y
