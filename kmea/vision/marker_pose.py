@@ -511,7 +511,8 @@ def estimate_marker_poses(
             R_all[i], t_all[i], e_all[i] = got
     keep = np.flatnonzero(ok)
     keep_ids = [mids[i] for i in keep.tolist()]
-    keep_corners = list(c_arr[keep])
+    kept_corners = c_arr[keep]                                      # (N, 4, 2)
+    keep_corners = list(kept_corners)
     keep_len = [keep_len_all[i] for i in keep.tolist()]
     R, t, e = R_all[keep], t_all[keep], e_all[keep]
     # IPPE_SQUARE returns NaN for an exactly fronto-parallel square: keep the finite
@@ -531,7 +532,8 @@ def estimate_marker_poses(
                 diag.failed_ids.append(keep_ids[i])
         R, t, e = R[keep], t[keep], e[keep]
         keep_ids = [keep_ids[i] for i in keep]
-        keep_corners = [keep_corners[i] for i in keep]
+        kept_corners = kept_corners[keep]
+        keep_corners = list(kept_corners)
         keep_len = [keep_len[i] for i in keep]
     N = len(keep_ids)
     diag.n_markers = N
@@ -597,7 +599,7 @@ def estimate_marker_poses(
     ch = np.array([f[0] for f in flags], dtype=np.intp)
     Rc, tc, ec = R[rows, ch], t[rows, ch], e[rows, ch]
     Ra, ta, ea = R[rows, 1 - ch], t[rows, 1 - ch], e[rows, 1 - ch]
-    sus = _suspect_mask(ec, keep_corners, camera, quality or QualitySettings()).tolist()
+    sus = _suspect_mask(ec, kept_corners, camera, quality or QualitySettings()).tolist()
     ec_l, ea_l = ec.tolist(), ea.tolist()
     for i, mid in enumerate(keep_ids):
         chosen, ambiguous, flipped, conflict = flags[i]
@@ -631,17 +633,17 @@ def estimate_marker_poses(
     return obs, diag
 
 
-def _suspect_mask(err: np.ndarray, corners: list[np.ndarray],
+def _suspect_mask(err: np.ndarray, corners: np.ndarray,
                   camera: CameraModel | CameraIntrinsics, q: QualitySettings) -> np.ndarray:
     """(N,) bool: the quadrilateral is not trustworthy (module docstring). err: (N,) RMS px
-    of the chosen poses; corners: N (4, 2) px."""
+    of the chosen poses; corners: (N, 4, 2) px."""
     if not len(err):
         return np.zeros(0, bool)
     bar = max(q.floor_px, q.ratio * float(np.median(err)))
     bad = ~(err <= bar)  # NaN is suspect too
     w, h = getattr(camera, "width", 0), getattr(camera, "height", 0)
     if w and h and q.border_px > 0:
-        c = np.array(corners).reshape(-1, 4, 2)
+        c = corners.reshape(-1, 4, 2)
         b = q.border_px
         # Pixel centres at integer coordinates: the image spans -0.5 .. w - 0.5.
         near = ((c[..., 0] < b - 0.5) | (c[..., 0] > w - 0.5 - b)
