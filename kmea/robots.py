@@ -98,8 +98,10 @@ class RobotPose:
 
     x, y: floor position of its centre (m); theta: heading (rad, CCW from world x, in
     [-pi, pi)); z: estimated height of its marker plane (m); markers_seen: ids used;
-    sigma: a consistency figure (m) or None: for a pair seen whole, |measured separation -
-    spec separation|; for one marker, that marker's own sigma.
+    sigma: 1-sigma position uncertainty (m) or None: for one marker, that marker's own sigma
+    (from estimators that give one, e.g. corner-pnp); for a pair seen whole, the larger of
+    the midpoint's propagated sigma hypot(sigma_l, sigma_r) / 2 (when both markers have one)
+    and the pair's consistency |measured separation - spec separation|.
     """
 
     name: str
@@ -129,6 +131,10 @@ def robot_pose(spec: RobotSpec, estimates: Mapping[int, MarkerEstimate]) -> Robo
         # Heading: (right - left) rotated +90 deg CCW, i.e. (-vy, vx).
         theta = math.atan2(v[0], -v[1])
         sigma = abs(float(np.hypot(*v)) - spec.separation)
+        sl = estimates[spec.markers[0]].sigma
+        sr = estimates[spec.markers[1]].sigma
+        if sl is not None and sr is not None:
+            sigma = max(sigma, math.hypot(sl, sr) / 2.0)
         return RobotPose(spec.name, float(mid[0]), float(mid[1]), float(wrap_angle(theta)),
                          float(mid[2]), seen, sigma)
     mid_ = seen[0]

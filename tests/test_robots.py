@@ -106,3 +106,13 @@ def test_spec_validation_and_normalisation() -> None:
     for kwargs, msg in bad:
         with pytest.raises(ValueError, match=msg):
             RobotSpec(**kwargs)
+
+
+def test_pair_sigma_propagates_marker_sigmas_when_larger_than_consistency() -> None:
+    # Markers exactly 0.10 m apart (consistency 0) with 3 mm and 4 mm sigmas:
+    # the midpoint's sigma is hypot(3, 4) / 2 = 2.5 mm.
+    est = {40: me(40, 0.0, 0.05, 0.2, sigma=0.003), 41: me(41, 0.0, -0.05, 0.2, sigma=0.004)}
+    assert robot_pose(AMR1, est).sigma == pytest.approx(0.0025)
+    # 0.12 m apart: the 20 mm inconsistency dominates.
+    est = {40: me(40, 0.0, 0.06, 0.2, sigma=0.003), 41: me(41, 0.0, -0.06, 0.2, sigma=0.004)}
+    assert robot_pose(AMR1, est).sigma == pytest.approx(0.02)
