@@ -10,7 +10,6 @@ estimate of its frames, so the results do not depend on the number of jobs.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Collection, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -259,7 +258,3 @@ def run_simulation(config: ExperimentConfig,
         markers=markers, truth=info["truth"], samples=samples, frames=config.samples,
         reference_length=info["reference_length"], failures=failures, rejected=rejected,
         settings=settings, heights=heights)
-
-
-def fmt_mm(x: float) -> str:
-    return "n/a" if not math.isfinite(x) else f"{x * 1e3:.2f}"
