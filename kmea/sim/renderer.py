@@ -103,8 +103,6 @@ class _Quad:
     nc: float = 0.0
     exc: float = 0.0
     eyc: float = 0.0
-    exk: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    eyk: np.ndarray = field(default_factory=lambda: np.zeros(3))
     bbox: tuple[float, float, float, float] | None = None
     _n: tuple[float, float, float] = (0.0, 0.0, 0.0)
     _ex: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -123,7 +121,6 @@ class _Quad:
                   self.two_sided, self.decal, self.occludes)
         q.n = np.cross(ex, ey)
         q.nc = float(q.n @ c)
-        q.exk, q.eyk = ex, ey
         q.exc, q.eyc = float(ex @ c), float(ey @ c)
         q._n = tuple(float(v) for v in q.n)
         q._ex = tuple(float(v) for v in ex)
