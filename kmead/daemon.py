@@ -178,14 +178,19 @@ class Daemon:
             raise StartupError(f"key 'log.{'record' if self.csv else 'csv'}': {e}") from None
 
     def _load_map(self) -> MarkerMap:
+        try:
+            return self._configured_map()
+        except MapError as e:
+            raise StartupError(f"map: {e}") from None
+
+    def _configured_map(self) -> MarkerMap:
+        """The map file of the configuration, else the source's map, else the default map
+        (``MapError`` for a bad file)."""
         cfg = self.cfg
         path = cfg["map"]["file"]
         if path:
-            try:
-                return load_map(path, dictionary=cfg["detector"]["dictionary"] or "DICT_5X5_100",
-                                default_length=cfg["detector"]["marker_length"])
-            except MapError as e:
-                raise StartupError(f"map: {e}") from None
+            return load_map(path, dictionary=cfg["detector"]["dictionary"] or "DICT_5X5_100",
+                            default_length=cfg["detector"]["marker_length"])
         m = getattr(self.source, "world_map", None)
         return m if isinstance(m, MarkerMap) else default_map()
 
@@ -295,13 +300,7 @@ class Daemon:
         return v
 
     def reload_map(self) -> MarkerMap:
-        path = self.cfg["map"]["file"]
-        if not path:
-            m = getattr(self.source, "world_map", None)
-            new = m if isinstance(m, MarkerMap) else default_map()
-        else:
-            new = load_map(path, dictionary=self.cfg["detector"]["dictionary"] or "DICT_5X5_100",
-                           default_length=self.cfg["detector"]["marker_length"])
+        new = self._configured_map()
         self.world_map = new
         self.pipeline.set_map(new)
         self.stats = WindowStats(self.cfg["stats"]["window"], new.ref_length())
