@@ -483,7 +483,7 @@ class Daemon:
             err = res.loo.get(mid) if mid in self.world_map else None
             lines.append(row(i, t, alg, "marker", mid, p[0], p[1], p[2], yaw, err, nref))
         for name, fix in res.robots.items():
-            z = self._robot_height(name)
+            z = self.pipeline.robot_heights.get(name)
             lines.append(row(i, t, alg, "robot", name, fix.x, fix.y, z, fix.theta, None, nref))
         for mid, d in sorted(est.rejected.items()):
             me = res.markers.get(mid)
@@ -491,12 +491,6 @@ class Daemon:
             yaw = me[1] if me is not None else None
             lines.append(row(i, t, alg, "rejected", mid, p[0], p[1], p[2], yaw, d, nref))
         return lines
-
-    def _robot_height(self, name: str) -> float | None:
-        for r in self.cfg["robots"]:
-            if r["name"] == name:
-                return r["height"]
-        return None
 
     def _frame_body(self, res: FrameResult) -> dict:
         d = res.diagnostics

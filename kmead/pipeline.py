@@ -148,6 +148,7 @@ class Pipeline:
                                       height=r["height"], length=r["length"],
                                       separation=r["separation"]) for r in self.robots]
         self.robot_lengths = {m: r["length"] for r in self.robots for m in r["markers"]}
+        self.robot_heights = {r["name"]: r["height"] for r in self.robots}
         self.plane_heights = {m: r["height"] for r in self.robots for m in r["markers"]
                               if m not in self.world_map}
 
