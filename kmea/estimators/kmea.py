@@ -40,10 +40,31 @@ from kmea.estimators.common import (
 )
 from kmea.maps import MarkerMap
 
-__all__ = ["KMEA"]
+__all__ = ["KMEA", "kmea_align"]
 
 # Leave-one-out works on (chunk, N, 3) arrays; this bounds their size for big maps.
 _LOO_CHUNK = 128
+
+
+def kmea_align(cam: np.ndarray, world: np.ndarray, ids: Sequence[int], origin_id: int
+               ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Steps 1-4 of the module docstring: camera positions cam (N, 3) onto map positions
+    world (N, 3), row i being marker ``ids[i]``. Returns (scale, R (3, 3), t (3,)) with
+    ``world = scale R cam + t``; the references' centroid stands in for ``origin_id`` when it
+    is not among ``ids``.
+    """
+    ids = list(ids)
+    if origin_id in ids:
+        o = ids.index(origin_id)
+        c0, w0 = cam[o], world[o]
+    else:
+        c0, w0 = cam.mean(axis=0), world.mean(axis=0)
+    scale = float(np.linalg.norm(world - w0, axis=1).mean()
+                  / np.linalg.norm(cam - c0, axis=1).mean())
+    cam_s = scale * cam
+    cs, ws = cam_s.mean(axis=0), world.mean(axis=0)
+    R = kabsch(cam_s - cs, world - ws)
+    return scale, R, ws - R @ cs
 
 
 class KMEA:
@@ -80,21 +101,8 @@ class KMEA:
         problem = reference_problem(world, refs.cam)
         if problem:
             return Estimate.failed(self.name, problem)
-        cam = refs.cam
-        o = refs.index(world_map.origin_id)
-        if o is not None:
-            scale_from = "origin"
-            dm = np.linalg.norm(world - world[o], axis=1).mean()
-            dc = np.linalg.norm(cam - cam[o], axis=1).mean()
-        else:
-            scale_from = "centroid"
-            dm = np.linalg.norm(world - world.mean(axis=0), axis=1).mean()
-            dc = np.linalg.norm(cam - cam.mean(axis=0), axis=1).mean()
-        scale = dm / dc
-        cam_s = scale * cam
-        cs, ws = cam_s.mean(axis=0), world.mean(axis=0)
-        R = kabsch(cam_s - cs, world - ws)
-        t = ws - R @ cs
+        scale, R, t = kmea_align(refs.cam, world, refs.ids, world_map.origin_id)
+        scale_from = "origin" if world_map.origin_id in refs.ids else "centroid"
         return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights,
                                info={"scale_from": scale_from})
 

@@ -46,11 +46,10 @@ from kmea.estimators.base import (
 from kmea.estimators.common import (
     References,
     finish_estimate,
-    kabsch,
     reference_problem,
     select_references,
 )
-from kmea.estimators.kmea import KMEA
+from kmea.estimators.kmea import KMEA, kmea_align
 from kmea.maps import MarkerMap
 
 __all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "umeyama_batch"]
@@ -86,27 +85,6 @@ def umeyama_batch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
     s = (S[:, 0] + S[:, 1] + d * S[:, 2]) / np.maximum(var_p, 1e-300)
     t = mq - s[:, None] * (R @ mp[:, :, None])[:, :, 0]
     return s, R, t
-
-
-def kmea_align(P: np.ndarray, Q: np.ndarray, ids: Sequence[int], origin_id: int
-               ) -> tuple[float, np.ndarray, np.ndarray]:
-    """The paper's KMEA alignment of camera positions P (N, 3) onto map positions Q (N, 3).
-
-    The same steps as :class:`kmea.estimators.kmea.KMEA`: scale = mean distance of the
-    references to the origin marker in the map over the same mean in the camera frame (the
-    reference centroid when the origin is not among ``ids``), then Kabsch on the scaled
-    camera positions. Returns (s, R, t) with ``map = s R cam + t``.
-    """
-    ids = list(ids)
-    if origin_id in ids:
-        k = ids.index(origin_id)
-        p0, q0 = P[k], Q[k]
-    else:
-        p0, q0 = P.mean(axis=0), Q.mean(axis=0)
-    s = float(np.linalg.norm(Q - q0, axis=1).mean() / np.linalg.norm(P - p0, axis=1).mean())
-    cs, cq = s * P.mean(axis=0), Q.mean(axis=0)
-    R = kabsch(s * P - cs, Q - cq)
-    return s, R, cq - R @ cs
 
 
 class KMEARobust:
