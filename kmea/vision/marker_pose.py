@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.camera_np import distort
 from kmea.maps import MarkerMap
 from kmea.transforms import marker_corners_local
 from kmea.vision.camera import CameraModel
@@ -425,15 +426,9 @@ def _reproj_rms(R: np.ndarray, t: np.ndarray, obj: np.ndarray, corners: np.ndarr
     k[:D.size] = D[:12]
     X = np.einsum("nkij,npj->nkpi", R[..., :2], obj) + t[:, :, None, :]
     z = np.where(X[..., 2] != 0, 1.0 / X[..., 2], 1.0)
-    x, y = X[..., 0] * z, X[..., 1] * z
-    r2 = x * x + y * y
-    r4, r6 = r2 * r2, r2 * r2 * r2
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = k
-    cdist = 1 + k1 * r2 + k2 * r4 + k3 * r6
-    icdist2 = 1.0 / (1 + k4 * r2 + k5 * r4 + k6 * r6)
-    a1, a2, a3 = 2 * x * y, r2 + 2 * x * x, r2 + 2 * y * y
-    xd = x * cdist * icdist2 + p1 * a1 + p2 * a2 + s1 * r2 + s2 * r4
-    yd = y * cdist * icdist2 + p1 * a3 + p2 * a1 + s3 * r2 + s4 * r4
+    xy = X[..., :2] * z[..., None]
+    xyd = distort(xy.reshape(-1, 2), k).reshape(xy.shape)
+    xd, yd = xyd[..., 0], xyd[..., 1]
     u = xd * K[0, 0] + yd * K[0, 1] + K[0, 2]
     v = yd * K[1, 1] + K[1, 2]
     du, dv = u - corners[:, None, :, 0], v - corners[:, None, :, 1]
