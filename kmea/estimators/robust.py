@@ -50,41 +50,13 @@ from kmea.estimators.common import (
     select_references,
 )
 from kmea.estimators.kmea import KMEA, kmea_align
+from kmea.estimators.umeyama import umeyama_batch
 from kmea.maps import MarkerMap
 
 __all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "umeyama_batch"]
 
 # Relative size below which 3 points count as collinear (area / longest side^2).
 _COLLINEAR = 1e-6
-
-
-def umeyama_batch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted least-squares similarities ``Q ~ s R P + t`` for a batch of point sets.
-
-    P, Q: (M, K, 3); w: (M, K) non-negative weights or None. Returns s (M,), R (M, 3, 3),
-    t (M, 3). Degenerate sets give whatever the SVD gives; callers check collinearity.
-    """
-    P = np.asarray(P, dtype=float)
-    Q = np.asarray(Q, dtype=float)
-    if w is None:
-        w = np.ones(P.shape[:2])
-    w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    wc = w[:, :, None]
-    mp = (wc * P).sum(axis=1)
-    mq = (wc * Q).sum(axis=1)
-    Pc = P - mp[:, None, :]
-    Qc = Q - mq[:, None, :]
-    C = np.swapaxes(wc * Qc, 1, 2) @ Pc  # (M, 3, 3) cross-covariance, map x camera
-    U, S, Vt = np.linalg.svd(C)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d[d == 0] = 1.0
-    U[:, :, 2] *= d[:, None]
-    R = U @ Vt
-    var_p = (wc * Pc * Pc).sum(axis=(1, 2))
-    s = (S[:, 0] + S[:, 1] + d * S[:, 2]) / np.maximum(var_p, 1e-300)
-    t = mq - s[:, None] * (R @ mp[:, :, None])[:, :, 0]
-    return s, R, t
 
 
 class KMEARobust:

@@ -21,22 +21,42 @@ from kmea.estimators.base import (
 from kmea.estimators.common import finish_estimate, reference_problem, select_references
 from kmea.maps import MarkerMap
 
-__all__ = ["Umeyama", "umeyama"]
+__all__ = ["Umeyama", "umeyama", "umeyama_batch"]
 
 
 def umeyama(cam: np.ndarray, world: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """(scale, R (3, 3), t (3,)) of the least-squares similarity cam -> world, (N, 3) each."""
-    mc, mw = cam.mean(axis=0), world.mean(axis=0)
-    C, Wd = cam - mc, world - mw
-    sigma = Wd.T @ C / len(cam)
-    U, D, Vt = np.linalg.svd(sigma)
-    S = np.ones(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
-        S[2] = -1.0
-    R = (U * S) @ Vt
-    var_c = (C**2).sum() / len(cam)
-    scale = float((D * S).sum() / var_c)
-    return scale, R, mw - scale * (R @ mc)
+    s, R, t = umeyama_batch(cam[None], world[None])
+    return float(s[0]), R[0], t[0]
+
+
+def umeyama_batch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted least-squares similarities ``Q ~ s R P + t`` for a batch of point sets.
+
+    P, Q: (M, K, 3); w: (M, K) non-negative weights or None. Returns s (M,), R (M, 3, 3),
+    t (M, 3). Degenerate sets give whatever the SVD gives; callers check collinearity.
+    """
+    P = np.asarray(P, dtype=float)
+    Q = np.asarray(Q, dtype=float)
+    if w is None:
+        w = np.ones(P.shape[:2])
+    w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    wc = w[:, :, None]
+    mp = (wc * P).sum(axis=1)
+    mq = (wc * Q).sum(axis=1)
+    Pc = P - mp[:, None, :]
+    Qc = Q - mq[:, None, :]
+    C = np.swapaxes(wc * Qc, 1, 2) @ Pc  # (M, 3, 3) cross-covariance, map x camera
+    U, S, Vt = np.linalg.svd(C)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d[d == 0] = 1.0
+    U[:, :, 2] *= d[:, None]
+    R = U @ Vt
+    var_p = (wc * Pc * Pc).sum(axis=(1, 2))
+    s = (S[:, 0] + S[:, 1] + d * S[:, 2]) / np.maximum(var_p, 1e-300)
+    t = mq - s[:, None] * (R @ mp[:, :, None])[:, :, 0]
+    return s, R, t
 
 
 class Umeyama:
