@@ -24,7 +24,7 @@ import numpy as np
 from kmea.maps import Marker
 from kmea.sim import lens
 from kmea.sim.scene import PALETTE, Occluder, Scene, SimRobot, pose_matrix
-from kmea.transforms import rot_z
+from kmea.transforms import rot_z, yaw_of
 from kmea.vision.dictionary import get_dictionary
 from kmea.vision.sources import Frame
 
@@ -346,7 +346,7 @@ class Renderer:
                 wall.append(m)
             elif sc.supports and mid in sc.overrides and m.position[2] > 0.005:
                 side = m.length * 9 / 7 + 0.03  # a 1.5 cm rim around the paper
-                yaw = math.atan2(m.rotation[1, 0], m.rotation[0, 0])
+                yaw = yaw_of(m.rotation)
                 quads += _box_quads((m.position[0], m.position[1]), yaw, side, side, 0.0,
                                     m.position[2], PALETTE["support"], PALETTE["side"])
         quads += self._wall_panels(wall)

@@ -22,7 +22,7 @@ import numpy as np
 
 from kmea.maps import Marker, MarkerMap
 from kmea.sim.motion import CrossingPath, Path, Stationary
-from kmea.transforms import check_rotation, euler_zyx_fixed_deg, rot_z
+from kmea.transforms import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
 from kmea.vision.camera import CameraModel
 
 __all__ = [
@@ -211,7 +211,7 @@ class Occluder:
                 raise ValueError(f"Occluder.covering: marker {mid} is not in the map")
             m = world_map[mid]
             side = m.length * 9 / 7 + 2 * margin
-            yaw = math.atan2(m.rotation[1, 0], m.rotation[0, 0])
+            yaw = yaw_of(m.rotation)
             out.append(cls((side, side), (m.position[2], m.position[2] + height),
                            Stationary(m.position[0], m.position[1], yaw),
                            name=f"sheet over {mid}"))
