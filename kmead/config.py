@@ -28,6 +28,7 @@ __all__ = [
     "Config",
     "ConfigError",
     "default_text",
+    "is_live",
     "load_config",
     "parse_set",
     "validate_value",
@@ -198,6 +199,14 @@ LIVE_KEYS = {
     "stats.displaced_threshold", "stats.displaced_frames", "log.level",
 }
 LIVE_SECTIONS = {"detector"}
+# Keys of a live section that still need a restart (the detection threads start once).
+RESTART_KEYS = {"detector.workers"}
+
+
+def is_live(key: str) -> bool:
+    """True when a live ``set`` request may change ``key``."""
+    return key not in RESTART_KEYS and (key in LIVE_KEYS
+                                        or key.partition(".")[0] in LIVE_SECTIONS)
 
 _UDP_RE = re.compile(r"^udp:([^:]+):(\d{1,5})$")
 

@@ -25,7 +25,7 @@ from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_
 from kmea.vision.sources import FrameSource, SourceError, open_source
 from kmead import protocol as P
 from kmead.capture import Capture, CaptureEnded
-from kmead.config import LIVE_KEYS, LIVE_SECTIONS, Config, ConfigError, save_overlay
+from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.csvlog import CsvLog, row
 from kmead.displacement import DisplacementMonitor
 from kmead.pipeline import FrameInput, FrameResult, Pipeline
@@ -266,7 +266,7 @@ class Daemon:
     def apply_setting(self, key: str, value: Any) -> Any:
         """Validate and apply one key live (``ConfigError``/``ValueError`` if not allowed)."""
         section = key.partition(".")[0]
-        if (key not in LIVE_KEYS and section not in LIVE_SECTIONS) or key == "detector.workers":
+        if not is_live(key):
             raise ConfigError(f"control: key {key!r} cannot change while running "
                               f"(live keys: {', '.join(sorted(LIVE_KEYS))}, detector.*); "
                               "save it and restart kmead")
