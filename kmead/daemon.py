@@ -507,10 +507,11 @@ class Daemon:
     def _markers_body(self, res: FrameResult) -> dict:
         est = res.estimate
         obs = {o.id: o for o in res.observations}
-        ids = sorted(set(self.world_map.ids) | set(int(i) for i in res.ids))
+        map_markers = self.world_map.markers
+        ids = sorted(map_markers.keys() | {int(i) for i in res.ids})
         out = []
         for mid in ids:
-            mk = self.world_map.markers.get(mid)
+            mk = map_markers.get(mid)
             me = res.markers.get(mid)
             o = obs.get(mid)
             p = me[0] if me is not None else None
