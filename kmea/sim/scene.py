@@ -149,16 +149,6 @@ class SimRobot:
         d = self.separation / 2.0
         return {self.markers[0]: np.array([0.0, d]), self.markers[1]: np.array([0.0, -d])}
 
-    def marker_poses(self, pose: tuple[float, float, float]) -> dict[int, np.ndarray]:
-        """Marker id -> (4, 4) marker2world for the robot at ``pose`` (x, y, theta)."""
-        x, y, th = pose
-        R = rot_z(th)
-        out = {}
-        for mid, (a, b) in self.mount().items():
-            p = np.array([x, y, self.height]) + R @ np.array([a, b, 0.0])
-            out[mid] = pose_matrix(R, p)
-        return out
-
 
 @dataclass
 class Occluder:
@@ -396,20 +386,6 @@ class Scene:
 
         return [RobotSpec(r.name, tuple(r.markers), r.height, r.length, r.separation)
                 for r in self.robots]
-
-    def marker_length(self, mid: int) -> float:
-        for r in self.robots:
-            if mid in r.markers:
-                return r.length
-        return self.static_markers()[mid].length
-
-    def marker_poses(self, t: float) -> dict[int, np.ndarray]:
-        """Every marker's true (4, 4) marker2world at ``t`` seconds (map, extra, robots)."""
-        out = {mid: pose_matrix(m.rotation, m.position) for mid, m in self.static_markers().items()}
-        poses = self.robot_poses(t)
-        for r in self.robots:
-            out.update(self.robot_marker_poses(r, poses[r.name]))
-        return out
 
     def floor_rect(self) -> tuple[float, float, float, float]:
         """(xmin, xmax, ymin, ymax) of the printed floor canvas, metres."""
