@@ -99,11 +99,7 @@ def write_plots(result: RunResult, out_dir: str | Path, scores: Scores | None = 
         ax.legend(fontsize="small", ncols=min(len(algs), 5), loc="upper center",
                   bbox_to_anchor=(0.5, -0.2), frameon=False)
         ax.grid(axis="y", alpha=0.3)
-        fig.tight_layout()
-        p = out / f"{stem}-bars-{fieldname}.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
+        paths.append(_save(plt, fig, out / f"{stem}-bars-{fieldname}.png"))
 
     # All estimates against the truth (metres on the floor).
     fig, ax = plt.subplots(figsize=(7.5, 5.6))
@@ -123,11 +119,7 @@ def write_plots(result: RunResult, out_dir: str | Path, scores: Scores | None = 
     ax.set_title(f"Part {result.part}: estimates against the truth")
     ax.legend(fontsize="small", markerscale=3)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    p = out / f"{stem}-scatter.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save(plt, fig, out / f"{stem}-scatter.png"))
 
     # One marker, zoomed, with 3-sigma ellipses; millimetres relative to the truth.
     m = pick_zoom_marker(result, scores) if zoom_marker is None else zoom_marker
@@ -149,12 +141,15 @@ def write_plots(result: RunResult, out_dir: str | Path, scores: Scores | None = 
     ax.set_title(f"Part {result.part}: marker {m}, 3-sigma ellipses")
     ax.legend(fontsize="small", markerscale=2)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    p = out / f"{stem}-zoom-{m}.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save(plt, fig, out / f"{stem}-zoom-{m}.png"))
     return paths
+
+
+def _save(plt, fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def _finite(scores: Scores, a: str, markers, fieldname: str) -> list[float]:
