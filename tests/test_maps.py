@@ -215,16 +215,19 @@ BAD_CSV = [
 ]
 
 
+def _assert_one_line_error(path: Path, text: str, message: str) -> None:
+    path.write_text(text)
+    with pytest.raises(MapError) as ei:
+        load_map(path)
+    msg = str(ei.value)
+    assert msg == f"{path}: {message}"
+    assert "\n" not in msg
+
+
 @pytest.mark.parametrize(("text", "message"), BAD_CSV)
 def test_bad_csv_gives_one_line_naming_file_and_line(tmp_path: Path, text: str,
                                                      message: str) -> None:
-    p = tmp_path / "bad.csv"
-    p.write_text(text)
-    with pytest.raises(MapError) as ei:
-        load_map(p)
-    msg = str(ei.value)
-    assert msg == f"{p}: {message}"
-    assert "\n" not in msg
+    _assert_one_line_error(tmp_path / "bad.csv", text, message)
 
 
 HEAD = "[[markers]]\nid = 1\nx = 0\ny = 0\nz = 0\n"
@@ -256,13 +259,7 @@ BAD_TOML = [
 @pytest.mark.parametrize(("text", "message"), BAD_TOML)
 def test_bad_toml_gives_one_line_naming_file_and_key(tmp_path: Path, text: str,
                                                      message: str) -> None:
-    p = tmp_path / "bad.toml"
-    p.write_text(text)
-    with pytest.raises(MapError) as ei:
-        load_map(p)
-    msg = str(ei.value)
-    assert msg == f"{p}: {message}"
-    assert "\n" not in msg
+    _assert_one_line_error(tmp_path / "bad.toml", text, message)
 
 
 def test_unreadable_and_unknown_files(tmp_path: Path) -> None:
