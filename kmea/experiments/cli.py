@@ -15,8 +15,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from kmea.experiments.parts import PARTS, get_part
+
+if TYPE_CHECKING:
+    from kmea.experiments.progress import Progress
 
 DEFAULT_ALGORITHMS = ("kmea", "lmea", "umeyama", "kmea-robust", "corner-pnp")
 
@@ -141,17 +145,11 @@ def run(args: argparse.Namespace) -> int:
             print("kmea experiment: PART is ignored with --replay", file=sys.stderr)
         bar = Progress(min(args.samples, _count_frames(args.replay)), "replay",
                        enabled=not args.quiet)
-        try:
-            result = replay(args.replay, algorithms, baseline=args.baseline, markers=markers,
-                            max_frames=args.samples, progress=bar.update)
-        except ValueError as e:
-            print(f"kmea experiment: {e}", file=sys.stderr)
-            return 2
-        finally:
-            bar.close()
-        paths = write_outputs(result, out, plots=not args.no_plots, quiet=args.quiet)
-        _report(result, paths)
-        return 0
+        return _run_and_write(
+            lambda progress: replay(args.replay, algorithms, baseline=args.baseline,
+                                    markers=markers, max_frames=args.samples,
+                                    progress=progress),
+            bar, out, args)
 
     if args.part is None:
         raise SystemExit("kmea experiment: give a PART (I, II, III, IV or all) or --replay FILE")
@@ -176,15 +174,24 @@ def run(args: argparse.Namespace) -> int:
                                known_heights=args.known_heights, floor_only=args.floor_only,
                                jobs=max(1, args.jobs))
         bar = Progress(cfg.samples, f"Part {spec.name}", enabled=not args.quiet)
-        try:
-            result = run_simulation(cfg, progress=bar.update)
-        except ValueError as e:
-            print(f"kmea experiment: {e}", file=sys.stderr)
-            return 2
-        finally:
-            bar.close()
-        paths = write_outputs(result, out, plots=not args.no_plots, quiet=args.quiet)
-        _report(result, paths)
+        rc = _run_and_write(lambda progress, cfg=cfg: run_simulation(cfg, progress=progress),
+                            bar, out, args)
+        if rc:
+            return rc
+    return 0
+
+
+def _run_and_write(run, bar: Progress, out: Path, args: argparse.Namespace) -> int:
+    """Run one experiment with its progress bar, then write and report its outputs."""
+    try:
+        result = run(bar.update)
+    except ValueError as e:
+        print(f"kmea experiment: {e}", file=sys.stderr)
+        return 2
+    finally:
+        bar.close()
+    paths = write_outputs(result, out, plots=not args.no_plots, quiet=args.quiet)
+    _report(result, paths)
     return 0
 
 
