@@ -17,8 +17,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
+from kmea.jsonsafe import to_jsonable
 from kmea.maps import MapError, MarkerMap, default_map, load_map
 from kmea.metrics import WindowStats
 from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
@@ -421,7 +420,7 @@ class Daemon:
                          "cam2world": getattr(truth, "cam2world", None)}
             self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
                                       res.observations, res.diagnostics,
-                                      _truth_json(truth) if truth is not None else None)
+                                      to_jsonable(truth) if truth is not None else None)
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, self._markers_body(res))
         self.publish(P.TOPIC_ROBOTS, self._robots_body(res))
@@ -681,23 +680,3 @@ class Daemon:
 
         return format_summary(self)
 
-
-def _truth_json(truth: Any) -> Any:
-    """The simulator's ground truth as JSON-able data (dataclasses and arrays flattened)."""
-    import dataclasses
-
-    if dataclasses.is_dataclass(truth) and not isinstance(truth, type):
-        return {f.name: _truth_json(getattr(truth, f.name)) for f in dataclasses.fields(truth)}
-    if isinstance(truth, dict):
-        return {str(k): _truth_json(v) for k, v in truth.items()}
-    if isinstance(truth, (list, tuple)):
-        return [_truth_json(v) for v in truth]
-    if isinstance(truth, np.ndarray):
-        return truth.tolist()
-    if isinstance(truth, (np.floating, np.integer)):
-        return truth.item()
-    if isinstance(truth, float) and not math.isfinite(truth):
-        return None
-    if isinstance(truth, (str, int, float, bool)) or truth is None:
-        return truth
-    return str(truth)

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from kmea.estimators.base import MarkerObservation
+from kmea.jsonsafe import to_jsonable
 from kmea.maps import Marker, MarkerMap
 from kmea.vision.camera import CameraModel
 from kmea.vision.sources import Frame, FrameSource, SourceError, register_source
@@ -43,9 +44,7 @@ def _num(v: float) -> float | None:
 
 
 def _arr(a: Any) -> Any:
-    if a is None:
-        return None
-    return [_num(x) for x in np.asarray(a, dtype=float).reshape(-1)]
+    return None if a is None else to_jsonable(np.asarray(a, dtype=float).reshape(-1))
 
 
 def _unnum(v: Any) -> float:
@@ -102,12 +101,6 @@ def obs_from_json(d: dict) -> MarkerObservation:
         suspect=bool(d.get("suspect", False)))
 
 
-def _jsonable(obj: Any) -> Any:
-    from kmead.protocol import _clean
-
-    return _clean(obj)
-
-
 class Recorder:
     """Writes a recording; one ``write`` per frame, flushed (whole lines survive a kill)."""
 
@@ -141,9 +134,9 @@ class Recorder:
             "ids": [int(i) for i in np.asarray(ids).reshape(-1)],
             "corners": [_arr(c) for c in np.asarray(corners, dtype=float).reshape(-1, 4, 2)],
             "markers": [obs_to_json(o) for o in observations],
-            "diag": _jsonable(diag)}
+            "diag": to_jsonable(diag)}
         if truth is not None:
-            line["truth"] = _jsonable(truth)
+            line["truth"] = to_jsonable(truth)
         self._line(line)
         self.frames += 1
 
