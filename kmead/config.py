@@ -101,28 +101,16 @@ def _choice(*options: str) -> Check:
     return check
 
 
-_SOURCE_RE = re.compile(r"^(sim(:.+)?|picamera(:.*)?|camera:\d+|video:.+|images:.+|replay:.+)$")
-
-
 def _source_spec(v: Any, where: str) -> str:
+    from kmea.vision.sources import SourceError, parse_source_spec
+
     s = _str(v, where)
-    if not _SOURCE_RE.match(s):
-        # Sources registered by plugins (kmea.vision.sources.register_source) are accepted too.
-        prefix = s.split(":", 1)[0]
-        if not _registered_source(prefix):
-            raise ConfigError(
-                f"{where}: unknown source {s!r}; use sim, sim:SCENE, picamera, camera:INDEX, "
-                "video:PATH, images:DIR or replay:FILE")
-    return s
-
-
-def _registered_source(prefix: str) -> bool:
     try:
-        from kmea.vision import sources
-    except Exception:
-        return False
-    reg = getattr(sources, "_REGISTRY", None) or getattr(sources, "SOURCES", None) or {}
-    return prefix in reg
+        parse_source_spec(s, check=True)
+    except SourceError as e:
+        raise ConfigError(f"{where}: {e}; use sim, sim:SCENE, picamera, camera:INDEX, "
+                          "video:PATH, images:DIR or replay:FILE") from None
+    return s
 
 
 def _algorithm(v: Any, where: str) -> str:
