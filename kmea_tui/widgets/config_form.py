@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from typing import Any
 
 from rich.text import Text
@@ -15,11 +14,6 @@ from textual.widgets import Button, DataTable, Input, Label, Select, Static
 
 from kmea.tomlvalue import parse_toml_value
 from kmea_tui.messages import ControlRequest
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
 
 # Offered when the kmea package (the daemon's estimator registry) is not importable here.
 DEFAULT_ALGORITHMS = ("kmea", "lmea", "umeyama")
@@ -34,7 +28,10 @@ def known_algorithms() -> list[str]:
     return list(available()) or list(DEFAULT_ALGORITHMS)
 
 
-parse_value = parse_toml_value  # one reader of typed-in values: kmea.tomlvalue
+def parse_value(text: str) -> Any:
+    """A typed-in value as TOML (``1.0``, ``true``, ``"DICT_6X6_250"``, ``[1, 2]``);
+    a bare word that is not TOML is taken as a string."""
+    return parse_toml_value(text)  # the one reader, shared with kmead --set
 
 
 def show_value(value: Any) -> str:
