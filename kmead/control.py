@@ -11,15 +11,35 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import zmq
 
 from kmead import protocol as P
 from kmead.config import LIVE_KEYS, ConfigError
 
-if TYPE_CHECKING:
-    from kmead.daemon import Daemon
+
+class Daemon(Protocol):
+    """What the control thread uses of :class:`kmead.daemon.Daemon` (no import: the daemon
+    imports this module, not the other way round)."""
+
+    lock: Any
+    cfg: Any
+    stats: Any
+    last_frame_body: dict
+
+    def publish(self, topic: str, body: dict) -> None: ...
+    def status_body(self) -> dict: ...
+    def stats_body(self) -> dict: ...
+    def tick(self) -> None: ...
+    def event(self, level: str, text: str) -> None: ...
+    def apply_setting(self, key: str, value: Any) -> Any: ...
+    def start_csv(self, path: str) -> Any: ...
+    def stop_csv(self) -> dict: ...
+    def start_recording(self, path: str) -> Any: ...
+    def stop_recording(self) -> dict: ...
+    def reload_map(self) -> Any: ...
+    def save_config(self, path: str | None = None) -> dict: ...
 
 log = logging.getLogger("kmead.control")
 
@@ -133,7 +153,7 @@ class ControlServer:
         d = self.daemon
         with d.lock:
             return {"status": d.status_body(), "frame": d.last_frame_body,
-                    "stats": d._stats_body(d.last_result)}
+                    "stats": d.stats_body()}
 
     def _cmd_get_config(self, req: dict) -> dict:
         d = self.daemon

@@ -15,21 +15,17 @@ from pathlib import Path
 
 import cv2
 
+from kmea.jsonsafe import to_jsonable
 from kmea.sim.renderer import FrameTruth, Renderer
 from kmea.sim.scenes import available_scenes, scene_from_spec
 
 
 def truth_record(index: int, truth: FrameTruth) -> dict:
     """A JSON-ready dict of one frame's truth."""
-    return {
-        "index": index,
-        "t": truth.t,
-        "robots": {k: list(v) for k, v in truth.robots.items()},
-        "visible": sorted(truth.visible),
-        "corners": {str(k): v.tolist() for k, v in sorted(truth.corners.items())},
-        "markers": {str(k): v.tolist() for k, v in sorted(truth.markers.items())},
-        "cam2world": truth.cam2world.tolist(),
-    }
+    return to_jsonable({
+        "index": index, "t": truth.t, "robots": truth.robots, "visible": truth.visible,
+        "corners": dict(sorted(truth.corners.items())),
+        "markers": dict(sorted(truth.markers.items())), "cam2world": truth.cam2world})
 
 
 def main(argv: list[str] | None = None) -> int:

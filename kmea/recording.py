@@ -25,9 +25,10 @@ from typing import Any
 import numpy as np
 
 from kmea.estimators.base import MarkerObservation
+from kmea.jsonsafe import to_jsonable
 from kmea.maps import Marker, MarkerMap
 from kmea.vision.camera import CameraModel
-from kmea.vision.sources import Frame, FrameSource, SourceError, register_source
+from kmea.vision.sources import Frame, FrameSource, SourceError
 
 FORMAT = "kmead-recording"
 VERSION = 1
@@ -43,9 +44,7 @@ def _num(v: float) -> float | None:
 
 
 def _arr(a: Any) -> Any:
-    if a is None:
-        return None
-    return [_num(x) for x in np.asarray(a, dtype=float).reshape(-1)]
+    return None if a is None else to_jsonable(np.asarray(a, dtype=float).reshape(-1))
 
 
 def _unnum(v: Any) -> float:
@@ -102,12 +101,6 @@ def obs_from_json(d: dict) -> MarkerObservation:
         suspect=bool(d.get("suspect", False)))
 
 
-def _jsonable(obj: Any) -> Any:
-    from kmead.protocol import _clean
-
-    return _clean(obj)
-
-
 class Recorder:
     """Writes a recording; one ``write`` per frame, flushed (whole lines survive a kill)."""
 
@@ -141,9 +134,9 @@ class Recorder:
             "ids": [int(i) for i in np.asarray(ids).reshape(-1)],
             "corners": [_arr(c) for c in np.asarray(corners, dtype=float).reshape(-1, 4, 2)],
             "markers": [obs_to_json(o) for o in observations],
-            "diag": _jsonable(diag)}
+            "diag": to_jsonable(diag)}
         if truth is not None:
-            line["truth"] = _jsonable(truth)
+            line["truth"] = to_jsonable(truth)
         self._line(line)
         self.frames += 1
 
@@ -239,7 +232,10 @@ class ReplaySource(FrameSource):
         super().close()
 
 
-def _replay_factory(rest: str, **opts: Any) -> FrameSource:
+def open_replay(rest: str, **opts: Any) -> ReplaySource:
+    """The ``replay:FILE`` source of :func:`kmea.vision.sources.open_source` (no options)."""
+    if opts:
+        raise SourceError(f"replay:{rest}: takes no options (got {', '.join(sorted(opts))})")
     if not rest:
         raise SourceError("replay: expected replay:FILE")
     p = Path(rest)
@@ -247,5 +243,3 @@ def _replay_factory(rest: str, **opts: Any) -> FrameSource:
         raise SourceError(f"replay:{rest}: no such file")
     return ReplaySource(p)
 
-
-register_source("replay", _replay_factory)
