@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kmea.transforms import euler_zyx_fixed_deg, marker_corners_local
+from kmea.geometry import euler_zyx_fixed_deg, marker_corners_local
 
 if sys.version_info >= (3, 11):
     import tomllib

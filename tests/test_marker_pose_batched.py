@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kmea.transforms import marker_corners_local, rot_x, rot_y, rot_z
+from kmea.geometry import marker_corners_local, rot_x, rot_y, rot_z
 from kmea.vision.camera import CameraModel, pi_camera_v2
 from kmea.vision.marker_pose import _ippe_square, _solve_one, estimate_marker_poses
 

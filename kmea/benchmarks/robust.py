@@ -20,10 +20,10 @@ import numpy as np
 
 from kmea.estimators import get
 from kmea.estimators.base import MarkerObservation
-from kmea.estimators.camera_np import dist14, project
 from kmea.estimators.loo import loo_positions
+from kmea.geometry import check_distortion as dist14
+from kmea.geometry import marker_corners_local, project
 from kmea.maps import MarkerMap, default_map
-from kmea.transforms import marker_corners_local
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
 NAMES = ("kmea", "lmea", "umeyama", "kmea-robust", "corner-pnp")

@@ -53,18 +53,21 @@ from kmea.estimators.base import (
     MarkerObservation,
     check_observations,
 )
-from kmea.estimators.camera_np import (
-    dist14,
-    distort,
-    project,
-    so3_exp,
-    so3_exp_batch,
-    undistort,
-)
 from kmea.estimators.common import reference_problem
 from kmea.estimators.robust import KMEARobust, describe_rejected
+from kmea.geometry import (
+    check_distortion,
+    distort,
+    intersect_rays_planes,
+    make_transform,
+    marker_corners_local,
+    project,
+    rotvec_to_matrix,
+    rotvecs_to_matrices,
+    undistort,
+    yaw_of,
+)
 from kmea.maps import MarkerMap
-from kmea.transforms import make_transform, marker_corners_local, yaw_of
 
 __all__ = ["CornerPnP"]
 
@@ -190,7 +193,7 @@ class CornerPnP:
 
     @staticmethod
     def _update(R, t, K, d, delta, refine, K0):
-        R2 = so3_exp(delta[:3]) @ R
+        R2 = rotvec_to_matrix(delta[:3]) @ R
         t2 = t + delta[3:6]
         if not refine:
             return R2, t2, K, d
@@ -273,14 +276,7 @@ class CornerPnP:
         world2cam pose (R, t) meet the planes with normals frames[:, :, 2] through origins
         (N, 3); NaN where the plane is behind the camera or parallel to the ray."""
         ray = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R  # R^T ray, world
-        C = -R.T @ t
-        n = frames[:, :, 2]
-        den = np.einsum("ni,ni->n", n, ray)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = np.einsum("ni,ni->n", n, origins - C) / den
-        P = C + lam[:, None] * ray
-        P[~(lam > 0) | ~np.isfinite(lam)] = np.nan
-        return P
+        return intersect_rays_planes(-R.T @ t, ray, origins, frames[:, :, 2])
 
     @staticmethod
     def _stack_corners(ids, obs) -> np.ndarray:
@@ -343,7 +339,7 @@ class CornerPnP:
                 raise ValueError(f"observation id {i}: corners must be 4 finite (x, y) pixels")
         try:
             K0 = np.asarray(camera.camera_matrix, dtype=float)
-            d0 = dist14(camera.dist_coeffs)
+            d0 = check_distortion(camera.dist_coeffs)
         except ValueError as e:
             return Estimate.failed(self.name, f"camera: {e}")
         P = np.array([obs[i].marker2cam_t for i in refs], dtype=float)
@@ -528,7 +524,7 @@ class CornerPnP:
             deltas = -np.linalg.solve(Hs, gs[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             return {}
-        R = so3_exp_batch(deltas[:, :3]) @ fit.R
+        R = rotvecs_to_matrices(deltas[:, :3]) @ fit.R
         t = fit.t[None] + deltas[:, 3:6]
         pos = {i: k for k, i in enumerate(refs)}
         rows = np.array([np.arange(4 * pos[i], 4 * pos[i] + 4) for i in inliers])  # (n, 4)
@@ -606,10 +602,5 @@ def _batched_plane_points(R: np.ndarray, t: np.ndarray, xy: np.ndarray, frames: 
     4 normalized corners xy (M, 4, 2) and plane (frames (M, 3, 3), origins (M, 3))."""
     rays = np.concatenate([xy, np.ones((*xy.shape[:2], 1))], axis=2) @ R  # R^T ray, world
     C = -np.einsum("mji,mj->mi", R, t)
-    n = frames[:, :, 2]
-    den = np.einsum("mki,mi->mk", rays, n)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = np.einsum("mi,mi->m", n, origins - C)[:, None] / den
-    P = C[:, None, :] + lam[:, :, None] * rays
-    P[~(lam > 0) | ~np.isfinite(lam)] = np.nan
-    return P
+    return intersect_rays_planes(C[:, None, :], rays, origins[:, None, :],
+                                 frames[:, None, :, 2])

@@ -33,11 +33,10 @@ from kmea.estimators.common import (
     COLLINEAR_TOL,
     References,
     finish_estimate,
-    kabsch,
-    kabsch_batch,
     reference_problem,
     select_references,
 )
+from kmea.geometry import kabsch
 from kmea.maps import MarkerMap
 
 __all__ = ["KMEA", "kmea_align"]
@@ -63,7 +62,7 @@ def kmea_align(cam: np.ndarray, world: np.ndarray, ids: Sequence[int], origin_id
                   / np.linalg.norm(cam - c0, axis=1).mean())
     cam_s = scale * cam
     cs, ws = cam_s.mean(axis=0), world.mean(axis=0)
-    R = kabsch(cam_s - cs, world - ws)
+    R = kabsch((cam_s - cs).T @ (world - ws))
     return scale, R, ws - R @ cs
 
 
@@ -175,7 +174,7 @@ def _loo_chunk(ks: np.ndarray, cam: np.ndarray, world: np.ndarray,
         scale = np.where(use, so, scale)
 
     H = np.swapaxes(Cc, 1, 2) @ Wc  # (K, 3, 3); a positive scale does not change Kabsch's R
-    R = kabsch_batch(H)
+    R = kabsch(H)
     t = wa - scale[:, None] * np.einsum("kij,kj->ki", R, ca)
     pos = scale[:, None] * np.einsum("kij,kj->ki", R, cam[ks]) + t
     ok &= np.isfinite(pos).all(axis=1) & np.isfinite(scale) & (scale > 0)

@@ -51,6 +51,7 @@ from kmea.estimators.common import (
 )
 from kmea.estimators.kmea import KMEA, kmea_align
 from kmea.estimators.umeyama import umeyama_batch
+from kmea.geometry import ray_plane_parameter
 from kmea.maps import MarkerMap
 
 __all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "umeyama_batch"]
@@ -276,7 +277,7 @@ def plane_residuals(pred: np.ndarray, C: np.ndarray, Q: np.ndarray,
     den = np.einsum("mni,ni->mn", ray, normals)
     cos = np.abs(den) / np.maximum(np.linalg.norm(ray, axis=2), 1e-300)
     ok = cos >= min_cos
-    lam = np.einsum("mni,ni->mn", Q[None] - C[:, None, :], normals) / np.where(ok, den, 1.0)
+    lam = ray_plane_parameter(C[:, None, :], ray, Q[None], normals[None])
     on_plane = C[:, None, :] + lam[:, :, None] * ray
     return np.where(ok & (lam > 0), np.linalg.norm(on_plane - Q[None], axis=2), raw)
 

@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from kmea.geometry import rot_z, unit_rays_plane_depth, yaw_of
 from kmea.maps import Marker
 from kmea.sim import lens
 from kmea.sim.scene import PALETTE, Occluder, Scene, SimRobot, pose_matrix
-from kmea.transforms import rot_z, yaw_of
 from kmea.vision.dictionary import get_dictionary
 from kmea.vision.sources import Frame
 
@@ -425,12 +425,7 @@ class Renderer:
         self._rect_floor = self.scene.floor_rect()
 
     def _floor(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n0, n1, n2 = (float(v) for v in self._fn)
-        nd = n0 * x + n1 * y + n2
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            t = self._fnc / nd
-        ok = (t > 1e-9) & (nd < 0)
-        t[~ok] = np.inf
+        t, ok = unit_rays_plane_depth(x, y, self._fn, self._fnc)
         R = [[float(v) for v in row] for row in self._c2w]
         o = [float(v) for v in self._o]
         tt = np.where(ok, t, 0.0).astype(t.dtype)

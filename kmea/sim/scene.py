@@ -3,7 +3,7 @@
 Frames: world x right / y up / z up from the floor, metres; the camera frame is OpenCV's
 (x right, y down, z forward); ``cam2world`` is a (4, 4) rigid transform. Marker poses are
 (4, 4) ``marker2world`` transforms; a marker's local corners are
-:func:`kmea.transforms.marker_corners_local` (TL, TR, BR, BL).
+:func:`kmea.geometry.marker_corners_local` (TL, TR, BR, BL).
 
 Truth versus map: ``world_map`` is the surveyed (nominal) map. ``overrides`` move map markers
 and the effective map follows them (:meth:`Scene.effective_map`, e.g. markers raised on a
@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from kmea.geometry import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
 from kmea.maps import Marker, MarkerMap
 from kmea.sim.motion import CrossingPath, Path, Stationary
-from kmea.transforms import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
 from kmea.vision.camera import CameraModel
 
 __all__ = [

@@ -40,9 +40,14 @@ import cv2
 import numpy as np
 
 from kmea.estimators.base import CameraIntrinsics, MarkerObservation
-from kmea.estimators.camera_np import distort
+from kmea.geometry import (
+    distort,
+    marker_corners_local,
+    matrices_to_rotvecs,
+    project_to_so3,
+    rotvecs_to_matrices,
+)
 from kmea.maps import MarkerMap
-from kmea.transforms import marker_corners_local
 from kmea.vision.camera import CameraModel
 
 __all__ = ["DisambiguationSettings", "PoseDiagnostics", "QualitySettings", "estimate_marker_poses"]
@@ -184,15 +189,6 @@ def _as_inputs(ids: object, corners: object) -> tuple[np.ndarray, np.ndarray]:
     return id_arr, c_arr
 
 
-def _project_rotations(M: np.ndarray) -> np.ndarray:
-    """Nearest rotations (chordal mean) of a batch of (…, 3, 3) matrix sums."""
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt))
-    U = U.copy()
-    U[..., :, 2] *= d[..., None]
-    return U @ Vt
-
-
 def _exact_corners(corners: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
     """(N,) bool: the corners are those of a square at some pose to 1e-3 px, i.e. noise-free.
 
@@ -219,7 +215,7 @@ def _exact_corners(corners: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndar
     lam = 2.0 / (np.linalg.norm(H[:, :, 0], axis=1) + np.linalg.norm(H[:, :, 1], axis=1))
     lam = lam * np.sign(H[:, 2, 2])[:, None].reshape(-1)  # t_z > 0
     r1, r2, t = (H[:, :, k] * lam[:, None] for k in range(3))
-    R = _project_rotations(np.stack([r1, r2, np.cross(r1, r2)], axis=2))
+    R = project_to_so3(np.stack([r1, r2, np.cross(r1, r2)], axis=2))
     p = np.einsum("nij,kj->nki", R[:, :, :2], obj) + t[:, None, :]
     proj = p[..., :2] / p[..., 2:3]
     err_px = np.sqrt(((proj - u) ** 2).sum(axis=2).mean(axis=1)) * K[0, 0]
@@ -253,47 +249,6 @@ def _solve_one(obj: np.ndarray, c: np.ndarray, K: np.ndarray, D: np.ndarray, exa
     if e2[1] < e2[0]:  # OpenCV sorts them; do not rely on it
         R2, t2, e2 = R2[::-1], t2[::-1], e2[::-1]
     return np.array(R2), np.array(t2), np.array(e2)
-
-
-def _rodrigues(rv: np.ndarray) -> np.ndarray:
-    """(N, 3) rotation vectors -> (N, 3, 3) matrices, OpenCV's ``Rodrigues`` formula."""
-    theta = np.sqrt((rv * rv).sum(axis=1))
-    # libm's cos/sin as OpenCV (numpy's SIMD ones differ in the last bit).
-    tl = theta.tolist()
-    c = np.array([math.cos(a) for a in tl])
-    s = np.array([math.sin(a) for a in tl])
-    small = theta < np.finfo(float).eps
-    itheta = np.where(small, 0.0, 1.0 / np.where(small, 1.0, theta))
-    r = rv * itheta[:, None]
-    c1 = 1.0 - c
-    rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
-    R = c1[:, None, None] * (r[:, :, None] * r[:, None, :])
-    R[:, 0, 0] += c
-    R[:, 1, 1] += c
-    R[:, 2, 2] += c
-    R[:, 0, 1] -= s * rz
-    R[:, 0, 2] += s * ry
-    R[:, 1, 0] += s * rz
-    R[:, 1, 2] -= s * rx
-    R[:, 2, 0] -= s * ry
-    R[:, 2, 1] += s * rx
-    R[small] = np.eye(3)
-    return R
-
-
-def _rot2vec(R: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) -> (N, 3) rotation vectors, as IPPE's ``rot2vec`` (not cv2.Rodrigues)."""
-    tr = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
-    # libm's acos/sin as OpenCV: near a half turn the result is ill-conditioned.
-    w = np.array([math.acos(a) if -1.0 <= a <= 1.0 else math.nan
-                  for a in ((tr - 1.0) / 2.0).tolist()])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = 1.0 / (2.0 * np.array([math.sin(a) for a in w.tolist()])) * w
-    c = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]],
-                 axis=1)
-    rv = d[:, None] * c
-    rv[w < np.finfo(np.float32).eps] = 0.0
-    return rv
 
 
 def _ippe_square(corners: np.ndarray, half: np.ndarray, K: np.ndarray, D: np.ndarray
@@ -409,7 +364,7 @@ def _ippe_square(corners: np.ndarray, half: np.ndarray, K: np.ndarray, D: np.nda
                       di * (S10[:, None] * T0 + S11[:, None] * T1 + S12[:, None] * T2),
                       di * (S20[:, None] * T0 + S21[:, None] * T1 + S22[:, None] * T2)], -1)
         # OpenCV hands out rotation vectors: go through them as it does.
-        R = _rodrigues(_rot2vec(R.reshape(-1, 3, 3))).reshape(N, 2, 3, 3)
+        R = rotvecs_to_matrices(matrices_to_rotvecs(R.reshape(-1, 3, 3))).reshape(N, 2, 3, 3)
         err = _reproj_rms(R, t, obj, corners, K, D)
     swap = err[:, 1] < err[:, 0]
     R[swap] = R[swap][:, ::-1]
@@ -680,11 +635,11 @@ def _expected_normals(
             chosen = cand[np.arange(len(in_map)), pick]            # (M, 3, 3)
             total = chosen[inlier].sum(axis=0)
             n_in = int(inlier.sum())
-            mean = _project_rotations(total)
+            mean = project_to_so3(total)
             # A single voter is trusted only if its own errors were decisive.
             decisive = confident[in_map] & (pick == 0) & inlier
             # Leave-one-out consensus for each inlier map marker.
-            loo_all = _project_rotations(total[None] - chosen)    # one batched SVD
+            loo_all = project_to_so3(total[None] - chosen)    # one batched SVD
             loo = {}
             for j, i in enumerate(in_map):
                 if inlier[j]:
@@ -757,7 +712,7 @@ def _vote(cands: np.ndarray, facing: np.ndarray, confident: np.ndarray, kernel: 
     for _ in range(2):
         sel = cands.reshape(M, 2, *cands.shape[1:])[np.arange(M), pick][inlier]
         if sel.ndim == 3:
-            centre = _project_rotations(sel.sum(axis=0))[None]
+            centre = project_to_so3(sel.sum(axis=0))[None]
         else:
             v = sel.sum(axis=0)
             centre = (v / np.linalg.norm(v))[None]
