@@ -49,6 +49,7 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimatorBase,
     MarkerEstimate,
     MarkerObservation,
     check_observations,
@@ -63,7 +64,6 @@ from kmea.geometry import (
     marker_corners_local,
     project,
     rotvec_to_matrix,
-    rotvecs_to_matrices,
     undistort,
     yaw_of,
 )
@@ -106,7 +106,7 @@ def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mappi
     return out
 
 
-class CornerPnP:
+class CornerPnP(EstimatorBase):
     """All-corner camera pose + ray-plane marker estimator (see the module docstring).
 
     Options:
@@ -144,7 +144,6 @@ class CornerPnP:
         # The start only has to find a consensus; the corner stage re-checks every reference.
         self._start = KMEARobust(threshold=start_threshold, trials=50,
                                  min_references=self.min_references)
-        self._cache: tuple | None = None
 
     # ------------------------------------------------------------------ LM
     def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -295,12 +294,7 @@ class CornerPnP:
 
     # ------------------------------------------------------------------ estimate
     def _solve(self, observations, world_map, exclude, camera):
-        """Shared part of estimate and estimate_loo: (fit, refs, inliers, disagreement, obs),
-        or an ``Estimate.failed``.
-
-        The last full-reference solve is remembered, keyed on everything it depends on, so
-        the daemon's ``estimate`` then ``estimate_loo`` on the same frame fits once.
-        """
+        """The camera fit: (fit, refs, inliers, disagreement, obs), or an ``Estimate.failed``."""
         if camera is None:
             return Estimate.failed(self.name, "corner-pnp needs the camera intrinsics "
                                               "(camera matrix and distortion)")
@@ -309,27 +303,6 @@ class CornerPnP:
         refs = sorted(i for i in obs
                       if i in world_map and i not in excl and obs[i].corners is not None
                       and not obs[i].suspect)
-        key = None
-        if not excl:
-            key = (id(world_map), world_map.positions(refs).tobytes(),
-                   np.array([world_map[i].rotation for i in refs]).tobytes(),
-                   tuple(world_map[i].length for i in refs), world_map.origin_id,
-                   self.threshold, self.huber_px, self.refine_intrinsics, self.prior,
-                   self.refine_min_references, self.max_iterations, self.min_references,
-                   np.asarray(camera.camera_matrix, float).tobytes(),
-                   np.asarray(camera.dist_coeffs, float).tobytes(),
-                   tuple((o.id, None if o.corners is None else
-                          np.asarray(o.corners, float).tobytes(),
-                          np.asarray(o.marker2cam_t, float).tobytes(),
-                          np.asarray(o.marker2cam_R, float).tobytes()) for o in obs.values()))
-            if self._cache is not None and self._cache[0] == key:
-                return self._cache[1]
-        res = self._solve_uncached(obs, refs, world_map, camera)
-        if key is not None:
-            self._cache = (key, res)
-        return res
-
-    def _solve_uncached(self, obs, refs, world_map, camera):
         if len(refs) < self.min_references:
             return Estimate.failed(self.name, f"{len(refs)} reference marker(s) with corners "
                                               f"visible, need {self.min_references}")
@@ -512,95 +485,4 @@ class CornerPnP:
         cov_c += fit.sigma_px ** 2 / 16.0 * np.einsum("nkia,nkja->nij", dP_duv, dP_duv)
         return np.sqrt(np.trace(cov_c, axis1=1, axis2=2))
 
-    # ------------------------------------------------------------------ leave-one-out
-    def _loo_steps(self, fit: _Fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full, frames,
-                   origins) -> dict[int, np.ndarray]:
-        """One Gauss-Newton step per left-out consensus reference, all at once."""
-        n, p = len(inliers), J.shape[1]
-        Jk, Jwk, rk = J.reshape(n, 8, p), Jw.reshape(n, 8, p), r.reshape(n, 8)
-        Hs = fit.H[None] - np.swapaxes(Jwk, 1, 2) @ Jk
-        gs = g[None] - np.einsum("nkp,nk->np", Jwk, rk)
-        try:
-            deltas = -np.linalg.solve(Hs, gs[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            return {}
-        R = rotvecs_to_matrices(deltas[:, :3]) @ fit.R
-        t = fit.t[None] + deltas[:, 3:6]
-        pos = {i: k for k, i in enumerate(refs)}
-        rows = np.array([np.arange(4 * pos[i], 4 * pos[i] + 4) for i in inliers])  # (n, 4)
-        xy0 = xy_full[rows]
-        xy = xy0.copy()
-        if fit.refine:
-            # The intrinsics move by ~1e-4 relative: first order in (f, k1) is exact enough.
-            h = 1e-6
-            uv = uv_refs[rows].reshape(-1, 2)
-            for col, (dK, dd) in ((6, (h, 0.0)), (7, (0.0, h))):
-                K2, d2 = fit.K.copy(), fit.d.copy()
-                K2[0, 0] *= 1.0 + dK * fit.K0[0, 0] / fit.K[0, 0]
-                K2[1, 1] *= 1.0 + dK * fit.K0[0, 0] / fit.K[0, 0]
-                d2[0] += dd
-                dxy = (undistort(uv, K2, d2).reshape(n, 4, 2) - xy0) / h
-                xy = xy + dxy * deltas[:, col, None, None]
-        P = _batched_plane_points(R, t, xy, frames[rows[:, 0]], origins[rows[:, 0]])
-        ok = np.all(np.isfinite(P), axis=(1, 2))
-        centres = P.mean(axis=1)
-        return {i: centres[k] for k, i in enumerate(inliers) if ok[k]}
 
-    def estimate_loo(
-        self,
-        observations: Sequence[MarkerObservation],
-        world_map: MarkerMap,
-        camera: CameraIntrinsics | None = None,
-        plane_heights: Mapping[int, float] | None = None,
-    ) -> dict[int, np.ndarray]:
-        """Leave-one-out: id -> (3,) world position (m) of each observed map marker estimated
-        without its own corners in the camera fit (the convention of
-        :func:`kmea.estimators.loo.loo_positions`).
-
-        One full fit, then for each consensus reference j one Gauss-Newton step from the
-        full solution with j's rows removed (H - J_j^T W_j J_j, g - J_j^T W_j r_j): a 6x6
-        (8x8) solve instead of a robust start and an LM per marker. Removing one of many
-        references moves the optimum little, so one step lands on it to second order (the
-        tests compare with ``estimate(exclude={j})``). A rejected reference is not in the
-        fit, so its position is the full fit's.
-        """
-        res = self._solve(observations, world_map, (), camera)
-        if isinstance(res, Estimate):
-            return {}
-        fit, refs, inliers, _, obs = res
-        X = np.concatenate([world_map[i].corners_world() for i in inliers])
-        uv = self._stack_corners(inliers, obs)
-        r, J = self._residuals(X, uv, fit.R, fit.t, fit.K, fit.d, fit.refine, True, fit.K0)
-        w = self._huber_w(r)
-        Jw = J * w[:, None]
-        g = Jw.T @ r
-        if fit.refine:
-            rp, Jp = self._prior_rows(fit.K, fit.d, fit.K0, fit.d0)
-            g = g + Jp.T @ rp
-        out: dict[int, np.ndarray] = {}
-        frames = np.repeat(np.array([world_map[i].rotation for i in refs]), 4, axis=0)
-        origins = np.repeat(world_map.positions(refs), 4, axis=0)
-        uv_refs = self._stack_corners(refs, obs)
-        xy_full = undistort(uv_refs, fit.K, fit.d)
-        full = self._intersect(fit.R, fit.t, xy_full, frames, origins).reshape(-1, 4, 3)
-        for k, i in enumerate(refs):
-            if i not in inliers:
-                out[i] = full[k].mean(axis=0)
-        if len(inliers) - 1 >= self.min_references:
-            out.update(self._loo_steps(fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full,
-                                       frames, origins))
-        Rc2w = fit.R.T
-        for i, o in obs.items():  # map markers without corners: their PnP pose
-            if i in world_map and i not in out and o.corners is None:
-                out[i] = Rc2w @ (np.asarray(o.marker2cam_t, float) - fit.t)
-        return dict(sorted(out.items()))
-
-
-def _batched_plane_points(R: np.ndarray, t: np.ndarray, xy: np.ndarray, frames: np.ndarray,
-                          origins: np.ndarray) -> np.ndarray:
-    """Ray-plane points (M, 4, 3) of M poses (R (M, 3, 3) world2cam, t (M, 3)) for each one's
-    4 normalized corners xy (M, 4, 2) and plane (frames (M, 3, 3), origins (M, 3))."""
-    rays = np.concatenate([xy, np.ones((*xy.shape[:2], 1))], axis=2) @ R  # R^T ray, world
-    C = -np.einsum("mji,mj->mi", R, t)
-    return intersect_rays_planes(C[:, None, :], rays, origins[:, None, :],
-                                 frames[:, None, :, 2])

@@ -22,6 +22,7 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimatorBase,
     MarkerObservation,
     check_observations,
 )
@@ -49,7 +50,7 @@ def anchor_basis(origin: np.ndarray, x_anchor: np.ndarray,
     return np.column_stack([ex, np.cross(ez, ex), ez])
 
 
-class LMEA:
+class LMEA(EstimatorBase):
     """The paper's Algorithm 1. See the module docstring for the steps."""
 
     name = "lmea"

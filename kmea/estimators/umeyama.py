@@ -15,6 +15,7 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimatorBase,
     MarkerObservation,
     check_observations,
 )
@@ -59,7 +60,7 @@ def umeyama_batch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
     return s, R, t
 
 
-class Umeyama:
+class Umeyama(EstimatorBase):
     """Least-squares similarity over all references (no anchors needed)."""
 
     name = "umeyama"
