@@ -181,8 +181,9 @@ class KMEARobust(EstimatorBase):
     ) -> Estimate:
         """World pose of every observed marker; see the module docstring.
 
-        camera and plane_heights are accepted for the common interface and not used: this
-        estimator works on the markers' camera-frame poses only.
+        camera is accepted for the common interface and not used (this estimator works on
+        the markers' camera-frame poses only); plane_heights moves markers of known height
+        along their camera rays, as for KMEA.
         """
         obs = check_observations(observations)
         refs = select_references(obs, world_map, exclude)

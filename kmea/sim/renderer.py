@@ -53,11 +53,6 @@ class FrameTruth:
     robots: dict[str, tuple[float, float, float]]
     t: float = 0.0
 
-    def marker_rt(self, mid: int) -> tuple[np.ndarray, np.ndarray]:
-        """(R (3, 3), t (3,)) marker2world of marker ``mid``."""
-        T = self.markers[mid]
-        return T[:3, :3].copy(), T[:3, 3].copy()
-
     def marker2cam(self, mid: int) -> np.ndarray:
         """(4, 4) true marker2cam of marker ``mid`` (what a perfect PnP would give)."""
         return np.linalg.inv(self.cam2world) @ self.markers[mid]

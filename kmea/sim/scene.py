@@ -136,12 +136,6 @@ class SimRobot:
         if self.plate <= 0:
             raise ValueError(f"{where}: plate must be > 0 m")
 
-    @classmethod
-    def from_spec(cls, spec: Any, path: Path, plate: float | None = None) -> SimRobot:
-        """From a :class:`kmea.robots.RobotSpec` (or anything with the same fields)."""
-        return cls(spec.name, tuple(spec.markers), spec.height, spec.length, spec.separation,
-                   path, plate)
-
     def mount(self) -> dict[int, np.ndarray]:
         """Marker id -> (2,) position in the robot frame (x forward, y left), metres."""
         if len(self.markers) == 1:
@@ -407,16 +401,6 @@ class Scene:
             return ([((-0.695, y), (0.695, y)) for y in rows]
                     + [((x, -0.355), (x, 0.355)) for x in cols])
         return [((x0 + 0.05, y), (x1 - 0.05, y)) for y in (y0 + 0.05, y1 - 0.05)]
-
-    def with_camera(self, camera: CameraModel | None = None,
-                    cam2world: np.ndarray | None = None) -> Scene:
-        """A copy with another camera model and/or pose."""
-        return replace(self, camera=camera or self.camera,
-                       cam2world=self.cam2world if cam2world is None else cam2world)
-
-    def with_size(self, width: int, height: int) -> Scene:
-        """A copy rendering at another resolution (same field of view, 4:3 etc. kept)."""
-        return replace(self, camera=self.camera.scaled_to(width, height))
 
     def with_(self, **changes: Any) -> Scene:
         """A copy with dataclass fields replaced."""
