@@ -17,12 +17,12 @@ ROOT = Path(__file__).resolve().parent.parent
 PKG = ROOT / "kmea"
 ALGORITHM_FILES = sorted(
     [PKG / "transforms.py", PKG / "maps.py", PKG / "metrics.py", PKG / "filters.py",
-     PKG / "robots.py", *(PKG / "estimators").glob("*.py")]
+     PKG / "robots.py", *(PKG / "estimators").glob("*.py"), *(PKG / "geometry").glob("*.py")]
 )
 ALGORITHM_MODULES = {"kmea", "kmea.transforms", "kmea.maps", "kmea.metrics", "kmea.filters",
-                     "kmea.robots", "kmea.estimators"} | {
-    f"kmea.estimators.{p.stem}" for p in (PKG / "estimators").glob("*.py")
-    if p.stem != "__init__"}
+                     "kmea.robots", "kmea.estimators", "kmea.geometry"} | {
+    f"kmea.{pkg}.{p.stem}" for pkg in ("estimators", "geometry")
+    for p in (PKG / pkg).glob("*.py") if p.stem != "__init__"}
 # tomllib's backport, imported only on Python < 3.11 (maps.py reads TOML with it).
 BACKPORTS = {"tomli"}
 
