@@ -27,7 +27,8 @@ def intersect_rays_planes(origins: np.ndarray, directions: np.ndarray, points: n
     """Points (..., 3) where the rays meet the planes; NaN rows where the plane is behind
     the origin (lam <= 0) or parallel to the ray."""
     lam = ray_plane_parameter(origins, directions, points, normals)
-    P = origins + lam[..., None] * directions
+    with np.errstate(invalid="ignore", over="ignore"):
+        P = origins + lam[..., None] * directions
     bad = ~(lam > 0) | ~np.isfinite(lam)
     P = np.where(bad[..., None], np.nan, P)
     return P
