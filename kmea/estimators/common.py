@@ -13,7 +13,7 @@ import numpy as np
 
 from kmea.estimators.base import Estimate, MarkerEstimate, MarkerObservation
 from kmea.geometry import intersect_rays_planes, make_transform, yaw_of
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = [
     "COINCIDENT_TOL",

@@ -67,7 +67,7 @@ from kmea.geometry import (
     undistort,
     yaw_of,
 )
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = ["CornerPnP"]
 

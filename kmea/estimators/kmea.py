@@ -39,7 +39,7 @@ from kmea.estimators.common import (
     select_references,
 )
 from kmea.geometry import kabsch
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = ["KMEA", "kmea_align"]
 

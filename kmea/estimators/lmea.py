@@ -27,7 +27,7 @@ from kmea.estimators.base import (
     check_observations,
 )
 from kmea.estimators.common import COLLINEAR_TOL, References, finish_estimate
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = ["LMEA", "anchor_basis"]
 

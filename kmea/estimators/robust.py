@@ -53,7 +53,7 @@ from kmea.estimators.common import (
 from kmea.estimators.kmea import kmea_align
 from kmea.estimators.umeyama import umeyama_batch
 from kmea.geometry import ray_plane_parameter
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "umeyama_batch"]
 

@@ -20,7 +20,7 @@ from kmea.estimators.base import (
     check_observations,
 )
 from kmea.estimators.common import finish_estimate, reference_problem, select_references
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = ["Umeyama", "umeyama", "umeyama_batch"]
 
