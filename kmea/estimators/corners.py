@@ -56,6 +56,7 @@ from kmea.estimators.base import (
 )
 from kmea.estimators.common import reference_problem
 from kmea.estimators.robust import KMEARobust, describe_rejected
+from kmea.estimators.robust_lm import huber_cost, huber_weights, robust_lm
 from kmea.geometry import (
     check_distortion,
     distort,
@@ -179,17 +180,6 @@ class CornerPnP(EstimatorBase):
         J[1, 7] = ppx / pk
         return r, J
 
-    def _huber_w(self, r: np.ndarray) -> np.ndarray:
-        """Per-row IRLS weights (2N,) from the per-corner residual norms."""
-        e = np.linalg.norm(r.reshape(-1, 2), axis=1)
-        w = np.where(e <= self.huber_px, 1.0, self.huber_px / np.maximum(e, 1e-300))
-        return np.repeat(w, 2)
-
-    def _huber_cost(self, r: np.ndarray) -> float:
-        e = np.linalg.norm(r.reshape(-1, 2), axis=1)
-        h = self.huber_px
-        return float(np.sum(np.where(e <= h, e * e, 2.0 * h * e - h * h)))
-
     @staticmethod
     def _update(R, t, K, d, delta, refine, K0):
         R2 = rotvec_to_matrix(delta[:3]) @ R
@@ -208,64 +198,25 @@ class CornerPnP(EstimatorBase):
             K0: np.ndarray, d0: np.ndarray, refine: bool,
             start: tuple[np.ndarray, np.ndarray] | None = None) -> _Fit | None:
         """Minimize the Huber reprojection cost (plus the intrinsics prior, centred on the
-        calibration K0, d0) from the pose (R, t) and the intrinsics ``start`` (default K0, d0)."""
+        calibration K0, d0) from the pose (R, t) and the intrinsics ``start`` (default K0, d0)
+        with :func:`kmea.estimators.robust_lm.robust_lm`; the state is (R, t, K, d)."""
         K, d = (K0.copy(), d0.copy()) if start is None or not refine else start
-
-        def cost_of(r, K, d):
-            c = self._huber_cost(r)
-            if refine:
-                c += float(np.sum(self._prior_rows(K, d, K0, d0)[0] ** 2))
-            return c
-
-        r, J = self._residuals(X, uv, R, t, K, d, refine, True, K0)
-        if r is None:
+        res = robust_lm(
+            lambda st, jac: self._residuals(X, uv, st[0], st[1], st[2], st[3], refine, jac, K0),
+            lambda st, delta: self._update(*st, delta, refine, K0),
+            (R, t, K, d),
+            weights=lambda r: huber_weights(r, self.huber_px),
+            cost=lambda r: huber_cost(r, self.huber_px),
+            prior=(lambda st: self._prior_rows(st[2], st[3], K0, d0)) if refine else None,
+            max_iterations=self.max_iterations)
+        if res is None:
             return None
-        cost = cost_of(r, K, d)
-        lam = 1e-6
-        iterations = 0
-        for it in range(1, self.max_iterations + 1):
-            iterations = it
-            w = self._huber_w(r)
-            H = J.T @ (J * w[:, None])
-            g = J.T @ (w * r)
-            if refine:
-                rp, Jp = self._prior_rows(K, d, K0, d0)
-                H = H + Jp.T @ Jp
-                g = g + Jp.T @ rp
-            done = False
-            while True:
-                A = H + lam * np.diag(np.diag(H) + 1e-12)
-                try:
-                    delta = -np.linalg.solve(A, g)
-                except np.linalg.LinAlgError:
-                    return None
-                R2, t2, K2, d2 = self._update(R, t, K, d, delta, refine, K0)
-                r2 = self._residuals(X, uv, R2, t2, K2, d2, refine, False)
-                c2 = math.inf if r2 is None else cost_of(r2, K2, d2)
-                if c2 <= cost:
-                    R, t, K, d = R2, t2, K2, d2
-                    # Steps of 1e-10 (rad, m, relative focal) leave errors of ~1e-20 behind.
-                    small = float(np.max(np.abs(delta))) < 1e-10 or cost - c2 <= 1e-14 * cost
-                    cost = c2
-                    lam = max(lam / 10.0, 1e-12)
-                    done = small
-                    break
-                lam *= 10.0
-                if lam > 1e8:
-                    done = True
-                    break
-            r, J = self._residuals(X, uv, R, t, K, d, refine, True, K0)
-            if done or cost < 1e-26:
-                break
-        w = self._huber_w(r)
-        H = J.T @ (J * w[:, None])
-        if refine:
-            Jp = self._prior_rows(K, d, K0, d0)[1]
-            H = H + Jp.T @ Jp
-        dof = max(r.size - H.shape[0], 1)
+        R, t, K, d = res.state
+        r = res.r
+        dof = max(r.size - res.H.shape[0], 1)
         sigma = math.sqrt(float(r @ r) / dof)
         rms = math.sqrt(float(r @ r) / r.size)
-        return _Fit(R, t, K, K0, d, d0, H, sigma, rms, iterations, refine)
+        return _Fit(R, t, K, K0, d, d0, res.H, sigma, rms, res.iterations, refine)
 
     # ------------------------------------------------------------------ geometry
     @staticmethod
