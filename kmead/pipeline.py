@@ -210,22 +210,19 @@ class Pipeline:
             obs, diag = list(inp.observations), dict(inp.diagnostics)
             t2 = time.perf_counter()
         intr = self.camera.intrinsics
-        loo_err: dict[int, float] = {}
-        loo_s = 0.0
+        both = None
         try:
-            if loo:  # one call: the estimate and its leave-one-out errors (kmea.estimators.base)
+            if loo:  # one call: the estimate and its leave-one-out (kmea.estimators.base)
                 both = self.estimator.estimate_with_loo(obs, self.world_map, camera=intr,
                                                         plane_heights=self.plane_heights)
-                est, loo_s = both.estimate, both.loo_seconds
-                loo_err = both.loo_errors if est.ok else {}
+                est = both.estimate
             else:
                 est = self.estimator.estimate(obs, self.world_map, camera=intr,
                                               plane_heights=self.plane_heights)
         except ValueError as e:  # bad observations: report, never crash the loop
             est = Estimate.failed(self.algorithm, str(e))
-            loo_err = {}
         t3 = time.perf_counter()
-        tm["estimate"] = (t3 - t2 - loo_s) * 1e3
+        tm["estimate"] = (t3 - t2) * 1e3
         markers: dict[int, tuple[np.ndarray, float]] = {}
         if self.filter.alpha == 1.0:  # no filtering: skip the per-marker bookkeeping
             for mid, me in sorted(est.markers.items()):
@@ -238,10 +235,16 @@ class Pipeline:
         tm["filter"] = (t4 - t3) * 1e3
         robots = self.robot_fixes(est, inp.timestamp)
         if on_robots is not None:
-            on_robots(inp.timestamp, robots)  # the relay
+            on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
         t5 = time.perf_counter()
         tm["robots"] = (t5 - t4) * 1e3
-        tm["loo"] = loo_s * 1e3
+        loo_err: dict[int, float] = {}
+        if both is not None and est.ok:
+            try:
+                loo_err = both.loo_errors  # computed here, from the estimate's own state
+            except ValueError:
+                loo_err = {}
+        tm["loo"] = (time.perf_counter() - t5) * 1e3
         return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
                            est, markers, loo_err, robots, tm, inp.t_capture, inp.meta)
 

@@ -134,16 +134,34 @@ def test_estimate_with_loo_is_the_estimate_and_the_leave_one_out_by_exclusion():
     sc = scenario1(displaced={4: (0.03, 0.0)})
     cam = sc.camera.intrinsics
     obs = observe(sc, noise_px=0.2, seed=12)
-    cp = CornerPnP(refine_intrinsics=False)
-    res = cp.estimate_with_loo(obs, sc.map, camera=cam)
-    full = cp.estimate(obs, sc.map, camera=cam)
-    assert res.estimate.ok and set(res.estimate.rejected) == set(full.rejected) == {4}
-    assert np.array_equal(res.estimate.cam2world, full.cam2world)
-    assert set(res.loo_positions) == {o.id for o in obs if o.id in sc.map}
-    for i in list(res.loo_positions)[::6]:
-        one = cp.estimate(obs, sc.map, exclude={i}, camera=cam)
-        assert np.array_equal(one.markers[i].position, res.loo_positions[i]), i
-    assert res.loo_errors[4] == pytest.approx(0.03, abs=2e-3)  # the displaced one shows it
+    for cp in (CornerPnP(refine_intrinsics=False), CornerPnP()):
+        res = cp.estimate_with_loo(obs, sc.map, camera=cam)
+        full = cp.estimate(obs, sc.map, camera=cam)
+        assert res.estimate.ok and set(res.estimate.rejected) == set(full.rejected) == {4}
+        assert np.array_equal(res.estimate.cam2world, full.cam2world)
+        assert set(res.loo_positions) == {o.id for o in obs if o.id in sc.map}
+        assert res.loo_failures == {}
+        # The one-step fast path against the definition, estimate(exclude={j}).
+        for i in [4, *list(res.loo_positions)[::5]]:
+            one = cp.estimate(obs, sc.map, exclude={i}, camera=cam)
+            assert np.linalg.norm(one.markers[i].position - res.loo_positions[i]) < 2e-6, i
+        assert res.loo_errors[4] == pytest.approx(0.03, abs=2e-3)  # the displaced one shows it
+
+
+def test_leave_one_out_of_chosen_markers_with_exclusions():
+    """loo_ids and exclude as the experiments use them: markers outside the fast path (a
+    known plane height, an excluded reference) come from estimate(exclude=...) exactly."""
+    sc = scenario1()
+    cam = sc.camera.intrinsics
+    obs = observe(sc, noise_px=0.2, seed=19)
+    cp = CornerPnP()
+    res = cp.estimate_with_loo(obs, sc.map, exclude={16}, camera=cam, loo_ids=[0, 5, 16],
+                               plane_heights={5: 0.0})
+    assert set(res.loo_positions) == {0, 5, 16}
+    for i in (5, 16):
+        one = cp.estimate(obs, sc.map, exclude={i, 16}, camera=cam, plane_heights={5: 0.0})
+        assert np.array_equal(one.markers[i].position, res.loo_positions[i])
+    assert res.loo_seconds > 0
 
 
 def test_displaced_anchors_rejected_with_their_displacement():

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -144,7 +144,6 @@ class Estimate:
         return cls(algorithm=algorithm, ok=False, reason=reason)
 
 
-@dataclass
 class EstimateWithLoo:
     """An estimate of one frame together with its leave-one-out results.
 
@@ -156,13 +155,53 @@ class EstimateWithLoo:
     loo_failures: id -> reason, for the markers that could not be estimated without
         themselves (too few references, an LMEA anchor, ...).
     loo_seconds: time the leave-one-out part took (s), for the daemon's timings.
+
+    The leave-one-out part runs on first access to one of the ``loo_*`` attributes, from
+    the state of this frame's estimate that this object holds (for example corner-pnp's
+    camera fit): a caller can act on ``estimate`` first (the daemon relays robot poses)
+    and nothing is cached in the estimator.
     """
 
-    estimate: Estimate
-    loo_positions: dict[int, np.ndarray] = field(default_factory=dict)
-    loo_errors: dict[int, float] = field(default_factory=dict)
-    loo_failures: dict[int, str] = field(default_factory=dict)
-    loo_seconds: float = 0.0
+    def __init__(self, estimate: Estimate, world_map: MarkerMap,
+                 loo: Callable[[], tuple[dict[int, np.ndarray], dict[int, str]]]) -> None:
+        self.estimate = estimate
+        self._map = world_map
+        self._loo: Callable[[], tuple[dict[int, np.ndarray], dict[int, str]]] | None = loo
+        self._pos: dict[int, np.ndarray] = {}
+        self._err: dict[int, float] = {}
+        self._fail: dict[int, str] = {}
+        self._seconds = 0.0
+
+    def _run(self) -> None:
+        if self._loo is None:
+            return
+        t0 = time.perf_counter()
+        pos, fail = self._loo()
+        self._loo = None
+        self._pos = dict(sorted(pos.items()))
+        self._err = floor_errors(self._pos, self._map)
+        self._fail = dict(sorted(fail.items()))
+        self._seconds = time.perf_counter() - t0
+
+    @property
+    def loo_positions(self) -> dict[int, np.ndarray]:
+        self._run()
+        return self._pos
+
+    @property
+    def loo_errors(self) -> dict[int, float]:
+        self._run()
+        return self._err
+
+    @property
+    def loo_failures(self) -> dict[int, str]:
+        self._run()
+        return self._fail
+
+    @property
+    def loo_seconds(self) -> float:
+        self._run()
+        return self._seconds
 
 
 @runtime_checkable
@@ -268,14 +307,10 @@ class EstimatorBase:
         """See :meth:`Estimator.estimate_with_loo`."""
         est = self.estimate(observations, world_map, exclude=exclude, camera=camera,
                             plane_heights=plane_heights)
-        t0 = time.perf_counter()
         ids = (loo_candidates(observations, world_map, exclude) if loo_ids is None
                else sorted(set(loo_ids)))
-        pos, fail = self._loo_positions(observations, world_map, ids, exclude, camera,
-                                        plane_heights)
-        pos = dict(sorted(pos.items()))
-        return EstimateWithLoo(est, pos, floor_errors(pos, world_map), fail,
-                               time.perf_counter() - t0)
+        return EstimateWithLoo(est, world_map, lambda: self._loo_positions(
+            observations, world_map, ids, exclude, camera, plane_heights))
 
 
 def check_observations(observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:

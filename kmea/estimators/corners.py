@@ -49,10 +49,13 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimateWithLoo,
     EstimatorBase,
     MarkerEstimate,
     MarkerObservation,
     check_observations,
+    loo_by_exclusion,
+    loo_candidates,
 )
 from kmea.estimators.common import reference_problem
 from kmea.estimators.robust import KMEARobust, describe_rejected
@@ -65,6 +68,7 @@ from kmea.geometry import (
     marker_corners_local,
     project,
     rotvec_to_matrix,
+    rotvecs_to_matrices,
     undistort,
     yaw_of,
 )
@@ -320,7 +324,12 @@ class CornerPnP(EstimatorBase):
 
         camera is required; plane_heights: id -> height (m) of horizontal non-map markers.
         """
-        res = self._solve(observations, world_map, exclude, camera)
+        return self._estimate_from(self._solve(observations, world_map, exclude, camera),
+                                   world_map, plane_heights)
+
+    def _estimate_from(self, res, world_map: MarkerMap,
+                       plane_heights: Mapping[int, float] | None) -> Estimate:
+        """The Estimate of a camera fit (:meth:`_solve`'s result)."""
         if isinstance(res, Estimate):
             return res
         fit, refs, inliers, dis, obs = res
@@ -436,4 +445,112 @@ class CornerPnP(EstimatorBase):
         cov_c += fit.sigma_px ** 2 / 16.0 * np.einsum("nkia,nkja->nij", dP_duv, dP_duv)
         return np.sqrt(np.trace(cov_c, axis1=1, axis2=2))
 
+    # ------------------------------------------------------------------ leave-one-out
+    def _loo_steps(self, fit: _Fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full, frames,
+                   origins) -> dict[int, np.ndarray]:
+        """One Gauss-Newton step per left-out consensus reference, all at once."""
+        n, p = len(inliers), J.shape[1]
+        Jk, Jwk, rk = J.reshape(n, 8, p), Jw.reshape(n, 8, p), r.reshape(n, 8)
+        Hs = fit.H[None] - np.swapaxes(Jwk, 1, 2) @ Jk
+        gs = g[None] - np.einsum("nkp,nk->np", Jwk, rk)
+        try:
+            deltas = -np.linalg.solve(Hs, gs[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            return {}
+        R = rotvecs_to_matrices(deltas[:, :3]) @ fit.R
+        t = fit.t[None] + deltas[:, 3:6]
+        pos = {i: k for k, i in enumerate(refs)}
+        rows = np.array([np.arange(4 * pos[i], 4 * pos[i] + 4) for i in inliers])  # (n, 4)
+        xy0 = xy_full[rows]
+        xy = xy0.copy()
+        if fit.refine:
+            # The intrinsics move by ~1e-4 relative: first order in (f, k1) is exact enough.
+            h = 1e-6
+            uv = uv_refs[rows].reshape(-1, 2)
+            for col, (dK, dd) in ((6, (h, 0.0)), (7, (0.0, h))):
+                K2, d2 = fit.K.copy(), fit.d.copy()
+                K2[0, 0] *= 1.0 + dK * fit.K0[0, 0] / fit.K[0, 0]
+                K2[1, 1] *= 1.0 + dK * fit.K0[0, 0] / fit.K[0, 0]
+                d2[0] += dd
+                dxy = (undistort(uv, K2, d2).reshape(n, 4, 2) - xy0) / h
+                xy = xy + dxy * deltas[:, col, None, None]
+        P = _batched_plane_points(R, t, xy, frames[rows[:, 0]], origins[rows[:, 0]])
+        ok = np.all(np.isfinite(P), axis=(1, 2))
+        centres = P.mean(axis=1)
+        return {i: centres[k] for k, i in enumerate(inliers) if ok[k]}
 
+    def estimate_with_loo(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        exclude: Collection[int] = (),
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+        loo_ids: Collection[int] | None = None,
+    ) -> EstimateWithLoo:
+        """The estimate and its leave-one-out (:mod:`kmea.estimators.base`) from ONE camera
+        fit, held by the returned object (no cache in the estimator).
+
+        Leave-one-out of a reference j of the fit, by the definition ``estimate(exclude={j})``
+        computed fast: one Gauss-Newton step from the full solution with j's rows removed
+        (H - J_j^T W_j J_j, g - J_j^T W_j r_j), a 6x6 (8x8) solve for all references at once,
+        instead of a robust start and an LM per marker. Removing one of many references
+        moves the optimum little, so one step lands on it to second order (under 1e-6 m on
+        the simulated floor with 0.2 px of corner noise; the tests compare with
+        ``estimate(exclude={j})``). A rejected reference is not in the fit, so its position
+        is the full fit's. Every other marker (no corners, a known plane height, too few
+        references left, a failed fit) goes through ``estimate(exclude={j})`` itself.
+        """
+        res = self._solve(observations, world_map, exclude, camera)
+        est = self._estimate_from(res, world_map, plane_heights)
+        ids = (loo_candidates(observations, world_map, exclude) if loo_ids is None
+               else sorted(set(loo_ids)))
+
+        def loo() -> tuple[dict[int, np.ndarray], dict[int, str]]:
+            fast = {} if isinstance(res, Estimate) else self._fast_loo(res, world_map)
+            heights = plane_heights or {}
+            fast = {i: p for i, p in fast.items() if i in set(ids) and i not in heights}
+            pos, fail = loo_by_exclusion(self, observations, world_map,
+                                         [i for i in ids if i not in fast], exclude, camera,
+                                         plane_heights)
+            pos.update(fast)
+            return pos, fail
+
+        return EstimateWithLoo(est, world_map, loo)
+
+    def _fast_loo(self, res, world_map: MarkerMap) -> dict[int, np.ndarray]:
+        """id -> leave-one-out position of the fit's references (see
+        :meth:`estimate_with_loo`); references the one-step update cannot give are omitted."""
+        fit, refs, inliers, _, obs = res
+        X = np.concatenate([world_map[i].corners_world() for i in inliers])
+        uv = self._stack_corners(inliers, obs)
+        r, J = self._residuals(X, uv, fit.R, fit.t, fit.K, fit.d, fit.refine, True, fit.K0)
+        w = huber_weights(r, self.huber_px)
+        Jw = J * w[:, None]
+        g = Jw.T @ r
+        if fit.refine:
+            rp, Jp = self._prior_rows(fit.K, fit.d, fit.K0, fit.d0)
+            g = g + Jp.T @ rp
+        out: dict[int, np.ndarray] = {}
+        frames = np.repeat(np.array([world_map[i].rotation for i in refs]), 4, axis=0)
+        origins = np.repeat(world_map.positions(refs), 4, axis=0)
+        uv_refs = self._stack_corners(refs, obs)
+        xy_full = undistort(uv_refs, fit.K, fit.d)
+        full = self._intersect(fit.R, fit.t, xy_full, frames, origins).reshape(-1, 4, 3)
+        for k, i in enumerate(refs):
+            if i not in inliers and np.all(np.isfinite(full[k])):
+                out[i] = full[k].mean(axis=0)
+        if len(inliers) - 1 >= self.min_references:
+            out.update(self._loo_steps(fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full,
+                                       frames, origins))
+        return out
+
+
+def _batched_plane_points(R: np.ndarray, t: np.ndarray, xy: np.ndarray, frames: np.ndarray,
+                          origins: np.ndarray) -> np.ndarray:
+    """Ray-plane points (M, 4, 3) of M poses (R (M, 3, 3) world2cam, t (M, 3)) for each one's
+    4 normalized corners xy (M, 4, 2) and plane (frames (M, 3, 3), origins (M, 3))."""
+    rays = np.concatenate([xy, np.ones((*xy.shape[:2], 1))], axis=2) @ R  # R^T ray, world
+    C = -np.einsum("mji,mj->mi", R, t)
+    return intersect_rays_planes(C[:, None, :], rays, origins[:, None, :],
+                                 frames[:, None, :, 2])

@@ -27,7 +27,6 @@ __all__ = [
     "FrameResult",
     "RunResult",
     "estimate_frame",
-    "miscalibrated",
     "run_simulation",
 ]
 
@@ -170,19 +169,6 @@ def collect(frames: Sequence[FrameResult], algorithms: Sequence[str],
 
 
 # ------------------------------------------------------------------ simulation
-
-def miscalibrated(camera, focal_error: float, k1_error: float):
-    """The camera the estimators believe in: focal lengths scaled by ``1 + focal_error``,
-    ``k1_error`` added to k1. Returns a new ``kmea.vision.camera.CameraModel``."""
-    from kmea.vision.camera import CameraModel
-
-    K = camera.camera_matrix.copy()
-    K[0, 0] *= 1.0 + focal_error
-    K[1, 1] *= 1.0 + focal_error
-    d = camera.dist_coeffs.copy()
-    d[0] += k1_error
-    return CameraModel(K, d, camera.width, camera.height)
-
 
 _WORKER: dict[str, object] = {}
 

@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from kmea.experiments.run import ExperimentConfig, miscalibrated
 from kmea.maps import MarkerMap, default_map
+
+if TYPE_CHECKING:  # annotations only: run.py imports this module, not the other way
+    from kmea.experiments.run import ExperimentConfig
 
 __all__ = ["build", "build_scene", "describe", "observe"]
 
@@ -72,7 +74,7 @@ def build(config: ExperimentConfig) -> dict[str, Any]:
         "scene": scene,
         "renderer": Renderer(scene),
         "detector": MarkerDetector(DetectorConfig(dictionary=nominal.dictionary)),
-        "believed": miscalibrated(scene.camera, config.focal_error, config.k1_error),
+        "believed": _miscalibrated(scene.camera, config.focal_error, config.k1_error),
         "estimator_map": emap,
         "lengths": lengths,
         "plane_heights": ({int(i): float(h) for i, h in config.part.raised.items()}
@@ -112,3 +114,16 @@ def describe(config: ExperimentConfig) -> dict[str, Any]:
                                           for i, d in sorted(spec.displaced.items()))
     return {"truth": truth, "reference_length": scene.world_map.ref_length(),
             "settings": settings}
+
+
+def _miscalibrated(camera, focal_error: float, k1_error: float):
+    """The camera the estimators believe in: focal lengths scaled by ``1 + focal_error``,
+    ``k1_error`` added to k1. Returns a new ``kmea.vision.camera.CameraModel``."""
+    from kmea.vision.camera import CameraModel
+
+    K = camera.camera_matrix.copy()
+    K[0, 0] *= 1.0 + focal_error
+    K[1, 1] *= 1.0 + focal_error
+    d = camera.dist_coeffs.copy()
+    d[0] += k1_error
+    return CameraModel(K, d, camera.width, camera.height)
