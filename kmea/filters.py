@@ -13,7 +13,7 @@ from collections.abc import Hashable
 
 import numpy as np
 
-from kmea.transforms import wrap_angle
+from kmea.geometry import wrap_angle
 
 __all__ = ["PoseFilter"]
 

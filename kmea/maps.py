@@ -1,9 +1,12 @@
-"""Marker maps: surveyed 6-DoF poses of ArUco markers in the world frame (numpy only).
+"""Marker map files: TOML (full description) and CSV (marker table only), and the built-in
+RobotAtFactory 4.0 map. The model itself (:class:`Marker`, :class:`MarkerMap`,
+:func:`check_map`) is :mod:`kmea.map_model`, re-exported here.
 
-A map is loaded from TOML (full description) or CSV (marker table only; the dictionary
-and default length then come from the configuration). Positions are metres; rotations are
-given in the files as degrees ``rx_deg, ry_deg, rz_deg``: fixed-frame rotations applied
-first about Z, then Y, then X, i.e. ``R = Rx @ Ry @ Rz`` (marker2world). See ``docs/maps.md``.
+A CSV map takes the dictionary and default length from the configuration. Positions are
+metres; rotations are given in the files as degrees ``rx_deg, ry_deg, rz_deg``: fixed-frame
+rotations applied first about Z, then Y, then X, i.e. ``R = Rx @ Ry @ Rz`` (marker2world).
+The dictionary is any name the configuration accepts (:mod:`kmea.aruco_names`): a
+predefined one or a custom dictionary file, relative to the map file. See ``docs/maps.md``.
 
 Every problem with a file raises :class:`MapError` with one line naming the file, the line
 (CSV, and TOML ``[[markers]]`` tables) or the key, and the problem.
@@ -15,13 +18,15 @@ import csv
 import math
 import re
 import sys
-from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
+import tomli_w
 
-from kmea.transforms import euler_zyx_fixed_deg, marker_corners_local
+from kmea.aruco_names import check_dictionary_name, is_dictionary_file
+from kmea.geometry import euler_zyx_fixed_deg
+from kmea.map_model import MapError, Marker, MarkerMap, check_map
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -29,7 +34,6 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 __all__ = [
-    "ARUCO_DICTIONARIES",
     "MapError",
     "Marker",
     "MarkerMap",
@@ -44,167 +48,15 @@ __all__ = [
 ]
 
 
-class MapError(ValueError):
-    """A map file or map value is invalid; the message names the file, line or key."""
-
-
-def _dict_sizes() -> dict[str, int]:
-    sizes = {f"DICT_{b}X{b}_{n}": n for b in (4, 5, 6, 7) for n in (50, 100, 250, 1000)}
-    sizes.update({"DICT_ARUCO_ORIGINAL": 1024, "DICT_APRILTAG_16h5": 30,
-                  "DICT_APRILTAG_25h9": 35, "DICT_APRILTAG_36h10": 2320,
-                  "DICT_APRILTAG_36h11": 587, "DICT_ARUCO_MIP_36h12": 250})
-    return sizes
-
-
-# OpenCV's predefined ArUco dictionaries and their number of markers (valid ids 0..n-1).
-ARUCO_DICTIONARIES: dict[str, int] = _dict_sizes()
-
-
-def _check_dictionary(name: object, where: str) -> str:
-    if not isinstance(name, str) or name not in ARUCO_DICTIONARIES:
-        raise MapError(f"{where}: unknown ArUco dictionary {name!r} (e.g. DICT_5X5_50, "
-                       f"DICT_5X5_100, DICT_4X4_50)")
-    return name
-
-
-@dataclass(frozen=True)
-class Marker:
-    """One surveyed marker.
-
-    Attributes:
-        id: ArUco id.
-        position: (3,) centre in the world frame, metres.
-        rotation: (3, 3) marker2world rotation.
-        length: side of the black square, metres.
-
-    Lists are accepted and stored as float arrays; a bad shape, a non-finite value, a
-    rotation that is not proper or a length <= 0 raises :class:`MapError`.
-    """
-
-    id: int
-    position: np.ndarray
-    rotation: np.ndarray
-    length: float
-
-    def __post_init__(self) -> None:
-        where = f"marker {self.id}"
-        if isinstance(self.id, bool) or not isinstance(self.id, (int, np.integer)) or self.id < 0:
-            raise MapError(f"marker id must be an integer >= 0, got {self.id!r}")
-        p = np.array(self.position, dtype=float)
-        R = np.array(self.rotation, dtype=float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise MapError(f"{where}: position must be 3 finite numbers (m)")
-        if R.shape != (3, 3) or not np.all(np.isfinite(R)) \
-                or np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
-            raise MapError(f"{where}: rotation must be a proper 3x3 rotation matrix")
-        if isinstance(self.length, bool) or not (math.isfinite(self.length) and self.length > 0):
-            raise MapError(f"{where}: length must be > 0 m, got {self.length!r}")
-        p.setflags(write=False)
-        R.setflags(write=False)
-        object.__setattr__(self, "id", int(self.id))
-        object.__setattr__(self, "position", p)
-        object.__setattr__(self, "rotation", R)
-        object.__setattr__(self, "length", float(self.length))
-
-    @property
-    def on_floor(self) -> bool:
-        """Lies flat on the floor plane z = 0 facing up."""
-        return abs(self.position[2]) < 1e-9 and self.rotation[2, 2] > 1.0 - 1e-9
-
-    @property
-    def normal(self) -> np.ndarray:
-        """(3,) unit normal of the printed face in the world frame."""
-        return self.rotation[:, 2].copy()
-
-    def corners_world(self) -> np.ndarray:
-        """(4, 3) world corners in OpenCV ArUco order (TL, TR, BR, BL)."""
-        return marker_corners_local(self.length) @ self.rotation.T + self.position
-
-
-@dataclass
-class MarkerMap:
-    """A set of surveyed markers and the metadata the estimators need.
-
-    ``origin_id``, ``x_id`` and ``y_id`` are the anchors of LMEA and of KMEA's scale step.
-    ``reference_length`` (m) is the denominator of the mean relative error; ``None`` means
-    the diagonal of the floor markers' extent.
-    """
-
-    markers: dict[int, Marker]
-    dictionary: str = "DICT_5X5_50"
-    default_length: float = 0.06
-    origin_id: int = 13
-    x_id: int = 16
-    y_id: int = 4
-    reference_length: float | None = None
-    name: str = "map"
-    source: str = "<memory>"
-    extra: dict = field(default_factory=dict)
-
-    def __contains__(self, marker_id: object) -> bool:
-        return marker_id in self.markers
-
-    def __getitem__(self, marker_id: int) -> Marker:
-        return self.markers[marker_id]
-
-    def __len__(self) -> int:
-        return len(self.markers)
-
-    @property
-    def ids(self) -> list[int]:
-        return sorted(self.markers)
-
-    def positions(self, ids: list[int] | None = None) -> np.ndarray:
-        """(N, 3) world positions of ``ids`` (default: all, sorted by id)."""
-        ids = self.ids if ids is None else ids
-        return np.array([self.markers[i].position for i in ids], dtype=float).reshape(-1, 3)
-
-    def floor_extent(self) -> tuple[float, float, float, float]:
-        """(xmin, xmax, ymin, ymax) of the floor markers' centres, metres (all markers if none)."""
-        ms = [m for m in self.markers.values() if m.on_floor] or list(self.markers.values())
-        p = np.array([m.position for m in ms])
-        return (float(p[:, 0].min()), float(p[:, 0].max()),
-                float(p[:, 1].min()), float(p[:, 1].max()))
-
-    def ref_length(self) -> float:
-        """Reference length for the MRE, metres."""
-        if self.reference_length is not None:
-            return self.reference_length
-        x0, x1, y0, y1 = self.floor_extent()
-        return math.hypot(x1 - x0, y1 - y0)
-
-
-def check_map(m: MarkerMap) -> list[str]:
-    """Warnings about a loaded map that is usable but probably not what was meant.
-
-    Anchors missing from the map (LMEA then never estimates; KMEA's scale step uses the
-    centroid), ids the dictionary cannot encode, an unknown dictionary, overlapping markers.
-    """
-    out: list[str] = []
-    for label, mid in (("origin_id", m.origin_id), ("x_id", m.x_id), ("y_id", m.y_id)):
-        if mid not in m:
-            out.append(f"{label} {mid} is not in the map (LMEA cannot run)")
-    if len({m.origin_id, m.x_id, m.y_id}) < 3:
-        out.append("origin_id, x_id and y_id are not three different markers")
-    size = ARUCO_DICTIONARIES.get(m.dictionary)
-    if size is None:
-        out.append(f"unknown ArUco dictionary {m.dictionary!r}")
-    else:
-        big = [i for i in m.ids if i >= size]
-        if big:
-            out.append(f"{m.dictionary} has ids 0-{size - 1}; ids {big} can never be detected")
-    # Markers facing the same way closer than their mean side overlap (back-to-back wall
-    # markers, facing opposite ways, are fine).
-    ids = m.ids
-    P = m.positions(ids)
-    N = np.array([m[i].normal for i in ids])
-    L = np.array([m[i].length for i in ids])
-    for a in range(len(ids)):
-        d = np.linalg.norm(P[a + 1:] - P[a], axis=1)
-        same = N[a + 1:] @ N[a] > 0.9
-        for j in np.nonzero(same & (d < (L[a + 1:] + L[a]) / 2))[0]:
-            out.append(f"markers {ids[a]} and {ids[a + 1 + j]} overlap "
-                       f"(centres {d[j]:.4f} m apart)")
+def _check_dictionary(name: object, where: str, relative_to: Path | None = None) -> str:
+    """A dictionary name the configuration accepts; a relative dictionary file is taken
+    relative to the map file's folder (``relative_to``)."""
+    try:
+        out = check_dictionary_name(name, where)
+    except ValueError as e:
+        raise MapError(str(e)) from None
+    if relative_to is not None and is_dictionary_file(out) and not Path(out).is_absolute():
+        out = str(relative_to / out)
     return out
 
 
@@ -306,7 +158,7 @@ def load_map(path: str | Path, dictionary: str = "DICT_5X5_50",
     """
     path = Path(path)
     if path.suffix.lower() == ".csv":
-        _check_dictionary(dictionary, f"{path}: dictionary")
+        dictionary = _check_dictionary(dictionary, f"{path}: dictionary")
         if isinstance(default_length, bool) or not (math.isfinite(default_length)
                                                     and default_length > 0):
             raise MapError(f"{path}: default marker length must be > 0 m, got {default_length!r}")
@@ -346,8 +198,9 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
     default_length = _num(data.get("default_length", 0.06), f"{source}: default_length", True)
     if default_length <= 0:
         raise MapError(f"{source}: default_length must be > 0 m, got {default_length}")
+    folder = Path(source).parent if Path(source).is_file() else None
     dictionary = _check_dictionary(data.get("dictionary", "DICT_5X5_50"),
-                                   f"{source}: dictionary")
+                                   f"{source}: dictionary", folder)
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str):
         raise MapError(f"{source}: name must be a string, got {name!r}")
@@ -407,60 +260,36 @@ def map_to_dict(m: MarkerMap) -> dict:
     doc: dict = {
         "name": m.name,
         "dictionary": m.dictionary,
-        "default_length": m.default_length,
-        "origin_id": m.origin_id,
-        "x_id": m.x_id,
-        "y_id": m.y_id,
+        "default_length": float(m.default_length),
+        "origin_id": int(m.origin_id),
+        "x_id": int(m.x_id),
+        "y_id": int(m.y_id),
     }
     if m.reference_length is not None:
-        doc["reference_length"] = m.reference_length
+        doc["reference_length"] = float(m.reference_length)
     rows = []
     for mid in m.ids:
         mk = m.markers[mid]
         rx, ry, rz = _angles_deg(mk.rotation)
-        row = {"id": mid, "x": float(mk.position[0]), "y": float(mk.position[1]),
+        row = {"id": int(mid), "x": float(mk.position[0]), "y": float(mk.position[1]),
                "z": float(mk.position[2])}
         if (rx, ry, rz) != (0.0, 0.0, 0.0):
             row.update(rx_deg=rx, ry_deg=ry, rz_deg=rz)
-        row["length"] = mk.length
+        row["length"] = float(mk.length)
         rows.append(row)
     doc["markers"] = rows
     return doc
 
 
-def _toml_value(v: object) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        f = float(v)
-        if not math.isfinite(f):
-            raise MapError(f"cannot write non-finite value {f!r}")
-        return repr(f)  # shortest round-tripping form; always has '.', 'e' or both
-    if isinstance(v, str):
-        out = ['"']
-        for ch in v:
-            o = ord(ch)
-            if ch in '"\\':
-                out.append("\\" + ch)
-            elif o < 0x20 or o == 0x7F:
-                out.append(f"\\u{o:04x}")
-            else:
-                out.append(ch)
-        return "".join(out) + '"'
-    raise MapError(f"cannot write {type(v).__name__} value {v!r} to TOML")
-
-
 def dumps_map_toml(m: MarkerMap) -> str:
-    """The TOML text of ``m`` (stdlib writer: keys and values of :func:`map_to_dict`)."""
+    """The TOML text of ``m`` (``tomli_w`` on :func:`map_to_dict`, under a units comment)."""
     doc = map_to_dict(m)
-    lines = ["# KMEA marker map: metres; rotations in degrees, fixed frame Z then Y then X",
-             "# (R = Rx @ Ry @ Rz, marker2world). See docs/maps.md."]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in doc.items() if k != "markers"]
-    for row in doc["markers"]:
-        lines += ["", "[[markers]]"] + [f"{k} = {_toml_value(v)}" for k, v in row.items()]
-    return "\n".join(lines) + "\n"
+    for k, v in [*doc.items(), *((k, v) for row in doc["markers"] for k, v in row.items())]:
+        if isinstance(v, float) and not math.isfinite(v):
+            raise MapError(f"cannot write non-finite value {v!r} ({k})")
+    head = ("# KMEA marker map: metres; rotations in degrees, fixed frame Z then Y then X\n"
+            "# (R = Rx @ Ry @ Rz, marker2world). See docs/maps.md.\n")
+    return head + tomli_w.dumps(doc)
 
 
 def save_map_toml(m: MarkerMap, path: str | Path) -> None:

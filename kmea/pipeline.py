@@ -22,11 +22,10 @@ import numpy as np
 
 from kmea import estimators
 from kmea.estimators.base import Estimate, MarkerObservation
-from kmea.estimators.loo import loo_errors
 from kmea.filters import PoseFilter
+from kmea.geometry import wrap_angle
 from kmea.maps import MarkerMap
 from kmea.robots import RobotSpec, robot_pose
-from kmea.transforms import wrap_angle
 from kmea.vision.camera import CameraModel
 from kmea.vision.detection import DetectorConfig, MarkerDetector
 
@@ -308,9 +307,15 @@ class Pipeline:
             obs, diag = list(inp.observations), dict(inp.diagnostics)
             t2 = time.perf_counter()
         intr = self.camera.intrinsics
+        both = None
         try:
-            est = self.estimator.estimate(obs, self.world_map, camera=intr,
-                                          plane_heights=self.plane_heights)
+            if loo:  # one call: the estimate and its leave-one-out (kmea.estimators.base)
+                both = self.estimator.estimate_with_loo(obs, self.world_map, camera=intr,
+                                                        plane_heights=self.plane_heights)
+                est = both.estimate
+            else:
+                est = self.estimator.estimate(obs, self.world_map, camera=intr,
+                                              plane_heights=self.plane_heights)
         except ValueError as e:  # bad observations: report, never crash the loop
             est = Estimate.failed(self.algorithm, str(e))
         t3 = time.perf_counter()
@@ -331,10 +336,9 @@ class Pipeline:
         t5 = time.perf_counter()
         tm["robots"] = (t5 - t4) * 1e3
         loo_err: dict[int, float] = {}
-        if loo and est.ok:
+        if both is not None and est.ok:
             try:
-                loo_err = loo_errors(self.estimator, obs, self.world_map, camera=intr,
-                                     plane_heights=self.plane_heights)
+                loo_err = both.loo_errors  # computed here, from the estimate's own state
             except ValueError:
                 loo_err = {}
         tm["loo"] = (time.perf_counter() - t5) * 1e3

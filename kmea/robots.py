@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kmea.estimators.base import MarkerEstimate
-from kmea.transforms import wrap_angle
+from kmea.geometry import wrap_angle
 
 __all__ = ["ROBOT_DEFAULTS", "RobotPose", "RobotSpec", "check_robot_spec", "robot_from_table",
            "robot_pose"]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from kmea.cli import main
-from kmea.transforms import rot_x, rot_y, rot_z
+from kmea.geometry import rot_x, rot_y, rot_z
 from kmea.vision.calibration import BoardError, Calibrator, View, parse_board
 from kmea.vision.camera import load_camera
 

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from kmea.estimators import Estimator, MarkerObservation, available, get
-from kmea.estimators.common import kabsch, reference_problem
+from kmea.estimators.base import loo_by_exclusion
+from kmea.estimators.common import reference_problem
 from kmea.estimators.kmea import KMEA
 from kmea.estimators.lmea import LMEA
 from kmea.estimators.loo import loo_errors, loo_positions
 from kmea.estimators.umeyama import Umeyama
+from kmea.geometry import kabsch, rot_x, rot_z, rotvec_to_matrix
 from kmea.maps import Marker, MarkerMap, default_map
-from kmea.transforms import rot_x, rot_z, rotvec_to_matrix
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -138,7 +139,7 @@ def test_kabsch_returns_a_proper_rotation_for_mirrored_points() -> None:
     src = rng.normal(size=(10, 3))
     src -= src.mean(0)
     dst = src * [1, 1, -1]
-    R = kabsch(src, dst)
+    R = kabsch(src.T @ dst)
     assert np.linalg.det(R) == pytest.approx(1.0)
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
 
@@ -269,11 +270,12 @@ def test_corrupting_the_left_out_marker_changes_nothing_else(name: str) -> None:
 def test_kmea_batched_leave_one_out_equals_the_loop(seed: int) -> None:
     m, obs = noisy_frame(seed)
     k = KMEA()
-    fast = k.estimate_loo(obs, m)
+    fast = k.estimate_with_loo(obs, m).loo_positions
     assert set(fast) == {o.id for o in obs if o.id in m}  # origin 13 included
+    slow, failed = loo_by_exclusion(k, obs, m, list(fast))
+    assert not failed
     for mid, p in fast.items():
-        slow = k.estimate(obs, m, exclude={mid})
-        assert np.allclose(p, slow.markers[mid].position, rtol=0, atol=1e-12)
+        assert np.allclose(p, slow[mid], rtol=0, atol=1e-12)
     errs = loo_errors(k, obs, m)
     for mid, e in errs.items():
         assert e == pytest.approx(float(np.hypot(*(fast[mid][:2] - m[mid].position[:2]))))
@@ -284,18 +286,23 @@ def test_kmea_batched_leave_one_out_equals_the_loop(seed: int) -> None:
 def test_kmea_batched_leave_one_out_on_a_small_and_a_collinear_set() -> None:
     m = hand_map()
     obs = hand_obs(HAND_CAM)
-    fast = KMEA().estimate_loo(obs, m)
+    fast = KMEA().estimate_with_loo(obs, m).loo_positions
     assert set(fast) == {13, 16, 4, 7}
     assert all(np.allclose(fast[i], m[i].position, atol=1e-12) for i in fast)
     # Three visible markers: leaving one out leaves two, never an estimate.
-    assert KMEA().estimate_loo(hand_obs({i: HAND_CAM[i] for i in (13, 16, 4)}), m) == {}
+    res = KMEA().estimate_with_loo(hand_obs({i: HAND_CAM[i] for i in (13, 16, 4)}), m)
+    assert res.estimate.ok and res.loo_positions == {}
+    assert set(res.loo_failures) == {13, 16, 4}
+    assert all("2 reference" in r for r in res.loo_failures.values())
     # Four markers, three of them collinear (13, 16 and a new 9 on the x axis) plus 4:
     # leaving out 4 leaves a collinear set, the others can still be estimated.
     m2 = hand_map()
     m2.markers[9] = Marker(9, np.array([2.0, 0, 0]), np.eye(3), 0.06)
     cam = {13: HAND_CAM[13], 16: HAND_CAM[16], 4: HAND_CAM[4], 9: (-1.0, -0.5, 0.0)}
-    fast = KMEA().estimate_loo(hand_obs(cam), m2)
+    res = KMEA().estimate_with_loo(hand_obs(cam), m2)
+    fast = res.loo_positions
     assert set(fast) == {13, 16, 9}
+    assert "collinear" in res.loo_failures[4]
     assert all(np.allclose(fast[i], m2[i].position, atol=1e-12) for i in fast)
 
 
@@ -407,8 +414,8 @@ def test_kmea_z_noise_option_is_seeded_and_small() -> None:
     # 0.1 mm of map noise moves a 1.7 m floor by well under a millimetre.
     assert pos_err(a, m) < 1e-3
     assert pos_err(clean, m) < 1e-9
-    # The batched leave-one-out draws its own noise once and still matches the map closely.
-    loo = KMEA(z_noise=1e-4, seed=1).estimate_loo(obs, m)
+    # Leave-one-out with map noise (one draw per estimate) still matches the map closely.
+    loo = KMEA(z_noise=1e-4, seed=1).estimate_with_loo(obs, m).loo_positions
     assert max(np.abs(p - m[i].position).max() for i, p in loo.items()) < 1e-3
     with pytest.raises(ValueError, match="z_noise"):
         KMEA(z_noise=-1.0)

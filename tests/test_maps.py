@@ -247,7 +247,7 @@ BAD_TOML = [
     ("default_length = 0\n" + HEAD, "default_length must be > 0 m, got 0.0"),
     ('dictionary = "DICT_5X5_51"\n' + HEAD,
      "dictionary: unknown ArUco dictionary 'DICT_5X5_51' (e.g. DICT_5X5_50, DICT_5X5_100, "
-     "DICT_4X4_50)"),
+     "DICT_4X4_50; or a .yml/.json dictionary file)"),
     ("origin_id = 7\n" + HEAD, "origin_id: marker 7 is not in the map"),
     ("reference_length = -2\n" + HEAD, "reference_length must be > 0 m, got -2.0"),
     ("name = 3\n" + HEAD, "name must be a string, got 3"),
@@ -335,3 +335,30 @@ def test_map_cli_show_check_convert(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert kmea_main(["map", "check", str(bad)]) == 1
     assert capsys.readouterr().err.strip() == \
         f"kmea map: {bad}: line 2: z: expected a number, got 'zero'"
+
+
+def test_map_accepts_every_dictionary_the_config_accepts(tmp_path: Path) -> None:
+    """One dictionary table: a predefined name in any spelling the detector takes, or a
+    custom dictionary file next to the map (what ``detector.dictionary`` accepts)."""
+    import cv2
+
+    from kmea.vision.dictionary import get_dictionary
+
+    custom = cv2.aruco.extendDictionary(12, 5, cv2.aruco.getPredefinedDictionary(
+        cv2.aruco.DICT_5X5_50), 3)
+    fs = cv2.FileStorage(str(tmp_path / "floor_dict.yml"), cv2.FILE_STORAGE_WRITE)
+    custom.writeDictionary(fs)
+    fs.release()
+    body = "\n[[markers]]\nid = 1\nx = 0\ny = 0\nz = 0\n"
+    (tmp_path / "custom.toml").write_text('dictionary = "floor_dict.yml"\n' + body)
+    m = load_map(tmp_path / "custom.toml")
+    assert Path(m.dictionary) == tmp_path / "floor_dict.yml"
+    assert np.array_equal(get_dictionary(m.dictionary).bytesList, custom.bytesList)
+    assert check_map(m) == ["origin_id 13 is not in the map (LMEA cannot run)",
+                            "x_id 16 is not in the map (LMEA cannot run)",
+                            "y_id 4 is not in the map (LMEA cannot run)"]
+    (tmp_path / "lower.toml").write_text('dictionary = "5x5_100"\n' + body)
+    assert load_map(tmp_path / "lower.toml").dictionary == "DICT_5X5_100"
+    # A saved map writes the canonical name and loads back the same.
+    save_map_toml(load_map(tmp_path / "lower.toml"), tmp_path / "again.toml")
+    assert 'dictionary = "DICT_5X5_100"' in (tmp_path / "again.toml").read_text()

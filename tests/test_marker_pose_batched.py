@@ -1,4 +1,4 @@
-"""The batched IPPE-square of kmea.vision.marker_pose equals cv2.solvePnPGeneric(IPPE_SQUARE).
+"""The batched IPPE-square of kmea.vision.ippe equals cv2.solvePnPGeneric(IPPE_SQUARE).
 
 Both solutions of every marker (rotation, translation, RMS reprojection error) must match
 OpenCV's to 1e-9, on projected corners (with and without lens distortion, noisy, nearly
@@ -12,9 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from kmea.transforms import marker_corners_local, rot_x, rot_y, rot_z
+from kmea.geometry import marker_corners_local, rot_x, rot_y, rot_z
 from kmea.vision.camera import CameraModel, pi_camera_v2
-from kmea.vision.marker_pose import _ippe_square, _solve_one, estimate_marker_poses
+from kmea.vision.ippe import ippe_square, solve_pnp_pair
+from kmea.vision.marker_pose import estimate_marker_poses
 
 TOL = 1e-9
 
@@ -34,7 +35,7 @@ def opencv_both(corners: np.ndarray, length: float, camera: CameraModel
 
 
 def assert_same(corners: np.ndarray, lengths: np.ndarray, camera: CameraModel) -> None:
-    got = _ippe_square(corners, lengths / 2.0, camera.camera_matrix, camera.dist_coeffs)
+    got = ippe_square(corners, lengths / 2.0, camera.camera_matrix, camera.dist_coeffs)
     assert got is not None
     R, t, e = got
     for i in range(len(corners)):
@@ -103,7 +104,7 @@ def test_rendered_frame_markers_match_opencv() -> None:
     obs, diag = estimate_marker_poses(det.ids, corners, camera, world_map=scene.effective_map())
     assert len(obs) == len(corners) and not diag.failed_ids
     for o, c in zip(obs, corners, strict=True):
-        R2, t2, e2 = _solve_one(marker_corners_local(o.length), c, camera.camera_matrix,
+        R2, t2, e2 = solve_pnp_pair(marker_corners_local(o.length), c, camera.camera_matrix,
                                 camera.dist_coeffs, False)
         k = 1 if o.flipped else 0
         np.testing.assert_allclose(o.marker2cam_R, R2[k], rtol=0, atol=TOL)
@@ -117,11 +118,11 @@ def test_degenerate_squares_are_left_to_opencv() -> None:
     OpenCV's per-marker answer (IPPE, then SQPnP) exactly as before batching."""
     cam = DISTORTED
     line = np.array([[[100.0, 100.0], [200.0, 100.0], [300.0, 100.0], [400.0, 100.0]]])
-    R, t, e = _ippe_square(line, np.array([0.03]), cam.camera_matrix, cam.dist_coeffs)
+    R, t, e = ippe_square(line, np.array([0.03]), cam.camera_matrix, cam.dist_coeffs)
     assert not (np.isfinite(R).all() and np.isfinite(t).all() and np.isfinite(e).all()
                 and e[0, 0] < 1.0)
     obs, diag = estimate_marker_poses([5], line, cam)
-    ref = _solve_one(marker_corners_local(0.06), line[0], cam.camera_matrix,
+    ref = solve_pnp_pair(marker_corners_local(0.06), line[0], cam.camera_matrix,
                      cam.dist_coeffs, False)
     if ref is None:
         assert obs == [] and diag.failed_ids == [5]
@@ -134,4 +135,4 @@ def test_degenerate_squares_are_left_to_opencv() -> None:
 def test_tilted_sensor_model_is_not_batched() -> None:
     d = np.zeros(14)
     d[12] = 0.01
-    assert _ippe_square(np.zeros((1, 4, 2)), np.array([0.03]), DISTORTED.camera_matrix, d) is None
+    assert ippe_square(np.zeros((1, 4, 2)), np.array([0.03]), DISTORTED.camera_matrix, d) is None

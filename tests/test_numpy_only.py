@@ -16,15 +16,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PKG = ROOT / "kmea"
 ALGORITHM_FILES = sorted(
-    [PKG / "transforms.py", PKG / "maps.py", PKG / "metrics.py", PKG / "filters.py",
-     PKG / "robots.py", *(PKG / "estimators").glob("*.py")]
+    [PKG / "map_model.py", PKG / "aruco_names.py", PKG / "metrics.py",
+     PKG / "filters.py",
+     PKG / "robots.py", *(PKG / "estimators").glob("*.py"), *(PKG / "geometry").glob("*.py")]
 )
-ALGORITHM_MODULES = {"kmea", "kmea.transforms", "kmea.maps", "kmea.metrics", "kmea.filters",
-                     "kmea.robots", "kmea.estimators"} | {
-    f"kmea.estimators.{p.stem}" for p in (PKG / "estimators").glob("*.py")
-    if p.stem != "__init__"}
-# tomllib's backport, imported only on Python < 3.11 (maps.py reads TOML with it).
-BACKPORTS = {"tomli"}
+ALGORITHM_MODULES = {"kmea", "kmea.map_model", "kmea.aruco_names",
+                     "kmea.metrics", "kmea.filters",
+                     "kmea.robots", "kmea.estimators", "kmea.geometry"} | {
+    f"kmea.{pkg}.{p.stem}" for pkg in ("estimators", "geometry")
+    for p in (PKG / pkg).glob("*.py") if p.stem != "__init__"}
+BACKPORTS: set[str] = set()
 
 
 def _allowed(module: str) -> bool:
@@ -54,7 +55,7 @@ def _imports(path: Path) -> list[tuple[int, str]]:
 
 def test_the_file_list_covers_the_estimators() -> None:
     names = {p.name for p in ALGORITHM_FILES}
-    assert {"transforms.py", "maps.py", "kmea.py", "lmea.py", "umeyama.py", "common.py",
+    assert {"map_model.py", "kmea.py", "lmea.py", "umeyama.py", "common.py",
             "loo.py", "base.py", "metrics.py", "filters.py", "robots.py"} <= names
 
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from kmea.cli import main
+from kmea.geometry import rot_z
 from kmea.maps import Marker, MarkerMap, default_map
-from kmea.transforms import rot_z
 from kmea.vision.printing import charuco_page, floor_page, marker_page, px, save_printable
 
 

@@ -12,8 +12,8 @@ from kmea.estimators import get
 from kmea.estimators.base import MarkerObservation
 from kmea.estimators.loo import loo_errors
 from kmea.estimators.robust import KMEARobust, umeyama_batch
+from kmea.geometry import rotvec_to_matrix
 from kmea.maps import default_map
-from kmea.transforms import rotvec_to_matrix
 
 DISPLACED = {4: (0.02, -0.03), 13: (-0.03, 0.02), 16: (0.025, 0.025)}
 
@@ -101,15 +101,17 @@ def test_displaced_anchors_are_rejected_and_reported():
     assert p_mean > 1.5 * r_mean and p_mean - r_mean > 0.4e-3
 
 
-def test_loo_fast_path_equals_full_estimates():
+def test_leave_one_out_is_estimate_with_the_marker_excluded():
     sc = scenario1(displaced={4: (0.03, 0.0)})
     obs = observe(sc, noise_px=0.15, seed=6)
     kr = KMEARobust()
-    fast = kr.estimate_loo(obs, sc.map)
-    assert set(fast) == {o.id for o in obs if o.id in sc.map}
-    for i, p in fast.items():
+    res = kr.estimate_with_loo(obs, sc.map)
+    assert set(res.loo_positions) == {o.id for o in obs if o.id in sc.map}
+    assert set(res.estimate.rejected) == {4}
+    for i, p in res.loo_positions.items():
         est = kr.estimate(obs, sc.map, exclude={i})
-        assert np.allclose(est.markers[i].position, p, atol=1e-9), i
+        assert np.array_equal(est.markers[i].position, p), i
+    assert res.loo_errors[4] == pytest.approx(0.03, abs=2e-3)
 
 
 def test_deterministic_with_sampling():
@@ -139,7 +141,8 @@ def test_degenerate_inputs_are_not_estimated():
                                 {i: (*rng.uniform(-0.3, 0.3, 2), 0.0) for i in ids})
     est = kr.estimate(scattered, m)
     assert not est.ok and "consensus" in est.reason
-    assert kr.estimate_loo(two, m) == {}
+    res = kr.estimate_with_loo(two, m)
+    assert res.loo_positions == {} and set(res.loo_failures) == {13, 16}
     with pytest.raises(ValueError, match="threshold"):
         KMEARobust(threshold=0.0)
 

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from kmea.geometry import marker_corners_local, rot_z
 from kmea.maps import Marker
 from kmea.sim import (
     Effects,
@@ -19,7 +20,6 @@ from kmea.sim import (
     get_scene,
     scenario1_camera,
 )
-from kmea.transforms import marker_corners_local, rot_z
 from kmea.vision.camera import pi_camera_v2
 
 

@@ -19,8 +19,8 @@ import numpy as np
 from kmea.estimators import get
 from kmea.estimators.base import MarkerObservation
 from kmea.estimators.loo import loo_errors
+from kmea.geometry import rot_x, rot_z
 from kmea.maps import Marker, MarkerMap, default_map
-from kmea.transforms import rot_x, rot_z
 
 
 def _floor_map(n: int, seed: int = 0) -> MarkerMap:

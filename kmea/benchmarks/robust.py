@@ -4,8 +4,9 @@ One synthetic frame of the RobotAtFactory floor: the nominal Pi Camera v2 1.35 m
 floor centre looking down, the 33 floor markers' corners projected with 0.15 px of Gaussian
 noise, per-marker poses from ``cv2.solvePnP`` (IPPE_SQUARE). For each estimator: the median
 time of one estimate; of one estimate plus the leave-one-out of all markers, as the daemon
-runs them every frame (``loo_positions``: the estimator's ``estimate_loo`` fast path when it
-has one); and of the plain loop of N estimates with one marker excluded each. Frames cycle
+runs them every frame (``Estimator.estimate_with_loo``: KMEA's batched fast path, the
+definition's loop for the others); and of the plain loop of N estimates with one marker
+excluded each. Frames cycle
 through 4 noise draws so no call reuses the previous one's work.
 """
 
@@ -20,10 +21,9 @@ import numpy as np
 
 from kmea.estimators import get
 from kmea.estimators.base import MarkerObservation
-from kmea.estimators.camera_np import dist14, project
-from kmea.estimators.loo import loo_positions
+from kmea.geometry import check_distortion as dist14
+from kmea.geometry import marker_corners_local, project
 from kmea.maps import MarkerMap, default_map
-from kmea.transforms import marker_corners_local
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
 NAMES = ("kmea", "lmea", "umeyama", "kmea-robust", "corner-pnp")
@@ -78,8 +78,7 @@ def run(quick: bool = False) -> None:
         one = _median_ms(lambda f, est=est: est.estimate(f, m, camera=K), frames, reps)
 
         def daemon(f, est=est) -> None:  # what kmead does every frame with stats.loo on
-            est.estimate(f, m, camera=K)
-            loo_positions(est, f, m, camera=K)
+            est.estimate_with_loo(f, m, camera=K)
 
         def loop(f, est=est) -> None:
             for o in f:

@@ -10,19 +10,19 @@ from importlib import import_module
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimateWithLoo,
     Estimator,
     MarkerEstimate,
     MarkerObservation,
-    NotEstimated,
 )
 
 __all__ = [
     "CameraIntrinsics",
     "Estimate",
+    "EstimateWithLoo",
     "Estimator",
     "MarkerEstimate",
     "MarkerObservation",
-    "NotEstimated",
     "available",
     "get",
 ]

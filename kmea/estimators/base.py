@@ -3,32 +3,52 @@
 An estimator takes the camera-frame poses of the markers detected in one frame and the
 map, and returns the world pose of every detected marker (in the map or not) plus
 diagnostics. Numpy only.
+
+The calls (see :class:`Estimator`)::
+
+    est = estimator.estimate(observations, world_map, exclude=(), camera=None,
+                             plane_heights=None)                        # -> Estimate
+    res = estimator.estimate_with_loo(observations, world_map, exclude=(), camera=None,
+                                      plane_heights=None, loo_ids=None)  # -> EstimateWithLoo
+    res.estimate      # the Estimate of ``estimate(...)`` with the same arguments
+    res.loo_positions # id -> (3,) world position (m) of that marker estimated without it
+    res.loo_errors    # id -> floor-plane error (m) of that position against the map
+    res.loo_failures  # id -> why it could not be estimated without itself
+
+**Leave-one-out has one definition**: the leave-one-out position of marker j is
+``estimate(observations, world_map, exclude={j, *exclude}, camera, plane_heights)
+.markers[j].position`` (:func:`loo_by_exclusion` computes exactly that). By default j runs
+over the observed map markers that can be references (not suspect, not in ``exclude``);
+``loo_ids`` chooses them (the experiments evaluate chosen markers). An estimator may compute
+the same thing faster (KMEA: all alignments in one batched SVD) but never something else.
+The daemon's statistics and the experiment tables both come from this call.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Mapping, Sequence
+import time
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = [
     "CameraIntrinsics",
     "Estimate",
+    "EstimateWithLoo",
     "Estimator",
+    "EstimatorBase",
     "MarkerEstimate",
     "MarkerObservation",
-    "NotEstimated",
     "check_observations",
+    "floor_errors",
+    "loo_by_exclusion",
+    "loo_candidates",
 ]
-
-
-class NotEstimated(Exception):
-    """Raised inside estimators for a degenerate input; turned into ``Estimate.ok = False``."""
 
 
 @dataclass(frozen=True)
@@ -124,6 +144,66 @@ class Estimate:
         return cls(algorithm=algorithm, ok=False, reason=reason)
 
 
+class EstimateWithLoo:
+    """An estimate of one frame together with its leave-one-out results.
+
+    estimate: the :class:`Estimate` with all references (but ``exclude``).
+    loo_positions: id -> (3,) world position (m) of that marker estimated with itself left
+        out of the references (see the module docstring for the definition).
+    loo_errors: id -> floor-plane distance (m) between that position and the map's; only
+        for markers in the map.
+    loo_failures: id -> reason, for the markers that could not be estimated without
+        themselves (too few references, an LMEA anchor, ...).
+    loo_seconds: time the leave-one-out part took (s), for the daemon's timings.
+
+    The leave-one-out part runs on first access to one of the ``loo_*`` attributes, from
+    the state of this frame's estimate that this object holds (for example corner-pnp's
+    camera fit): a caller can act on ``estimate`` first (the daemon relays robot poses)
+    and nothing is cached in the estimator.
+    """
+
+    def __init__(self, estimate: Estimate, world_map: MarkerMap,
+                 loo: Callable[[], tuple[dict[int, np.ndarray], dict[int, str]]]) -> None:
+        self.estimate = estimate
+        self._map = world_map
+        self._loo: Callable[[], tuple[dict[int, np.ndarray], dict[int, str]]] | None = loo
+        self._pos: dict[int, np.ndarray] = {}
+        self._err: dict[int, float] = {}
+        self._fail: dict[int, str] = {}
+        self._seconds = 0.0
+
+    def _run(self) -> None:
+        if self._loo is None:
+            return
+        t0 = time.perf_counter()
+        pos, fail = self._loo()
+        self._loo = None
+        self._pos = dict(sorted(pos.items()))
+        self._err = floor_errors(self._pos, self._map)
+        self._fail = dict(sorted(fail.items()))
+        self._seconds = time.perf_counter() - t0
+
+    @property
+    def loo_positions(self) -> dict[int, np.ndarray]:
+        self._run()
+        return self._pos
+
+    @property
+    def loo_errors(self) -> dict[int, float]:
+        self._run()
+        return self._err
+
+    @property
+    def loo_failures(self) -> dict[int, str]:
+        self._run()
+        return self._fail
+
+    @property
+    def loo_seconds(self) -> float:
+        self._run()
+        return self._seconds
+
+
 @runtime_checkable
 class Estimator(Protocol):
     """What every estimator provides."""
@@ -140,11 +220,97 @@ class Estimator(Protocol):
     ) -> Estimate:
         """Estimate the world pose of every observed marker.
 
-        exclude: map ids not to use as references (leave-one-out); they are still estimated.
+        exclude: map ids not to use as references; they are still estimated.
         camera: intrinsics, for estimators that work on corners.
         plane_heights: id -> known height (m) of a horizontal marker not in the map (robots).
         """
         ...
+
+    def estimate_with_loo(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        exclude: Collection[int] = (),
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+        loo_ids: Collection[int] | None = None,
+    ) -> EstimateWithLoo:
+        """``estimate`` and the leave-one-out positions/errors of ``loo_ids`` (default
+        :func:`loo_candidates`), as defined in the module docstring."""
+        ...
+
+
+def loo_candidates(observations: Sequence[MarkerObservation], world_map: MarkerMap,
+                   exclude: Collection[int] = ()) -> list[int]:
+    """The markers leave-one-out evaluates by default: observed, in the map, not suspect, not
+    in ``exclude`` (the markers that can be references), sorted by id."""
+    excl = set(exclude)
+    return sorted(o.id for o in observations
+                  if o.id in world_map and not o.suspect and o.id not in excl)
+
+
+def loo_by_exclusion(estimator: Estimator, observations: Sequence[MarkerObservation],
+                     world_map: MarkerMap, ids: Collection[int], exclude: Collection[int] = (),
+                     camera: CameraIntrinsics | None = None,
+                     plane_heights: Mapping[int, float] | None = None
+                     ) -> tuple[dict[int, np.ndarray], dict[int, str]]:
+    """The definition of leave-one-out: for each id in ``ids``, ``estimator.estimate`` with
+    ``exclude={id, *exclude}``. Returns (id -> (3,) world position, m; id -> failure reason)."""
+    pos: dict[int, np.ndarray] = {}
+    fail: dict[int, str] = {}
+    for j in ids:
+        e = estimator.estimate(observations, world_map, exclude={j, *exclude}, camera=camera,
+                               plane_heights=plane_heights)
+        if not e.ok:
+            fail[j] = e.reason or "not estimated"
+        elif j not in e.markers:
+            fail[j] = "marker missing from the estimate"
+        else:
+            pos[j] = np.asarray(e.markers[j].position, dtype=float)
+    return pos, fail
+
+
+def floor_errors(positions: Mapping[int, np.ndarray], world_map: MarkerMap) -> dict[int, float]:
+    """id -> |(x, y) - map (x, y)| (m) for the positions of map markers, sorted by id."""
+    return {mid: float(np.hypot(*(np.asarray(p)[:2] - world_map[mid].position[:2])))
+            for mid, p in sorted(positions.items()) if mid in world_map}
+
+
+class EstimatorBase:
+    """Shared implementation of :meth:`Estimator.estimate_with_loo` by the definition
+    (:func:`loo_by_exclusion`); an estimator with a faster exact way overrides
+    :meth:`_loo_positions`."""
+
+    name: str
+
+    def estimate(self, observations, world_map, exclude=(), camera=None,
+                 plane_heights=None) -> Estimate:  # pragma: no cover - every subclass has one
+        raise NotImplementedError
+
+    def _loo_positions(self, observations: Sequence[MarkerObservation], world_map: MarkerMap,
+                       ids: list[int], exclude: Collection[int],
+                       camera: CameraIntrinsics | None,
+                       plane_heights: Mapping[int, float] | None
+                       ) -> tuple[dict[int, np.ndarray], dict[int, str]]:
+        return loo_by_exclusion(self, observations, world_map, ids, exclude, camera,
+                                plane_heights)
+
+    def estimate_with_loo(
+        self,
+        observations: Sequence[MarkerObservation],
+        world_map: MarkerMap,
+        exclude: Collection[int] = (),
+        camera: CameraIntrinsics | None = None,
+        plane_heights: Mapping[int, float] | None = None,
+        loo_ids: Collection[int] | None = None,
+    ) -> EstimateWithLoo:
+        """See :meth:`Estimator.estimate_with_loo`."""
+        est = self.estimate(observations, world_map, exclude=exclude, camera=camera,
+                            plane_heights=plane_heights)
+        ids = (loo_candidates(observations, world_map, exclude) if loo_ids is None
+               else sorted(set(loo_ids)))
+        return EstimateWithLoo(est, world_map, lambda: self._loo_positions(
+            observations, world_map, ids, exclude, camera, plane_heights))
 
 
 def check_observations(observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:

@@ -12,8 +12,8 @@ from collections.abc import Collection, Mapping, Sequence
 import numpy as np
 
 from kmea.estimators.base import Estimate, MarkerEstimate, MarkerObservation
-from kmea.maps import MarkerMap
-from kmea.transforms import make_transform
+from kmea.geometry import intersect_rays_planes, make_transform, yaw_of
+from kmea.map_model import MarkerMap
 
 __all__ = [
     "COINCIDENT_TOL",
@@ -22,8 +22,6 @@ __all__ = [
     "apply_plane_heights",
     "apply_similarity",
     "finish_estimate",
-    "kabsch",
-    "kabsch_batch",
     "reference_problem",
     "select_references",
 ]
@@ -99,34 +97,6 @@ def reference_problem(world: np.ndarray, cam: np.ndarray, min_refs: int = 3) -> 
     return None
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Rotation R (3, 3) minimising sum ||R @ src_i - dst_i||^2 for centred (N, 3) sets.
-
-    The textbook steps: H = src^T dst = U S V^T, R = V U^T; if det(R) < 0 (a reflection),
-    flip the sign of the last column of V (the axis of least spread) and recompute.
-    """
-    H = src.T @ dst
-    U, _, Vt = np.linalg.svd(H)
-    V = Vt.T
-    R = V @ U.T
-    if np.linalg.det(R) < 0.0:
-        V[:, -1] *= -1.0
-        R = V @ U.T
-    return R
-
-
-def kabsch_batch(H: np.ndarray) -> np.ndarray:
-    """Kabsch for a stack of cross-covariances H (K, 3, 3) = sum src dst^T -> R (K, 3, 3)."""
-    U, _, Vt = np.linalg.svd(H)
-    V = np.swapaxes(Vt, -1, -2)
-    Ut = np.swapaxes(U, -1, -2)
-    d = np.sign(np.linalg.det(V @ Ut))
-    d[d == 0] = 1.0
-    V = V.copy()
-    V[..., :, -1] *= d[:, None]
-    return V @ Ut
-
-
 def apply_similarity(observations: Sequence[MarkerObservation], scale: float, R: np.ndarray,
                      t: np.ndarray) -> dict[int, MarkerEstimate]:
     """World pose of every observed marker under ``p_world = scale * R @ p_cam + t``.
@@ -139,7 +109,7 @@ def apply_similarity(observations: Sequence[MarkerObservation], scale: float, R:
     Rc = np.array([o.marker2cam_R for o in observations], dtype=float).reshape(-1, 3, 3)
     Pw = scale * P @ R.T + t
     Rw = R @ Rc  # (N, 3, 3): R broadcast over the stack
-    yaw = np.arctan2(Rw[:, 1, 0], Rw[:, 0, 0])  # as transforms.yaw_of, for all at once
+    yaw = yaw_of(Rw)
     return {o.id: MarkerEstimate(o.id, Pw[i], Rw[i], float(yaw[i]))
             for i, o in enumerate(observations)}
 
@@ -164,10 +134,11 @@ def apply_plane_heights(markers: dict[int, MarkerEstimate], camera_world: np.nda
         d = me.position - camera_world
         if abs(d[2]) < 1e-12:
             continue
-        lam = (float(h) - camera_world[2]) / d[2]
-        if not np.isfinite(lam) or lam <= 0.0:
+        p = intersect_rays_planes(camera_world, d, np.array([0.0, 0.0, float(h)]),
+                                  np.array([0.0, 0.0, 1.0]))
+        if not np.all(np.isfinite(p)):
             continue
-        me.position = camera_world + lam * d
+        me.position = p
         moved.append(mid)
     return moved
 

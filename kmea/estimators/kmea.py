@@ -25,20 +25,21 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimatorBase,
     MarkerObservation,
     check_observations,
+    loo_by_exclusion,
 )
 from kmea.estimators.common import (
     COINCIDENT_TOL,
     COLLINEAR_TOL,
     References,
     finish_estimate,
-    kabsch,
-    kabsch_batch,
     reference_problem,
     select_references,
 )
-from kmea.maps import MarkerMap
+from kmea.geometry import kabsch
+from kmea.map_model import MarkerMap
 
 __all__ = ["KMEA", "kmea_align"]
 
@@ -63,11 +64,11 @@ def kmea_align(cam: np.ndarray, world: np.ndarray, ids: Sequence[int], origin_id
                   / np.linalg.norm(cam - c0, axis=1).mean())
     cam_s = scale * cam
     cs, ws = cam_s.mean(axis=0), world.mean(axis=0)
-    R = kabsch(cam_s - cs, world - ws)
+    R = kabsch((cam_s - cs).T @ (world - ws))
     return scale, R, ws - R @ cs
 
 
-class KMEA:
+class KMEA(EstimatorBase):
     """The paper's Algorithm 2. See the module docstring for the steps."""
 
     name = "kmea"
@@ -106,35 +107,37 @@ class KMEA:
         return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights,
                                info={"scale_from": scale_from})
 
-    def estimate_loo(
-        self,
-        observations: Sequence[MarkerObservation],
-        world_map: MarkerMap,
-        camera: CameraIntrinsics | None = None,
-        plane_heights: Mapping[int, float] | None = None,
-    ) -> dict[int, np.ndarray]:
-        """Leave-one-out: id -> (3,) world position of each observed map marker, estimated
-        with itself excluded from the references (omitted when that is not estimable).
-
-        Equal (to rounding) to ``estimate(..., exclude={id}).markers[id].position`` for every
-        id, but all N alignments are computed together: masked sums and one batched SVD.
-        """
+    def _loo_positions(self, observations: Sequence[MarkerObservation], world_map: MarkerMap,
+                       ids: list[int], exclude: Collection[int],
+                       camera: CameraIntrinsics | None,
+                       plane_heights: Mapping[int, float] | None
+                       ) -> tuple[dict[int, np.ndarray], dict[int, str]]:
+        """Leave-one-out by the definition (:func:`kmea.estimators.base.loo_by_exclusion`),
+        the references' all at once: equal (to rounding) to ``estimate(..., exclude={id})``
+        for every id, but the N alignments are computed together (masked sums and one batched
+        SVD). Markers the batch does not cover (not references, degenerate without
+        themselves, moved to a known plane height, or ``z_noise`` drawing per estimate) go
+        through ``estimate`` one by one."""
         observations = check_observations(observations)
-        refs = select_references(observations, world_map)
+        refs = select_references(observations, world_map, exclude)
+        heights = plane_heights or {}
+        fast: dict[int, np.ndarray] = {}
         n = len(refs)
-        if n < 4:
-            return {}
-        world = self._world(refs)
-        cam = refs.cam
-        o = refs.index(world_map.origin_id)
-        out: dict[int, np.ndarray] = {}
-        for k0 in range(0, n, _LOO_CHUNK):
-            ks = np.arange(k0, min(n, k0 + _LOO_CHUNK))
-            pos, ok = _loo_chunk(ks, cam, world, o)
-            for k, p, good in zip(ks, pos, ok, strict=True):
-                if good:
-                    out[refs.ids[k]] = p
-        return out
+        if n >= 4 and self.z_noise == 0.0:
+            want = set(ids)
+            o = refs.index(world_map.origin_id)
+            for k0 in range(0, n, _LOO_CHUNK):
+                ks = np.arange(k0, min(n, k0 + _LOO_CHUNK))
+                pos, ok = _loo_chunk(ks, refs.cam, refs.world, o)
+                for k, p, good in zip(ks, pos, ok, strict=True):
+                    mid = refs.ids[k]
+                    if good and mid in want and mid not in heights:
+                        fast[mid] = p
+        rest = [i for i in ids if i not in fast]
+        pos, fail = loo_by_exclusion(self, observations, world_map, rest, exclude, camera,
+                                     plane_heights)
+        pos.update(fast)
+        return pos, fail
 
 
 def _masked_centroid(W: np.ndarray, P: np.ndarray, m: float) -> np.ndarray:
@@ -175,7 +178,7 @@ def _loo_chunk(ks: np.ndarray, cam: np.ndarray, world: np.ndarray,
         scale = np.where(use, so, scale)
 
     H = np.swapaxes(Cc, 1, 2) @ Wc  # (K, 3, 3); a positive scale does not change Kabsch's R
-    R = kabsch_batch(H)
+    R = kabsch(H)
     t = wa - scale[:, None] * np.einsum("kij,kj->ki", R, ca)
     pos = scale[:, None] * np.einsum("kij,kj->ki", R, cam[ks]) + t
     ok &= np.isfinite(pos).all(axis=1) & np.isfinite(scale) & (scale > 0)

@@ -22,11 +22,12 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimatorBase,
     MarkerObservation,
     check_observations,
 )
 from kmea.estimators.common import COLLINEAR_TOL, References, finish_estimate
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = ["LMEA", "anchor_basis"]
 
@@ -49,7 +50,7 @@ def anchor_basis(origin: np.ndarray, x_anchor: np.ndarray,
     return np.column_stack([ex, np.cross(ez, ex), ez])
 
 
-class LMEA:
+class LMEA(EstimatorBase):
     """The paper's Algorithm 1. See the module docstring for the steps."""
 
     name = "lmea"

@@ -40,6 +40,7 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimatorBase,
     MarkerObservation,
     check_observations,
 )
@@ -49,9 +50,10 @@ from kmea.estimators.common import (
     reference_problem,
     select_references,
 )
-from kmea.estimators.kmea import KMEA, kmea_align
+from kmea.estimators.kmea import kmea_align
 from kmea.estimators.umeyama import umeyama_batch
-from kmea.maps import MarkerMap
+from kmea.geometry import ray_plane_parameter
+from kmea.map_model import MarkerMap
 
 __all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "umeyama_batch"]
 
@@ -59,7 +61,7 @@ __all__ = ["KMEARobust", "describe_rejected", "kmea_align", "plane_residuals", "
 _COLLINEAR = 1e-6
 
 
-class KMEARobust:
+class KMEARobust(EstimatorBase):
     """KMEA with RANSAC consensus, Tukey-reweighted refinement and displaced-marker reports.
 
     Options:
@@ -89,7 +91,6 @@ class KMEARobust:
         self.irls_iterations = int(irls_iterations)
         self.min_references = int(min_references)
         self.in_plane = bool(in_plane)
-        self._cache: tuple | None = None
 
     # ------------------------------------------------------------------ consensus
     def _triples(self, n: int) -> np.ndarray:
@@ -106,21 +107,8 @@ class KMEARobust:
 
         normals: (N, 3) map normals of the references; with them the residuals are measured
         in each reference's plane (see :func:`plane_residuals`). Raises ``ValueError`` with
-        the reason when no non-degenerate consensus of ``min_references`` exists. The last
-        result is remembered (it is a pure function of the inputs), so ``estimate`` then
-        ``estimate_loo`` on the same frame run the robust loop once.
+        the reason when no non-degenerate consensus of ``min_references`` exists.
         """
-        key = (np.asarray(P, float).tobytes(), np.asarray(Q, float).tobytes(), tuple(ids),
-               origin_id, None if normals is None else np.asarray(normals, float).tobytes(),
-               self.threshold, self.trials, self.seed, self.irls_iterations,
-               self.min_references)
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
-        res = self._consensus(P, Q, ids, origin_id, normals)
-        self._cache = (key, res)
-        return res
-
-    def _consensus(self, P, Q, ids, origin_id, normals):
         n = len(P)
 
         def residuals(s: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -193,8 +181,9 @@ class KMEARobust:
     ) -> Estimate:
         """World pose of every observed marker; see the module docstring.
 
-        camera and plane_heights are accepted for the common interface and not used: this
-        estimator works on the markers' camera-frame poses only.
+        camera is accepted for the common interface and not used (this estimator works on
+        the markers' camera-frame poses only); plane_heights moves markers of known height
+        along their camera rays, as for KMEA.
         """
         obs = check_observations(observations)
         refs = select_references(obs, world_map, exclude)
@@ -217,40 +206,6 @@ class KMEARobust:
             "threshold": self.threshold, "origin_in_consensus": world_map.origin_id in used.ids})
         est.rejected = rejected
         return est
-
-    def estimate_loo(
-        self,
-        observations: Sequence[MarkerObservation],
-        world_map: MarkerMap,
-        camera: CameraIntrinsics | None = None,
-        plane_heights: Mapping[int, float] | None = None,
-    ) -> dict[int, np.ndarray]:
-        """Leave-one-out: id -> (3,) world position (m) of each observed map marker estimated
-        without itself (the convention of :func:`kmea.estimators.loo.loo_positions`).
-
-        One consensus for the frame, then for each consensus member the closed-form KMEA on
-        the consensus without it (batched, :meth:`KMEA.estimate_loo`); a rejected reference
-        is not in the consensus, so its position is the full alignment's. It differs from
-        ``estimate(exclude={j})`` only if removing j would change which others agree.
-        """
-        obs = check_observations(observations)
-        refs = select_references(obs, world_map)
-        out: dict[int, np.ndarray] = {}
-        if reference_problem(refs.world, refs.cam, self.min_references + 1):
-            return out
-        P, Q, ids = refs.cam, refs.world, refs.ids
-        try:
-            inl, (s, R, t), _ = self.consensus(P, Q, ids, world_map.origin_id,
-                                               self._normals(world_map, ids))
-        except ValueError:
-            return out
-        for j in np.flatnonzero(~inl):
-            out[ids[j]] = s * R @ P[j] + t
-        # Each consensus member without itself: the paper's KMEA on the others, which
-        # KMEA.estimate_loo computes for all of them at once.
-        members = [o for o in obs if o.id in set(np.asarray(ids)[inl].tolist())]
-        out.update(KMEA().estimate_loo(members, world_map))
-        return out
 
 
 def plane_residuals(pred: np.ndarray, C: np.ndarray, Q: np.ndarray,
@@ -276,7 +231,7 @@ def plane_residuals(pred: np.ndarray, C: np.ndarray, Q: np.ndarray,
     den = np.einsum("mni,ni->mn", ray, normals)
     cos = np.abs(den) / np.maximum(np.linalg.norm(ray, axis=2), 1e-300)
     ok = cos >= min_cos
-    lam = np.einsum("mni,ni->mn", Q[None] - C[:, None, :], normals) / np.where(ok, den, 1.0)
+    lam = ray_plane_parameter(C[:, None, :], ray, Q[None], normals[None])
     on_plane = C[:, None, :] + lam[:, :, None] * ray
     return np.where(ok & (lam > 0), np.linalg.norm(on_plane - Q[None], axis=2), raw)
 

@@ -15,11 +15,12 @@ import numpy as np
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
+    EstimatorBase,
     MarkerObservation,
     check_observations,
 )
 from kmea.estimators.common import finish_estimate, reference_problem, select_references
-from kmea.maps import MarkerMap
+from kmea.map_model import MarkerMap
 
 __all__ = ["Umeyama", "umeyama", "umeyama_batch"]
 
@@ -59,7 +60,7 @@ def umeyama_batch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
     return s, R, t
 
 
-class Umeyama:
+class Umeyama(EstimatorBase):
     """Least-squares similarity over all references (no anchors needed)."""
 
     name = "umeyama"

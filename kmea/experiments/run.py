@@ -20,7 +20,7 @@ import numpy as np
 from kmea import estimators as est_registry
 from kmea.estimators.base import CameraIntrinsics, MarkerObservation
 from kmea.experiments import simscene
-from kmea.experiments.setup import ExperimentConfig, miscalibrated
+from kmea.experiments.setup import ExperimentConfig
 from kmea.maps import MarkerMap
 
 __all__ = [
@@ -28,7 +28,6 @@ __all__ = [
     "FrameResult",
     "RunResult",
     "estimate_frame",
-    "miscalibrated",
     "run_simulation",
 ]
 
@@ -94,23 +93,23 @@ def estimate_frame(
     plane_heights: Mapping[int, float] | None = None,
     never_reference: Collection[int] = (),
 ) -> FrameResult:
-    """Run every estimator once per evaluated marker detected in this frame, that marker
-    left out of the references (with ``never_reference`` too)."""
+    """Leave-one-out of every evaluated marker detected in this frame, by every estimator
+    (``Estimator.estimate_with_loo``: the marker left out of the references, with
+    ``never_reference`` too); ``rejected`` from each estimator's full estimate."""
     detected = tuple(sorted(o.id for o in observations))
     res = FrameResult(index=index, detected=detected)
     present = [m for m in evaluated if m in set(detected)]
     for name, estimator in estimators.items():
-        for k, m in enumerate(present):
-            e = estimator.estimate(observations, world_map, exclude={m, *never_reference},
-                                   camera=camera, plane_heights=plane_heights)
-            if k == 0 and e.rejected:
-                res.rejected[name] = {int(i): float(d) for i, d in e.rejected.items()}
-            if not e.ok:
-                res.failures[(name, m)] = e.reason or "not estimated"
-            elif m not in e.markers:
-                res.failures[(name, m)] = "marker missing from the estimate"
+        both = estimator.estimate_with_loo(observations, world_map, exclude=never_reference,
+                                           camera=camera, plane_heights=plane_heights,
+                                           loo_ids=present)
+        if both.estimate.rejected:
+            res.rejected[name] = {int(i): float(d) for i, d in both.estimate.rejected.items()}
+        for m in present:
+            if m in both.loo_positions:
+                res.positions[(name, m)] = both.loo_positions[m]
             else:
-                res.positions[(name, m)] = np.asarray(e.markers[m].position, dtype=float)
+                res.failures[(name, m)] = both.loo_failures.get(m, "not estimated")
     return res
 
 

@@ -108,3 +108,4 @@ def describe(config: ExperimentConfig) -> dict[str, Any]:
                                           for i, d in sorted(spec.displaced.items()))
     return {"truth": truth, "reference_length": scene.world_map.ref_length(),
             "settings": settings}
+

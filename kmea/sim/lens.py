@@ -1,4 +1,5 @@
-"""The camera's geometry in numpy: OpenCV's distortion model forwards and backwards.
+"""The simulator's lens: per-pixel rays of a camera (the distortion model is
+:mod:`kmea.geometry.camera`'s), inverted on whole images.
 
 Pixel convention is OpenCV's: the centre of the top-left pixel is (0, 0) and pixel (u, v)
 covers [u - 0.5, u + 0.5] x [v - 0.5, v + 0.5]. Normalised coordinates (x, y) are the
@@ -13,67 +14,30 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from kmea.geometry import check_distortion, distort_xy, project_world
 from kmea.vision.camera import CameraModel
 
 __all__ = ["RayMap", "distort", "project", "ray_map", "undistort_pixels"]
 
 
-def _coeffs(camera: CameraModel) -> np.ndarray:
-    d = np.zeros(14)
-    c = np.asarray(camera.dist_coeffs, dtype=float).reshape(-1)
-    d[: c.size] = c
-    if np.any(d[12:] != 0):
-        raise ValueError("camera: the tilted-sensor coefficients (tx, ty) are not supported by "
-                         "the simulator")
-    return d
-
-
 def distort(x: np.ndarray, y: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised undistorted (x, y) -> pixel (u, v), OpenCV's model (k1..k6, p1, p2, s1..s4).
-
-    Like ``cv2.projectPoints``, the skew K[0, 1] is ignored."""
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (float(v) for v in _coeffs(camera)[:12])
-    r2 = x * x
-    r2 += y * y
-    # Horner: 1 + r2 (k1 + r2 (k2 + r2 k3)); terms whose coefficients are zero are skipped
-    radial = k3 * r2 if k3 else np.zeros_like(r2)
-    radial += k2
-    radial *= r2
-    radial += k1
-    radial *= r2
-    radial += 1.0
-    if k4 or k5 or k6:
-        den = k6 * r2
-        den += k5
-        den *= r2
-        den += k4
-        den *= r2
-        den += 1.0
-        radial /= den
-    xd = x * radial
-    yd = y * radial
-    if p1 or p2:
-        xy2 = 2.0 * x * y
-        xd += p1 * xy2 + p2 * (r2 + 2.0 * x * x)
-        yd += p1 * (r2 + 2.0 * y * y) + p2 * xy2
-    if s1 or s2 or s3 or s4:
-        r4 = r2 * r2
-        xd += s1 * r2 + s2 * r4
-        yd += s3 * r2 + s4 * r4
+    """Normalised undistorted (x, y) -> pixel (u, v): :func:`kmea.geometry.distort_xy` and the
+    camera matrix (the skew K[0, 1] ignored, as ``cv2.projectPoints`` does)."""
+    try:
+        d = check_distortion(camera.dist_coeffs)
+    except ValueError as e:
+        raise ValueError(f"camera: {e} by the simulator") from None
+    xd, yd = distort_xy(x, y, d)
     K = camera.camera_matrix
-    # K[0, 1] (skew) is ignored, as cv2.projectPoints and solvePnP do.
     return K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]
 
 
 def project(points_world: np.ndarray, world2cam: np.ndarray,
             camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) -> pixels (N, 2) and camera-frame depths z (N,)."""
-    P = np.asarray(points_world, dtype=float).reshape(-1, 3)
-    P = P @ world2cam[:3, :3].T + world2cam[:3, 3]
-    z = P[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = distort(P[:, 0] / z, P[:, 1] / z, camera)
-    return np.column_stack([u, v]), z
+    """World points (N, 3) -> pixels (N, 2) and camera-frame depths z (N,)
+    (:func:`kmea.geometry.project_world`)."""
+    return project_world(points_world, world2cam, camera.camera_matrix,
+                         check_distortion(camera.dist_coeffs))
 
 
 def undistort_pixels(u: np.ndarray, v: np.ndarray, camera: CameraModel,

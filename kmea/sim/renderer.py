@@ -16,184 +16,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
+from kmea.geometry import unit_rays_plane_depth, yaw_of
 from kmea.maps import Marker
 from kmea.sim import lens
+from kmea.sim.quads import Quad, Rect, box_quads, grow, overlap, union
 from kmea.sim.scene import PALETTE, Occluder, Scene, SimRobot, pose_matrix
-from kmea.transforms import rot_z, yaw_of
+from kmea.sim.truth import FrameTruth, SimFrame
 from kmea.vision.dictionary import get_dictionary
-from kmea.vision.sources import Frame
 
 __all__ = ["FrameTruth", "Renderer", "SimFrame"]
-
-Rect = tuple[int, int, int, int]  # r0, r1, c0, c1 (half-open)
-
-
-@dataclass
-class FrameTruth:
-    """Ground truth of one frame.
-
-    cam2world: (4, 4). markers: id -> (4, 4) true marker2world of every marker in the scene
-    (map markers as placed, i.e. displaced when misplaced; extra markers; robot markers).
-    lengths: id -> marker side, m. corners: id -> (4, 2) exact pixel corners (TL, TR, BR, BL,
-    lens distortion included) of the markers in front of the camera, facing it, whose four
-    corners lie inside the image. visible: ids of ``corners`` that nothing hides (corners and
-    centre unoccluded). robots: name -> true (x, y, theta), m and rad. t: seconds.
-    """
-
-    cam2world: np.ndarray
-    markers: dict[int, np.ndarray]
-    lengths: dict[int, float]
-    corners: dict[int, np.ndarray]
-    visible: set[int]
-    robots: dict[str, tuple[float, float, float]]
-    t: float = 0.0
-
-    def marker_rt(self, mid: int) -> tuple[np.ndarray, np.ndarray]:
-        """(R (3, 3), t (3,)) marker2world of marker ``mid``."""
-        T = self.markers[mid]
-        return T[:3, :3].copy(), T[:3, 3].copy()
-
-    def marker2cam(self, mid: int) -> np.ndarray:
-        """(4, 4) true marker2cam of marker ``mid`` (what a perfect PnP would give)."""
-        return np.linalg.inv(self.cam2world) @ self.markers[mid]
-
-
-@dataclass
-class SimFrame(Frame):
-    """A rendered frame: a :class:`kmea.vision.sources.Frame` with its truth.
-
-    index; timestamp = index / fps seconds (also ``t``); image: (H, W) uint8 greyscale;
-    truth: :class:`FrameTruth` (also in ``meta["truth"]``).
-    """
-
-    truth: FrameTruth | None = None
-
-    @property
-    def t(self) -> float:
-        return self.timestamp
-
-
-# ---------------------------------------------------------------------------- quads
-
-
-@dataclass
-class _Quad:
-    """A planar rectangle in the world: centre c, unit axes ex, ey (normal ex x ey),
-    half sizes hx, hy. A marker texture (cells x cells albedos) covers |a|, |b| < hl; the
-    rest is ``albedo``. decal: drawn over coplanar surfaces. occludes: hides markers."""
-
-    c: np.ndarray
-    ex: np.ndarray
-    ey: np.ndarray
-    hx: float
-    hy: float
-    albedo: float
-    tex: np.ndarray | None = None
-    hl: float = 0.0
-    two_sided: bool = False
-    decal: bool = False
-    occludes: bool = True
-    # camera-frame copies, filled by to_cam
-    n: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    nc: float = 0.0
-    exc: float = 0.0
-    eyc: float = 0.0
-    bbox: tuple[float, float, float, float] | None = None
-    _n: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    _ex: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    _ey: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    _padded: np.ndarray | None = None  # texture with its quiet-zone ring
-
-    def corners(self) -> np.ndarray:
-        s = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]], dtype=float)
-        return self.c + (s[:, :1] * self.hx) * self.ex + (s[:, 1:] * self.hy) * self.ey
-
-    def to_cam(self, w2c: np.ndarray) -> _Quad:
-        R, t = w2c[:3, :3], w2c[:3, 3]
-        c = R @ self.c + t
-        ex, ey = R @ self.ex, R @ self.ey
-        q = _Quad(c, self.ex, self.ey, self.hx, self.hy, self.albedo, self.tex, self.hl,
-                  self.two_sided, self.decal, self.occludes)
-        q.n = np.cross(ex, ey)
-        q.nc = float(q.n @ c)
-        q.exc, q.eyc = float(ex @ c), float(ey @ c)
-        q._n = tuple(float(v) for v in q.n)
-        q._ex = tuple(float(v) for v in ex)
-        q._ey = tuple(float(v) for v in ey)
-        if self.tex is not None:
-            if abs(self.hx - self.hl * (self.tex.shape[0] + 2) / self.tex.shape[0]) > 1e-12:
-                raise ValueError("marker quad: the quiet zone must be one cell wide")
-            q._padded = np.pad(self.tex, 1, constant_values=np.float32(self.albedo))
-        P = self.corners() @ R.T + t
-        if np.all(P[:, 2] > 1e-6):
-            x, y = P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]
-            q.bbox = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
-        return q
-
-    def hit(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Depth z of the hit (inf where none) and albedo, for normalised rays (x, y, 1).
-
-        Works in the dtype of ``x`` (float32 rays: ~1e-7 m in a marker's plane)."""
-        n0, n1, n2 = self._n
-        e0, e1, e2 = self._ex
-        f0, f1, f2 = self._ey
-        nd = n0 * x + n1 * y + n2
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            t = self.nc / nd
-            a = e0 * x
-            a += e1 * y
-            a += e2
-            a *= t
-            a -= self.exc
-            b = f0 * x
-            b += f1 * y
-            b += f2
-            b *= t
-            b -= self.eyc
-        ok = t > 1e-9
-        if not self.two_sided:
-            ok &= nd < 0
-        ok &= np.abs(a) <= self.hx
-        ok &= np.abs(b) <= self.hy
-        t[~ok] = np.inf
-        if self.tex is None:
-            return t, np.full(np.shape(x), self.albedo, dtype=np.float32)
-        # The texture with its one-cell quiet zone maps uniformly onto the whole quad.
-        tex = self._padded
-        cells = tex.shape[0]
-        k = cells / (2.0 * self.hx)
-        a += self.hx
-        a *= k
-        b -= self.hy
-        b *= -k
-        col = np.clip(a.astype(np.int32), 0, cells - 1)
-        row = np.clip(b.astype(np.int32), 0, cells - 1)
-        return t, tex[row, col]
-
-
-def _box_quads(center_xy: tuple[float, float], yaw: float, lx: float, ly: float,
-               z0: float, z1: float, top: float, side: float, front: float | None = None,
-               bottom: bool = False) -> list[_Quad]:
-    """The faces of an upright box (outward normals, one-sided)."""
-    R = rot_z(yaw)
-    fx, fy, fz = R[:, 0], R[:, 1], np.array([0.0, 0.0, 1.0])
-    c = np.array([center_xy[0], center_xy[1], (z0 + z1) / 2])
-    hz = (z1 - z0) / 2
-    quads = [_Quad(c + hz * fz, fx, fy, lx / 2, ly / 2, top)]
-    if bottom:
-        quads.append(_Quad(c - hz * fz, fx, -fy, lx / 2, ly / 2, side))
-    # side faces: ex horizontal, ey up, normal = ex x ey outward
-    quads.append(_Quad(c + lx / 2 * fx, fy, fz, ly / 2, hz, side if front is None else front))
-    quads.append(_Quad(c - lx / 2 * fx, -fy, fz, ly / 2, hz, side))
-    quads.append(_Quad(c + ly / 2 * fy, -fx, fz, lx / 2, hz, side))
-    quads.append(_Quad(c - ly / 2 * fy, fx, fz, lx / 2, hz, side))
-    return quads
-
 
 def _fib_pattern(n: int, g: int) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel offsets (n,) x2 of a rank-1 (Fibonacci) lattice over [-0.5, 0.5)^2."""
@@ -237,18 +72,6 @@ def _or_dilate(a: np.ndarray) -> np.ndarray:
     return m
 
 
-def _overlap(a: Rect, b: Rect) -> bool:
-    return a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]
-
-
-def _grow(r: Rect, k: int, shape: tuple[int, int]) -> Rect:
-    return (max(r[0] - k, 0), min(r[1] + k, shape[0]), max(r[2] - k, 0), min(r[3] + k, shape[1]))
-
-
-def _union(a: Rect, b: Rect) -> Rect:
-    return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
-
-
 # ---------------------------------------------------------------------------- renderer
 
 
@@ -273,7 +96,7 @@ class Renderer:
         self._textures: dict[int, np.ndarray] = {}
         self._static_markers = scene.static_markers()
         self._idx = np.full((self.height, self.width), -1, dtype=np.int32)
-        self._dyn_cache: tuple[float, list[list[_Quad]]] | None = None
+        self._dyn_cache: tuple[float, list[list[Quad]]] | None = None
         for robot in scene.robots:
             for mid in robot.markers:
                 self.texture(mid)  # unknown ids fail here, naming the marker
@@ -294,15 +117,15 @@ class Renderer:
                                            PALETTE["black"]).astype(np.float32)
         return self._textures[mid]
 
-    def _marker_quad(self, mid: int, T: np.ndarray, length: float) -> _Quad:
+    def _marker_quad(self, mid: int, T: np.ndarray, length: float) -> Quad:
         """A marker as a decal: its black square plus a one-cell white quiet zone."""
         tex = self.texture(mid)
         h = length / 2
         hq = h * (tex.shape[0] + 2) / tex.shape[0]
-        return _Quad(T[:3, 3].copy(), T[:3, 0].copy(), T[:3, 1].copy(), hq, hq,
+        return Quad(T[:3, 3].copy(), T[:3, 0].copy(), T[:3, 1].copy(), hq, hq,
                      PALETTE["white"], tex, h, decal=True, occludes=False)
 
-    def _wall_panels(self, markers: list[Marker]) -> list[_Quad]:
+    def _wall_panels(self, markers: list[Marker]) -> list[Quad]:
         """Two-sided panels behind groups of coplanar non-floor markers, down to the floor."""
         groups: list[list[Marker]] = []
         for m in markers:
@@ -330,14 +153,14 @@ class Renderer:
             if v[2] > 0.5:  # down to the floor
                 b0 = min(b0, -p0[2] / v[2])
             c = p0 + (a0 + a1) / 2 * h + (b0 + b1) / 2 * v
-            panels.append(_Quad(c, h, v, (a1 - a0) / 2, (b1 - b0) / 2, PALETTE["wall"],
+            panels.append(Quad(c, h, v, (a1 - a0) / 2, (b1 - b0) / 2, PALETTE["wall"],
                                 two_sided=True))
         return panels
 
     def _build_static(self) -> None:
         sc = self.scene
-        quads: list[_Quad] = []
-        decals: list[_Quad] = []
+        quads: list[Quad] = []
+        decals: list[Quad] = []
         wall: list[Marker] = []
         for mid, m in sorted(self._static_markers.items()):
             decals.append(self._marker_quad(mid, pose_matrix(m.rotation, m.position), m.length))
@@ -347,7 +170,7 @@ class Renderer:
             elif sc.supports and mid in sc.overrides and m.position[2] > 0.005:
                 side = m.length * 9 / 7 + 0.03  # a 1.5 cm rim around the paper
                 yaw = yaw_of(m.rotation)
-                quads += _box_quads((m.position[0], m.position[1]), yaw, side, side, 0.0,
+                quads += box_quads((m.position[0], m.position[1]), yaw, side, side, 0.0,
                                     m.position[2], PALETTE["support"], PALETTE["side"])
         quads += self._wall_panels(wall)
         decals = self._line_quads() + decals
@@ -380,7 +203,7 @@ class Renderer:
         self._noise_bank: np.ndarray | None = None
         self._static_truth()
 
-    def _line_quads(self, half_width: float = 0.004) -> list[_Quad]:
+    def _line_quads(self, half_width: float = 0.004) -> list[Quad]:
         """The faint floor lines (8 mm) as decals on the floor."""
         out = []
         for a, b in self.scene.lines():
@@ -391,26 +214,26 @@ class Renderer:
                 continue
             ex = d / L
             ey = np.array([-ex[1], ex[0], 0.0])
-            out.append(_Quad((a + b) / 2, ex, ey, L / 2 + half_width, half_width,
+            out.append(Quad((a + b) / 2, ex, ey, L / 2 + half_width, half_width,
                              PALETTE["line"], decal=True, occludes=False))
         return out
 
-    def _occluder_quads(self, occ: Occluder, t: float) -> list[_Quad]:
+    def _occluder_quads(self, occ: Occluder, t: float) -> list[Quad]:
         p = occ.path.pose(t)
         if p is None:
             return []
-        return _box_quads((p[0], p[1]), p[2], occ.size[0], occ.size[1], occ.z[0], occ.z[1],
+        return box_quads((p[0], p[1]), p[2], occ.size[0], occ.size[1], occ.z[0], occ.z[1],
                           occ.shade, occ.shade * 0.8, bottom=occ.z[0] > 1e-6)
 
-    def _robot_quads(self, robot: SimRobot, pose: tuple[float, float, float]) -> list[_Quad]:
+    def _robot_quads(self, robot: SimRobot, pose: tuple[float, float, float]) -> list[Quad]:
         s = float(robot.plate)  # type: ignore[arg-type]
-        quads = _box_quads((pose[0], pose[1]), pose[2], s, s, 0.0, robot.height,
+        quads = box_quads((pose[0], pose[1]), pose[2], s, s, 0.0, robot.height,
                            PALETTE["plate"], PALETTE["side"], front=PALETTE["side"] * 1.3)
         for mid, T in self.scene.robot_marker_poses(robot, pose).items():
             quads.append(self._marker_quad(mid, T, robot.length))
         return quads
 
-    def _rect(self, q: _Quad) -> Rect | None:
+    def _rect(self, q: Quad) -> Rect | None:
         if q.bbox is None:
             return (0, self.height, 0, self.width)
         return self.rays.pixel_rect(*q.bbox)
@@ -425,12 +248,7 @@ class Renderer:
         self._rect_floor = self.scene.floor_rect()
 
     def _floor(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n0, n1, n2 = (float(v) for v in self._fn)
-        nd = n0 * x + n1 * y + n2
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            t = self._fnc / nd
-        ok = (t > 1e-9) & (nd < 0)
-        t[~ok] = np.inf
+        t, ok = unit_rays_plane_depth(x, y, self._fn, self._fnc)
         R = [[float(v) for v in row] for row in self._c2w]
         o = [float(v) for v in self._o]
         tt = np.where(ok, t, 0.0).astype(t.dtype)
@@ -459,7 +277,7 @@ class Renderer:
         return np.clip(1.0 + gx * xw + gy * yw, 0.0, None).astype(np.float32)
 
     # ------------------------------------------------------------ casting
-    def _cast_rect(self, r: Rect, quads: list[_Quad], rects: list[Rect | None],
+    def _cast_rect(self, r: Rect, quads: list[Quad], rects: list[Rect | None],
                    floor: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Depth, albedo and winning quad index (-1: floor or nothing) at the pixel centres
         of rectangle ``r``."""
@@ -473,7 +291,7 @@ class Renderer:
             alb = np.zeros(x.shape, dtype=np.float32)
         qid = np.full(x.shape, -1, dtype=np.int64)
         for i, (q, qr) in enumerate(zip(quads, rects, strict=True)):
-            if qr is None or not _overlap(qr, r):
+            if qr is None or not overlap(qr, r):
                 continue
             a0, a1, b0, b1 = max(qr[0], r0), min(qr[1], r1), max(qr[2], c0), min(qr[3], c1)
             sl = (slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0))
@@ -486,7 +304,7 @@ class Renderer:
         return t, alb, qid
 
     def _cast_samples(self, x: np.ndarray, y: np.ndarray,
-                      ids_in: Callable[[Rect], np.ndarray], quads: list[_Quad],
+                      ids_in: Callable[[Rect], np.ndarray], quads: list[Quad],
                       rects: list[Rect | None], floor: bool,
                       t: np.ndarray | None = None,
                       alb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -523,7 +341,7 @@ class Renderer:
         return t, alb
 
     def _supersample(self, rows: np.ndarray, cols: np.ndarray,
-                     pattern: tuple[np.ndarray, np.ndarray], dyn: list[_Quad] | None = None,
+                     pattern: tuple[np.ndarray, np.ndarray], dyn: list[Quad] | None = None,
                      dyn_rects: list[Rect | None] | None = None, static: bool = True,
                      static_sel: list[int] | None = None, chunk: int = 20000,
                      uniform: bool = False) -> np.ndarray:
@@ -572,7 +390,7 @@ class Renderer:
             out[s:s + chunk] = alb.mean(axis=1)
         return out
 
-    def _decal_pixels(self, rows: np.ndarray, cols: np.ndarray, q: _Quad) -> np.ndarray:
+    def _decal_pixels(self, rows: np.ndarray, cols: np.ndarray, q: Quad) -> np.ndarray:
         """Box-filtered albedo of pixels lying wholly on the textured quad ``q``.
 
         The quad's plane coordinates are affine in the sub-pixel offset to ~1e-7 of a pixel,
@@ -635,7 +453,7 @@ class Renderer:
         return self._noise_bank[off:off + n].reshape(self.height, self.width)
 
     # ------------------------------------------------------------ frames
-    def dynamic_quads(self, t: float) -> list[list[_Quad]]:
+    def dynamic_quads(self, t: float) -> list[list[Quad]]:
         """Camera-frame quads of each moving object (robots, moving occluders) at ``t``."""
         if self._dyn_cache is not None and self._dyn_cache[0] == t:
             return self._dyn_cache[1]
@@ -643,7 +461,7 @@ class Renderer:
         self._dyn_cache = (t, objs)
         return objs
 
-    def _dynamic_quads(self, t: float) -> list[list[_Quad]]:
+    def _dynamic_quads(self, t: float) -> list[list[Quad]]:
         sc = self.scene
         poses = sc.robot_poses(t)
         objs = [self._robot_quads(r, poses[r.name]) for r in sc.robots]
@@ -657,7 +475,7 @@ class Renderer:
         t = index / self.scene.fps
         frame = self.static_image.copy()
         objs = self.dynamic_quads(t)
-        regions: list[tuple[Rect, list[_Quad]]] = []
+        regions: list[tuple[Rect, list[Quad]]] = []
         for obj in objs:
             rects = [self._rect(q) for q in obj]
             rs = [r for r in rects if r is not None]
@@ -665,13 +483,13 @@ class Renderer:
                 continue
             box = rs[0]
             for r in rs[1:]:
-                box = _union(box, r)
-            box = _grow(box, 1, (self.height, self.width))
+                box = union(box, r)
+            box = grow(box, 1, (self.height, self.width))
             merged = [obj]
             for other in list(regions):
-                if _overlap(other[0], box):
+                if overlap(other[0], box):
                     regions.remove(other)
-                    box = _union(box, other[0])
+                    box = union(box, other[0])
                     merged.append(other[1])
             regions.append((box, [q for m in merged for q in m]))
         for box, quads in regions:
@@ -683,7 +501,7 @@ class Renderer:
         frame += 0.5
         return frame.astype(np.uint8)
 
-    def _render_region(self, frame: np.ndarray, box: Rect, quads: list[_Quad]) -> None:
+    def _render_region(self, frame: np.ndarray, box: Rect, quads: list[Quad]) -> None:
         shape = (self.height, self.width)
         rects = [self._rect(q) for q in quads]
         r0, r1, c0, c1 = box
@@ -698,7 +516,7 @@ class Renderer:
         rows, cols = np.nonzero(e)
         if rows.size:
             sel = [i for i, qr in enumerate(self.static_rects)
-                   if qr is not None and _overlap(qr, box)]
+                   if qr is not None and overlap(qr, box)]
             # What a pixel's square can show is what its 3 x 3 neighbours' centres show (the
             # surfaces are convex and larger than a pixel): cast only those surfaces.
             if len(quads) <= 62:
@@ -725,8 +543,8 @@ class Renderer:
                         rows[k] + r0, cols[k] + c0, _DYNAMIC_SAMPLES, [quads[i] for i in use],
                         [rects[i] for i in use], static, sel, uniform=part)
         k = self._blur_radius
-        out = _grow(box, k, shape)
-        big = _grow(out, k, shape)
+        out = grow(box, k, shape)
+        big = grow(out, k, shape)
         lit = self.static_albedo[big[0]:big[1], big[2]:big[3]].copy()
         lit[r0 - big[0]:r1 - big[0], c0 - big[2]:c1 - big[2]] = comp
         if self.light is not None:
@@ -769,7 +587,7 @@ class Renderer:
         return corners, [ids[i] for i in keep], Pc
 
     @staticmethod
-    def _hidden(Pc: np.ndarray, occluders: list[_Quad]) -> np.ndarray:
+    def _hidden(Pc: np.ndarray, occluders: list[Quad]) -> np.ndarray:
         """(N,) whether each marker (5 probes each) is hidden by one of ``occluders``."""
         hidden = np.zeros(len(Pc), dtype=bool)
         if len(Pc) == 0:

@@ -3,7 +3,7 @@
 Frames: world x right / y up / z up from the floor, metres; the camera frame is OpenCV's
 (x right, y down, z forward); ``cam2world`` is a (4, 4) rigid transform. Marker poses are
 (4, 4) ``marker2world`` transforms; a marker's local corners are
-:func:`kmea.transforms.marker_corners_local` (TL, TR, BR, BL).
+:func:`kmea.geometry.marker_corners_local` (TL, TR, BR, BL).
 
 Truth versus map: ``world_map`` is the surveyed (nominal) map. ``overrides`` move map markers
 and the effective map follows them (:meth:`Scene.effective_map`, e.g. markers raised on a
@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from kmea.geometry import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
 from kmea.maps import Marker, MarkerMap
 from kmea.sim.motion import CrossingPath, Path, Stationary
-from kmea.transforms import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
 from kmea.vision.camera import CameraModel
 
 __all__ = [
@@ -135,12 +135,6 @@ class SimRobot:
             self.plate = span + 0.05
         if self.plate <= 0:
             raise ValueError(f"{where}: plate must be > 0 m")
-
-    @classmethod
-    def from_spec(cls, spec: Any, path: Path, plate: float | None = None) -> SimRobot:
-        """From a :class:`kmea.robots.RobotSpec` (or anything with the same fields)."""
-        return cls(spec.name, tuple(spec.markers), spec.height, spec.length, spec.separation,
-                   path, plate)
 
     def mount(self) -> dict[int, np.ndarray]:
         """Marker id -> (2,) position in the robot frame (x forward, y left), metres."""
@@ -407,16 +401,6 @@ class Scene:
             return ([((-0.695, y), (0.695, y)) for y in rows]
                     + [((x, -0.355), (x, 0.355)) for x in cols])
         return [((x0 + 0.05, y), (x1 - 0.05, y)) for y in (y0 + 0.05, y1 - 0.05)]
-
-    def with_camera(self, camera: CameraModel | None = None,
-                    cam2world: np.ndarray | None = None) -> Scene:
-        """A copy with another camera model and/or pose."""
-        return replace(self, camera=camera or self.camera,
-                       cam2world=self.cam2world if cam2world is None else cam2world)
-
-    def with_size(self, width: int, height: int) -> Scene:
-        """A copy rendering at another resolution (same field of view, 4:3 etc. kept)."""
-        return replace(self, camera=self.camera.scaled_to(width, height))
 
     def with_(self, **changes: Any) -> Scene:
         """A copy with dataclass fields replaced."""

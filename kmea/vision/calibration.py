@@ -48,13 +48,6 @@ class Board:
             s += f":{self.marker:g}:{self.dictionary}"
         return s
 
-    @property
-    def n_corners(self) -> int:
-        """Corners of a full view."""
-        if self.kind == "chessboard":
-            return self.cols * self.rows
-        return (self.cols - 1) * (self.rows - 1)
-
     def chessboard_points(self) -> np.ndarray:
         """(cols * rows, 3) float32 object points of the inner corners, row by row, metres."""
         g = np.mgrid[0:self.cols, 0:self.rows].T.reshape(-1, 2)

@@ -1,5 +1,7 @@
 """ArUco dictionaries: OpenCV's predefined ones by name, or custom ones from a file.
 
+Names follow the one table of :mod:`kmea.aruco_names` (shared with map files).
+
 A custom dictionary file is what ``cv2.aruco.Dictionary.writeDictionary`` writes (OpenCV
 FileStorage, YAML / XML / JSON): ``nmarkers``, ``markersize``, optional
 ``maxCorrectionBits`` and ``marker_0 .. marker_{n-1}`` bit strings, at the root or under
@@ -14,9 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-__all__ = ["DictionaryError", "get_dictionary", "predefined_names"]
+from kmea.aruco_names import PREDEFINED, canonical_name, is_dictionary_file
 
-_FILE_SUFFIXES = (".yml", ".yaml", ".xml", ".json", ".gz")
+__all__ = ["DictionaryError", "get_dictionary", "predefined_names"]
 
 
 class DictionaryError(ValueError):
@@ -25,8 +27,7 @@ class DictionaryError(ValueError):
 
 def predefined_names() -> list[str]:
     """Names of OpenCV's predefined dictionaries (``DICT_4X4_50`` ... ``DICT_ARUCO_MIP_36h12``)."""
-    return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_")
-                  and isinstance(getattr(cv2.aruco, n), int))
+    return sorted(PREDEFINED)
 
 
 def get_dictionary(name_or_path: str | Path) -> cv2.aruco.Dictionary:
@@ -40,15 +41,14 @@ def get_dictionary(name_or_path: str | Path) -> cv2.aruco.Dictionary:
     if not isinstance(name_or_path, str) or not name_or_path.strip():
         raise DictionaryError(f"dictionary: expected a name or a file path, got {name_or_path!r}")
     text = name_or_path.strip()
-    if text.lower().endswith(_FILE_SUFFIXES) or "/" in text or "\\" in text or Path(text).is_file():
+    if is_dictionary_file(text):
         return _read_file(text)
     return _predefined(text)
 
 
 def _predefined(name: str) -> cv2.aruco.Dictionary:
-    key = name.upper()
-    if not key.startswith("DICT_"):
-        key = "DICT_" + key
+    key = name.upper() if name.upper().startswith("DICT_") else "DICT_" + name.upper()
+    key = canonical_name(name) or key
     code = getattr(cv2.aruco, key, None)
     if not isinstance(code, int):
         close = [n for n in predefined_names() if key[5:8] in n][:6] or predefined_names()[:6]

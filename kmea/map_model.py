@@ -1,0 +1,162 @@
+"""The marker map model: surveyed 6-DoF poses of ArUco markers in the world frame (numpy only).
+
+Positions are metres; ``Marker.rotation`` is marker2world. The file formats (TOML, CSV) and
+the built-in RobotAtFactory map are in :mod:`kmea.maps`. See ``docs/maps.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kmea.aruco_names import PREDEFINED, is_dictionary_file
+from kmea.geometry import marker_corners_local
+
+__all__ = ["MapError", "Marker", "MarkerMap", "check_map"]
+
+
+class MapError(ValueError):
+    """A map file or map value is invalid; the message names the file, line or key."""
+
+
+@dataclass(frozen=True)
+class Marker:
+    """One surveyed marker.
+
+    Attributes:
+        id: ArUco id.
+        position: (3,) centre in the world frame, metres.
+        rotation: (3, 3) marker2world rotation.
+        length: side of the black square, metres.
+
+    Lists are accepted and stored as float arrays; a bad shape, a non-finite value, a
+    rotation that is not proper or a length <= 0 raises :class:`MapError`.
+    """
+
+    id: int
+    position: np.ndarray
+    rotation: np.ndarray
+    length: float
+
+    def __post_init__(self) -> None:
+        where = f"marker {self.id}"
+        if isinstance(self.id, bool) or not isinstance(self.id, (int, np.integer)) or self.id < 0:
+            raise MapError(f"marker id must be an integer >= 0, got {self.id!r}")
+        p = np.array(self.position, dtype=float)
+        R = np.array(self.rotation, dtype=float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise MapError(f"{where}: position must be 3 finite numbers (m)")
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) \
+                or np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+            raise MapError(f"{where}: rotation must be a proper 3x3 rotation matrix")
+        if isinstance(self.length, bool) or not (math.isfinite(self.length) and self.length > 0):
+            raise MapError(f"{where}: length must be > 0 m, got {self.length!r}")
+        p.setflags(write=False)
+        R.setflags(write=False)
+        object.__setattr__(self, "id", int(self.id))
+        object.__setattr__(self, "position", p)
+        object.__setattr__(self, "rotation", R)
+        object.__setattr__(self, "length", float(self.length))
+
+    @property
+    def on_floor(self) -> bool:
+        """Lies flat on the floor plane z = 0 facing up."""
+        return abs(self.position[2]) < 1e-9 and self.rotation[2, 2] > 1.0 - 1e-9
+
+    @property
+    def normal(self) -> np.ndarray:
+        """(3,) unit normal of the printed face in the world frame."""
+        return self.rotation[:, 2].copy()
+
+    def corners_world(self) -> np.ndarray:
+        """(4, 3) world corners in OpenCV ArUco order (TL, TR, BR, BL)."""
+        return marker_corners_local(self.length) @ self.rotation.T + self.position
+
+
+@dataclass
+class MarkerMap:
+    """A set of surveyed markers and the metadata the estimators need.
+
+    ``origin_id``, ``x_id`` and ``y_id`` are the anchors of LMEA and of KMEA's scale step.
+    ``reference_length`` (m) is the denominator of the mean relative error; ``None`` means
+    the diagonal of the floor markers' extent.
+    """
+
+    markers: dict[int, Marker]
+    dictionary: str = "DICT_5X5_50"
+    default_length: float = 0.06
+    origin_id: int = 13
+    x_id: int = 16
+    y_id: int = 4
+    reference_length: float | None = None
+    name: str = "map"
+    source: str = "<memory>"
+    extra: dict = field(default_factory=dict)
+
+    def __contains__(self, marker_id: object) -> bool:
+        return marker_id in self.markers
+
+    def __getitem__(self, marker_id: int) -> Marker:
+        return self.markers[marker_id]
+
+    def __len__(self) -> int:
+        return len(self.markers)
+
+    @property
+    def ids(self) -> list[int]:
+        return sorted(self.markers)
+
+    def positions(self, ids: list[int] | None = None) -> np.ndarray:
+        """(N, 3) world positions of ``ids`` (default: all, sorted by id)."""
+        ids = self.ids if ids is None else ids
+        return np.array([self.markers[i].position for i in ids], dtype=float).reshape(-1, 3)
+
+    def floor_extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of the floor markers' centres, metres (all markers if none)."""
+        ms = [m for m in self.markers.values() if m.on_floor] or list(self.markers.values())
+        p = np.array([m.position for m in ms])
+        return (float(p[:, 0].min()), float(p[:, 0].max()),
+                float(p[:, 1].min()), float(p[:, 1].max()))
+
+    def ref_length(self) -> float:
+        """Reference length for the MRE, metres."""
+        if self.reference_length is not None:
+            return self.reference_length
+        x0, x1, y0, y1 = self.floor_extent()
+        return math.hypot(x1 - x0, y1 - y0)
+
+
+def check_map(m: MarkerMap) -> list[str]:
+    """Warnings about a loaded map that is usable but probably not what was meant.
+
+    Anchors missing from the map (LMEA then never estimates; KMEA's scale step uses the
+    centroid), ids the dictionary cannot encode, an unknown dictionary, overlapping markers.
+    """
+    out: list[str] = []
+    for label, mid in (("origin_id", m.origin_id), ("x_id", m.x_id), ("y_id", m.y_id)):
+        if mid not in m:
+            out.append(f"{label} {mid} is not in the map (LMEA cannot run)")
+    if len({m.origin_id, m.x_id, m.y_id}) < 3:
+        out.append("origin_id, x_id and y_id are not three different markers")
+    size = PREDEFINED.get(m.dictionary)
+    if size is None and not is_dictionary_file(m.dictionary):
+        out.append(f"unknown ArUco dictionary {m.dictionary!r}")
+    elif size is not None:
+        big = [i for i in m.ids if i >= size]
+        if big:
+            out.append(f"{m.dictionary} has ids 0-{size - 1}; ids {big} can never be detected")
+    # Markers facing the same way closer than their mean side overlap (back-to-back wall
+    # markers, facing opposite ways, are fine).
+    ids = m.ids
+    P = m.positions(ids)
+    N = np.array([m[i].normal for i in ids])
+    L = np.array([m[i].length for i in ids])
+    for a in range(len(ids)):
+        d = np.linalg.norm(P[a + 1:] - P[a], axis=1)
+        same = N[a + 1:] @ N[a] > 0.9
+        for j in np.nonzero(same & (d < (L[a + 1:] + L[a]) / 2))[0]:
+            out.append(f"markers {ids[a]} and {ids[a + 1 + j]} overlap "
+                       f"(centres {d[j]:.4f} m apart)")
+    return out

@@ -1,0 +1,51 @@
+"""What the simulator knows about a frame: the exact marker poses and corners, robots."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kmea.vision.sources import Frame
+
+__all__ = ["FrameTruth", "SimFrame"]
+
+
+@dataclass
+class FrameTruth:
+    """Ground truth of one frame.
+
+    cam2world: (4, 4). markers: id -> (4, 4) true marker2world of every marker in the scene
+    (map markers as placed, i.e. displaced when misplaced; extra markers; robot markers).
+    lengths: id -> marker side, m. corners: id -> (4, 2) exact pixel corners (TL, TR, BR, BL,
+    lens distortion included) of the markers in front of the camera, facing it, whose four
+    corners lie inside the image. visible: ids of ``corners`` that nothing hides (corners and
+    centre unoccluded). robots: name -> true (x, y, theta), m and rad. t: seconds.
+    """
+
+    cam2world: np.ndarray
+    markers: dict[int, np.ndarray]
+    lengths: dict[int, float]
+    corners: dict[int, np.ndarray]
+    visible: set[int]
+    robots: dict[str, tuple[float, float, float]]
+    t: float = 0.0
+
+    def marker2cam(self, mid: int) -> np.ndarray:
+        """(4, 4) true marker2cam of marker ``mid`` (what a perfect PnP would give)."""
+        return np.linalg.inv(self.cam2world) @ self.markers[mid]
+
+
+@dataclass
+class SimFrame(Frame):
+    """A rendered frame: a :class:`kmea.vision.sources.Frame` with its truth.
+
+    index; timestamp = index / fps seconds (also ``t``); image: (H, W) uint8 greyscale;
+    truth: :class:`FrameTruth` (also in ``meta["truth"]``).
+    """
+
+    truth: FrameTruth | None = None
+
+    @property
+    def t(self) -> float:
+        return self.timestamp
