@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 import zmq
 
+from kmea import protocol as P
 from kmea.maps import default_map
 from kmea.sim.renderer import Renderer
 from kmea.sim.scenes import scene_from_spec
 from kmea.vision.camera import save_camera
 from kmead import cli
-from kmead import protocol as P
 from kmead.config import load_config
 from kmead.csvlog import HEADER
 from kmead.daemon import Daemon

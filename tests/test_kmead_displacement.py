@@ -11,10 +11,10 @@ import csv
 from pathlib import Path
 
 import pytest
+from kmead.displacement import DisplacementMonitor
 
 from kmea.maps import default_map
 from kmead import cli
-from kmead.displacement import DisplacementMonitor
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']

@@ -6,7 +6,6 @@ import json
 import math
 
 import numpy as np
-
 from kmead.protocol import PROTOCOL_VERSION, _clean, decode_body, encode_body
 
 

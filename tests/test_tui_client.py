@@ -7,8 +7,8 @@ import asyncio
 import zmq
 import zmq.asyncio
 
+from kmea import protocol
 from kmea_tui.client import DaemonClient
-from kmead import protocol
 
 
 async def test_request_times_out_then_recovers_with_a_fresh_socket() -> None:
