@@ -12,8 +12,9 @@ the floor is off in every frame. So each marker keeps its last ``frames`` figure
 
     offset    = median of its window                         (needs >= min(frames, 3))
     noise     = max(typical, own)
-      typical = median over the map markers of their window medians: how large the error of
-                a well-placed marker is with this camera, lens and floor right now
+      typical = median over the OTHER map markers of their window medians (0 with fewer
+                than 3 others): how large the error of a well-placed marker is with this
+                camera, lens and floor right now
       own     = 1.4826 x the median absolute deviation of its own window: its own jitter
                 (a marker far in the image corner wobbles more than one under the camera)
     threshold = max(min_offset, factor x noise)
@@ -22,8 +23,8 @@ the floor is off in every frame. So each marker keeps its last ``frames`` figure
 The threshold scales with what it measures: on a well-surveyed floor seen by a calibrated
 camera (errors ~1 mm) ``min_offset`` (``stats.displaced_threshold``) decides; with a worse
 camera or floor, where every marker is off by several millimetres, ``factor`` times that
-level does, so noise is never called a move. The median keeps one moved marker from raising
-the typical level (fewer than half the markers are assumed moved).
+level does, so noise is never called a move. The median keeps a few moved markers from
+raising the typical level (fewer than half the markers are assumed moved).
 
 The robust estimators' rejection (``kmea.estimators.robust``, ``corners``) is a different,
 per-frame decision inside one estimate: a reference whose residual is too large is left out
@@ -44,6 +45,8 @@ __all__ = ["DEFAULT_FACTOR", "MovedEvidence", "MovedMonitor"]
 DEFAULT_FACTOR = 3.0
 # MAD -> standard deviation for normally distributed figures.
 _MAD_TO_SIGMA = 1.4826
+# Fewer other markers than this: no error level of the floor (min_offset and own jitter).
+MIN_OTHERS = 3
 
 
 @dataclass(frozen=True)
@@ -80,29 +83,38 @@ class MovedMonitor:
         self.history: dict[int, collections.deque[float]] = {}
         self.evidence: dict[int, MovedEvidence] = {}
 
-    def typical(self) -> float:
-        """Median over the markers with a full-enough window of their window medians (m)."""
-        meds = [statistics.median(h) for h in self.history.values() if len(h) >= self.need]
-        return statistics.median(meds) if meds else 0.0
+    def _medians(self) -> dict[int, float]:
+        return {mid: statistics.median(h) for mid, h in self.history.items()
+                if len(h) >= self.need}
+
+    def typical(self, exclude: int | None = None) -> float:
+        """Median (m) of the window medians of the markers (but ``exclude``) with enough
+        figures; 0 with fewer than :data:`MIN_OTHERS` of them."""
+        meds = [m for mid, m in self._medians().items() if mid != exclude]
+        return statistics.median(meds) if len(meds) >= MIN_OTHERS else 0.0
 
     def update(self, figures: dict[int, float]) -> dict[int, MovedEvidence]:
-        """Add one frame's figures (id -> m); return id -> evidence of the markers that
-        have moved now (every marker's evidence is in :attr:`evidence`)."""
+        """Add one frame's figures (id -> m); return id -> evidence of the markers measured
+        in this frame that have moved (every marker's evidence is in :attr:`evidence`)."""
         for mid, e in figures.items():
             h = self.history.get(mid)
             if h is None:
                 h = self.history[mid] = collections.deque(maxlen=self.frames)
             h.append(float(e))
-        typical = self.typical()
+        medians = self._medians()
+        ranked = sorted(medians.values())
         for mid, h in self.history.items():
             if len(h) < self.need:
                 self.evidence[mid] = MovedEvidence(False, None, len(h), None)
                 continue
-            offset = statistics.median(h)
+            offset = medians[mid]
+            others = list(ranked)
+            others.remove(offset)
+            typical = statistics.median(others) if len(others) >= MIN_OTHERS else 0.0
             own = _MAD_TO_SIGMA * statistics.median(abs(x - offset) for x in h)
             threshold = max(self.min_offset, self.factor * max(typical, own))
             self.evidence[mid] = MovedEvidence(offset > threshold, offset, len(h), threshold)
-        return {mid: ev for mid, ev in self.evidence.items() if ev.moved}
+        return {mid: self.evidence[mid] for mid in figures if self.evidence[mid].moved}
 
     def get(self, marker_id: int) -> MovedEvidence:
         """The evidence of one marker (no figures yet: not moved, offset None)."""

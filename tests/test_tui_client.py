@@ -39,7 +39,8 @@ async def test_request_times_out_then_recovers_with_a_fresh_socket() -> None:
         reply = await client.request("set", key="filter.alpha", value=0.5)
         got = await server
         assert reply["ok"] is True and reply["cmd"] == "set"
-        assert got == {"v": protocol.PROTOCOL_VERSION, "cmd": "set", "key": "filter.alpha", "value": 0.5}
+        assert got == {"v": protocol.PROTOCOL_VERSION, "cmd": "set", "key": "filter.alpha",
+                       "value": 0.5}
 
         # 3) A reply that is not protocol JSON is reported, not raised.
         async def serve_garbage() -> None:
