@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import types
 import typing
+from collections.abc import Callable
 from typing import Any, TypedDict, Union
 
 from kmea.jsonsafe import to_jsonable
@@ -296,14 +297,17 @@ def body_type(topic: str) -> type | None:
 
 
 # ----------------------------------------------------------------------- type checking
-_HINTS: dict[type, tuple[dict[str, Any], frozenset[str]]] = {}
+# Each declared type is compiled once into a checker function; a mismatch unwinds as
+# _Mismatch collecting the field path, so a well-formed body costs no string formatting.
+Checker = Callable[[Any, bool], None]
 
 
-def _hints(td: type) -> tuple[dict[str, Any], frozenset[str]]:
-    got = _HINTS.get(td)
-    if got is None:
-        got = _HINTS[td] = (typing.get_type_hints(td), frozenset(td.__required_keys__))
-    return got
+class _Mismatch(Exception):
+    def __init__(self, expected: str, value: Any) -> None:
+        super().__init__()
+        self.path: list[str] = []
+        self.expected = expected
+        self.got = "null" if value is None else type(value).__name__
 
 
 def _is_typeddict(tp: Any) -> bool:
@@ -321,65 +325,121 @@ def _type_name(tp: Any) -> str:
     return getattr(origin, "__name__", str(tp))
 
 
-def _check(value: Any, tp: Any, where: str, exact: bool) -> None:
+_COMPILED: dict[Any, Checker] = {}
+
+
+def _compile(tp: Any) -> Checker:
+    got = _COMPILED.get(tp)
+    if got is None:
+        got = _COMPILED[tp] = _build(tp)
+    return got
+
+
+def _build(tp: Any) -> Checker:
+    name = _type_name(tp)
     if tp is Any:
-        return
+        return lambda v, exact: None
     if tp is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    elif tp is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    elif tp in (str, bool, type(None)):
-        ok = isinstance(value, tp)
-    elif _is_typeddict(tp):
-        ok = isinstance(value, dict)
-        if ok:
-            check_fields(value, tp, where, exact)
-            return
-    else:
-        origin, args = typing.get_origin(tp), typing.get_args(tp)
-        if origin in (Union, types.UnionType):
-            for a in args:
+        def check_float(v: Any, exact: bool) -> None:
+            if type(v) is not float and type(v) is not int:
+                raise _Mismatch(name, v)
+        return check_float
+    if tp in (int, str, bool, type(None)):
+        def check_exact(v: Any, exact: bool, _t: type = tp) -> None:
+            if type(v) is not _t:
+                raise _Mismatch(name, v)
+        return check_exact
+    if _is_typeddict(tp):
+        return _build_typeddict(tp)
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (Union, types.UnionType):
+        options = [_compile(a) for a in args if a is not type(None)]
+        nullable = type(None) in args
+
+        def check_union(v: Any, exact: bool) -> None:
+            if v is None and nullable:
+                return
+            for c in options:
                 try:
-                    _check(value, a, where, exact)
+                    c(v, exact)
                     return
-                except ProtocolError:
+                except _Mismatch:
                     continue
-            ok = False
-        elif origin is list:
-            ok = isinstance(value, list)
-            if ok:
-                for i, v in enumerate(value):
-                    _check(v, args[0], f"{where}[{i}]", exact)
-                return
-        elif origin is dict:
-            ok = isinstance(value, dict)
-            if ok:
-                for k, v in value.items():
-                    _check(v, args[1], f"{where}.{k}", exact)
-                return
-        else:  # pragma: no cover - a type this checker does not know is a bug here
-            raise TypeError(f"protocol type {tp!r} not supported")
-    if not ok:
-        raise ProtocolError(f"field {where!r}: expected {_type_name(tp)}, "
-                            f"got {type(value).__name__ if value is not None else 'null'}")
+            raise _Mismatch(name, v)
+        return check_union
+    if origin is list:
+        item = _compile(args[0])
+
+        def check_list(v: Any, exact: bool) -> None:
+            if type(v) is not list:
+                raise _Mismatch(name, v)
+            for i, x in enumerate(v):
+                try:
+                    item(x, exact)
+                except _Mismatch as e:
+                    e.path.insert(0, f"[{i}]")
+                    raise
+        return check_list
+    if origin is dict:
+        value = _compile(args[1])
+
+        def check_dict(v: Any, exact: bool) -> None:
+            if type(v) is not dict:
+                raise _Mismatch(name, v)
+            for k, x in v.items():
+                try:
+                    value(x, exact)
+                except _Mismatch as e:
+                    e.path.insert(0, f".{k}")
+                    raise
+        return check_dict
+    raise TypeError(f"protocol type {tp!r} not supported")  # pragma: no cover
+
+
+def _build_typeddict(td: type) -> Checker:
+    fields: dict[str, Checker] = {}
+    hints = typing.get_type_hints(td)
+    required = frozenset(td.__required_keys__)
+
+    def check_fields_(v: Any, exact: bool) -> None:
+        if type(v) is not dict:
+            raise _Mismatch("object", v)
+        if not fields:  # compiled on first use: nested types may refer to each other
+            fields.update({k: _compile(t) for k, t in hints.items()})
+        if not required <= v.keys():
+            e = _Mismatch("", None)
+            e.path.append(f".{min(required - v.keys())}")
+            e.expected = "missing"
+            raise e
+        for k, x in v.items():
+            c = fields.get(k)
+            if c is None:
+                if exact and k != "v":
+                    e = _Mismatch("", None)
+                    e.path.append(f".{k}")
+                    e.expected = f"not in {td.__name__}"
+                    raise e
+                continue
+            try:
+                c(x, exact)
+            except _Mismatch as e:
+                e.path.insert(0, f".{k}")
+                raise
+    return check_fields_
 
 
 def check_fields(body: dict[str, Any], td: type, where: str = "", exact: bool = False) -> None:
     """Check ``body`` against the TypedDict ``td``: required keys present, every declared
-    key's value of its type. ``exact``: also refuse keys ``td`` does not declare (the
-    tests use it; clients accept added fields)."""
-    hints, required = _hints(td)
-    prefix = f"{where}." if where else ""
-    missing = sorted(required - body.keys())
-    if missing:
-        raise ProtocolError(f"field {prefix + missing[0]!r}: missing")
-    for key, value in body.items():
-        tp = hints.get(key)
-        if tp is None:
-            if exact and key != "v":
-                raise ProtocolError(f"field {prefix + key!r}: not in {td.__name__}")
-            continue
-        _check(value, tp, prefix + key, exact)
+    key's value of its type (an int is a float, a bool is not an int). ``exact``: also refuse
+    keys ``td`` does not declare (the tests use it; clients accept added fields).
+    ``ProtocolError`` names the field (``where`` is put in front of its path)."""
+    try:
+        _compile(td)(body, exact)
+    except _Mismatch as e:
+        path = (where + "".join(e.path)).lstrip(".")
+        if e.expected == "missing" or e.expected.startswith("not in "):
+            raise ProtocolError(f"field {path!r}: {e.expected}") from None
+        raise ProtocolError(f"field {path!r}: expected {e.expected}, got {e.got}") from None
 
 
 def check_body(topic: str, body: dict[str, Any], exact: bool = False) -> dict[str, Any]:
