@@ -17,6 +17,7 @@ run: $(STAMP)
 	$(BIN)/kmead --headless --frames $${FRAMES:-300} --log out/run.csv
 
 test: $(STAMP)
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n 2 $(ARGS)
 
 lint: $(STAMP)

@@ -6,6 +6,7 @@ Each benchmark is a function ``run(quick: bool) -> None`` that prints its own ta
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from importlib import import_module
 
 # name -> "module:function"
@@ -14,25 +15,32 @@ BENCHES: dict[str, str] = {
     "estimator-cost": "kmea.benchmarks.robust:run",
     "detection": "kmea.benchmarks.detection:run",
     "render": "kmea.benchmarks.render:run",
-    "pipeline": "kmead.bench:run_pipeline",
-    "latency": "kmead.bench:run_latency",
+    "pipeline": "kmea.benchmarks.pipeline:run",
 }
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("names", nargs="*", metavar="NAME",
-                   help=f"benchmarks to run (default: all): {', '.join(BENCHES)}")
+                   help=f"benchmarks to run (default: all): {', '.join(BENCHES)}, daemon, "
+                        "latency")
     p.add_argument("--quick", action="store_true", help="fewer repetitions")
 
 
 def run(args: argparse.Namespace) -> int:
-    names = args.names or list(BENCHES)
+    """Run the named benchmarks; ``args.daemon_benches`` (name -> function, set by the
+    ``kmea`` front door) adds the daemon's own."""
+    benches: dict[str, Callable[..., None] | str] = {**BENCHES,
+                                                      **getattr(args, "daemon_benches", {})}
+    names = args.names or list(benches)
     for name in names:
-        if name not in BENCHES:
-            print(f"kmea bench: unknown benchmark {name!r}; choose from {', '.join(BENCHES)}")
+        if name not in benches:
+            print(f"kmea bench: unknown benchmark {name!r}; choose from {', '.join(benches)}")
             return 2
     for name in names:
-        module, func = BENCHES[name].split(":")
+        target = benches[name]
+        if isinstance(target, str):
+            module, func = target.split(":")
+            target = getattr(import_module(module), func)
         print(f"== {name} ==", flush=True)
-        getattr(import_module(module), func)(quick=args.quick)
+        target(quick=args.quick)
     return 0

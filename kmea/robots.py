@@ -17,6 +17,7 @@ pointing to the robot's forward.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -25,7 +26,15 @@ import numpy as np
 from kmea.estimators.base import MarkerEstimate
 from kmea.transforms import wrap_angle
 
-__all__ = ["RobotPose", "RobotSpec", "check_robot_spec", "robot_pose"]
+__all__ = ["ROBOT_DEFAULTS", "RobotPose", "RobotSpec", "check_robot_spec", "robot_from_table",
+           "robot_pose"]
+
+
+# What a robot table may leave out (m). One place: the daemon's configuration, the
+# simulator and the library read these.
+ROBOT_DEFAULTS = {"height": 0.0, "length": 0.06, "separation": 0.10}
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
 @dataclass(frozen=True)
@@ -33,14 +42,16 @@ class RobotSpec:
     """A robot and its markers.
 
     name: unique name; markers: (id,) or (left, right); height: marker plane above the floor,
-    m; length: marker side, m; separation: centre-to-centre distance of a pair (2 d), m;
-    destinations: names of the places it may be sent to (used by the daemon's tasks).
-    Lists are accepted and stored as tuples; ``check_robot_spec`` runs on creation.
+    m (default 0.0: on the floor; give a robot's real plate height); length: marker side, m;
+    separation: centre-to-centre distance of a pair (2 d), m; destinations: where the
+    daemon's relay sends its pose, ``"udp:HOST:PORT"`` (checked by the daemon's
+    configuration, not here). Lists are accepted and stored as tuples;
+    ``check_robot_spec`` runs on creation. The defaults are :data:`ROBOT_DEFAULTS`.
     """
 
     name: str
     markers: tuple[int, ...]
-    height: float = 0.2
+    height: float = 0.0
     length: float = 0.06
     separation: float = 0.10
     destinations: tuple[str, ...] = ()
@@ -90,6 +101,44 @@ def check_robot_spec(spec: RobotSpec) -> RobotSpec:
             isinstance(d, str) for d in spec.destinations):
         raise ValueError(f"{where}: destinations must be a list of names")
     return spec
+
+
+def robot_from_table(row: Mapping, where: str = "robot") -> RobotSpec:
+    """A :class:`RobotSpec` from a configuration table (``name``, ``markers`` = one id or
+    ``[left, right]``, optional ``height``, ``length``, ``separation`` in m; other keys are
+    the caller's). ``ValueError`` whose message starts with ``where`` and the field.
+
+    The name goes into datagrams and topics: letters, digits, ``_`` and ``-`` only.
+    """
+    for k in ("name", "markers"):
+        if k not in row:
+            raise ValueError(f"{where}: missing key {k!r}")
+    name = row["name"]
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise ValueError(f"{where}.name: use letters, digits, '_' or '-' (it goes in "
+                         f"datagrams and topics), got {name!r}")
+    markers = row["markers"]
+    if isinstance(markers, int) and not isinstance(markers, bool):
+        markers = [markers]
+    if (not isinstance(markers, list) or len(markers) not in (1, 2)
+            or any(isinstance(m, bool) or not isinstance(m, int) or m < 0 for m in markers)):
+        raise ValueError(f"{where}.markers: expected one marker id or a pair [left, right], "
+                         f"got {row['markers']!r}")
+    if len(markers) == 2 and markers[0] == markers[1]:
+        raise ValueError(f"{where}.markers: the pair needs two different ids, got {markers}")
+    values = {}
+    for key, default in ROBOT_DEFAULTS.items():
+        v = row.get(key, default)
+        positive = key != "height"
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        if not ok or (positive and v <= 0) or (not positive and v < 0):
+            raise ValueError(f"{where}.{key}: must be a finite number "
+                             f"{'> 0' if positive else '>= 0'} m, got {v!r}")
+        values[key] = float(v)
+    if len(markers) == 2 and values["separation"] < values["length"]:
+        raise ValueError(f"{where}.separation: {values['separation']} m is less than the marker "
+                         f"length {values['length']} m (the two markers would overlap)")
+    return RobotSpec(name, tuple(markers), **values)
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
-"""Daemon benchmarks (``kmea bench pipeline`` / ``kmea bench latency``): figures, no asserts.
+"""Daemon benchmarks (``kmea bench daemon`` / ``kmea bench latency``): figures, no asserts.
 
-pipeline: frames/s of the whole daemon (detection, pose, estimator, leave-one-out, filter,
+daemon: frames/s of the whole daemon (detection, pose, estimator, leave-one-out, filter,
 robots, relay, CSV, telemetry) on pre-rendered 1640x1232 simulator frames (rendering not
 counted), beside the rate of bare ``detectMarkers`` on the same frames, with 1 and 2
-detection threads (``detector.workers``).
+detection threads (``detector.workers``). The library's own figures (detection variants,
+the pipeline in one thread) are ``kmea bench pipeline`` (:mod:`kmea.benchmarks.pipeline`).
 latency: frame-to-UDP-datagram latency at 30 frames/s from the paced simulator, measured by
 a real UDP receiver (arrival time minus the datagram's capture timestamp).
 """
@@ -18,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kmea.vision.sources import Frame, FrameSource, register_source
+from kmea.benchmarks.pipeline import bare_detection, render
+from kmea.sim.source import SimSource
+from kmea.vision.sources import register_source
 from kmead.config import load_config
 from kmead.daemon import Daemon
 from kmead.relay import parse_datagram
@@ -26,52 +29,9 @@ from kmead.relay import parse_datagram
 NET = ['network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"']
 
 
-class _Frames(FrameSource):
-    live = False
-
-    def __init__(self, frames: list[np.ndarray], scene) -> None:
-        super().__init__()
-        self.frames, self.scene = frames, scene
-        self.camera, self.world_map = scene.camera, scene.effective_map()
-        self.size = scene.size
-        self.spec = "bench"
-        self._i = 0
-
-    def read(self) -> Frame | None:
-        if self._i >= len(self.frames):
-            return None
-        i = self._i
-        self._i += 1
-        return Frame(i, i / 30.0, self.frames[i], {})
-
-
 _BENCH: dict = {}
-register_source("bench", lambda rest, **o: _Frames(_BENCH["frames"], _BENCH["scene"]))
-
-
-def _render(n: int):
-    from kmea.sim.renderer import Renderer
-    from kmea.sim.scenes import get_scene
-
-    scene = get_scene("default")
-    r = Renderer(scene)
-    return [r.render(i).image for i in range(n)], scene
-
-
-TUNED = {"adaptiveThreshWinSizeMin": 13, "adaptiveThreshWinSizeMax": 13}
-
-
-def _bare(frames: list[np.ndarray], params: dict, dictionary: str) -> tuple[float, list[set]]:
-    from kmea.vision.detection import DetectorConfig, MarkerDetector
-
-    raw = MarkerDetector(DetectorConfig(dictionary, parameters=params))._detector
-    raw.detectMarkers(frames[0])  # warm-up
-    found = []
-    t0 = time.perf_counter()
-    for f in frames:
-        _, ids, _ = raw.detectMarkers(f)
-        found.append(set() if ids is None else set(ids.ravel().tolist()))
-    return len(frames) / (time.perf_counter() - t0), found
+# The pre-rendered frames, served by the simulator source (rendering not counted).
+register_source("bench", lambda rest, **o: SimSource(_BENCH["scene"], rendered=_BENCH["frames"]))
 
 
 def _daemon_fps(tmp: str, sets: list[str]) -> tuple[float, dict, Daemon]:
@@ -86,34 +46,13 @@ def _daemon_fps(tmp: str, sets: list[str]) -> tuple[float, dict, Daemon]:
     return t.frames / (t.t_end - t.t_start), {k: v / t.frames for k, v in t.timing_sums.items()}, d
 
 
-def run_pipeline(quick: bool = False) -> None:
-    import cv2
-
-    from kmea.vision.detection import DetectorConfig
-    from kmead.fastdetect import FastDetector
-
+def run_daemon(quick: bool = False) -> None:
     n = 20 if quick else 90
-    t0 = time.perf_counter()
-    frames, scene = _render(n)
-    print(f"pre-rendered {n} frames {scene.size[0]}x{scene.size[1]} (default scene, 2 robots) "
-          f"in {time.perf_counter() - t0:.1f} s (not counted); cv2 threads "
-          f"{cv2.getNumThreads()}, {len(__import__('os').sched_getaffinity(0))} cores")
+    frames, scene = render(n)
     _BENCH.update(frames=frames, scene=scene)
-    dic = scene.world_map.dictionary
-    bare, full_sets = _bare(frames, {}, dic)
-    print(f"bare detectMarkers, default parameters: {bare:6.1f} frames/s, "
-          f"{np.mean([len(s) for s in full_sets]):.1f} markers/frame")
-    tuned, tuned_sets = _bare(frames, TUNED, dic)
-    lost = sum(len(a - b) for a, b in zip(full_sets, tuned_sets, strict=True))
-    print(f"bare detectMarkers, one 13 px window only: {tuned:6.1f} frames/s, {lost} of "
-          f"{sum(len(s) for s in full_sets)} markers of the default detection lost")
-    fast = FastDetector(DetectorConfig(dic))
-    t0 = time.perf_counter()
-    fast_sets = [set(fast.detect(f).ids.tolist()) for f in frames]
-    fast_rate = n / (time.perf_counter() - t0)
-    lost = sum(len(a - b) for a, b in zip(full_sets, fast_sets, strict=True))
-    print(f"fast detection (detector.fast): {fast_rate:6.1f} frames/s, {fast.fast} fast / "
-          f"{fast.full} full frames, {lost} markers of the default detection lost")
+    bare, _ = bare_detection([f.image for f in frames], {}, scene.world_map.dictionary)
+    print(f"{n} pre-rendered frames {scene.size[0]}x{scene.size[1]}; bare detectMarkers "
+          f"{bare:6.1f} frames/s")
     with tempfile.TemporaryDirectory() as tmp:
         for label, sets in (("main thread only (workers=0)", ["detector.workers=0"]),
                             ("detection thread ahead (workers=1)", ["detector.workers=1"]),

@@ -26,8 +26,8 @@ from kmea.protocol import (
 if TYPE_CHECKING:
     from kmea.maps import MarkerMap
     from kmea.metrics import WindowStats
+    from kmea.pipeline import FrameResult
     from kmea.vision.camera import CameraModel
-    from kmead.pipeline import FrameResult
     from kmead.relay import RobotTrack
 
 

@@ -5,6 +5,13 @@ one-slot mailbox: when processing is slower than the camera the newest frame win
 replaced one is counted as dropped, so the pipeline always works on the freshest image and
 never blocks the camera. A file source is read in the caller's thread, every frame in
 order. Both give ``(frame, capture_ms, t_capture)`` tuples.
+
+Where detection happens is a *feed* (:func:`open_feed`): in the main thread
+(:class:`NoDetect`: the pipeline detects), on a thread of its own for live sources
+(:class:`LiveDetect`) or on a pool for in-order sources (:class:`DetectPool`). Every feed
+has ``get(timeout) -> ((frame, capture_ms, t_capture), detections | None, detect_ms)`` or
+None on timeout, raises :class:`CaptureEnded` at the end, and has ``dropped`` and
+``close()``; the daemon's one run loop reads whichever it is given.
 """
 
 from __future__ import annotations
@@ -16,7 +23,7 @@ from collections.abc import Iterator
 
 from kmea.vision.sources import Frame, FrameSource, SourceError
 
-__all__ = ["Capture", "CaptureEnded"]
+__all__ = ["Capture", "CaptureEnded", "DetectPool", "LiveDetect", "NoDetect", "open_feed"]
 
 
 class CaptureEnded(Exception):
@@ -139,6 +146,19 @@ class DetectPool:
         self.workers = workers
         self._pool = ThreadPoolExecutor(workers, thread_name_prefix="kmead-detect")
         self._local = threading.local()
+        self._iter = iter(self)
+
+    @property
+    def dropped(self) -> int:
+        return self.capture.dropped
+
+    def get(self, timeout: float = 0.1):
+        """The next frame in order with its detections (see the module docstring); blocks
+        until its detection is done; :class:`CaptureEnded` after the last one."""
+        try:
+            return next(self._iter)
+        except StopIteration:
+            raise CaptureEnded(self.capture.error) from None
 
     def _detect(self, frame: Frame):
         if frame.image is None:
@@ -253,36 +273,32 @@ class LiveDetect:
         self._thread.join(timeout=2.0)
 
 
-class SimFrames(FrameSource):
-    """The simulated floor as a frame source (``sim``, ``sim:SCENE?options``).
+class NoDetect:
+    """The feed of :class:`Capture` alone: the pipeline detects in the main thread."""
 
-    Renders frame i of the scene at t = i / scene.fps with :class:`kmea.sim.renderer.Renderer`.
-    It never ends; pacing (or not) is the daemon's business (``source.fps``). ``scene``,
-    ``camera`` (the true camera) and ``world_map`` (the scene's surveyed map) are exposed.
-    """
+    def __init__(self, capture: Capture) -> None:
+        self.capture = capture
 
-    live = False
+    @property
+    def dropped(self) -> int:
+        return self.capture.dropped
 
-    def __init__(self, spec: str, width: int = 0, height: int = 0) -> None:
-        super().__init__()
-        from kmea.sim.renderer import Renderer
-        from kmea.sim.scenes import scene_from_spec
+    def get(self, timeout: float = 0.1):
+        item = self.capture.get(timeout=timeout)
+        return None if item is None else (item, None, 0.0)
 
-        self.spec = spec
-        opts = {"width": width, "height": height} if width and height else {}
-        try:
-            self.scene = scene_from_spec(spec, **opts)
-        except ValueError as e:
-            raise SourceError(f"{spec}: {e}") from None
-        self.renderer = Renderer(self.scene)
-        self.camera = self.scene.camera
-        self.world_map = self.scene.effective_map()
-        self.size = self.scene.size
-        self._next = 0
+    def close(self) -> None:
+        pass
 
-    def read(self) -> Frame | None:
-        if self._closed:
-            return None
-        i = self._next
-        self._next += 1
-        return self.renderer.render(i)
+
+def open_feed(capture: Capture, pipeline, workers: int, live: bool, replay: bool):
+    """Where detection happens: ``workers`` = 0 (or a replay, nothing to detect) in the main
+    thread; else a thread of its own for a live source, a pool of ``workers`` threads for an
+    in-order source (one thread with the fast detector: it follows the frames in order)."""
+    if workers < 1 or replay:
+        return NoDetect(capture)
+    if live:
+        return LiveDetect(capture, pipeline)
+    if pipeline.settings.fast:
+        workers = 1
+    return DetectPool(capture, pipeline, workers)

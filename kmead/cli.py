@@ -15,8 +15,7 @@ import threading
 from typing import Any
 
 from kmead.config import ConfigError, load_config
-
-EXIT_CONFIG = 2
+from kmead.startup import EXIT_CONFIG
 
 
 def build_parser() -> argparse.ArgumentParser:

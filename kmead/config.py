@@ -18,6 +18,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from kmea.robots import robot_from_table
+from kmea.tomlvalue import parse_toml_value
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
@@ -101,28 +104,16 @@ def _choice(*options: str) -> Check:
     return check
 
 
-_SOURCE_RE = re.compile(r"^(sim(:.+)?|picamera(:.*)?|camera:\d+|video:.+|images:.+|replay:.+)$")
-
-
 def _source_spec(v: Any, where: str) -> str:
+    from kmea.vision.sources import SourceError, parse_source_spec
+
     s = _str(v, where)
-    if not _SOURCE_RE.match(s):
-        # Sources registered by plugins (kmea.vision.sources.register_source) are accepted too.
-        prefix = s.split(":", 1)[0]
-        if not _registered_source(prefix):
-            raise ConfigError(
-                f"{where}: unknown source {s!r}; use sim, sim:SCENE, picamera, camera:INDEX, "
-                "video:PATH, images:DIR or replay:FILE")
-    return s
-
-
-def _registered_source(prefix: str) -> bool:
     try:
-        from kmea.vision import sources
-    except Exception:
-        return False
-    reg = getattr(sources, "_REGISTRY", None) or getattr(sources, "SOURCES", None) or {}
-    return prefix in reg
+        parse_source_spec(s, check=True)
+    except SourceError as e:
+        raise ConfigError(f"{where}: {e}; use sim, sim:SCENE, picamera, camera:INDEX, "
+                          "video:PATH, images:DIR or replay:FILE") from None
+    return s
 
 
 def _algorithm(v: Any, where: str) -> str:
@@ -225,35 +216,17 @@ def _robot(row: Any, where: str) -> dict:
     bad = sorted(set(row) - set(ROBOT_KEYS))
     if bad:
         raise ConfigError(f"{where}: unknown key {bad[0]!r} (robot keys: {', '.join(ROBOT_KEYS)})")
-    for k in ("name", "markers"):
-        if k not in row:
-            raise ConfigError(f"{where}: missing key {k!r}")
-    name = _str(row["name"], f"{where}.name")
-    if not re.match(r"^[A-Za-z0-9_-]+$", name):
-        raise ConfigError(f"{where}.name: use letters, digits, '_' or '-' (it goes in "
-                          f"datagrams and topics), got {name!r}")
-    markers = row["markers"]
-    if isinstance(markers, int) and not isinstance(markers, bool):
-        markers = [markers]
-    if (not isinstance(markers, list) or len(markers) not in (1, 2)
-            or any(isinstance(m, bool) or not isinstance(m, int) or m < 0 for m in markers)):
-        raise ConfigError(f"{where}.markers: expected one marker id or a pair [left, right], "
-                          f"got {row['markers']!r}")
-    if len(markers) == 2 and markers[0] == markers[1]:
-        raise ConfigError(f"{where}.markers: the pair needs two different ids, got {markers}")
-    height = _nonneg(row.get("height", 0.0), f"{where}.height")
-    length = _positive(row.get("length", 0.06), f"{where}.length")
-    separation = _positive(row.get("separation", 0.10), f"{where}.separation")
-    if len(markers) == 2 and separation < length:
-        raise ConfigError(f"{where}.separation: {separation} m is less than the marker length "
-                          f"{length} m (the two markers would overlap)")
+    try:
+        spec = robot_from_table(row, where)  # kmea.robots: the one robot validation
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     dests = row.get("destinations", [])
     if not isinstance(dests, list):
         raise ConfigError(f"{where}.destinations: expected a list like [\"udp:127.0.0.1:9001\"]")
     for i, d in enumerate(dests):
         parse_destination(d, f"{where}.destinations[{i}]")
-    return {"name": name, "markers": list(markers), "height": height, "length": length,
-            "separation": separation, "destinations": list(dests)}
+    return {"name": spec.name, "markers": list(spec.markers), "height": spec.height,
+            "length": spec.length, "separation": spec.separation, "destinations": list(dests)}
 
 
 def _robots(rows: Any, where: str) -> list[dict]:
@@ -326,22 +299,18 @@ def _read_toml(path: Path) -> dict:
 
 
 def parse_set(item: str) -> tuple[str, Any]:
-    """``"SECTION.KEY=VALUE"`` -> (key, value); VALUE is TOML, or a bare string if not TOML.
-
-    Shells strip quotes (``--set detector.dictionary="DICT_6X6_250"`` arrives unquoted),
-    so a value that is not valid TOML is taken as a string; validation then decides.
+    """``"SECTION.KEY=VALUE"`` -> (key, value); VALUE as :func:`kmea.tomlvalue.parse_toml_value`
+    reads it (TOML, or a bare string), but a value that starts like a TOML array, table or
+    string and is not valid TOML is an error rather than a string.
     """
     key, sep, raw = item.partition("=")
     key = key.strip()
     if not sep or not key:
         raise ConfigError(f"--set {item!r}: expected SECTION.KEY=VALUE")
     raw = raw.strip()
-    try:
-        value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
-        if raw.startswith(("[", "{", '"', "'")):
-            raise ConfigError(f"--set {key}: value {raw!r} is not valid TOML") from None
-        value = raw
+    value = parse_toml_value(raw)
+    if value == raw and isinstance(value, str) and raw.startswith(("[", "{", '"', "'")):
+        raise ConfigError(f"--set {key}: value {raw!r} is not valid TOML")
     return key, value
 
 

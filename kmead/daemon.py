@@ -1,5 +1,9 @@
 """The daemon: source -> pipeline -> outputs, plus the control/status service thread.
 
+The daemon is the shell around :class:`kmea.pipeline.Pipeline`: start-up is
+:mod:`kmead.startup`, where detection happens is a feed of :mod:`kmead.capture`, the CSV
+rows and totals are :mod:`kmead.outputs`, the datagrams :mod:`kmead.relay`.
+
 Threads: the main loop (pipeline and outputs, one frame at a time, under ``self.lock``),
 the capture thread of a live source (:mod:`kmead.capture`) and the service thread
 (:mod:`kmead.control`: control requests, 1 Hz status, the stale-robot watchdog). A control
@@ -14,86 +18,40 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
 from kmea import protocol as P
 from kmea.estimators import available as available_algorithms
-from kmea.jsonsafe import to_jsonable
-from kmea.maps import MapError, MarkerMap, default_map, load_map
+from kmea.maps import MarkerMap
 from kmea.metrics import WindowStats
 from kmea.moved import MovedMonitor
-from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
-from kmea.vision.sources import FrameSource, SourceError, open_source
+from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
+from kmea.recording import Recorder, ReplaySource
 from kmead import bodies
-from kmead.capture import Capture, CaptureEnded
+from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
-from kmead.csvlog import CsvLog, row
-from kmead.pipeline import FrameInput, FrameResult, Pipeline
-from kmead.recording import ReplaySource
+from kmead.control import ControlServer
+from kmead.csvlog import CsvLog
+from kmead.outputs import RunTotals, csv_lines, truth_record
 from kmead.relay import Relay
+from kmead.startup import (
+    EXIT_OK,
+    EXIT_RUNTIME,
+    StartupError,
+    configured_map,
+    fit_camera,
+    is_paced_sim,
+    load_camera_file,
+    load_configured_map,
+    open_configured_source,
+)
 from kmead.telemetry import Telemetry, TelemetryLogHandler
+
+__all__ = ["Daemon", "StartupError"]
 
 log = logging.getLogger("kmead")
 
-EXIT_OK, EXIT_RUNTIME, EXIT_CONFIG = 0, 1, 2
 DISPLACED_QUIET_S = 30.0
-
-
-class StartupError(Exception):
-    """The daemon cannot start; ``code`` is the exit code (2: configuration, 1: other)."""
-
-    def __init__(self, message: str, code: int = EXIT_CONFIG) -> None:
-        super().__init__(message)
-        self.code = code
-
-
-@dataclass
-class RunTotals:
-    """Whole-run figures for the summary."""
-
-    frames: int = 0
-    bad_frames: int = 0
-    not_estimated: int = 0
-    markers_seen: set[int] = field(default_factory=set)
-    robots_seen: set[str] = field(default_factory=set)
-    loo_sum: float = 0.0
-    loo_n: int = 0
-    loo_max: float = 0.0
-    t_start: float = 0.0
-    t_end: float = 0.0
-    csv_rows: int = 0
-    csv_paths: list[str] = field(default_factory=list)
-    record_paths: list[str] = field(default_factory=list)
-    latency_ms: list[float] = field(default_factory=list)
-    timing_sums: dict[str, float] = field(default_factory=dict)
-
-
-def _source_options(cfg: Config, prefix: str) -> dict[str, Any]:
-    s = cfg["source"]
-    opts: dict[str, Any] = {}
-    if prefix in ("camera", "picamera"):
-        if s["width"] and s["height"]:
-            opts.update(width=s["width"], height=s["height"])
-        if s["fps"]:
-            opts["fps"] = s["fps"]
-    if prefix in ("images", "video", "camera"):
-        opts["gray"] = True  # detection works on grey: convert once at decode time
-    return opts
-
-
-def open_configured_source(cfg: Config) -> FrameSource:
-    spec = cfg["source"]["spec"]
-    prefix = spec.split(":", 1)[0].split("?", 1)[0]
-    if prefix == "sim":
-        from kmead.capture import SimFrames
-
-        return SimFrames(spec, cfg["source"]["width"], cfg["source"]["height"])
-    return open_source(spec, **_source_options(cfg, prefix))
-
-
-def is_paced_sim(source: FrameSource, cfg: Config) -> bool:
-    return cfg["source"]["spec"].split(":", 1)[0] == "sim" and cfg["source"]["fps"] > 0
 
 
 class Daemon:
@@ -112,7 +70,7 @@ class Daemon:
         self.control = None
         self.relay: Relay | None = None
         self.capture: Capture | None = None
-        self.detect_stage = None
+        self.feed = None
         self.last_frame_body: dict = {}
         self.last_result: FrameResult | None = None
         self.frame_times: collections.deque[float] = collections.deque(maxlen=31)
@@ -134,20 +92,17 @@ class Daemon:
         cfg = self.cfg
         self.source = None
         # Files named in the configuration first: their errors are configuration errors.
-        self.world_map = self._load_map() if cfg["map"]["file"] else None
-        camera = self._load_camera_file() if cfg["camera"]["file"] else None
-        try:
-            self.source = open_configured_source(cfg)
-        except SourceError as e:
-            raise StartupError(f"source: {e}", EXIT_RUNTIME) from None
+        self.world_map = load_configured_map(cfg, None) if cfg["map"]["file"] else None
+        camera = load_camera_file(cfg) if cfg["camera"]["file"] else None
+        self.source = open_configured_source(cfg)
         self.source_spec = cfg["source"]["spec"]
         self.replay = isinstance(self.source, ReplaySource)
-        self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(self.source, cfg)
+        self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(cfg)
         if self.world_map is None:
-            self.world_map = self._load_map()
-        camera = self._fit_camera(camera)
+            self.world_map = load_configured_map(cfg, self.source)
+        camera = fit_camera(cfg, camera, self.source)
         try:
-            self.pipeline = Pipeline(camera, self.world_map, cfg.data)
+            self.pipeline = Pipeline(camera, self.world_map, PipelineSettings.from_config(cfg.data))
         except ValueError as e:  # detector parameters, dictionary, algorithm options
             raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
         self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
@@ -161,8 +116,6 @@ class Daemon:
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
                            cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish)
         if net["control"]:
-            from kmead.control import ControlServer
-
             try:
                 self.control = ControlServer(net["control"], self)
             except OSError as e:
@@ -177,48 +130,6 @@ class Daemon:
                 self.start_recording(cfg["log"]["record"])
         except ValueError as e:  # an unwritable path: name the key, do not start
             raise StartupError(f"key 'log.{'record' if self.csv else 'csv'}': {e}") from None
-
-    def _load_map(self) -> MarkerMap:
-        try:
-            return self._configured_map()
-        except MapError as e:
-            raise StartupError(f"map: {e}") from None
-
-    def _configured_map(self) -> MarkerMap:
-        """The map file of the configuration, else the source's map, else the default map
-        (``MapError`` for a bad file)."""
-        cfg = self.cfg
-        path = cfg["map"]["file"]
-        if path:
-            return load_map(path, dictionary=cfg["detector"]["dictionary"] or "DICT_5X5_100",
-                            default_length=cfg["detector"]["marker_length"])
-        m = getattr(self.source, "world_map", None)
-        return m if isinstance(m, MarkerMap) else default_map()
-
-    def _load_camera_file(self) -> CameraModel:
-        path = self.cfg["camera"]["file"]
-        try:
-            return load_camera(path)
-        except CameraError as e:
-            raise StartupError(f"camera: {e}") from None
-
-    def _fit_camera(self, cam: CameraModel | None) -> CameraModel:
-        """The configured camera, else the source's, else a Pi Camera v2; at the frame size."""
-        size = getattr(self.source, "size", None)
-        if cam is None:
-            cam = getattr(self.source, "camera", None)
-            if not isinstance(cam, CameraModel):
-                scene = getattr(self.source, "scene", None)
-                cam = getattr(scene, "camera", None)
-            if not isinstance(cam, CameraModel):
-                cam = pi_camera_v2()
-        if size and (cam.width, cam.height) != tuple(size):
-            try:
-                cam = cam.scaled_to(*size)
-            except CameraError as e:
-                raise StartupError(f"camera: {self.cfg['camera']['file'] or 'default camera'}: "
-                                   f"{e}") from None
-        return cam
 
     # ------------------------------------------------------------------ outputs on/off
     def start_csv(self, path: str) -> CsvLog:
@@ -241,9 +152,7 @@ class Daemon:
         log.info("CSV log stopped: %s (%d rows)", c.path, c.rows)
         return {"path": str(c.path), "rows": c.rows, "bytes": c.bytes}
 
-    def start_recording(self, path: str):
-        from kmead.recording import Recorder
-
+    def start_recording(self, path: str) -> Recorder:
         if self.recorder is not None:
             raise ValueError(f"already recording to {self.recorder.path}; stop it first")
         try:
@@ -274,6 +183,7 @@ class Daemon:
         old = self.cfg.get(key)
         v = self.cfg.set(key, value, where="control")
         try:
+            self.pipeline.settings = PipelineSettings.from_config(self.cfg.data)
             if key == "estimator.algorithm":
                 self.pipeline.set_algorithm(v)
                 self.stats.reset()
@@ -296,12 +206,13 @@ class Daemon:
                 logging.getLogger("kmead").setLevel(v.upper())
         except Exception as e:
             self.cfg.set(key, old, where="control")
+            self.pipeline.settings = PipelineSettings.from_config(self.cfg.data)
             raise ValueError(f"control: key {key!r}: {e}") from None
         log.info("set %s = %r", key, v)
         return v
 
     def reload_map(self) -> MarkerMap:
-        new = self._configured_map()
+        new = configured_map(self.cfg, self.source)
         self.world_map = new
         self.pipeline.set_map(new)
         self.stats = WindowStats(self.cfg["stats"]["window"], new.ref_length())
@@ -334,8 +245,8 @@ class Daemon:
 
     @property
     def dropped(self) -> int:
-        if self.detect_stage is not None:
-            return self.detect_stage.dropped
+        if self.feed is not None:
+            return self.feed.dropped
         return self.capture.dropped if self.capture else 0
 
     def fps(self) -> float:
@@ -380,8 +291,7 @@ class Daemon:
         if detections is not None:
             inp.detections, inp.detect_ms = detections, detect_ms
         try:
-            res = self.pipeline.process(inp, loo=self.cfg["stats"]["loo"],
-                                        on_robots=self._relay_robots)
+            res = self.pipeline.process(inp, on_robots=self._relay_robots)
         except Exception as e:  # a frame the detector or pose cannot digest: report, go on
             self.totals.bad_frames += 1
             self.event("error", f"frame {frame.index}: {type(e).__name__}: {e}; skipped")
@@ -393,30 +303,19 @@ class Daemon:
     def _outputs(self, res: FrameResult) -> None:
         t_out = time.perf_counter()
         tot = self.totals
-        tot.frames += 1
-        est = res.estimate
         # 2. statistics
-        tot.markers_seen.update(int(i) for i in res.ids)
-        if not est.ok:
-            tot.not_estimated += 1
+        tot.add_frame(res)
         for mid, e in res.loo.items():
             self.stats.add(mid, e)
-            tot.loo_sum += e
-            tot.loo_n += 1
-            tot.loo_max = max(tot.loo_max, e)
         self._displacement_events(res)
         # 3. files
         if self.csv is not None:
-            self.csv.write_rows(self._csv_lines(res))
+            self.csv.write_rows(csv_lines(res, self.world_map, self.pipeline.robot_heights))
         if self.recorder is not None:
             truth = res.meta.get("truth")
-            if truth is not None and hasattr(truth, "robots"):
-                # Compact: the robots' true poses and the camera pose (markers are static).
-                truth = {"t": getattr(truth, "t", None), "robots": truth.robots,
-                         "cam2world": getattr(truth, "cam2world", None)}
             self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
                                       res.observations, res.diagnostics,
-                                      to_jsonable(truth) if truth is not None else None)
+                                      truth_record(truth) if truth is not None else None)
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
                                                           self.monitor.get))
@@ -475,23 +374,6 @@ class Daemon:
                                       f"{ev.offset * 1e3:.0f} mm (threshold "
                                       f"{ev.threshold * 1e3:.0f} mm over {ev.frames} frames)")
 
-    def _csv_lines(self, res: FrameResult) -> list[str]:
-        est = res.estimate
-        nref = len(est.references)
-        alg, i, t = res.algorithm, res.index, res.timestamp
-        lines = []
-        for mid, (p, yaw) in res.markers.items():
-            err = res.loo.get(mid) if mid in self.world_map else None
-            lines.append(row(i, t, alg, "marker", mid, p[0], p[1], p[2], yaw, err, nref))
-        for name, fix in res.robots.items():
-            z = self.pipeline.robot_heights.get(name)
-            lines.append(row(i, t, alg, "robot", name, fix.x, fix.y, z, fix.theta, None, nref))
-        for mid, d in sorted(est.rejected.items()):
-            me = res.markers.get(mid)
-            p = me[0] if me is not None else (None, None, None)
-            yaw = me[1] if me is not None else None
-            lines.append(row(i, t, alg, "rejected", mid, p[0], p[1], p[2], yaw, d, nref))
-        return lines
 
     # ------------------------------------------------------------------ service thread hooks
     def tick(self) -> None:
@@ -506,10 +388,15 @@ class Daemon:
                                               f"{self.relay.stale_after_s:g} s: stale "
                                               "(valid=0 sent)")
 
+    # ------------------------------------------------------------------ public bodies
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
-        """Process frames until the source ends, ``max_frames`` or :meth:`stop`."""
-        paced = is_paced_sim(self.source, self.cfg)
+        """Process frames until the source ends, ``max_frames`` or :meth:`stop`.
+
+        The one run loop: the feed decides where detection happens (main thread, a thread
+        of its own for a live source, a pool for files; :func:`kmead.capture.open_feed`).
+        """
+        paced = is_paced_sim(self.cfg)
         self.capture = Capture(self.source, threaded=self.live,
                                pace_fps=self.cfg["source"]["fps"] if paced else 0.0)
         if self.control is not None:
@@ -518,46 +405,14 @@ class Daemon:
         self.publish(P.TOPIC_STATUS, self.status())
         log.info("running: source %s, algorithm %s, map %s (%d markers)", self.source_spec,
                  self.pipeline.algorithm, self.world_map.name, len(self.world_map))
-        workers = self.cfg["detector"]["workers"]
-        try:
-            if workers >= 1 and not self.replay:
-                if self.live:
-                    self._run_live_detect()
-                else:
-                    self._run_pool(workers)
-                return self.exit_code
-            while not self.stop_event.is_set():
-                if self.max_frames is not None and self.totals.frames >= self.max_frames:
-                    break
-                try:
-                    item = self.capture.get(timeout=0.1)
-                except CaptureEnded as e:
-                    self._source_ended(e)
-                    break
-                if item is None:
-                    continue
-                with self.lock:
-                    self.process_frame(*item)
-        finally:
-            self.totals.t_end = time.perf_counter()
-        return self.exit_code
-
-    def _source_ended(self, e: CaptureEnded) -> None:
-        if e.args and e.args[0]:
-            self.event("error", f"source stopped: {e.args[0]}")
-            self.exit_code = EXIT_RUNTIME
-
-    def _run_live_detect(self) -> None:
-        from kmead.capture import LiveDetect
-
-        stage = LiveDetect(self.capture, self.pipeline)
-        self.detect_stage = stage
+        self.feed = open_feed(self.capture, self.pipeline, self.cfg["detector"]["workers"],
+                              self.live, self.replay)
         try:
             while not self.stop_event.is_set():
                 if self.max_frames is not None and self.totals.frames >= self.max_frames:
                     break
                 try:
-                    got = stage.get(timeout=0.1)
+                    got = self.feed.get(timeout=0.1)
                 except CaptureEnded as e:
                     self._source_ended(e)
                     break
@@ -567,27 +422,13 @@ class Daemon:
                 with self.lock:
                     self.process_frame(frame, cap_ms, t_cap, det, det_ms)
         finally:
-            stage.close()
+            self.feed.close()
+            self.totals.t_end = time.perf_counter()
+        return self.exit_code
 
-    def _run_pool(self, workers: int) -> None:
-        from kmead.capture import DetectPool
-
-        if self.cfg["detector"]["fast"]:
-            workers = 1  # the fast detector follows the frames in order: one thread
-
-        pool = DetectPool(self.capture, self.pipeline, workers)
-        try:
-            for (frame, cap_ms, t_cap), det, det_ms in pool:
-                if self.stop_event.is_set():
-                    break
-                if self.max_frames is not None and self.totals.frames >= self.max_frames:
-                    break
-                with self.lock:
-                    self.process_frame(frame, cap_ms, t_cap, det, det_ms)
-        finally:
-            pool.close()
-        if self.capture.error:
-            self.event("error", f"source stopped: {self.capture.error}")
+    def _source_ended(self, e: CaptureEnded) -> None:
+        if e.args and e.args[0]:
+            self.event("error", f"source stopped: {e.args[0]}")
             self.exit_code = EXIT_RUNTIME
 
     def stop(self) -> None:
@@ -619,7 +460,7 @@ class Daemon:
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> str:
-        from kmead.summary import format_summary
+        from kmead.summary import format_summary  # summary.py reads the daemon it is given
 
         return format_summary(self)
 

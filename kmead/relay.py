@@ -5,7 +5,7 @@ Datagram (one line of ASCII, no newline, ``;``-separated ``key=value``)::
     name=amr1;seq=17;t=1700000000.123456;x=0.512300;y=0.200100;theta=1.570800;valid=1
 
 ``seq`` counts this robot's messages (all destinations share it), ``t`` is the frame
-timestamp (s), x/y metres in the world frame, theta radians in (-pi, pi]. ``valid=0``: the
+timestamp (s), x/y metres in the world frame, theta radians in [-pi, pi). ``valid=0``: the
 robot has not been seen for ``relay.stale_after_s``; x/y/theta then repeat the last known
 pose (or 0 if never seen).
 """

@@ -160,7 +160,7 @@ def test_jobs_do_not_change_the_results():
 def test_replay_scores_a_recording_against_the_map(tmp_path, capsys):
     from kmea.experiments import simscene
     from kmea.experiments.run import _setup
-    from kmead.recording import Recorder
+    from kmea.recording import Recorder
 
     cfg = _config("I", samples=3)
     st = _setup(cfg)

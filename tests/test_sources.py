@@ -16,7 +16,9 @@ from kmea.vision.sources import (
     FrameSource,
     SourceError,
     open_source,
+    parse_source_spec,
     register_source,
+    source_prefixes,
 )
 
 
@@ -246,8 +248,29 @@ def test_picamera2_missing(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_sim_spec_reaches_the_simulator() -> None:
-    """``sim`` is not built in: open_source finds kmea.sim's SimSource and passes options."""
+    """``sim`` opens kmea.sim's SimSource with the spec's options."""
     with open_source("sim?width=320&height=240&frames=2") as src:
         frames = list(src)
     assert len(frames) == 2 and src.size == (320, 240)
     assert frames[0].image.shape == (240, 320) and frames[1].index == 1
+
+
+def test_parse_source_spec_is_the_one_grammar() -> None:
+    p = parse_source_spec("camera:0?width=1280&height=960&fps=30&gray=off")
+    assert (p.prefix, p.rest) == ("camera", "0")
+    assert p.options == {"width": 1280, "height": 960, "fps": 30, "gray": False}
+    assert parse_source_spec("sim").prefix == "sim" and parse_source_spec("sim").rest == ""
+    assert parse_source_spec("images:/a:b/c").rest == "/a:b/c"  # only the first ':' splits
+    assert {"images", "video", "camera", "picamera", "sim", "replay"} <= set(source_prefixes())
+    for bad, msg in (("camera:front", "camera:INDEX"), ("images:", "images:DIR"),
+                     ("picamera:x", "picamera"), ("rtsp://h/s", "unknown source 'rtsp'")):
+        parse_source_spec(bad)  # the grammar alone accepts it
+        with pytest.raises(SourceError, match=msg):
+            parse_source_spec(bad, check=True)
+
+
+def test_bad_scene_and_missing_recording_are_source_errors(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="sim:nowhere"):
+        open_source("sim:nowhere")
+    with pytest.raises(SourceError, match="no such file"):
+        open_source(f"replay:{tmp_path / 'none.jsonl'}")

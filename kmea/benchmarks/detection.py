@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 
 from kmea.maps import default_map
+from kmea.pipeline import MarkerObserver
 from kmea.vision.detection import DetectorConfig, MarkerDetector
-from kmea.vision.marker_pose import estimate_marker_poses
 
 RESOLUTIONS = ((640, 480), (1280, 960), (1640, 1232))
 
@@ -51,7 +51,9 @@ def run(quick: bool = False) -> None:
         for w, h in RESOLUTIONS:
             frames, camera = _frames(w, h, n_frames)
             for refine in ("subpix", "none"):
-                det = MarkerDetector(DetectorConfig(world_map.dictionary, refine))
+                observer = MarkerObserver(MarkerDetector(DetectorConfig(world_map.dictionary,
+                                                                        refine)),
+                                          camera, world_map, lengths)
                 times, cpu_times, pose_times, errs = [], [], [], []
                 found = visible = false = flipped = ambiguous = 0
                 for f in frames:
@@ -59,26 +61,25 @@ def run(quick: bool = False) -> None:
                     t_frame, c_frame = [], []
                     for _ in range(reps):
                         c0, t0 = time.thread_time(), time.perf_counter()
-                        d = det.detect(f.image)
+                        ids_found, corners_found = observer.detect(f.image)
                         t_frame.append(time.perf_counter() - t0)
                         c_frame.append(time.thread_time() - c0)
                     times.append(statistics.median(t_frame))
                     cpu_times.append(statistics.median(c_frame))
-                    ids = set(d.ids.tolist())
+                    ids = set(ids_found.tolist())
                     visible += len(truth.visible)
                     found += len(ids & truth.visible)
                     false += len(ids - set(truth.corners))
-                    for mid, c in zip(d.ids.tolist(), d.corners, strict=True):
+                    for mid, c in zip(ids_found.tolist(), corners_found, strict=True):
                         if mid in truth.corners:
                             errs.append(np.linalg.norm(c - truth.corners[mid], axis=1))
                     t_pose = []
                     for _ in range(reps):
                         c0 = time.thread_time()
-                        _, diag = estimate_marker_poses(d.ids, d.corners, camera, lengths,
-                                                        world_map)
+                        _, diag = observer.poses(ids_found, corners_found)
                         t_pose.append(time.thread_time() - c0)
-                    flipped += diag.n_flipped
-                    ambiguous += diag.n_ambiguous
+                    flipped += diag["n_flipped"]
+                    ambiguous += diag["n_ambiguous"]
                     pose_times.append(statistics.median(t_pose))
                 e = np.concatenate(errs) if errs else np.array([np.nan])
                 pose = f"{statistics.median(pose_times) * 1e3:8.2f}"

@@ -22,10 +22,10 @@ import numpy as np
 from kmea.estimators import get
 from kmea.estimators.loo import loo_errors
 from kmea.maps import Marker, MarkerMap
+from kmea.pipeline import MarkerObserver
 from kmea.vision.camera import CameraModel, load_camera
-from kmea.vision.detection import DetectorConfig
+from kmea.vision.detection import MarkerDetector
 from kmea.vision.dictionary import get_dictionary
-from kmea.vision.marker_pose import estimate_marker_poses
 
 __all__ = ["DEFAULT_DIR", "ESTIMATORS", "GridboardResult", "correcting_dictionary",
            "evaluate_image", "format_table", "gridboard_map", "main", "run_all"]
@@ -108,15 +108,11 @@ def evaluate_image(image: Path, dictionary: Path, camera: CameraModel,
     if gray is None:
         raise FileNotFoundError(f"{image}: cannot read the image")
     world_map = gridboard_map()
-    detector = cv2.aruco.ArucoDetector(correcting_dictionary(dictionary),
-                                       DetectorConfig().detector_parameters())
-    corners, ids, _ = detector.detectMarkers(gray)
-    if ids is None:
-        ids, corners = np.zeros(0, dtype=int), np.zeros((0, 4, 2))
-    ids = np.asarray(ids).reshape(-1)
-    corners = np.asarray(corners, dtype=float).reshape(-1, 4, 2)
+    observer = MarkerObserver(MarkerDetector(dictionary=correcting_dictionary(dictionary)),
+                              camera, world_map)
+    ids, corners = observer.detect(gray)
     keep = [k for k, i in enumerate(ids.tolist()) if i in world_map]
-    obs, _ = estimate_marker_poses(ids[keep], corners[keep], camera, world_map=world_map)
+    obs, _ = observer.poses(ids[keep], corners[keep])
     cam = camera.intrinsics
     results = []
     for label, name, options in estimators:

@@ -1,6 +1,6 @@
 """``kmea experiment --replay FILE``: the same tables from a kmead recording.
 
-The recording (``kmead/recording.py``: JSON lines, a header with the camera model and the map,
+The recording (``kmea/recording.py``: JSON lines, a header with the camera model and the map,
 then one line per frame with every per-marker pose) is re-estimated with each algorithm, each
 evaluated marker left out of the references. The truth is the map's position of each marker,
 so only markers in the map are scored: a real floor whose markers were surveyed.
@@ -29,8 +29,8 @@ def replay(path: str | Path, algorithms: Sequence[str], baseline: str = "lmea",
     max_frames: stop after this many frames (None: all).
     progress: called with 1 after each frame is estimated.
     """
+    from kmea.recording import ReplaySource
     from kmea.vision.sources import SourceError
-    from kmead.recording import ReplaySource
 
     try:
         src = ReplaySource(path)

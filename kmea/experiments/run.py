@@ -19,7 +19,8 @@ import numpy as np
 
 from kmea import estimators as est_registry
 from kmea.estimators.base import CameraIntrinsics, MarkerObservation
-from kmea.experiments.parts import PartSpec
+from kmea.experiments import simscene
+from kmea.experiments.setup import ExperimentConfig, miscalibrated
 from kmea.maps import MarkerMap
 
 __all__ = [
@@ -30,35 +31,6 @@ __all__ = [
     "miscalibrated",
     "run_simulation",
 ]
-
-
-@dataclass(frozen=True)
-class ExperimentConfig:
-    """What to run. Picklable: it is sent to the worker processes.
-
-    samples: frames per Part (= samples per evaluated marker and algorithm).
-    width, height: rendered image size (the Pi Camera v2 model is scaled to it).
-    focal_error: relative error of the focal length the estimators believe (0.02 = +2 %).
-    k1_error: absolute error added to the first radial coefficient the estimators believe.
-    known_heights: give the estimators Part II's support height as ``plane_heights`` (as the
-        daemon does for a robot's top plate); off by default, as in the paper.
-    floor_only: the estimators' map keeps the floor markers only (wall markers are still
-        drawn and detected, but never references).
-    """
-
-    part: PartSpec
-    algorithms: tuple[str, ...]
-    baseline: str = "lmea"
-    samples: int = 256
-    seed: int = 0
-    width: int = 1640
-    height: int = 1232
-    focal_error: float = 0.0
-    k1_error: float = 0.0
-    known_heights: bool = False
-    floor_only: bool = False
-    jobs: int = 1
-    chunk: int = 8
 
 
 @dataclass
@@ -171,19 +143,6 @@ def collect(frames: Sequence[FrameResult], algorithms: Sequence[str],
 
 # ------------------------------------------------------------------ simulation
 
-def miscalibrated(camera, focal_error: float, k1_error: float):
-    """The camera the estimators believe in: focal lengths scaled by ``1 + focal_error``,
-    ``k1_error`` added to k1. Returns a new ``kmea.vision.camera.CameraModel``."""
-    from kmea.vision.camera import CameraModel
-
-    K = camera.camera_matrix.copy()
-    K[0, 0] *= 1.0 + focal_error
-    K[1, 1] *= 1.0 + focal_error
-    d = camera.dist_coeffs.copy()
-    d[0] += k1_error
-    return CameraModel(K, d, camera.width, camera.height)
-
-
 _WORKER: dict[str, object] = {}
 
 
@@ -192,8 +151,6 @@ def _setup(config: ExperimentConfig) -> dict[str, object]:
     key = repr(config)
     if _WORKER.get("key") == key:
         return _WORKER
-    from kmea.experiments import simscene
-
     _WORKER.clear()
     _WORKER.update(simscene.build(config))
     _WORKER["estimators"] = {a: est_registry.get(a) for a in config.algorithms}
@@ -202,8 +159,6 @@ def _setup(config: ExperimentConfig) -> dict[str, object]:
 
 
 def _process(config: ExperimentConfig, indices: Sequence[int]) -> list[FrameResult]:
-    from kmea.experiments import simscene
-
     st = _setup(config)
     out = []
     for i in indices:
@@ -218,8 +173,6 @@ def _process(config: ExperimentConfig, indices: Sequence[int]) -> list[FrameResu
 def run_simulation(config: ExperimentConfig,
                    progress: Callable[[int], None] | None = None) -> RunResult:
     """Render, detect and estimate ``config.samples`` frames of ``config.part``."""
-    from kmea.experiments import simscene
-
     for a in config.algorithms:
         if a not in est_registry.available():
             raise ValueError(f"unknown algorithm {a!r}; choose among "

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from kmea.experiments.run import ExperimentConfig, miscalibrated
+from kmea.experiments.setup import ExperimentConfig, miscalibrated
 from kmea.maps import MarkerMap, default_map
 
 __all__ = ["build", "build_scene", "describe", "observe"]
@@ -61,6 +61,7 @@ def estimator_map(config: ExperimentConfig, nominal: MarkerMap) -> MarkerMap:
 
 def build(config: ExperimentConfig) -> dict[str, Any]:
     """Everything a worker needs to turn a frame index into observations."""
+    from kmea.pipeline import MarkerObserver
     from kmea.sim import Renderer
     from kmea.vision.detection import DetectorConfig, MarkerDetector
 
@@ -68,13 +69,14 @@ def build(config: ExperimentConfig) -> dict[str, Any]:
     nominal = scene.world_map
     emap = estimator_map(config, nominal)
     lengths = {i: m.length for i, m in nominal.markers.items()}
+    believed = miscalibrated(scene.camera, config.focal_error, config.k1_error)
     return {
         "scene": scene,
         "renderer": Renderer(scene),
-        "detector": MarkerDetector(DetectorConfig(dictionary=nominal.dictionary)),
-        "believed": miscalibrated(scene.camera, config.focal_error, config.k1_error),
+        "observer": MarkerObserver(MarkerDetector(DetectorConfig(dictionary=nominal.dictionary)),
+                                   believed, emap, lengths),
+        "believed": believed,
         "estimator_map": emap,
-        "lengths": lengths,
         "plane_heights": ({int(i): float(h) for i, h in config.part.raised.items()}
                           if config.known_heights else {}),
         "never_reference": (),
@@ -84,13 +86,7 @@ def build(config: ExperimentConfig) -> dict[str, Any]:
 def observe(state: dict[str, Any], index: int) -> list:
     """Render frame ``index`` (fresh sensor noise), detect, and estimate every marker's
     camera-frame pose with the believed calibration."""
-    from kmea.vision.marker_pose import estimate_marker_poses
-
-    frame = state["renderer"].render(index)
-    det = state["detector"].detect(frame.image)
-    obs, _ = estimate_marker_poses(det.ids, det.corners, state["believed"], state["lengths"],
-                                   state["estimator_map"])
-    return obs
+    return state["observer"].observe(state["renderer"].render(index).image)
 
 
 def describe(config: ExperimentConfig) -> dict[str, Any]:

@@ -1,4 +1,8 @@
-"""The simulator as a frame source (``sim`` and ``sim:SCENE`` specs of ``open_source``)."""
+"""The simulator as a frame source (``sim`` and ``sim:SCENE`` specs of ``open_source``).
+
+The one simulator source: the daemon, ``open_source`` and the benchmarks all use
+:class:`SimSource`.
+"""
 
 from __future__ import annotations
 
@@ -10,9 +14,9 @@ import cv2
 from kmea.sim.renderer import Renderer, SimFrame
 from kmea.sim.scene import Scene
 from kmea.sim.scenes import apply_options, scene_from_spec
-from kmea.vision.sources import FrameSource
+from kmea.vision.sources import FrameSource, SourceError
 
-__all__ = ["SimSource"]
+__all__ = ["SimSource", "open_sim"]
 
 
 class SimSource(FrameSource):
@@ -20,16 +24,22 @@ class SimSource(FrameSource):
 
     ``realtime``: ``read`` waits so frames come at the scene's fps (a live source); otherwise
     frames come as fast as they render, timestamps still index / fps. ``gray`` False gives
-    BGR images. Other keyword options adjust the scene (:func:`kmea.sim.scenes.apply_options`:
-    width, height, fps, seed, noise, blur, ...).
+    BGR images. Other keyword options adjust the scene (a spec string: options of
+    :func:`kmea.sim.scenes.scene_from_spec`; a :class:`Scene`:
+    :func:`kmea.sim.scenes.apply_options`: width, height, fps, seed, noise, blur, ...).
+    rendered: frames rendered beforehand (frame i = ``rendered[i - start]``), served instead
+    of rendering (benchmarks that must not count rendering). ``camera`` is the true camera,
+    ``world_map`` the scene's surveyed map.
     """
 
     def __init__(self, scene: Scene | str = "sim", start: int = 0, *, frames: int | None = None,
-                 realtime: bool = False, gray: bool = True, **options: Any) -> None:
+                 realtime: bool = False, gray: bool = True,
+                 rendered: list[SimFrame] | None = None, **options: Any) -> None:
         super().__init__()
         if isinstance(scene, str):
-            scene = scene_from_spec(scene)
-        self.scene = apply_options(scene, **options)
+            self.scene = scene_from_spec(scene, **options)
+        else:
+            self.scene = apply_options(scene, **options)
         if start < 0:
             raise ValueError(f"sim: start must be >= 0, got {start}")
         self.spec = f"sim:{self.scene.name}"
@@ -37,6 +47,10 @@ class SimSource(FrameSource):
         self.size = self.scene.size
         self.fps = self.scene.fps
         self.camera = self.scene.camera
+        self.world_map = self.scene.effective_map()
+        self.rendered = rendered
+        if rendered is not None and frames is None:
+            frames = len(rendered)
         self.live = bool(realtime)
         self.gray = bool(gray)
         self.start = int(start)
@@ -58,6 +72,8 @@ class SimSource(FrameSource):
             due = self._t0 + (i - self.start) / self.fps
             if due > now:
                 time.sleep(due - now)
+        if self.rendered is not None:
+            return self.rendered[i - self.start]
         frame = self.renderer.render(i)
         if not self.gray:
             frame.image = cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
@@ -67,3 +83,12 @@ class SimSource(FrameSource):
         """Make the next ``read`` return frame ``index``."""
         self._next = int(index)
         self._t0 = None
+
+
+def open_sim(rest: str, **options: Any) -> SimSource:
+    """The ``sim[:SCENE]`` source of :func:`kmea.vision.sources.open_source`."""
+    spec = f"sim:{rest}" if rest else "sim"
+    try:
+        return SimSource(spec, **options)
+    except ValueError as e:
+        raise SourceError(f"{spec}: {e}") from None

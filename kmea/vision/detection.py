@@ -169,11 +169,17 @@ def as_gray(frame: object) -> np.ndarray:
 
 
 class MarkerDetector:
-    """Detects ArUco markers; build once, call :meth:`detect` every frame."""
+    """Detects ArUco markers; build once, call :meth:`detect` every frame.
 
-    def __init__(self, config: DetectorConfig | None = None) -> None:
+    dictionary: a ready ``cv2.aruco.Dictionary`` instead of ``config.dictionary`` (e.g. one
+    with its own error-correction budget).
+    """
+
+    def __init__(self, config: DetectorConfig | None = None,
+                 dictionary: cv2.aruco.Dictionary | None = None) -> None:
         self.config = config or DetectorConfig()
-        self.dictionary = get_dictionary(self.config.dictionary)
+        self.dictionary = dictionary if dictionary is not None else get_dictionary(
+            self.config.dictionary)
         self.parameters = self.config.detector_parameters()
         self._detector = cv2.aruco.ArucoDetector(self.dictionary, self.parameters)
 

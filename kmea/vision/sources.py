@@ -7,8 +7,9 @@ A source is opened from a spec string (see ``docs/camera.md``):
 - ``camera:INDEX`` a V4L2/OpenCV camera; options ``width``, ``height``, ``fps``;
 - ``picamera``     the Raspberry Pi camera through picamera2 (imported only here): greyscale
   Y plane of a YUV420 stream; options ``width``, ``height``, ``fps``;
-- anything added with :func:`register_source` (the daemon adds ``replay``); ``sim`` falls back
-  to ``kmea.sim`` (``SimSource(scene_from_spec(rest))``) when nobody registered it.
+- ``sim:SCENE``    the simulator (:func:`kmea.sim.source.open_sim`);
+- ``replay:FILE``  a recording's detections and poses (:func:`kmea.recording.open_replay`);
+- anything added with :func:`register_source`.
 
 Options come as keyword arguments of :func:`open_source` or after a ``?`` in the spec:
 ``camera:0?width=1280&height=960&fps=30``.
@@ -42,10 +43,12 @@ __all__ = [
     "PiCameraSource",
     "SourceError",
     "SourceOptionError",
+    "SourceSpec",
     "VideoSource",
     "open_source",
+    "parse_source_spec",
     "register_source",
-    "registered_sources",
+    "source_prefixes",
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm",
@@ -386,16 +389,17 @@ _REGISTRY: dict[str, SourceFactory] = {}
 def register_source(prefix: str, factory: SourceFactory) -> None:
     """Make ``open_source("PREFIX:REST", **opts)`` call ``factory(REST, **opts)``.
 
-    Used by the daemon (``replay``) and the simulator (``sim``) so this module never imports
-    them. Registering a prefix again replaces the factory.
+    For sources outside the library (tests, site plug-ins). Registering a prefix again
+    replaces the factory; a registered prefix wins over a built-in one.
     """
     if not re.fullmatch(r"[a-z][a-z0-9_-]*", prefix):
         raise ValueError(f"source prefix {prefix!r}: use lower-case letters, digits, - and _")
     _REGISTRY[prefix] = factory
 
 
-def registered_sources() -> list[str]:
-    return sorted(_REGISTRY)
+def source_prefixes() -> list[str]:
+    """Every prefix :func:`open_source` accepts (built in and registered), sorted."""
+    return sorted({*_BUILTIN, *_REGISTRY})
 
 
 _BOOL = {"1": True, "true": True, "yes": True, "on": True,
@@ -413,17 +417,51 @@ def _parse_value(text: str) -> Any:
     return text
 
 
-def _split_options(spec: str) -> tuple[str, dict[str, Any]]:
-    if "?" not in spec:
-        return spec, {}
+@dataclass(frozen=True)
+class SourceSpec:
+    """A parsed source spec ``PREFIX[:REST][?key=value&...]``.
+
+    prefix: ``images``, ``camera``, ``sim`` ...; rest: what follows the first ``:`` (a
+    folder, a file, a camera index, a scene name; "" if none); options: the query's values
+    as bool, int, float or str.
+    """
+
+    prefix: str
+    rest: str = ""
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+# What REST must look like for each built-in prefix, and the form to suggest.
+_REST_RULES: dict[str, tuple[str, str]] = {
+    "images": (r".+", "images:DIR"), "video": (r".+", "video:PATH"),
+    "camera": (r"\d*", "camera:INDEX"), "replay": (r".+", "replay:FILE"),
+    "picamera": (r"", "picamera?width=W&height=H&fps=F"), "sim": (r".*", "sim:SCENE"),
+}
+
+
+def parse_source_spec(spec: str, check: bool = False) -> SourceSpec:
+    """The one parser of source specs (``SourceError`` naming the spec when malformed).
+
+    check: also require a known prefix and a REST of the right form (``camera:INDEX``,
+    ``images:DIR`` ...): what a configuration file is validated with.
+    """
+    spec = str(spec)
     base, _, query = spec.partition("?")
+    prefix, _, rest = base.partition(":")
     opts: dict[str, Any] = {}
     for part in filter(None, query.split("&")):
         key, eq, value = part.partition("=")
         if not eq or not key:
             raise SourceError(f"{spec}: option {part!r} is not key=value")
         opts[key] = _parse_value(value)
-    return base, opts
+    if check:
+        if prefix not in source_prefixes():
+            raise SourceError(f"{spec}: unknown source {prefix!r} (known: "
+                              f"{', '.join(p + ':' for p in source_prefixes())})")
+        rule = _REST_RULES.get(prefix)
+        if rule is not None and not re.fullmatch(rule[0], rest):
+            raise SourceError(f"{spec}: expected {rule[1]}")
+    return SourceSpec(prefix, rest, opts)
 
 
 def _images(rest: str, **opts: Any) -> FrameSource:
@@ -449,23 +487,20 @@ def _picamera(rest: str, **opts: Any) -> FrameSource:
     return PiCameraSource(**opts)
 
 
-def _sim_fallback(rest: str, **opts: Any) -> FrameSource:
-    import importlib
+def _sim(rest: str, **opts: Any) -> FrameSource:
+    from kmea.sim.source import open_sim  # the simulator depends on this module, not back
 
-    for name in ("kmea.sim", "kmea.sim.source", "kmea.sim.sources"):
-        try:
-            mod = importlib.import_module(name)
-        except ImportError:
-            continue
-        if hasattr(mod, "SimSource") and hasattr(mod, "scene_from_spec"):
-            return mod.SimSource(mod.scene_from_spec(rest), **opts)
-    raise SourceError(f"sim:{rest}: the simulator provides no SimSource/scene_from_spec "
-                      f"(kmea.sim)")
+    return open_sim(rest, **opts)
+
+
+def _replay(rest: str, **opts: Any) -> FrameSource:
+    from kmea.recording import open_replay
+
+    return open_replay(rest, **opts)
 
 
 _BUILTIN: dict[str, SourceFactory] = {"images": _images, "video": _video, "camera": _camera,
-                                      "picamera": _picamera}
-_FALLBACK: dict[str, SourceFactory] = {"sim": _sim_fallback}
+                                      "picamera": _picamera, "sim": _sim, "replay": _replay}
 
 
 def open_source(spec: str, **options: Any) -> FrameSource:
@@ -475,14 +510,12 @@ def open_source(spec: str, **options: Any) -> FrameSource:
     override options given in the spec after ``?``. Raises ``SourceError`` for an unknown
     prefix, bad options, or a source that cannot be opened.
     """
-    base, spec_opts = _split_options(str(spec))
-    spec_opts.update(options)
-    prefix, _, rest = base.partition(":")
-    factory = _REGISTRY.get(prefix) or _BUILTIN.get(prefix) or _FALLBACK.get(prefix)
+    parsed = parse_source_spec(spec)
+    prefix, rest, spec_opts = parsed.prefix, parsed.rest, {**parsed.options, **options}
+    factory = _REGISTRY.get(prefix) or _BUILTIN.get(prefix)
     if factory is None:
-        known = sorted({*_REGISTRY, *_BUILTIN, *_FALLBACK})
         raise SourceError(f"{spec}: unknown source {prefix!r} (known: "
-                          f"{', '.join(p + ':' for p in known)}; 'replay:' is provided by kmead)")
+                          f"{', '.join(p + ':' for p in source_prefixes())})")
     try:
         return factory(rest, **spec_opts)
     except TypeError as e:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from typing import Any
 
 from rich.text import Text
@@ -13,21 +12,14 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.widgets import Button, DataTable, Input, Label, Select, Static
 
+from kmea.tomlvalue import parse_toml_value
 from kmea_tui.messages import ControlRequest
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 def parse_value(text: str) -> Any:
     """A typed-in value as TOML (``1.0``, ``true``, ``"DICT_6X6_250"``, ``[1, 2]``);
     a bare word that is not TOML is taken as a string."""
-    text = text.strip()
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
+    return parse_toml_value(text)  # the one reader, shared with kmead --set
 
 
 def show_value(value: Any) -> str:

@@ -28,7 +28,7 @@ from kmea.estimators.base import MarkerObservation
 from kmea.jsonsafe import to_jsonable
 from kmea.maps import Marker, MarkerMap
 from kmea.vision.camera import CameraModel
-from kmea.vision.sources import Frame, FrameSource, SourceError, register_source
+from kmea.vision.sources import Frame, FrameSource, SourceError
 
 FORMAT = "kmead-recording"
 VERSION = 1
@@ -232,7 +232,10 @@ class ReplaySource(FrameSource):
         super().close()
 
 
-def _replay_factory(rest: str, **opts: Any) -> FrameSource:
+def open_replay(rest: str, **opts: Any) -> ReplaySource:
+    """The ``replay:FILE`` source of :func:`kmea.vision.sources.open_source` (no options)."""
+    if opts:
+        raise SourceError(f"replay:{rest}: takes no options (got {', '.join(sorted(opts))})")
     if not rest:
         raise SourceError("replay: expected replay:FILE")
     p = Path(rest)
@@ -240,5 +243,3 @@ def _replay_factory(rest: str, **opts: Any) -> FrameSource:
         raise SourceError(f"replay:{rest}: no such file")
     return ReplaySource(p)
 
-
-register_source("replay", _replay_factory)

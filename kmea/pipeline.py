@@ -1,0 +1,356 @@
+"""One frame through the localizer: detect, per-marker pose, estimator, LOO, filter, robots.
+
+The library's per-frame computation, used by the daemon (``kmead``), the experiments, the
+benchmarks and the gridboard study. No sockets, no files, no threads: the caller feeds
+frames (or, for replay, recorded detections and poses) and turns the :class:`FrameResult`
+into CSV rows, telemetry and datagrams. Every stage is timed in milliseconds.
+
+- :class:`MarkerObserver`: detect-then-pose, the one place where detections become
+  camera-frame marker poses (:func:`kmea.vision.marker_pose.estimate_marker_poses`);
+- :class:`PipelineSettings`: what the pipeline is told (detector, algorithm, filter, robots);
+- :class:`Pipeline`: the whole frame, ``process(FrameInput) -> FrameResult``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from kmea import estimators
+from kmea.estimators.base import Estimate, MarkerObservation
+from kmea.estimators.loo import loo_errors
+from kmea.filters import PoseFilter
+from kmea.maps import MarkerMap
+from kmea.robots import RobotSpec, robot_pose
+from kmea.transforms import wrap_angle
+from kmea.vision.camera import CameraModel
+from kmea.vision.detection import DetectorConfig, MarkerDetector
+
+__all__ = ["STAGES", "FrameInput", "FrameResult", "MarkerObserver", "Pipeline",
+           "PipelineSettings", "RobotFix", "new_detector"]
+
+STAGES = ("capture", "detect", "pose", "estimate", "loo", "filter", "robots", "output")
+
+
+@dataclass
+class FrameInput:
+    """What the pipeline gets for one frame.
+
+    image: (H, W) uint8 grey or BGR; None for replay. ids/corners/observations: recorded
+    detections and poses (replay), else None. t_capture: ``time.perf_counter()`` when the
+    frame was captured (latency). capture_ms: time spent getting it from the source.
+    """
+
+    index: int
+    timestamp: float
+    image: np.ndarray | None = None
+    ids: np.ndarray | None = None
+    corners: np.ndarray | None = None
+    observations: list[MarkerObservation] | None = None
+    diagnostics: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+    t_capture: float = 0.0
+    capture_ms: float = 0.0
+    detections: tuple[np.ndarray, np.ndarray] | None = None  # done by a worker thread
+    detect_ms: float = 0.0
+
+
+@dataclass
+class RobotFix:
+    """A robot pose in one frame: world x, y (m), theta (rad), 1-sigma (m) or None."""
+
+    name: str
+    x: float
+    y: float
+    theta: float
+    sigma: float | None
+    markers: list[int]
+
+
+@dataclass
+class FrameResult:
+    """Everything computed for one frame (see the module docstring)."""
+
+    index: int
+    timestamp: float
+    algorithm: str
+    ids: np.ndarray
+    corners: np.ndarray
+    observations: list[MarkerObservation]
+    diagnostics: dict
+    estimate: Estimate
+    markers: dict[int, tuple[np.ndarray, float]]  # id -> (filtered position (3,), yaw)
+    loo: dict[int, float]
+    robots: dict[str, RobotFix]
+    timings: dict[str, float]
+    t_capture: float = 0.0
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.estimate.ok
+
+
+@dataclass
+class PipelineSettings:
+    """What the pipeline is told (units: m, s).
+
+    dictionary: ArUco dictionary ("" = the map's); corner_refinement, detector_parameters:
+    see :class:`kmea.vision.detection.DetectorConfig`; fast, fast_window, full_every: the
+    fast detector (:mod:`kmea.vision.fastdetect`); marker_length: side of markers the map
+    and the robots do not size; algorithm: an estimator name (:func:`kmea.estimators.get`);
+    alpha, reset_after_s: the pose filter; loo: compute leave-one-out errors; robots: the
+    robots carrying markers.
+    """
+
+    dictionary: str = ""
+    corner_refinement: str = "subpix"
+    detector_parameters: dict[str, Any] = field(default_factory=dict)
+    fast: bool = False
+    fast_window: int = 0
+    full_every: int = 30
+    marker_length: float = 0.06
+    algorithm: str = "kmea"
+    alpha: float = 1.0
+    reset_after_s: float = 1.0
+    loo: bool = True
+    robots: tuple[RobotSpec, ...] = ()
+
+    @classmethod
+    def from_config(cls, data: Mapping[str, Any]) -> PipelineSettings:
+        """From a configuration dict shaped like kmead's (``Config.data``: sections
+        ``detector``, ``estimator``, ``filter``, ``stats`` and the ``robots`` tables)."""
+        d, f = data["detector"], data["filter"]
+        return cls(dictionary=d["dictionary"], corner_refinement=d["corner_refinement"],
+                   detector_parameters=dict(d["parameters"]), fast=bool(d["fast"]),
+                   fast_window=int(d["fast_window"]), full_every=int(d["full_every"]),
+                   marker_length=float(d["marker_length"]),
+                   algorithm=data["estimator"]["algorithm"], alpha=f["alpha"],
+                   reset_after_s=f["reset_after_s"], loo=bool(data["stats"]["loo"]),
+                   robots=tuple(RobotSpec(name=r["name"], markers=tuple(r["markers"]),
+                                          height=r["height"], length=r["length"],
+                                          separation=r["separation"])
+                                for r in data["robots"]))
+
+
+def new_detector(config: DetectorConfig, fast: bool = False, fast_window: int = 0,
+                 full_every: int = 30):
+    """A detector with ``detect(image) -> Detections``: :class:`MarkerDetector`, or the
+    stateful :class:`kmea.vision.fastdetect.FastDetector` with ``fast``."""
+    if fast:
+        from kmea.vision.fastdetect import FastDetector
+
+        return FastDetector(config, fast_window, full_every)
+    return MarkerDetector(config)
+
+
+class MarkerObserver:
+    """Detect-then-pose: an image -> detections -> camera-frame marker poses.
+
+    detector: anything with ``detect(image) -> Detections`` (None: poses only). camera: the
+    intrinsics used for the poses (at the frame size). lengths: id -> side (m) for markers
+    the map does not size (robots); world_map: surveyed markers (lengths and expected
+    normals); default_length: side of any other marker (m), None for
+    :func:`~kmea.vision.marker_pose.estimate_marker_poses`' default.
+    """
+
+    def __init__(self, detector, camera: CameraModel, world_map: MarkerMap | None = None,
+                 lengths: Mapping[int, float] | None = None,
+                 default_length: float | None = None) -> None:
+        self.detector = detector
+        self.camera = camera
+        self.world_map = world_map
+        self.lengths = lengths
+        self.default_length = default_length
+
+    def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ids (N,), corners (N, 4, 2) px) of the markers in ``image``."""
+        det = self.detector.detect(image)
+        return det.ids, det.corners
+
+    def poses(self, ids: np.ndarray, corners: np.ndarray
+              ) -> tuple[list[MarkerObservation], dict]:
+        """Camera-frame poses of detected markers and the pose diagnostics (as a dict)."""
+        from kmea.vision.marker_pose import estimate_marker_poses
+
+        extra = {} if self.default_length is None else {"default_length": self.default_length}
+        obs, diag = estimate_marker_poses(ids, corners, self.camera, self.lengths,
+                                          self.world_map, **extra)
+        # Shallow: nothing mutates it, and dataclasses.asdict (deep) cost ~30 us a frame.
+        return list(obs), dict(vars(diag))
+
+    def observe(self, image: np.ndarray) -> list[MarkerObservation]:
+        """Detect and pose: the observations of ``image``."""
+        return self.poses(*self.detect(image))[0]
+
+
+class Pipeline:
+    """Holds the models and state of the per-frame computation.
+
+    camera: the camera model at the frame size (scaled to each frame's size when it
+    differs). world_map: the marker map. settings: see :class:`PipelineSettings`.
+    """
+
+    def __init__(self, camera: CameraModel, world_map: MarkerMap,
+                 settings: PipelineSettings | None = None) -> None:
+        self.base_camera = camera
+        self.camera = camera
+        self.world_map = world_map
+        self.settings = settings or PipelineSettings()
+        self.detector_generation = 0
+        self.observer = MarkerObserver(None, camera, world_map)
+        self.configure(self.settings)
+
+    # ------------------------------------------------------------------ configuration
+    def configure(self, settings: PipelineSettings) -> None:
+        """(Re)build detector, estimator, filter and robot tables from ``settings``."""
+        self.settings = settings
+        self.configure_detector()
+        self.set_algorithm(settings.algorithm)
+        self.configure_filter()
+        self.configure_robots()
+
+    def configure_detector(self) -> None:
+        """Rebuild the detector from ``self.settings`` (``ValueError`` for bad parameters)."""
+        s = self.settings
+        self.detector_config = DetectorConfig(
+            dictionary=s.dictionary or self.world_map.dictionary,
+            corner_refinement=s.corner_refinement, parameters=dict(s.detector_parameters))
+        self.observer.detector = self.new_detector()
+        self.detector_generation += 1
+
+    def new_detector(self):
+        """A fresh detector as configured (one per detection thread)."""
+        s = self.settings
+        return new_detector(self.detector_config, s.fast, s.fast_window, s.full_every)
+
+    @property
+    def detector(self):
+        return self.observer.detector
+
+    def set_algorithm(self, name: str) -> None:
+        self.estimator = estimators.get(name)
+        self.algorithm = name
+
+    def configure_filter(self) -> None:
+        s = self.settings
+        self.filter = PoseFilter(alpha=s.alpha, reset_after_s=s.reset_after_s)
+
+    def configure_robots(self) -> None:
+        self.robot_specs = list(self.settings.robots)
+        self.robot_lengths = {m: r.length for r in self.robot_specs for m in r.markers}
+        self.robot_heights = {r.name: r.height for r in self.robot_specs}
+        self.plane_heights = {m: r.height for r in self.robot_specs for m in r.markers
+                              if m not in self.world_map}
+        self.observer.lengths = self.robot_lengths
+        self.observer.default_length = self.settings.marker_length
+
+    def set_map(self, world_map: MarkerMap) -> None:
+        self.world_map = world_map
+        self.observer.world_map = world_map
+        self.configure_detector()
+        self.configure_robots()
+
+    def camera_for(self, width: int, height: int) -> CameraModel:
+        if (self.camera.width, self.camera.height) != (width, height):
+            self.camera = self.base_camera.scaled_to(width, height)
+            self.observer.camera = self.camera
+        return self.camera
+
+    # ------------------------------------------------------------------ per frame
+    def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.observer.detect(image)
+
+    def poses(self, ids: np.ndarray, corners: np.ndarray
+              ) -> tuple[list[MarkerObservation], dict]:
+        return self.observer.poses(ids, corners)
+
+    def process(self, inp: FrameInput, loo: bool | None = None,
+                on_robots: Callable[[float, dict[str, RobotFix]], None] | None = None
+                ) -> FrameResult:
+        """Run every stage on one frame; see :class:`FrameResult`.
+
+        loo: compute the leave-one-out errors (None: ``settings.loo``).
+
+        on_robots(t, fixes): called as soon as the robot poses are known, before the
+        leave-one-out estimates (the relay's latency must not pay for the statistics).
+        """
+        if loo is None:
+            loo = self.settings.loo
+        tm: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        tm["capture"] = inp.capture_ms
+        t0 = time.perf_counter()
+        if inp.observations is None:
+            if inp.image is None:
+                raise ValueError(f"frame {inp.index}: no image")
+            h, w = inp.image.shape[:2]
+            self.camera_for(w, h)
+            if inp.detections is not None:
+                ids, corners = inp.detections
+                t1 = time.perf_counter()
+                tm["detect"] = inp.detect_ms
+            else:
+                ids, corners = self.detect(inp.image)
+                t1 = time.perf_counter()
+                tm["detect"] = (t1 - t0) * 1e3
+            obs, diag = self.poses(ids, corners)
+            t2 = time.perf_counter()
+            tm["pose"] = (t2 - t1) * 1e3
+        else:
+            ids = np.asarray(inp.ids if inp.ids is not None else [o.id for o in inp.observations],
+                             dtype=np.int64)
+            corners = np.asarray(inp.corners if inp.corners is not None
+                                 else np.zeros((0, 4, 2)), dtype=float)
+            obs, diag = list(inp.observations), dict(inp.diagnostics)
+            t2 = time.perf_counter()
+        intr = self.camera.intrinsics
+        try:
+            est = self.estimator.estimate(obs, self.world_map, camera=intr,
+                                          plane_heights=self.plane_heights)
+        except ValueError as e:  # bad observations: report, never crash the loop
+            est = Estimate.failed(self.algorithm, str(e))
+        t3 = time.perf_counter()
+        tm["estimate"] = (t3 - t2) * 1e3
+        markers: dict[int, tuple[np.ndarray, float]] = {}
+        if self.filter.alpha == 1.0:  # no filtering: skip the per-marker bookkeeping
+            for mid, me in sorted(est.markers.items()):
+                markers[mid] = (np.asarray(me.position, dtype=float), float(wrap_angle(me.yaw)))
+        else:
+            for mid, me in sorted(est.markers.items()):
+                p, yaw = self.filter.update(("marker", mid), inp.timestamp, me.position, me.yaw)
+                markers[mid] = (np.asarray(p, dtype=float), float(yaw))
+        t4 = time.perf_counter()
+        tm["filter"] = (t4 - t3) * 1e3
+        robots = self.robot_fixes(est, inp.timestamp)
+        if on_robots is not None:
+            on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
+        t5 = time.perf_counter()
+        tm["robots"] = (t5 - t4) * 1e3
+        loo_err: dict[int, float] = {}
+        if loo and est.ok:
+            try:
+                loo_err = loo_errors(self.estimator, obs, self.world_map, camera=intr,
+                                     plane_heights=self.plane_heights)
+            except ValueError:
+                loo_err = {}
+        tm["loo"] = (time.perf_counter() - t5) * 1e3
+        return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
+                           est, markers, loo_err, robots, tm, inp.t_capture, inp.meta)
+
+    def robot_fixes(self, est: Estimate, t: float) -> dict[str, RobotFix]:
+        """Robot poses from the raw marker estimates (kmea.robots), then filtered per robot."""
+        out: dict[str, RobotFix] = {}
+        for spec in self.robot_specs:
+            pose = robot_pose(spec, est.markers)
+            if pose is None:
+                continue
+            p, th = self.filter.update(("robot", spec.name), t,
+                                       np.array([pose.x, pose.y, pose.z]), pose.theta)
+            out[spec.name] = RobotFix(spec.name, float(p[0]), float(p[1]), float(th),
+                                      pose.sigma, list(pose.markers_seen))
+        return out
+
