@@ -24,6 +24,7 @@ from textual.binding import Binding
 from textual.css.query import NoMatches
 from textual.widgets import Footer, HelpPanel, TabbedContent, TabPane
 
+from kmea import protocol
 from kmea_tui.client import DaemonClient, RecordingClient
 from kmea_tui.messages import ConnectionChanged, ControlReply, ControlRequest, TelemetryBatch
 from kmea_tui.widgets.config_form import ConfigPane
@@ -34,7 +35,6 @@ from kmea_tui.widgets.markers import MarkersPane
 from kmea_tui.widgets.robots import RobotsPane
 from kmea_tui.widgets.stats import StatsPane
 from kmea_tui.widgets.status_bar import StatusBar
-from kmead import protocol
 
 Client = DaemonClient | RecordingClient
 
@@ -77,18 +77,6 @@ def connection_state(ping_ok: bool | None, ping_detail: str, last_telemetry: flo
     return "connected", ""
 
 
-def floor_extent(status: dict[str, Any] | None) -> tuple[float, float, float, float] | None:
-    """The floor rectangle (xmin, xmax, ymin, ymax) m if the daemon's status gives one."""
-    m = (status or {}).get("map") or {}
-    for key in ("floor", "extent"):
-        v = m.get(key)
-        if isinstance(v, list) and len(v) == 4 and all(isinstance(a, (int, float)) for a in v):
-            return (float(v[0]), float(v[1]), float(v[2]), float(v[3]))
-        if isinstance(v, dict) and {"xmin", "xmax", "ymin", "ymax"} <= set(v):
-            return (float(v["xmin"]), float(v["xmax"]), float(v["ymin"]), float(v["ymax"]))
-    return None
-
-
 class KmeaTui(App[None]):
     """The UI. ``client`` is a :class:`DaemonClient` or a :class:`RecordingClient`."""
 
@@ -120,7 +108,7 @@ class KmeaTui(App[None]):
         self.status: dict[str, Any] | None = None
         self.markers_body: dict[str, Any] | None = None
         self.robots_body: dict[str, Any] | None = None
-        self.misplaced: set[int] = set()
+        self.moved: set[int] = set()
         self.received = 0
         self.coalesced = 0
         self.batches = 0
@@ -217,11 +205,10 @@ class KmeaTui(App[None]):
             if (body := latest.get(protocol.TOPIC_FRAME)) is not None:
                 self.frame = body
             if (body := latest.get(protocol.TOPIC_STATUS)) is not None:
-                self.status = body
-                self.query_one(LogPane).update_status(body)
+                self.show_status(body)
             if (body := latest.get(protocol.TOPIC_MARKERS)) is not None:
                 self.markers_body = body
-                self.misplaced = self.query_one(MarkersPane).update_markers(body)
+                self.moved = self.query_one(MarkersPane).update_markers(body)
             if (body := latest.get(protocol.TOPIC_ROBOTS)) is not None:
                 self.robots_body = body
                 self.query_one(RobotsPane).update_robots(body)
@@ -234,10 +221,16 @@ class KmeaTui(App[None]):
                 self.query_one(MapPane).set_data(MapData(
                     markers=(self.markers_body or {}).get("markers", []),
                     robots=(self.robots_body or {}).get("robots", []),
-                    misplaced=self.misplaced, floor=floor_extent(self.status)))
+                    moved=self.moved))
             if msg.ended:
                 self.replay_done = True
             self.update_connection_state()
+
+    def show_status(self, body: dict[str, Any]) -> None:
+        """The daemon's ``status``: logging/recording state and the algorithms it offers."""
+        self.status = body
+        self.query_one(LogPane).update_status(body)
+        self.query_one(ConfigPane).set_algorithms(body["algorithms"])
 
     # -- connection state ----------------------------------------------------------------------
     @work(exclusive=True, group="ping")
@@ -312,8 +305,7 @@ class KmeaTui(App[None]):
         if cmd == "get_state":
             # The daemon's last status and frame: show them before the next telemetry.
             if ok and isinstance(reply.get("status"), dict) and self.status is None:
-                self.status = reply["status"]
-                log_pane.update_status(reply["status"])
+                self.show_status(reply["status"])
             return
         if cmd == "get_config":
             if ok and isinstance(reply.get("config"), dict):
@@ -415,8 +407,3 @@ async def save_screenshots(recording: str | Path, out_dir: str | Path,
             files.append(path)
     return files
 
-
-def run_tui(telemetry: str = protocol.DEFAULT_TELEMETRY,
-            control: str = protocol.DEFAULT_CONTROL) -> None:
-    """Run the UI on the daemon at these endpoints until the user quits (blocking)."""
-    KmeaTui(DaemonClient(telemetry, control)).run()

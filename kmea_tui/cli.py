@@ -7,7 +7,7 @@ import asyncio
 import re
 import sys
 
-from kmead import protocol
+from kmea import protocol
 
 
 def build_parser() -> argparse.ArgumentParser:

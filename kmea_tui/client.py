@@ -5,7 +5,8 @@ unchanged against either:
 
 - ``await open()`` / ``close()``
 - ``await recv(timeout)`` -> list of ``(topic, body)`` available now (waits at most
-  ``timeout`` s for the first one). Bodies are checked with :func:`kmead.protocol.decode`.
+  ``timeout`` s for the first one). Bodies are checked with :func:`kmea.protocol.decode`
+  (JSON, version and the topic's declared type).
 - ``await request(cmd, **args)`` -> the reply dict; never raises for a dead daemon: the
   reply is then ``{"ok": False, "error": ...}`` (lazy-pirate pattern: the REQ socket is
   closed and re-created after a timeout so it never stays stuck in its send/recv cycle).
@@ -30,7 +31,7 @@ from typing import Any
 import zmq
 import zmq.asyncio
 
-from kmead import protocol
+from kmea import protocol
 
 # Topics the UI shows. robot.<name> topics are for the robots themselves; "robots" has them all.
 UI_TOPICS = (
@@ -221,14 +222,20 @@ class RecordingClient:
                 raise ValueError(f"{self.path}:{n}: expected a JSON object")
             if "header" in rec:
                 self.header = dict(rec["header"])
+                for cmd, td in protocol.REPLY_TYPES.items():
+                    if cmd in self.header:
+                        try:
+                            protocol.check_fields(self.header[cmd], td, cmd)
+                        except protocol.ProtocolError as e:
+                            raise ValueError(f"{self.path}:{n}: header: {e}") from None
                 continue
             topic, body = rec.get("topic"), rec.get("body")
             if not isinstance(topic, str) or not isinstance(body, dict):
                 raise ValueError(f"{self.path}:{n}: expected fields 'topic' (str) and "
                                  f"'body' (object)")
             try:
-                protocol.decode_body(json.dumps(body).encode())
-            except protocol.ProtocolError as e:
+                protocol.decode([topic.encode("ascii"), json.dumps(body).encode()])
+            except (protocol.ProtocolError, UnicodeEncodeError) as e:
                 raise ValueError(f"{self.path}:{n}: {e}") from None
             self.messages.append((topic, body, float(rec.get("dt", 0.0))))
 

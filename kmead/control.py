@@ -2,7 +2,7 @@
 
 The thread also publishes the 1 Hz ``status`` message and runs the daemon's watchdog. Every
 request gets exactly one reply: bad JSON, wrong types, unknown commands and oversized
-messages get ``{"v": 1, "ok": false, "error": "..."}``; nothing a client sends can raise
+messages get ``{"v": 2, "ok": false, "error": "..."}``; nothing a client sends can raise
 out of this thread or hold the pipeline for longer than one frame.
 """
 
@@ -15,31 +15,9 @@ from typing import Any, Protocol
 
 import zmq
 
-from kmead import protocol as P
+from kmea import protocol as P
+from kmead import bodies
 from kmead.config import LIVE_KEYS, ConfigError
-
-
-class Daemon(Protocol):
-    """What the control thread uses of :class:`kmead.daemon.Daemon` (no import: the daemon
-    imports this module, not the other way round)."""
-
-    lock: Any
-    cfg: Any
-    stats: Any
-    last_frame_body: dict
-
-    def publish(self, topic: str, body: dict) -> None: ...
-    def status_body(self) -> dict: ...
-    def stats_body(self) -> dict: ...
-    def tick(self) -> None: ...
-    def event(self, level: str, text: str) -> None: ...
-    def apply_setting(self, key: str, value: Any) -> Any: ...
-    def start_csv(self, path: str) -> Any: ...
-    def stop_csv(self) -> dict: ...
-    def start_recording(self, path: str) -> Any: ...
-    def stop_recording(self) -> dict: ...
-    def reload_map(self) -> Any: ...
-    def save_config(self, path: str | None = None) -> dict: ...
 
 log = logging.getLogger("kmead.control")
 
@@ -49,6 +27,30 @@ SOCKET_MAX_BYTES = 16 * P.MAX_MESSAGE_BYTES
 
 COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop", "record_start",
             "record_stop", "reload_map", "save_config", "reset_stats")
+
+
+class Daemon(Protocol):
+    """What the control thread uses of the daemon (``kmead.daemon.Daemon``; declared here
+    so this module does not import the daemon, which creates the server)."""
+
+    cfg: Any
+    lock: Any
+    stats: Any
+    pipeline: Any
+    last_frame_body: dict
+    last_result: Any
+
+    def status(self) -> P.StatusBody: ...
+    def publish(self, topic: str, body: dict) -> None: ...
+    def event(self, level: str, text: str) -> None: ...
+    def tick(self) -> None: ...
+    def apply_setting(self, key: str, value: Any) -> Any: ...
+    def start_csv(self, path: str) -> Any: ...
+    def stop_csv(self) -> dict: ...
+    def start_recording(self, path: str) -> Any: ...
+    def stop_recording(self) -> dict: ...
+    def reload_map(self) -> Any: ...
+    def save_config(self, path: str | None = None) -> dict: ...
 
 
 class RequestError(ValueError):
@@ -119,7 +121,7 @@ class ControlServer:
             try:
                 if now >= next_status:
                     next_status = now + period
-                    self.daemon.publish(P.TOPIC_STATUS, self.daemon.status_body())
+                    self.daemon.publish(P.TOPIC_STATUS, self.daemon.status())
                 self.daemon.tick()
             except Exception:
                 log.exception("status/watchdog error")
@@ -152,8 +154,8 @@ class ControlServer:
     def _cmd_get_state(self, req: dict) -> dict:
         d = self.daemon
         with d.lock:
-            return {"status": d.status_body(), "frame": d.last_frame_body,
-                    "stats": d.stats_body()}
+            return {"status": d.status(), "frame": d.last_frame_body,
+                    "stats": bodies.stats_body(d.stats, d.pipeline.algorithm, d.last_result)}
 
     def _cmd_get_config(self, req: dict) -> dict:
         d = self.daemon

@@ -20,16 +20,18 @@ import threading
 import time
 from typing import Any
 
+from kmea import protocol as P
+from kmea.estimators import available as available_algorithms
 from kmea.maps import MarkerMap
 from kmea.metrics import WindowStats
+from kmea.moved import MovedMonitor
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
 from kmea.recording import Recorder, ReplaySource
-from kmead import protocol as P
+from kmead import bodies
 from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
 from kmead.csvlog import CsvLog
-from kmead.displacement import DisplacementMonitor
 from kmead.outputs import RunTotals, csv_lines, truth_record
 from kmead.relay import Relay
 from kmead.startup import (
@@ -104,8 +106,8 @@ class Daemon:
         except ValueError as e:  # detector parameters, dictionary, algorithm options
             raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
         self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
-        self.monitor = DisplacementMonitor(cfg["stats"]["displaced_threshold"],
-                                           cfg["stats"]["displaced_frames"])
+        self.monitor = MovedMonitor(cfg["stats"]["displaced_threshold"],
+                                    cfg["stats"]["displaced_frames"])
         net = cfg["network"]
         try:
             self.telemetry = Telemetry(net["telemetry"])
@@ -198,8 +200,8 @@ class Daemon:
             elif key == "stats.window":
                 self.stats = WindowStats(v, self.world_map.ref_length())
             elif key in ("stats.displaced_threshold", "stats.displaced_frames"):
-                self.monitor = DisplacementMonitor(self.cfg["stats"]["displaced_threshold"],
-                                                   self.cfg["stats"]["displaced_frames"])
+                self.monitor = MovedMonitor(self.cfg["stats"]["displaced_threshold"],
+                                            self.cfg["stats"]["displaced_frames"])
             elif key == "log.level":
                 logging.getLogger("kmead").setLevel(v.upper())
         except Exception as e:
@@ -228,24 +230,18 @@ class Daemon:
         return {"path": str(p), "keys": keys}
 
     # ------------------------------------------------------------------ telemetry bodies
-    def status_body(self) -> dict:
-        cam = self.pipeline.camera
-        c, r = self.csv, self.recorder
-        return {
-            "t": time.time(), "uptime": time.time() - self.t0, "source": self.source_spec,
-            "config_file": self.cfg.user_file or "<default config>",
-            "config_files": self.cfg.files, "algorithm": self.pipeline.algorithm,
-            "logging": {"active": c is not None, "path": str(c.path) if c else None,
-                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
-            "recording": {"active": r is not None, "path": str(r.path) if r else None,
-                          "frames": r.frames if r else 0, "bytes": r.bytes if r else 0},
-            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy},
-            "map": {"name": self.world_map.name, "n": len(self.world_map)},
-            "frames": self.totals.frames, "dropped": self.dropped,
-            "bad_frames": self.totals.bad_frames,
-            "telemetry": self.telemetry.bound if self.telemetry else "",
-            "control": self.control.bound if self.control else "",
-        }
+    def status(self) -> P.StatusBody:
+        """The ``status`` body now (kmead.bodies.status_body from this daemon's state)."""
+        return bodies.status_body(
+            t0=self.t0, source=self.source_spec,
+            config_file=self.cfg.user_file or "<default config>",
+            config_files=self.cfg.files, algorithm=self.pipeline.algorithm,
+            algorithms=available_algorithms(), csv=self.csv, recorder=self.recorder,
+            camera=self.pipeline.camera, world_map=self.world_map,
+            frames=self.totals.frames, dropped=self.dropped,
+            bad_frames=self.totals.bad_frames,
+            telemetry=self.telemetry.bound if self.telemetry else "",
+            control=self.control.bound if self.control else "")
 
     @property
     def dropped(self) -> int:
@@ -321,23 +317,27 @@ class Daemon:
                                       res.observations, res.diagnostics,
                                       truth_record(truth) if truth is not None else None)
         # 4. telemetry
-        self.publish(P.TOPIC_MARKERS, self._markers_body(res))
-        self.publish(P.TOPIC_ROBOTS, self._robots_body(res))
+        self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
+                                                          self.monitor.get))
+        self.publish(P.TOPIC_ROBOTS, bodies.robots_body(res, self.relay.tracks.values()))
         now = time.perf_counter()
         if self.control is None and now - self._last_status_pub >= \
                 self.cfg["network"]["status_period_s"]:
             self._last_status_pub = now  # no service thread: status from the frame loop
-            self.publish(P.TOPIC_STATUS, self.status_body())
+            self.publish(P.TOPIC_STATUS, self.status())
         if now - self._last_stats_pub >= 0.2:
             self._last_stats_pub = now
-            self.publish(P.TOPIC_STATS, self._stats_body(res))
+            self.publish(P.TOPIC_STATS, bodies.stats_body(self.stats, self.pipeline.algorithm,
+                                                          res))
         self.frame_times.append(now)
         self._last_frame_wall = time.time()
         res.timings["output"] = (time.perf_counter() - t_out) * 1e3
         res.timings["total"] = sum(v for k, v in res.timings.items() if k != "total")
         for k, v in res.timings.items():
             tot.timing_sums[k] = tot.timing_sums.get(k, 0.0) + v
-        self.last_frame_body = self._frame_body(res)
+        self.last_frame_body = bodies.frame_body(res, source=self.source_spec, fps=self.fps(),
+                                                 dropped=self.dropped,
+                                                 bad_frames=self.totals.bad_frames)
         self.publish(P.TOPIC_FRAME, self.last_frame_body)
         self.last_result = res
 
@@ -357,79 +357,23 @@ class Daemon:
                 del tot.latency_ms[:50000]
 
     def _displacement_events(self, res: FrameResult) -> None:
-        # Event when a map marker's LOO error (or a robust estimator's rejection distance)
-        # stays above the threshold over most of the last stats.displaced_frames frames it
-        # was measured in (kmead.displacement: one bad frame is not a moved marker); then
-        # quiet for that marker for DISPLACED_QUIET_S (noise near the threshold must not
-        # flood the technician's log). Suspect markers are in neither figure.
+        # The moved-marker decision (kmea.moved: persistence over the frames the marker was
+        # measured in, a threshold scaled to the error level) from its LOO error or a robust
+        # estimator's rejection distance; the markers body publishes it with its evidence.
+        # The event is quiet for that marker for DISPLACED_QUIET_S (noise near the
+        # threshold must not flood the technician's log). Suspect markers give no figure.
         figures = dict(res.loo)
         for mid, d in res.estimate.rejected.items():
             figures[mid] = max(figures.get(mid, 0.0), d)
         bad = self.monitor.update(figures)
         now = time.monotonic()
-        for mid, e in sorted(bad.items()):
+        for mid, ev in sorted(bad.items()):
             if now - self.displaced.get(mid, -math.inf) >= DISPLACED_QUIET_S:
                 self.displaced[mid] = now
-                self.event("warning", f"marker {mid} looks displaced by {e * 1e3:.0f} mm")
+                self.event("warning", f"marker {mid} looks displaced by "
+                                      f"{ev.offset * 1e3:.0f} mm (threshold "
+                                      f"{ev.threshold * 1e3:.0f} mm over {ev.frames} frames)")
 
-    def _frame_body(self, res: FrameResult) -> dict:
-        d = res.diagnostics
-        return {"t": res.timestamp, "frame": res.index, "source": self.source_spec,
-                "algorithm": res.algorithm, "ok": res.estimate.ok, "reason": res.estimate.reason,
-                "n_detected": len(res.ids), "n_refs": len(res.estimate.references),
-                "fps": self.fps(), "dropped": self.dropped,
-                "timings_ms": {k: round(v, 4) for k, v in res.timings.items()},
-                "flips": int(d.get("n_flipped", 0)), "ambiguous": int(d.get("n_ambiguous", 0)),
-                "suspect": int(d.get("n_suspect", 0)),
-                "bad_frames": self.totals.bad_frames, "scale": res.estimate.scale,
-                "rejected": sorted(res.estimate.rejected)}
-
-    def _markers_body(self, res: FrameResult) -> dict:
-        est = res.estimate
-        obs = {o.id: o for o in res.observations}
-        map_markers = self.world_map.markers
-        ids = sorted(map_markers.keys() | {int(i) for i in res.ids})
-        out = []
-        for mid in ids:
-            mk = map_markers.get(mid)
-            me = res.markers.get(mid)
-            o = obs.get(mid)
-            p = me[0] if me is not None else None
-            out.append({
-                "id": mid, "in_map": mk is not None, "detected": o is not None,
-                "x": None if p is None else p[0], "y": None if p is None else p[1],
-                "z": None if p is None else p[2], "yaw": None if me is None else me[1],
-                "map_x": None if mk is None else mk.position[0],
-                "map_y": None if mk is None else mk.position[1],
-                "map_z": None if mk is None else mk.position[2],
-                "error": res.loo.get(mid), "ambiguous": bool(o.ambiguous) if o else False,
-                "flipped": bool(o.flipped) if o else False,
-                "suspect": bool(o.suspect) if o else False, "rejected": mid in est.rejected,
-                "displacement": est.rejected.get(mid),
-                "reference": mid in est.references,
-            })
-        return {"t": res.timestamp, "frame": res.index, "algorithm": res.algorithm,
-                "markers": out}
-
-    def _robots_body(self, res: FrameResult) -> dict:
-        out = []
-        for tr in self.relay.tracks.values():
-            seen = tr.last_seen is not None
-            out.append({"name": tr.name, "markers": tr.markers,
-                        "x": tr.x if seen else None, "y": tr.y if seen else None,
-                        "theta": tr.theta if seen else None, "sigma": tr.sigma,
-                        "valid": tr.name in res.robots,
-                        "age_s": (res.timestamp - tr.last_seen) if seen else None,
-                        "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
-                        "seq": tr.seq, "send_errors": tr.errors})
-        return {"t": res.timestamp, "frame": res.index, "robots": out}
-
-    def _stats_body(self, res: FrameResult | None) -> dict:
-        pm = self.stats.per_marker()
-        return {"t": res.timestamp if res else time.time(), "frame": res.index if res else None,
-                "algorithm": self.pipeline.algorithm, "window": self.stats.window,
-                "mean_error": self.stats.mean_error, "max_error": self.stats.max_error,
-                "markers": [{"id": mid, **m.as_dict()} for mid, m in pm.items()]}
 
     # ------------------------------------------------------------------ service thread hooks
     def tick(self) -> None:
@@ -445,10 +389,6 @@ class Daemon:
                                               "(valid=0 sent)")
 
     # ------------------------------------------------------------------ public bodies
-    def stats_body(self) -> dict:
-        """The ``stats`` body of the latest frame (for the control thread)."""
-        return self._stats_body(self.last_result)
-
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
         """Process frames until the source ends, ``max_frames`` or :meth:`stop`.
@@ -462,7 +402,7 @@ class Daemon:
         if self.control is not None:
             self.control.start()
         self.totals.t_start = time.perf_counter()
-        self.publish(P.TOPIC_STATUS, self.status_body())
+        self.publish(P.TOPIC_STATUS, self.status())
         log.info("running: source %s, algorithm %s, map %s (%d markers)", self.source_spec,
                  self.pipeline.algorithm, self.world_map.name, len(self.world_map))
         self.feed = open_feed(self.capture, self.pipeline, self.cfg["detector"]["workers"],

@@ -18,6 +18,7 @@ import socket
 from dataclasses import dataclass, field
 from typing import Any
 
+from kmea.protocol import robot_topic
 from kmead.config import parse_destination
 
 log = logging.getLogger("kmead.relay")
@@ -116,9 +117,9 @@ class Relay:
                 # Unresolvable host, no route, full buffer: count it, never stall the loop.
                 tr.errors += 1
         if self.publish is not None:
-            self.publish(f"robot.{tr.name}", {"name": tr.name, "seq": tr.seq, "t": t,
-                                              "x": tr.x, "y": tr.y, "theta": tr.theta,
-                                              "valid": valid, "sigma": tr.sigma})
+            self.publish(robot_topic(tr.name), {"name": tr.name, "seq": tr.seq, "t": t,
+                                                 "x": tr.x, "y": tr.y, "theta": tr.theta,
+                                                 "valid": valid, "sigma": tr.sigma})
 
     def update(self, name: str, t: float, x: float, y: float, theta: float,
                sigma: float | None = None) -> None:

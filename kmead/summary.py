@@ -2,12 +2,24 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from kmead.daemon import Daemon
+from kmea.maps import MarkerMap
+
+
+class Daemon(Protocol):
+    """What the summary reads of the daemon (``kmead.daemon.Daemon``; declared here so
+    this module does not import the daemon, which calls it)."""
+
+    totals: Any  # kmead.daemon.RunTotals
+    world_map: MarkerMap
+    source_spec: str
+    pipeline: Any
+    dropped: int
+    cfg: Any
+    csv: Any
 
 
 def format_summary(d: Daemon) -> str:

@@ -14,7 +14,7 @@ from typing import Any
 
 import zmq
 
-from kmead.protocol import TOPIC_EVENT, TOPIC_LOG, encode
+from kmea.protocol import TOPIC_EVENT, TOPIC_LOG, encode
 
 
 class Telemetry:

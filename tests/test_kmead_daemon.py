@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 import zmq
 
+from kmea import protocol as P
 from kmea.maps import default_map
 from kmea.sim.renderer import Renderer
 from kmea.sim.scenes import scene_from_spec
 from kmea.vision.camera import save_camera
 from kmead import cli
-from kmead import protocol as P
 from kmead.config import load_config
 from kmead.csvlog import HEADER
 from kmead.daemon import Daemon
@@ -199,15 +199,15 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
         assert all(-0.9 < m["x"] < 0.9 and -0.65 < m["y"] < 0.65 for m in msgs)
 
         # ---- garbage on the control socket: error replies, the daemon keeps going
-        for bad in (b"not json", b"[1, 2]", b'{"v": 1}', b'{"v": 2, "cmd": "ping"}',
-                    b'{"v": 1, "cmd": 42}', b'{"v": 1, "cmd": "format_disk"}',
-                    b"\xff\xfe", b'{"v": 1, "cmd": "set", "key": "filter.alpha", "value": 7}',
-                    b'{"v": 1, "cmd": "set", "key": "source.spec", "value": "sim"}',
-                    b'{"v": 1, "cmd": "log_start", "path": 5}',
+        for bad in (b"not json", b"[1, 2]", b'{"v": 2}', b'{"v": 99, "cmd": "ping"}',
+                    b'{"v": 2, "cmd": 42}', b'{"v": 2, "cmd": "format_disk"}',
+                    b"\xff\xfe", b'{"v": 2, "cmd": "set", "key": "filter.alpha", "value": 7}',
+                    b'{"v": 2, "cmd": "set", "key": "source.spec", "value": "sim"}',
+                    b'{"v": 2, "cmd": "log_start", "path": 5}',
                     b"x" * (P.MAX_MESSAGE_BYTES + 10)):
             reply = _request(ctx, ctrl, bad)
             assert reply["ok"] is False and reply["error"], bad[:40]
-        assert _request(ctx, ctrl, [b'{"v":1,"cmd":"ping"}', b"extra"])["ok"] is False
+        assert _request(ctx, ctrl, [b'{"v":2,"cmd":"ping"}', b"extra"])["ok"] is False
         assert _cmd(ctx, ctrl, "ping")["ok"]
         events = sub.collect(0.5).get("event", [])
         assert any("control request refused" in e["text"] for e in events)

@@ -7,8 +7,8 @@ import asyncio
 import zmq
 import zmq.asyncio
 
+from kmea import protocol
 from kmea_tui.client import DaemonClient
-from kmead import protocol
 
 
 async def test_request_times_out_then_recovers_with_a_fresh_socket() -> None:
@@ -39,7 +39,8 @@ async def test_request_times_out_then_recovers_with_a_fresh_socket() -> None:
         reply = await client.request("set", key="filter.alpha", value=0.5)
         got = await server
         assert reply["ok"] is True and reply["cmd"] == "set"
-        assert got == {"v": 1, "cmd": "set", "key": "filter.alpha", "value": 0.5}
+        assert got == {"v": protocol.PROTOCOL_VERSION, "cmd": "set", "key": "filter.alpha",
+                       "value": 0.5}
 
         # 3) A reply that is not protocol JSON is reported, not raised.
         async def serve_garbage() -> None:
@@ -67,16 +68,19 @@ async def test_recv_decodes_and_counts_bad_messages() -> None:
         got: list = []
         # Publish until the subscription is through (PUB drops while SUB is joining).
         for i in range(200):
-            await pub.send_multipart(protocol.encode("frame", {"frame": i}))
+            await pub.send_multipart(protocol.encode("event", {"t": float(i), "level": "info",
+                                                               "text": f"event {i}"}))
             await pub.send_multipart([b"frame", b"not json"])
+            # Right version, but not a frame body (the typed decoder refuses it).
+            await pub.send_multipart(protocol.encode("frame", {"frame": i}))
             await pub.send_multipart(protocol.encode("robot.amr1", {"seq": i}))
             got += await client.recv(0.02)
             if got:
                 break
         assert got, "no telemetry received"
-        assert all(t == "frame" and "frame" in b for t, b in got)  # robot.* not subscribed
+        assert all(t == "event" and b["text"].startswith("event") for t, b in got)  # no robot.*
         got += await client.recv(0.1)
-        assert client.bad_messages >= 1 and "not UTF-8 JSON" in client.last_error
+        assert client.bad_messages >= 2 and "frame: field " in client.last_error
     finally:
         client.close()
         pub.close(linger=0)

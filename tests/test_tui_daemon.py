@@ -132,8 +132,11 @@ async def test_algorithm_change_from_config_tab(daemon: Daemon) -> None:
         await pilot.press("5")
         select = app.query_one("#algorithm", Select)
         assert select.has_focus and select.value == "kmea"
-        # Keyboard only: open the list, go to the entry below kmea (lmea), choose it.
+        # The list is the daemon's (status.algorithms), not a registry of the UI's own.
+        await wait_for(pilot, lambda: app.status is not None, "status")
         options = [v for _, v in select._options if isinstance(v, str)]
+        assert options == app.status["algorithms"] and len(options) > 3
+        # Keyboard only: open the list, go to the entry below kmea (lmea), choose it.
         assert options[options.index("kmea") + 1] == "lmea"
         await pilot.press("enter")
         await pilot.pause(0.2)

@@ -16,11 +16,11 @@ from pathlib import Path
 import zmq
 import zmq.asyncio
 
+from kmea import protocol
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
 from kmea_tui.widgets.markers import MarkersTable
 from kmea_tui.widgets.robots import RobotsTable
-from kmead import protocol
 
 RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
 RATE_HZ = 100

@@ -1,13 +1,10 @@
 """kmea-tui shows the daemon's ``suspect`` markers (protocol.md: ``markers[].suspect``).
 
-The stream is ``tests/data/telemetry_sim.jsonl`` (recorded from ``kmead --source
-"sim:misplaced?robots=true"`` before the field existed) with the suspect flags the current
-detector gives on the same simulator frames: in frame 32 robot amr2's plate covers a corner
-of floor marker 25, which the old daemon used as a reference and reported 54 mm off (a false
-"misplaced"). ``test_suspect_ids_are_the_detectors`` checks those flags against real OpenCV
-detection of the rendered frames. The fields change as the daemon changes them: ``suspect``
-true, ``error`` null (no statistics), ``reference`` false, and the frame's ``suspect`` count;
-the other markers' estimates stay as recorded.
+The stream is ``tests/data/telemetry_sim.jsonl``, recorded from a real ``kmead --source
+"sim:misplaced?robots=true"`` by ``scripts/record_telemetry.py``: in frame 32 robot amr2's
+plate covers a corner of floor marker 25 (suspect: estimated, not a reference, no LOO
+error). ``test_suspect_ids_are_the_detectors`` checks the recorded flags against real OpenCV
+detection of the rendered frames.
 """
 
 from __future__ import annotations
@@ -27,37 +24,16 @@ from kmea_tui.widgets.markers import MarkersTable, flags_of
 
 RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
 SCENE = "sim:misplaced?robots=true"
-# Recorded frame number (= simulator frame index) -> ids the detector flags as suspect.
-SUSPECT = {31: {3, 25}, 32: {25}}
 
 
 def _records() -> list[dict]:
     return [json.loads(line) for line in RECORDING.read_text().splitlines()]
 
 
-def suspect_stream(path: Path) -> Path:
-    """Write the recording with the ``suspect`` fields of :data:`SUSPECT` to ``path``."""
-    recs = _records()
-    for rec in recs[1:]:
-        body = rec["body"]
-        ids = SUSPECT.get(body.get("frame"), set())
-        if rec["topic"] == "markers":
-            n = 0
-            for m in body["markers"]:
-                m["suspect"] = bool(m["detected"] and m["id"] in ids)
-                if m["suspect"]:
-                    m["error"], m["reference"] = None, False
-                    n += 1
-            body["_n"] = n
-        elif rec["topic"] == "frame":
-            body["suspect"] = None  # filled below from the markers of the same frame
-    n_of = {r["body"]["frame"]: r["body"].pop("_n") for r in recs[1:] if r["topic"] == "markers"}
-    for rec in recs[1:]:
-        if rec["topic"] == "frame":
-            rec["body"]["suspect"] = n_of[rec["body"]["frame"]]
-    path.write_text("\n".join(json.dumps(r, separators=(",", ":")) for r in recs) + "\n",
-                    encoding="utf-8")
-    return path
+def recorded_suspects() -> dict[int, set[int]]:
+    """Recorded frame number (= simulator frame index) -> ids the daemon flagged suspect."""
+    return {r["body"]["frame"]: {m["id"] for m in r["body"]["markers"] if m["suspect"]}
+            for r in _records()[1:] if r["topic"] == "markers"}
 
 
 def _last(topic: str, path: Path) -> dict:
@@ -77,7 +53,9 @@ def test_suspect_ids_are_the_detectors() -> None:
     lengths = {i: 0.06 for i in (40, 41, 42)}
     robots = {r["frame"]: r for r in (rec["body"] for rec in _records()[1:]
                                       if rec["topic"] == "robots")}
-    for index, expected in SUSPECT.items():
+    suspects = recorded_suspects()
+    assert suspects[32] == {25}  # the stream shows what the tests below rely on
+    for index, expected in suspects.items():
         frame = renderer.render(index)
         # The recording's frame numbers are the simulator's frames: same robot poses.
         for r in robots[index]["robots"]:
@@ -90,9 +68,9 @@ def test_suspect_ids_are_the_detectors() -> None:
 
 
 def test_flag_letter() -> None:
-    assert flags_of({"suspect": True}, False) == "S"
-    assert flags_of({"ambiguous": True, "flipped": True, "suspect": True}, False) == "AFS"
-    assert flags_of({"suspect": False, "rejected": True}, True) == "!R"
+    assert flags_of({"suspect": True}) == "S"
+    assert flags_of({"ambiguous": True, "flipped": True, "suspect": True}) == "AFS"
+    assert flags_of({"suspect": False, "rejected": True, "moved": True}) == "!R"
 
 
 def test_map_draws_suspect_label_without_error_vector() -> None:
@@ -126,8 +104,8 @@ async def _replayed(app: KmeaTui, pilot) -> None:
     assert app.replay_done and app.config_loaded
 
 
-async def test_suspect_marker_flagged_in_table_summary_map_and_help(tmp_path) -> None:
-    stream = suspect_stream(tmp_path / "suspect.jsonl")
+async def test_suspect_marker_flagged_in_table_summary_map_and_help() -> None:
+    stream = RECORDING
     app = KmeaTui(RecordingClient(stream), theme="ansi-dark")
     async with app.run_test(size=(80, 24)) as pilot:
         await _replayed(app, pilot)
@@ -137,8 +115,8 @@ async def test_suspect_marker_flagged_in_table_summary_map_and_help(tmp_path) ->
         assert [k for k, f in flags.items() if "S" in f] == ["25"]
         assert str(table.get_cell("25", "error")) == "-"  # no LOO error for a suspect marker
         summary = str(app.query_one("#markers-summary").render())
-        # 25 is no longer the second "misplaced" marker; 7 (moved 2 cm) still is.
-        assert "suspect 1" in summary and "misplaced 1" in summary
+        # 25 is not "moved"; 7 (moved 2 cm) is, by the daemon's decision and evidence.
+        assert "suspect 1" in summary and "moved 1 (7 20>10 mm)" in summary
         assert "!" in flags["7"] and "!" not in flags["25"]
 
         # Map tab: 25's label has the suspect style (the braille canvas cached as strips).
@@ -180,8 +158,7 @@ async def test_suspect_marker_flagged_in_table_summary_map_and_help(tmp_path) ->
 
 @pytest.mark.parametrize(("tab", "key", "theme"), [
     ("markers", "1", "textual-dark"), ("map", "4", "textual-dark"), ("map", "4", "ansi-dark")])
-def test_suspect_snapshot(snap_compare, tmp_path, tab: str, key: str, theme: str) -> None:
-    stream = suspect_stream(tmp_path / "suspect.jsonl")
-    assert snap_compare(KmeaTui(RecordingClient(stream), theme=theme), press=[key],
+def test_suspect_snapshot(snap_compare, tab: str, key: str, theme: str) -> None:
+    assert snap_compare(KmeaTui(RecordingClient(RECORDING), theme=theme), press=[key],
                         terminal_size=(80, 24),
                         run_before=lambda pilot: _replayed(pilot.app, pilot))

@@ -7,7 +7,8 @@ import math
 
 import pytest
 
-from kmea_tui.app import connection_state, floor_extent, terminal_has_16_colours
+from kmea.protocol import PROTOCOL_VERSION
+from kmea_tui.app import connection_state, terminal_has_16_colours
 from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnification
 from kmea_tui.cli import main as tui_main
 from kmea_tui.client import RecordingClient
@@ -15,7 +16,7 @@ from kmea_tui.screens.robot_edit import parse_robot
 from kmea_tui.widgets.config_form import parse_value, show_value
 from kmea_tui.widgets.floor_map import marker_error_vector
 from kmea_tui.widgets.log_panel import human_bytes
-from kmea_tui.widgets.markers import flags_of, misplaced_ids, misplaced_threshold
+from kmea_tui.widgets.markers import flags_of, moved_ids, moved_note
 from kmea_tui.widgets.status_bar import status_text
 
 
@@ -68,17 +69,16 @@ def test_heading_arrow() -> None:
     assert heading_arrow(-math.pi / 2) == "↓"
 
 
-def test_misplaced_threshold_and_flags() -> None:
-    markers = [{"id": i, "in_map": True, "error": 0.002} for i in range(10)]
-    markers.append({"id": 99, "in_map": True, "error": 0.05})
-    markers.append({"id": 7, "in_map": False, "error": None})
-    assert misplaced_threshold(markers) == pytest.approx(0.010)  # floor beats 3 x 2 mm
-    assert misplaced_ids(markers) == {99}
-    noisy = [{"id": i, "in_map": True, "error": 0.008} for i in range(10)]
-    noisy.append({"id": 50, "in_map": True, "error": 0.02})
-    assert misplaced_threshold(noisy) == pytest.approx(0.024)
-    assert misplaced_ids(noisy) == set()
-    assert flags_of({"ambiguous": True, "rejected": True}, True) == "!AR"
+def test_moved_is_the_daemons_flag_with_its_evidence() -> None:
+    # The UI has no rule of its own: a large error without the daemon's "moved" is not moved.
+    markers = [{"id": i, "in_map": True, "error": 0.002, "moved": False} for i in range(10)]
+    markers.append({"id": 99, "in_map": True, "error": 0.05, "moved": False})
+    markers.append({"id": 7, "in_map": True, "error": 0.004, "moved": True,
+                    "moved_offset": 0.0213, "moved_threshold": 0.01, "moved_frames": 5})
+    assert moved_ids(markers) == {7}
+    assert moved_note(markers[-1]) == "7 21>10 mm"
+    assert flags_of({"ambiguous": True, "rejected": True, "moved": True}) == "!AR"
+    assert flags_of(markers[10]) == ""
 
 
 def test_error_vector_needs_estimate_and_map() -> None:
@@ -128,9 +128,7 @@ def test_status_text_fits_and_orders() -> None:
                                                    "no reply from x").plain
 
 
-def test_floor_extent_and_colours() -> None:
-    assert floor_extent({"map": {"name": "m", "n": 3}}) is None
-    assert floor_extent({"map": {"floor": [-1, 1, -0.5, 0.5]}}) == (-1, 1, -0.5, 0.5)
+def test_colours() -> None:
     assert terminal_has_16_colours({"TERM": "xterm"})
     assert terminal_has_16_colours({"TERM": "linux"})
     assert not terminal_has_16_colours({"TERM": "xterm-256color"})
@@ -139,15 +137,21 @@ def test_floor_extent_and_colours() -> None:
 
 
 async def test_recording_client_names_bad_lines(tmp_path) -> None:
-    good = {"topic": "frame", "body": {"v": 1, "frame": 1}, "dt": 0.0}
+    good = {"topic": "event", "body": {"v": PROTOCOL_VERSION, "t": 1.0, "level": "info",
+                                       "text": "hello"}, "dt": 0.0}
     p = tmp_path / "rec.jsonl"
     p.write_text(json.dumps(good) + "\n" + "{not json\n")
     with pytest.raises(ValueError, match=r"rec.jsonl:2: not JSON"):
         RecordingClient(p)
-    p.write_text(json.dumps({"topic": "frame", "body": {"v": 2}}) + "\n")
+    p.write_text(json.dumps({"topic": "frame", "body": {"v": 1}}) + "\n")
     with pytest.raises(ValueError, match=r"rec.jsonl:1: field 'v'"):
         RecordingClient(p)
-    cfg = {"ok": True, "config": {"a": 1}, "overlay_file": "x.local.toml"}
+    # The typed decoder: a body of the right version with a field of the wrong type.
+    p.write_text(json.dumps({"topic": "event", "body": {**good["body"], "t": "now"}}) + "\n")
+    with pytest.raises(ValueError, match=r"rec.jsonl:1: event: field 't': expected float"):
+        RecordingClient(p)
+    cfg = {"ok": True, "cmd": "get_config", "config": {"a": 1}, "config_file": None,
+           "config_files": [], "overlay_file": "x.local.toml", "live_keys": []}
     p.write_text(json.dumps({"header": {"get_config": cfg}}) + "\n" + json.dumps(good) + "\n")
     rc = RecordingClient(p)
     assert len(rc.messages) == 1
@@ -156,7 +160,7 @@ async def test_recording_client_names_bad_lines(tmp_path) -> None:
     assert (await rc.request("ping"))["ok"] is True
     reply = await rc.request("log_start", path="x.csv")
     assert reply["ok"] is False and "no daemon" in reply["error"]
-    assert await rc.recv(0.01) == [("frame", good["body"])]
+    assert await rc.recv(0.01) == [("event", good["body"])]
     assert rc.ended and await rc.recv(0.01) == []
 
 

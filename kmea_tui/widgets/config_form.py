@@ -15,18 +15,6 @@ from textual.widgets import Button, DataTable, Input, Label, Select, Static
 from kmea.tomlvalue import parse_toml_value
 from kmea_tui.messages import ControlRequest
 
-# Offered when the kmea package (the daemon's estimator registry) is not importable here.
-DEFAULT_ALGORITHMS = ("kmea", "lmea", "umeyama")
-
-
-def known_algorithms() -> list[str]:
-    """Estimator names: the local registry (the daemon uses the same package)."""
-    try:
-        from kmea.estimators import available
-    except ImportError:
-        return list(DEFAULT_ALGORITHMS)
-    return list(available()) or list(DEFAULT_ALGORITHMS)
-
 
 def parse_value(text: str) -> Any:
     """A typed-in value as TOML (``1.0``, ``true``, ``"DICT_6X6_250"``, ``[1, 2]``);
@@ -98,7 +86,8 @@ class ConfigPane(VerticalScroll):
     def __init__(self, id: str | None = None) -> None:
         super().__init__(id=id)
         self.config: dict[str, Any] = {}
-        self.algorithms: list[str] = known_algorithms()
+        # The daemon's estimators (its ``status`` telemetry), never a local registry.
+        self.algorithms: list[str] = []
         self.robots: list[dict[str, Any]] = []
         self.save_target = "the daemon's configuration file"
 
@@ -125,22 +114,31 @@ class ConfigPane(VerticalScroll):
         yield Static("", id="save-note", classes="note")
 
     # -- showing the daemon's configuration ----------------------------------------------
-    def show_config(self, config: dict[str, Any], algorithms: list[str] | None = None,
-                    save_target: str | None = None, source: str | None = None) -> None:
-        self.config = config
-        if algorithms:
-            self.algorithms = list(algorithms)
-        if save_target:
-            self.save_target = save_target
-        est = config.get("estimator", {}) if isinstance(config.get("estimator"), dict) else {}
-        algo = est.get("algorithm")
-        if isinstance(algo, str) and algo not in self.algorithms:
-            self.algorithms.append(algo)
+    def set_algorithms(self, algorithms: list[str]) -> None:
+        """The algorithms the daemon offers (``status.algorithms``)."""
+        if list(algorithms) == self.algorithms:
+            return
+        self.algorithms = list(algorithms)
+        self._show_algorithm()
+
+    def _show_algorithm(self) -> None:
+        est = self.config.get("estimator", {})
+        algo = est.get("algorithm") if isinstance(est, dict) else None
+        options = list(self.algorithms)
+        if isinstance(algo, str) and algo not in options:
+            options.append(algo)  # the running one, before the first status arrives
         select = self.query_one("#algorithm", Select)
         with select.prevent(Select.Changed):
-            select.set_options([(a, a) for a in self.algorithms])
+            select.set_options([(a, a) for a in options])
             if isinstance(algo, str):
                 select.value = algo
+
+    def show_config(self, config: dict[str, Any], save_target: str | None = None,
+                    source: str | None = None) -> None:
+        self.config = config
+        if save_target:
+            self.save_target = save_target
+        self._show_algorithm()
         filt = config.get("filter", {}) if isinstance(config.get("filter"), dict) else {}
         alpha = self.query_one("#filter-alpha", Input)
         if not alpha.has_focus and "alpha" in filt:

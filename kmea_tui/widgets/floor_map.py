@@ -18,7 +18,7 @@ from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnifi
 STYLE_OUTLINE = "bright_black"
 STYLE_DETECTED = "bold green"
 STYLE_UNSEEN = "bright_black"
-STYLE_MISPLACED = "bold red"
+STYLE_MOVED = "bold red"
 STYLE_FOREIGN = "bold cyan"
 # Suspect markers (corners hidden or at the image border: not references this frame) stand
 # out from the yellow error vectors by their background.
@@ -28,7 +28,7 @@ STYLE_ROBOT = "bold magenta"
 STYLE_STALE = "magenta"
 STYLE_AXES = "blue"
 
-# Margin around the markers' extent when the floor size is unknown, metres.
+# Margin around the markers' extent, metres.
 EXTENT_MARGIN = 0.155
 # Auto magnification makes the longest error vector about this fraction of the floor's width.
 VECTOR_FRACTION = 0.08
@@ -41,8 +41,7 @@ class MapData:
 
     markers: list[dict[str, Any]] = field(default_factory=list)
     robots: list[dict[str, Any]] = field(default_factory=list)
-    misplaced: set[int] = field(default_factory=set)
-    floor: tuple[float, float, float, float] | None = None  # xmin, xmax, ymin, ymax (m)
+    moved: set[int] = field(default_factory=set)
 
 
 def _num(v: Any) -> float | None:
@@ -68,7 +67,6 @@ class FloorMap(Widget):
         self.data = MapData()
         self.magnification: float | None = None
         self._auto_mag = 100.0
-        self.extent_is_floor = False
         self._strips: list[Strip] | None = None
 
     def set_data(self, data: MapData) -> None:
@@ -81,10 +79,10 @@ class FloorMap(Widget):
         return self.magnification if self.magnification is not None else self._auto_mag
 
     def _update_auto_magnification(self) -> None:
-        # Scaled to the markers that are not misplaced: a misplaced marker's long vector
+        # Scaled to the markers that are not moved: a moved marker's long vector
         # is clipped at the edge instead of shrinking every other vector to nothing.
         errs = [math.hypot(*v) for m in self.data.markers
-                if m.get("id") not in self.data.misplaced
+                if m.get("id") not in self.data.moved
                 and (v := marker_error_vector(m)) is not None]
         x0, x1, y0, y1 = self.extent()
         suggested = nice_magnification(max(errs, default=0.0),
@@ -95,11 +93,7 @@ class FloorMap(Widget):
             self._auto_mag = suggested
 
     def extent(self) -> tuple[float, float, float, float]:
-        """The world rectangle drawn as the floor outline (m)."""
-        if self.data.floor is not None:
-            self.extent_is_floor = True
-            return self.data.floor
-        self.extent_is_floor = False
+        """The world rectangle drawn as the outline (m): the markers' extent plus a margin."""
         xs, ys = [], []
         for m in self.data.markers:
             for kx, ky in (("map_x", "map_y"), ("x", "y")):
@@ -166,7 +160,7 @@ class FloorMap(Widget):
             if v is None:
                 continue
             mx, my = float(m["map_x"]), float(m["map_y"])
-            style = STYLE_MISPLACED if m.get("id") in self.data.misplaced else STYLE_VECTOR
+            style = STYLE_MOVED if m.get("id") in self.data.moved else STYLE_VECTOR
             canvas.line(*vp.to_dots(mx, my), *vp.to_dots(mx + mag * v[0], my + mag * v[1]),
                         style)
         for r in self.data.robots:
@@ -184,8 +178,8 @@ class FloorMap(Widget):
 
         def rank(m: dict[str, Any]) -> int:
             # Labels are placed in this order; a later one that would touch an earlier one
-            # becomes a dot. Misplaced first, then seen floor markers, then the rest.
-            if m.get("id") in self.data.misplaced:
+            # becomes a dot. Moved first, then seen floor markers, then the rest.
+            if m.get("id") in self.data.moved:
                 return 0
             floor = abs(_num(m.get("map_z")) or 0.0) < 1e-6
             return (1 if floor else 2) if m.get("detected") else (3 if floor else 4)
@@ -200,8 +194,8 @@ class FloorMap(Widget):
                 return
             if not in_map:
                 style = STYLE_FOREIGN
-            elif m.get("id") in self.data.misplaced:
-                style = STYLE_MISPLACED
+            elif m.get("id") in self.data.moved:
+                style = STYLE_MOVED
             elif m.get("detected") and m.get("suspect"):
                 style = STYLE_SUSPECT
             elif m.get("detected"):
@@ -275,13 +269,12 @@ class MapPane(Widget):
         mag = fm.effective_magnification
         auto = "auto" if fm.magnification is None else "fixed"
         cell = fm.metres_per_cell() * 100 if fm.size.width else float("nan")
-        outline = "floor" if fm.extent_is_floor else "map extent"
         self.query_one("#map-legend", Static).update(Text.assemble(
             ("■", STYLE_DETECTED), " seen ", ("■", STYLE_UNSEEN), " unseen ",
-            ("■", STYLE_MISPLACED), " misplaced ", ("■", STYLE_SUSPECT), " suspect ",
+            ("■", STYLE_MOVED), " moved ", ("■", STYLE_SUSPECT), " suspect ",
             ("■", STYLE_FOREIGN), " not in map ",
             ("→", STYLE_ROBOT), " robot  ", ("⠤", STYLE_VECTOR),
-            f" error ×{mag:g} ({auto}, +/-/a) · □ {outline} · cell {cell:.1f} cm"))
+            f" error ×{mag:g} ({auto}, +/-/a) · □ map extent · cell {cell:.1f} cm"))
 
     def on_resize(self) -> None:
         self.update_legend()

@@ -1,4 +1,9 @@
-"""Markers tab: every marker the daemon reports, with its leave-one-out error."""
+"""Markers tab: every marker the daemon reports, with its leave-one-out error.
+
+Whether a marker has moved is the daemon's decision (``markers[].moved``, with its evidence
+``moved_offset``/``moved_threshold``/``moved_frames``; see ``kmea/moved.py``): this tab only
+shows it.
+"""
 
 from __future__ import annotations
 
@@ -13,12 +18,6 @@ from textual.widgets import Static
 
 from kmea_tui.widgets.live_table import DASH, LiveTable, fmt
 
-# A marker is flagged as misplaced when its leave-one-out error exceeds both
-# MISPLACED_FACTOR x the median error of all map markers and MISPLACED_FLOOR_M.
-# The floor keeps a well-surveyed floor (all errors ~1 mm) from flagging noise.
-MISPLACED_FACTOR = 3.0
-MISPLACED_FLOOR_M = 0.010
-
 COLUMNS = [
     ("id", "id"), ("map", "map"), ("det", "det"), ("x", "x m"), ("y", "y m"),
     ("yaw", "yaw°"), ("map_x", "map x"), ("map_y", "map y"), ("error", "LOO mm"),
@@ -26,29 +25,32 @@ COLUMNS = [
 ]
 
 
-def misplaced_threshold(markers: list[dict[str, Any]]) -> float:
-    """Error (m) above which a map marker counts as misplaced."""
-    errs = [float(m["error"]) for m in markers
-            if isinstance(m.get("error"), (int, float)) and m.get("in_map", True)]
-    med = statistics.median(errs) if errs else 0.0
-    return max(MISPLACED_FACTOR * med, MISPLACED_FLOOR_M)
+def moved_ids(markers: list[dict[str, Any]]) -> set[int]:
+    """Ids the daemon reports as moved."""
+    return {int(m["id"]) for m in markers if m.get("moved")}
 
 
-def misplaced_ids(markers: list[dict[str, Any]]) -> set[int]:
-    thr = misplaced_threshold(markers)
-    return {int(m["id"]) for m in markers
-            if isinstance(m.get("error"), (int, float)) and m["error"] > thr}
+def moved_note(m: dict[str, Any]) -> str:
+    """The daemon's evidence for one moved marker: ``7 21>10 mm`` (median offset over its
+    threshold)."""
+    off, thr = m.get("moved_offset"), m.get("moved_threshold")
+    if isinstance(off, (int, float)) and isinstance(thr, (int, float)):
+        return f"{m['id']} {off * 1e3:.0f}>{thr * 1e3:.0f} mm"
+    return str(m["id"])
 
 
-FLAGS_HELP = (("!", "misplaced"), ("A", "ambiguous pose"), ("F", "pose flipped"),
+FLAGS_HELP = (("!", "moved: the daemon's decision (median offset over its last frames "
+                    "above the marker's threshold)"),
+              ("A", "ambiguous pose"), ("F", "pose flipped"),
               ("S", "suspect: corners hidden or at the image border, not a reference"),
               ("R", "rejected by a robust estimator"))
 
 
-def flags_of(m: dict[str, Any], misplaced: bool) -> str:
-    """``!`` misplaced, ``A`` ambiguous pose, ``F`` pose flipped, ``S`` suspect (detected
-    corners not trustworthy this frame: estimated, not a reference), ``R`` rejected."""
-    return "".join(ch for ch, on in (("!", misplaced), ("A", m.get("ambiguous")),
+def flags_of(m: dict[str, Any]) -> str:
+    """``!`` moved (the daemon's decision), ``A`` ambiguous pose, ``F`` pose flipped, ``S``
+    suspect (detected corners not trustworthy this frame: estimated, not a reference),
+    ``R`` rejected by a robust estimator this frame."""
+    return "".join(ch for ch, on in (("!", m.get("moved")), ("A", m.get("ambiguous")),
                                      ("F", m.get("flipped")), ("S", m.get("suspect")),
                                      ("R", m.get("rejected")))
                    if on)
@@ -74,7 +76,7 @@ class MarkersTable(LiveTable):
         "",
         *(f"- `{ch}` {text}" for ch, text in FLAGS_HELP),
         "",
-        "Rows: **red** misplaced, dim unseen, yellow suspect, cyan not in the map.",
+        "Rows: **red** moved, dim unseen, yellow suspect, cyan not in the map.",
         "`s` sorts by the next column, `S` reverses.",
     ])
 
@@ -82,7 +84,7 @@ class MarkersTable(LiveTable):
         super().__init__(COLUMNS, sort_value=_sort_value, sort_column="id", id=id)
 
 
-def marker_cells(m: dict[str, Any], misplaced: bool) -> list[str | Text]:
+def marker_cells(m: dict[str, Any]) -> list[str | Text]:
     yaw = m.get("yaw")
     cells: list[str | Text] = [
         str(m.get("id")),
@@ -92,9 +94,9 @@ def marker_cells(m: dict[str, Any], misplaced: bool) -> list[str | Text]:
         fmt(math.degrees(yaw), ".0f") if isinstance(yaw, (int, float)) else DASH,
         fmt(m.get("map_x")), fmt(m.get("map_y")),
         fmt(m.get("error"), ".1f", 1000.0),
-        flags_of(m, misplaced),
+        flags_of(m),
     ]
-    if misplaced:
+    if m.get("moved"):
         return [Text(c, style="bold red") if isinstance(c, str) else c for c in cells]
     if not m.get("detected"):
         return [Text(c, style="bright_black") if isinstance(c, str) else c for c in cells]
@@ -113,16 +115,14 @@ class MarkersPane(Vertical):
         yield MarkersTable(id="markers-table")
 
     def update_markers(self, body: dict[str, Any]) -> set[int]:
-        """Show one ``markers`` message; returns the ids flagged as misplaced."""
+        """Show one ``markers`` message; returns the ids the daemon reports as moved."""
         self._last_body = body
-        markers = [m for m in body.get("markers", []) if isinstance(m, dict) and "id" in m]
-        thr = misplaced_threshold(markers)
-        bad = misplaced_ids(markers)
+        markers = body["markers"]
+        bad = moved_ids(markers)
         rows = {}
         for m in markers:
-            mid = int(m["id"])
-            raw = dict(m, _flags=flags_of(m, mid in bad))
-            rows[str(mid)] = (raw, marker_cells(m, mid in bad))
+            raw = dict(m, _flags=flags_of(m))
+            rows[str(m["id"])] = (raw, marker_cells(m))
         table = self.query_one(MarkersTable)
         table.sync(rows)
         in_map = [m for m in markers if m.get("in_map")]
@@ -130,17 +130,15 @@ class MarkersPane(Vertical):
         foreign = sum(1 for m in markers if not m.get("in_map") and m.get("detected"))
         errs = [m["error"] for m in markers if isinstance(m.get("error"), (int, float))]
         med = f"{1000 * statistics.median(errs):.1f} mm" if errs else DASH
-        # This frame's suspect markers, counted from the rows shown (the same frame); a
-        # daemon from before the field existed sends no "suspect": then no count.
-        suspect: tuple[str, str] | str = ""
-        if any("suspect" in m for m in markers):
-            n = sum(1 for m in markers if m.get("suspect"))
-            suspect = (f"suspect {n}", "bold yellow" if n else "")
+        # This frame's suspect markers, counted from the rows shown (the same frame).
+        n_suspect = sum(1 for m in markers if m["suspect"])
+        evidence = ", ".join(moved_note(m) for m in markers if m["moved"])
         summary = Text.assemble(
-            (f"frame {body.get('frame', DASH)}", "bold"),
+            (f"frame {body['frame']}", "bold"),
             f" · seen {seen}/{len(in_map)} map, {foreign} other · median LOO {med} · ",
-            (f"misplaced {len(bad)}", "bold red" if bad else ""),
-            f" (>{1000 * thr:.0f} mm) · ", *((suspect, " · ") if suspect else ()),
+            (f"moved {len(bad)}", "bold red" if bad else ""),
+            f" ({evidence})" if evidence else "", " · ",
+            (f"suspect {n_suspect}", "bold yellow" if n_suspect else ""), " · ",
             (table.sort_label() + " [s/S]", "italic"),
         )
         self.query_one("#markers-summary", Static).update(summary)

@@ -1,4 +1,5 @@
-"""The "looks displaced" event: persistence (kmead.displacement) and the daemon end to end.
+"""One notion of a moved marker: kmea.moved (persistence, a threshold that scales with the
+error level), the daemon's event and the ``moved`` evidence in its markers telemetry.
 
 A robot passing over a floor marker's corner used to raise "marker 26 looks displaced by
 65 mm" from one frame of ``make run``; a marker moved on the floor (here: moved in the map)
@@ -13,8 +14,8 @@ from pathlib import Path
 import pytest
 
 from kmea.maps import default_map
+from kmea.moved import MovedMonitor
 from kmead import cli
-from kmead.displacement import DisplacementMonitor
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']
@@ -22,41 +23,77 @@ UNPACED = ["--set", "source.fps=0"]
 SMALL = ["--set", "source.width=640", "--set", "source.height=480"]
 
 
-def feed(monitor: DisplacementMonitor, series: list[float | None], mid: int = 7) -> list[int]:
-    """Frames (indexes into series) where ``mid`` looks displaced; None = not measured."""
+def feed(monitor: MovedMonitor, series: list[float | None], mid: int = 7,
+         others: dict[int, float] | None = None) -> list[int]:
+    """Frames (indexes into series) where ``mid`` has moved; None = not measured. ``others``:
+    the same figures every frame for other markers (the error level of the floor)."""
     fired = []
     for i, e in enumerate(series):
-        if mid in monitor.update({} if e is None else {mid: e}):
+        figures = dict(others or {})
+        if e is not None:
+            figures[mid] = e
+        if mid in monitor.update(figures):
             fired.append(i)
     return fired
 
 
 def test_single_frame_glitch_is_not_an_event() -> None:
-    m = DisplacementMonitor(0.02, 5)
+    m = MovedMonitor(0.02, 5)
     assert feed(m, [0.001, 0.065, 0.001, 0.002, 0.034, 0.001, 0.001, 0.001]) == []
     # Two bad frames in a row are still a minority of five.
-    assert feed(DisplacementMonitor(0.02, 5), [0.001, 0.001, 0.001, 0.05, 0.05, 0.001]) == []
+    assert feed(MovedMonitor(0.02, 5), [0.001, 0.001, 0.001, 0.05, 0.05, 0.001]) == []
 
 
 def test_persistent_displacement_is_an_event_after_three_frames() -> None:
-    m = DisplacementMonitor(0.02, 5)
+    m = MovedMonitor(0.02, 5)
     assert feed(m, [0.05] * 6) == [2, 3, 4, 5]
-    assert m.update({7: 0.05}) == {7: pytest.approx(0.05)}
+    ev = m.update({7: 0.05})[7]
+    assert ev.moved and ev.offset == pytest.approx(0.05) and ev.frames == 5
+    assert ev.threshold == pytest.approx(0.02)  # no noise: the minimum offset decides
+    assert m.get(8).offset is None and not m.get(8).moved  # never measured
     # Most of the window above the threshold, with good frames in between.
-    assert feed(DisplacementMonitor(0.02, 5), [0.03, 0.001, 0.03, 0.001, 0.03]) == [2, 4]
+    assert feed(MovedMonitor(0.02, 5), [0.03, 0.001, 0.03, 0.001, 0.03]) == [2, 4]
 
 
 def test_unmeasured_frames_keep_the_window() -> None:
     # A marker hidden (or suspect) in between: the frames where it was measured count.
-    m = DisplacementMonitor(0.02, 5)
+    m = MovedMonitor(0.02, 5)
     assert feed(m, [0.04, None, None, 0.04, None, 0.04]) == [5]
     assert m.update({8: 0.5}) == {}  # windows are per marker
 
 
 def test_window_of_one_frame_is_the_old_rule() -> None:
-    assert feed(DisplacementMonitor(0.02, 1), [0.001, 0.03, 0.001]) == [1]
+    assert feed(MovedMonitor(0.02, 1), [0.001, 0.03, 0.001]) == [1]
     with pytest.raises(ValueError, match="frames must be >= 1"):
-        DisplacementMonitor(0.02, 0)
+        MovedMonitor(0.02, 0)
+    with pytest.raises(ValueError, match="threshold must be > 0"):
+        MovedMonitor(0.0, 5)
+
+
+def test_threshold_scales_with_the_floors_error_level() -> None:
+    # A well-surveyed floor (other markers ~1 mm): 15 mm is a move over a 10 mm minimum.
+    good = {i: 0.001 for i in range(20)}
+    assert feed(MovedMonitor(0.01, 5), [0.015] * 5, others=good) == [2, 3, 4]
+    # A worse camera where every marker is 6 mm off: 15 mm is noise (threshold 3 x 6 mm).
+    poor = {i: 0.006 for i in range(20)}
+    m = MovedMonitor(0.01, 5)
+    assert feed(m, [0.015] * 5, others=poor) == []
+    assert m.get(7).threshold == pytest.approx(0.018)
+    # ... 30 mm is not, once it is the median of the window (15, 15, 30, 30, 30 mm).
+    assert feed(m, [0.03] * 3, others=poor) == [2]
+    # The level is the other markers'; a moved one hardly raises it (a median).
+    assert m.typical(exclude=7) == pytest.approx(0.006)
+    assert m.typical() == pytest.approx(0.006)
+
+
+def test_threshold_scales_with_the_markers_own_jitter() -> None:
+    # A marker whose figures wobble by +-10 mm around 15 mm (e.g. far in an image corner):
+    # its own spread raises its threshold above its median; a steady 15 mm does not.
+    good = {i: 0.001 for i in range(20)}
+    wobbly = [0.005, 0.025, 0.015, 0.004, 0.026, 0.015, 0.005]
+    m = MovedMonitor(0.01, 5)
+    assert feed(m, wobbly, others=good) == []
+    assert m.get(7).offset == pytest.approx(0.015) and m.get(7).threshold > 0.015
 
 
 def test_make_run_frames_with_a_robot_over_markers_raise_no_event(

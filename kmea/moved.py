@@ -1,0 +1,125 @@
+"""Has a map marker moved? The one rule, with its evidence (stdlib only).
+
+The daemon feeds, every frame, one *displacement figure* (metres) per map marker that was a
+usable measurement: its leave-one-out error (how far the alignment without it puts it from
+its surveyed position), or, when a robust estimator rejected it as a reference, the larger
+of that and the rejection distance. Unseen and suspect markers (``docs/vision.md``) give no
+figure and keep their window.
+
+A single frame proves nothing: a corner hidden by a passing robot that the pose quality
+check did not catch, or a motion-blurred frame, gives one large figure; a marker moved on
+the floor is off in every frame. So each marker keeps its last ``frames`` figures and
+
+    offset    = median of its window                         (needs >= min(frames, 3))
+    noise     = max(typical, own)
+      typical = median over the OTHER map markers of their window medians (0 with fewer
+                than 3 others): how large the error of a well-placed marker is with this
+                camera, lens and floor right now
+      own     = 1.4826 x the median absolute deviation of its own window: its own jitter
+                (a marker far in the image corner wobbles more than one under the camera)
+    threshold = max(min_offset, factor x noise)
+    moved     = offset > threshold
+
+The threshold scales with what it measures: on a well-surveyed floor seen by a calibrated
+camera (errors ~1 mm) ``min_offset`` (``stats.displaced_threshold``) decides; with a worse
+camera or floor, where every marker is off by several millimetres, ``factor`` times that
+level does, so noise is never called a move. The median keeps a few moved markers from
+raising the typical level (fewer than half the markers are assumed moved).
+
+The robust estimators' rejection (``kmea.estimators.robust``, ``corners``) is a different,
+per-frame decision inside one estimate: a reference whose residual is too large is left out
+of that frame's alignment so it cannot pull the others. It is an estimation detail (the
+``R`` flag, ``rejection`` in the markers telemetry); its distance only feeds this monitor
+as a figure. Whether the marker *moved* is decided here, and only here.
+"""
+
+from __future__ import annotations
+
+import collections
+import statistics
+from dataclasses import dataclass
+
+__all__ = ["DEFAULT_FACTOR", "MovedEvidence", "MovedMonitor"]
+
+# Threshold in units of the noise level: 3 sigma-like spreads of a well-placed marker.
+DEFAULT_FACTOR = 3.0
+# MAD -> standard deviation for normally distributed figures.
+_MAD_TO_SIGMA = 1.4826
+# Fewer other markers than this: no error level of the floor (min_offset and own jitter).
+MIN_OTHERS = 3
+
+
+@dataclass(frozen=True)
+class MovedEvidence:
+    """One marker's state. offset, threshold in metres (None until enough figures);
+    frames: figures in the window."""
+
+    moved: bool
+    offset: float | None
+    frames: int
+    threshold: float | None
+
+
+NO_EVIDENCE = MovedEvidence(False, None, 0, None)
+
+
+class MovedMonitor:
+    """Per-marker windows of displacement figures (m) and the "moved" decision.
+
+    min_offset: metres, the smallest offset ever called a move; frames: window length
+    (frames where the marker was measured); factor: threshold in units of the noise level.
+    """
+
+    def __init__(self, min_offset: float, frames: int = 5,
+                 factor: float = DEFAULT_FACTOR) -> None:
+        if frames < 1:
+            raise ValueError(f"moved-marker window: frames must be >= 1, got {frames}")
+        if not min_offset > 0:
+            raise ValueError(f"moved-marker threshold must be > 0 m, got {min_offset}")
+        self.min_offset = float(min_offset)
+        self.frames = int(frames)
+        self.factor = float(factor)
+        self.need = min(self.frames, 3)
+        self.history: dict[int, collections.deque[float]] = {}
+        self.evidence: dict[int, MovedEvidence] = {}
+
+    def _medians(self) -> dict[int, float]:
+        return {mid: statistics.median(h) for mid, h in self.history.items()
+                if len(h) >= self.need}
+
+    def typical(self, exclude: int | None = None) -> float:
+        """Median (m) of the window medians of the markers (but ``exclude``) with enough
+        figures; 0 with fewer than :data:`MIN_OTHERS` of them."""
+        meds = [m for mid, m in self._medians().items() if mid != exclude]
+        return statistics.median(meds) if len(meds) >= MIN_OTHERS else 0.0
+
+    def update(self, figures: dict[int, float]) -> dict[int, MovedEvidence]:
+        """Add one frame's figures (id -> m); return id -> evidence of the markers measured
+        in this frame that have moved (every marker's evidence is in :attr:`evidence`)."""
+        for mid, e in figures.items():
+            h = self.history.get(mid)
+            if h is None:
+                h = self.history[mid] = collections.deque(maxlen=self.frames)
+            h.append(float(e))
+        medians = self._medians()
+        ranked = sorted(medians.values())
+        for mid, h in self.history.items():
+            if len(h) < self.need:
+                self.evidence[mid] = MovedEvidence(False, None, len(h), None)
+                continue
+            offset = medians[mid]
+            others = list(ranked)
+            others.remove(offset)
+            typical = statistics.median(others) if len(others) >= MIN_OTHERS else 0.0
+            own = _MAD_TO_SIGMA * statistics.median(abs(x - offset) for x in h)
+            threshold = max(self.min_offset, self.factor * max(typical, own))
+            self.evidence[mid] = MovedEvidence(offset > threshold, offset, len(h), threshold)
+        return {mid: self.evidence[mid] for mid in figures if self.evidence[mid].moved}
+
+    def get(self, marker_id: int) -> MovedEvidence:
+        """The evidence of one marker (no figures yet: not moved, offset None)."""
+        return self.evidence.get(marker_id, NO_EVIDENCE)
+
+    def clear(self) -> None:
+        self.history.clear()
+        self.evidence.clear()

@@ -1,0 +1,202 @@
+"""The layer rules of the architecture (docs/architecture.md), enforced on the source.
+
+- ``kmea`` (the library) imports neither ``kmead`` (the daemon) nor ``kmea_tui`` (the UI).
+  The one exception: the command-line front door ``kmea/cli.py`` may import the daemon
+  modules of :data:`KMEA_CLI_DAEMON_TOOLS` lazily (inside a function), for daemon-side tools.
+- ``kmea_tui`` imports from ``kmea`` only the wire protocol and the stdlib-only helpers of
+  :data:`TUI_MAY_IMPORT`, and never ``kmead``; those modules import only the standard
+  library (and each other). A subprocess checks that importing the UI loads neither
+  ``kmead`` nor OpenCV nor numpy.
+- No import circles inside a package: every import counts (module level, inside functions,
+  under ``TYPE_CHECKING``), except the lazy imports of a factory listed in
+  :data:`LAZY_FACTORIES` (``kmea.vision.sources.open_source`` picks the simulator's or the
+  replay's source by the spec's name, and those sources build on ``kmea.vision.sources``).
+
+Imports are read from the AST of every module, and dynamic imports by name
+(``import_module("kmead.bench")``, ``"kmead.bench:run"`` tables) are found as string
+constants that name a module of the other layer.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("kmea", "kmead", "kmea_tui")
+
+KMEA_CLI_DAEMON_TOOLS = {"kmead", "kmead.bench", "kmead.cli", "kmead.config", "kmead.keys",
+                         "kmead.fuse", "kmead.doctor"}
+TUI_MAY_IMPORT = {"kmea", "kmea.protocol", "kmea.jsonsafe", "kmea.tomlvalue"}
+# Functions' lazy imports that do not count as edges for the cycle check (module -> targets).
+LAZY_FACTORIES = {"kmea.vision.sources": {"kmea.sim.source", "kmea.recording", "kmea.sim"}}
+# Backports of standard modules, for Python versions before they joined the stdlib.
+STDLIB_BACKPORTS = {"tomli"}  # tomllib before 3.11
+
+_MODULE_STRING = re.compile(r"^(kmead|kmea_tui|kmea)(\.[A-Za-z_]\w*)*(:\w+)?$")
+
+
+@dataclass(frozen=True)
+class Import:
+    module: str  # the importing module
+    target: str  # the imported module (dotted)
+    line: int
+    lazy: bool  # inside a function
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _is_module(dotted: str) -> bool:
+    base = ROOT.joinpath(*dotted.split("."))
+    return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
+
+
+def imports_of(path: Path) -> list[Import]:
+    """Every import of one file (relative ones resolved), with dynamic imports by name."""
+    name = module_name(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    out: list[Import] = []
+
+    def visit(node: ast.AST, lazy: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            inner = lazy or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef,
+                                               ast.Lambda))
+            if isinstance(child, ast.Import):
+                out.extend(Import(name, a.name, child.lineno, lazy) for a in child.names)
+            elif isinstance(child, ast.ImportFrom):
+                base = child.module or ""
+                if child.level:
+                    anchor = package.split(".")
+                    anchor = anchor[:len(anchor) - (child.level - 1)]
+                    base = ".".join([*anchor, base] if base else anchor)
+                for a in child.names:
+                    sub = f"{base}.{a.name}"
+                    out.append(Import(name, sub if _is_module(sub) else base, child.lineno,
+                                      lazy))
+            elif isinstance(child, ast.Constant) and isinstance(child.value, str) \
+                    and _MODULE_STRING.match(child.value) and "." in child.value:
+                target = child.value.partition(":")[0]
+                if target.split(".")[0] in PACKAGES and _is_module(target):
+                    out.append(Import(name, target, child.lineno, True))
+            visit(child, inner)
+
+    visit(tree, False)
+    return out
+
+
+def all_imports() -> list[Import]:
+    return [imp for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))
+            for imp in imports_of(p)]
+
+
+def top(dotted: str) -> str:
+    return dotted.split(".")[0]
+
+
+def test_the_library_imports_neither_the_daemon_nor_the_ui() -> None:
+    bad = set()
+    where = {}
+    for imp in all_imports():
+        if top(imp.module) != "kmea" or top(imp.target) not in ("kmead", "kmea_tui"):
+            continue
+        if imp.module == "kmea.cli" and imp.lazy and imp.target in KMEA_CLI_DAEMON_TOOLS:
+            continue  # the front door's daemon-side tools
+        bad.add((imp.module, imp.target))
+        where[(imp.module, imp.target)] = imp.line
+    assert not bad, "kmea must not import kmead/kmea_tui: " + ", ".join(
+        f"{m} (line {where[(m, t)]}) imports {t}" for m, t in sorted(bad))
+
+
+def test_the_ui_imports_only_the_wire_protocol() -> None:
+    bad = [f"{imp.module}:{imp.line} imports {imp.target}" for imp in all_imports()
+           if top(imp.module) == "kmea_tui"
+           and (top(imp.target) == "kmead"
+                or (top(imp.target) == "kmea" and imp.target not in TUI_MAY_IMPORT))]
+    assert not bad, bad
+    # ... and what it may import needs nothing but the standard library.
+    stdlib = set(sys.stdlib_module_names) | {"__future__"} | STDLIB_BACKPORTS
+    for mod in sorted(TUI_MAY_IMPORT):
+        if not _is_module(mod):
+            continue
+        path = ROOT.joinpath(*mod.split("."))
+        path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+        for imp in imports_of(path):
+            assert top(imp.target) in stdlib or imp.target in TUI_MAY_IMPORT, \
+                f"{mod}:{imp.line} imports {imp.target}: the UI's imports must stay stdlib-only"
+
+
+def test_importing_the_ui_loads_neither_the_daemon_nor_opencv() -> None:
+    code = ("import sys, kmea_tui.app, kmea_tui.cli, kmea_tui.client; "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('kmead', 'cv2', 'numpy', 'scipy')); print(' '.join(bad))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "", f"importing kmea_tui loaded: {r.stdout.strip()}"
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles of a graph: its strongly connected components with more than one
+    module (or a module importing itself), Tarjan's algorithm."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges.get(v, ()):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1 or v in edges.get(v, ()):
+                out.append(sorted(comp))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10000))
+    for v in sorted(edges):
+        if v not in index:
+            strong(v)
+    return out
+
+
+def test_cycle_finder_finds_circles() -> None:
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_import_circles(package: str) -> None:
+    edges: dict[str, set[str]] = {}
+    for imp in all_imports():
+        if top(imp.module) == package and top(imp.target) == package \
+                and imp.target != imp.module and imp.target != package:
+            if imp.lazy and imp.target in LAZY_FACTORIES.get(imp.module, ()):
+                continue
+            edges.setdefault(imp.module, set()).add(imp.target)
+    found = cycles(edges)
+    assert not found, f"import circles in {package}: {found}"
