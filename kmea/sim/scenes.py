@@ -28,6 +28,8 @@ __all__ = [
     "scenario1_camera",
     "scenario2_camera",
     "scene_from_spec",
+    "wide_cameras",
+    "wide_map",
 ]
 
 #: The default fleet (as in config.toml): name, markers, height m, length m, separation m.
@@ -93,6 +95,70 @@ def raised_overrides(world_map: MarkerMap, ids: Sequence[int],
         m = world_map[mid]
         out[mid] = pose_matrix(m.rotation, m.position + np.array([0.0, 0.0, dz]))
     return out
+
+
+# ---------------------------------------------------------------------------- wide floor
+#: The wide scene: floor B is floor A moved by WIDE_DX m along +x; its floor markers carry
+#: ids 66-98 (A's floor ids in order), so one DICT_5X5_100 map holds both floors.
+WIDE_DX = 1.70
+WIDE_CAMERA_HEIGHT = 1.75
+# Each floor's centre seen from 1.75 m: the Pi Camera v2 (62.2 deg wide) covers +-1.055 m
+# in x at the floor, so the views overlap on a 0.41 m strip around x = 0.85 (both floors'
+# facing marker columns, x = 0.695 and 1.005, lie in it).
+_WIDE_LOOPS = {
+    "amr1": [(-0.40, 0.42), (0.85, 0.44), (2.10, 0.42), (2.28, 0.32), (2.10, 0.22),
+             (0.85, 0.24), (-0.40, 0.22), (-0.58, 0.32)],
+    "amr2": [(2.10, -0.44), (0.85, -0.42), (-0.40, -0.44), (-0.58, -0.34), (-0.40, -0.24),
+             (0.85, -0.26), (2.10, -0.24), (2.28, -0.34)],
+}
+
+
+def wide_map() -> MarkerMap:
+    """Two RobotAtFactory floors side by side (module constants above); floor A keeps its
+    markers (walls included), floor B has its 33 floor markers as ids 66-98."""
+    from dataclasses import replace
+
+    from kmea.maps import Marker
+
+    base = default_map()
+    markers = dict(base.markers)
+    floor_ids = [i for i in base.ids if base[i].on_floor]
+    for k, mid in enumerate(floor_ids):
+        m = base[mid]
+        markers[66 + k] = Marker(66 + k, m.position + np.array([WIDE_DX, 0.0, 0.0]),
+                                 m.rotation, m.length)
+    return replace(base, markers=markers, reference_length=None,
+                   name="RobotAtFactory 4.0 wide (two floors)",
+                   source="<built-in wide scene map>", extra={})
+
+
+def wide_cameras() -> list[np.ndarray]:
+    """cam2world of the wide scene's two cameras (over each floor's centre, 1.75 m)."""
+    return [scenario1_camera(WIDE_CAMERA_HEIGHT, center=(0.0, 0.0)),
+            scenario1_camera(WIDE_CAMERA_HEIGHT, center=(WIDE_DX, 0.0))]
+
+
+def _wide(opts: dict[str, Any]) -> Scene:
+    opts = dict(opts)
+    idx = opts.pop("camera", 0)
+    if isinstance(idx, CameraModel):  # a camera model, as for the other scenes
+        opts["camera"], idx = idx, 0
+    if isinstance(idx, bool) or idx not in (0, 1):
+        raise ValueError(f"scene 'wide': camera must be 0 or 1, got {idx!r}")
+    speed = float(opts.pop("speed", 0.25))
+    if opts.get("robots", True) is True:
+        opts["robots"] = [SimRobot(name, markers, height, length, sep,
+                                   LoopPath(_WIDE_LOOPS[name], speed=speed))
+                          for name, markers, height, length, sep in DEFAULT_FLEET]
+    opts.setdefault("world_map", wide_map())
+    opts.setdefault("floor", (-0.85, 0.85 + WIDE_DX, -0.6, 0.6))
+    rows, cols = [-0.355, -0.15, 0.0, 0.15, 0.355], [-0.695, 0.0, 0.695]
+    opts.setdefault("floor_lines", [((-0.695 + dx, y), (0.695 + dx, y))
+                                    for dx in (0.0, WIDE_DX) for y in rows]
+                    + [((x + dx, -0.355), (x + dx, 0.355))
+                       for dx in (0.0, WIDE_DX) for x in cols])
+    name = "wide" if idx == 0 else "wide-cam1"
+    return _build(name, lambda c: wide_cameras()[idx], True, opts)
 
 
 # ---------------------------------------------------------------------------- registry
@@ -176,6 +242,11 @@ _SCENES: dict[str, tuple[str, Callable[[dict[str, Any]], Scene]]] = {
                                    {"misplaced": {7: (0.02, 0.0, 0.0),
                                                   20: ((0.0, 0.0, 0.0), (0.0, 0.0, 10.0))},
                                     **o})),
+    "wide": ("two floors side by side (3.4 x 1.2 m), camera 0 over the left one; "
+             "camera=1: over the right one; the default robots drive across the 0.41 m "
+             "overlap at 0.25 m/s", _wide),
+    "wide-cam1": ("the wide scene seen by camera 1 (the same as wide?camera=1)",
+                  lambda o: _wide({"camera": 1, **o})),
 }
 
 
