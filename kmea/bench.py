@@ -17,6 +17,7 @@ BENCHES: dict[str, str] = {
     "render": "kmea.benchmarks.render:run",
     "pipeline": "kmea.benchmarks.pipeline:run",
     "tracking": "kmea.benchmarks.tracking:run",
+    "fusion": "kmea.benchmarks.fusion:run",
 }
 
 

@@ -98,7 +98,7 @@ class TrackerConfig:
     reacquire_window_s: float = 1.0
     reset_after_s: float = 1.0
     default_sigma: float = 0.005
-    min_sigma: float = 0.001
+    min_sigma: float = 0.002
     heading_lever: float = 0.05
     min_sigma_theta: float = 0.01
     max_speed: float = 1.5

@@ -147,6 +147,10 @@ class MotionSet:
 
 
 TUNE = MotionSet("tune", (0, 1, 2, 3), 1.2, 2.5, 0.003, 30.0, 30.0)
+#: The configuration tuned on TUNE by `kmea bench tracking` (printed as "tuned on ..."), the
+#: default of :class:`TrackerConfig`.
+TUNED = TrackerConfig()
+
 HELD_OUT = (
     MotionSet("held-out A", (101, 102, 103, 104, 105, 106), 1.5, 3.0, 0.003, 30.0),
     MotionSet("held-out B", (201, 202, 203, 204, 205, 206), 0.8, 2.0, 0.0015, 30.0),
@@ -218,13 +222,14 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict) -> di
             "reacquire_s": after[0] if after else math.nan}
 
 
-def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig) -> dict:
+def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
+             outliers: float = 0.05) -> dict:
     """Figures of one filter ("iir" with alpha, or "kalman" with a config) summed/averaged
-    over the drives of ``mset``."""
+    over the drives of ``mset``, with a fraction ``outliers`` of the measurements jumps."""
     rows = []
     for seed in mset.seeds:
         tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel)
-        ms = make_measurements(tr, seed, mset.fps, mset.sigma)
+        ms = make_measurements(tr, seed, mset.fps, mset.sigma, outliers)
         out, info = run_iir(ms, param) if filt == "iir" else run_kalman(ms, param)
         rows.append(metrics(tr, ms, out, info))
     agg = {"pos": math.sqrt(np.mean([r["pos"] ** 2 for r in rows])),
@@ -252,8 +257,8 @@ def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple]]:
     alphas = (1.0, 0.8, 0.6, 0.5, 0.4, 0.3)
     best_a = min(alphas, key=lambda a: _score(evaluate(mset, "iir", a), mset))
     models = ("cv", "ctrv")
-    accel = (0.25, 0.5, 1.0, 2.0, 4.0, 16.0) if not quick else (0.5, 2.0)
-    turn = (2.5, 10.0, 40.0) if not quick else (10.0,)
+    accel = (0.06, 0.12, 0.25, 0.5, 1.0, 4.0) if not quick else (0.25, 1.0)
+    turn = (0.6, 2.5, 10.0) if not quick else (2.5,)
     best = (math.inf, None)
     for m in models:
         for qa in accel:
@@ -267,10 +272,11 @@ def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple]]:
     return best_a, best[1], grid
 
 
-def _row(name: str, a: dict) -> str:
+def _row(name: str, c: dict, a: dict) -> str:
     re = "-" if math.isnan(a["reacquire_s"]) else f"{a['reacquire_s'] * 1000:.0f} ms"
-    return (f"  {name:<26} {a['pos'] * 1000:7.2f} {math.degrees(a['head']):8.2f} "
-            f"{a['lag'] * 1000:7.0f} {a['jumps_outlier']:4d}/{a['outliers']:<4d} "
+    return (f"  {name:<16} {c['pos'] * 1000:6.2f} {math.degrees(c['head']):5.2f} "
+            f"{c['lag'] * 1000:4.0f} {a['pos'] * 1000:6.2f} {math.degrees(a['head']):5.2f} "
+            f"{a['lag'] * 1000:4.0f} {a['jumps_outlier']:4d}/{a['outliers']:<4d} "
             f"{a['max_jump_outlier'] * 1000:7.1f} "
             f"{a['jumps_all']:6d} {a['caught']:4d}/{a['outliers']:<4d} {a['false_rej']:6d} "
             f"{re:>9}")
@@ -292,7 +298,7 @@ def run(quick: bool = False) -> None:
         MotionSet(s.name, s.seeds[:2], s.max_speed, s.max_turn, s.sigma, s.fps, 20.0,
                   s.max_accel)
         for s in HELD_OUT)
-    print("held-out drives (40 s each). jumps: outputs whose error changed by more than 3 "
+    print("held-out drives (40 s each; lag in ms). jumps: outputs whose error changed by more than 3 "
           "sigma (the measurement's) at an outlier / outliers; max mm: the largest such "
           "change at an outlier; >3s all: the same at any measurement; caught: outliers "
           "rejected and reported; false: good measurements rejected; reacquire: slowest "
@@ -301,9 +307,13 @@ def run(quick: bool = False) -> None:
         print(f"{s.name}: seeds {s.seeds}, <= {s.max_speed} m/s, <= {s.max_turn} rad/s, "
               f"<= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, {s.fps:g} fps, "
               f"5 % outliers of 5-20 cm")
-        print(f"  {'filter':<26} {'pos mm':>7} {'head deg':>8} {'lag ms':>7} "
-              f"{'jumps':>9} {'max mm':>7} {'>3s all':>6} {'caught':>9} {'false':>6} {'reacquire':>9}")
+        print(f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}")
+        print(f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
+              f"{'lag':>4} {'jumps':>9} {'max mm':>7} {'>3s all':>6} {'caught':>9} "
+              f"{'false':>6} {'reacquire':>9}")
         for a_ in sorted({1.0, alpha}, reverse=True):
-            print(_row(f"IIR alpha={a_:g}", evaluate(s, "iir", a_)), flush=True)
-        print(_row(f"Kalman {cfg.model}", evaluate(s, "kalman", cfg)), flush=True)
+            print(_row(f"IIR alpha={a_:g}", evaluate(s, "iir", a_, 0.0),
+                       evaluate(s, "iir", a_)), flush=True)
+        print(_row(f"Kalman {cfg.model}", evaluate(s, "kalman", cfg, 0.0),
+                   evaluate(s, "kalman", cfg)), flush=True)
     print(f"({time.perf_counter() - t0:.0f} s)")
