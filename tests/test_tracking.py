@@ -72,7 +72,7 @@ def test_turn_rate_and_heading_wrap_through_pi() -> None:
 
 
 def test_outlier_is_rejected_and_reported_not_followed() -> None:
-    t, truth, meas = _line(60)
+    t, _truth, meas = _line(60)
     trk = Tracker(TrackerConfig())
     for k in range(40):
         trk.update("amr1", t[k], meas[k, 0], meas[k, 1], 0.0, 0.003, source="cam0")

@@ -21,6 +21,7 @@ Figures against the ground truth, per robot and over both:
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass
@@ -183,7 +184,7 @@ def handover_jumps(run: WideRun, cfg: TrackerConfig) -> dict[str, tuple[float, i
     of hand-overs."""
     fused = fused_outputs(run, cfg)
     fps = 1.0 / (run.t[1] - run.t[0])
-    win = int(round(0.5 * fps))
+    win = round(0.5 * fps)
     res = {"fused": 0.0, "naive": 0.0}
     count = 0
     for name in sorted(run.truth[0]):
@@ -206,7 +207,7 @@ def handover_jumps(run: WideRun, cfg: TrackerConfig) -> dict[str, tuple[float, i
                            if fused[name][k] is not None]
                 else:
                     pts = [(k, m) for k, m in naive if lo <= k < hi]
-                for (ka, a), (kb, b) in zip(pts, pts[1:]):
+                for (ka, a), (kb, b) in itertools.pairwise(pts):
                     ga, gb = run.truth[ka][name], run.truth[kb][name]
                     step = math.hypot((a[0] - ga[0]) - (b[0] - gb[0]),
                                       (a[1] - ga[1]) - (b[1] - gb[1]))

@@ -60,7 +60,7 @@ def trajectory(seed: int, duration: float = 40.0, max_speed: float = 1.5,
     """A random drive of ``duration`` s (module docstring)."""
     rng = np.random.default_rng(seed)
     dt = 1e-3
-    n = int(round(duration / dt)) + 1
+    n = round(duration / dt) + 1
     v_tgt = np.zeros(n)
     w_tgt = np.zeros(n)
     i = int(0.5 / dt)  # half a second standing still first
@@ -298,11 +298,11 @@ def run(quick: bool = False) -> None:
         MotionSet(s.name, s.seeds[:2], s.max_speed, s.max_turn, s.sigma, s.fps, 20.0,
                   s.max_accel)
         for s in HELD_OUT)
-    print("held-out drives (40 s each; lag in ms). jumps: outputs whose error changed by more than 3 "
-          "sigma (the measurement's) at an outlier / outliers; max mm: the largest such "
-          "change at an outlier; >3s all: the same at any measurement; caught: outliers "
-          "rejected and reported; false: good measurements rejected; reacquire: slowest "
-          "re-acquisition after the hand move")
+    print("held-out drives (40 s each; lag in ms).\n"
+          "  jumps: outputs whose error changed by more than 3 sigma (the measurement's) at\n"
+          "  an outlier / outliers; max mm: the largest such change at an outlier; >3s all:\n"
+          "  the same at any measurement; caught: outliers rejected and reported; false: good\n"
+          "  measurements rejected; reacquire: slowest re-acquisition after the hand move")
     for s in sets:
         print(f"{s.name}: seeds {s.seeds}, <= {s.max_speed} m/s, <= {s.max_turn} rad/s, "
               f"<= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, {s.fps:g} fps, "
