@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from kmea.maps import MarkerMap, default_map
-from kmea.sim.motion import LoopPath
+from kmea.sim.motion import LoopPath, WallClock
 from kmea.sim.scene import Effects, Occluder, Scene, SimRobot, look_at, pose_matrix
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
@@ -106,8 +106,8 @@ WIDE_CAMERA_HEIGHT = 1.75
 # in x at the floor, so the views overlap on a 0.41 m strip around x = 0.85 (both floors'
 # facing marker columns, x = 0.695 and 1.005, lie in it).
 _WIDE_LOOPS = {
-    "amr1": [(-0.40, 0.42), (0.85, 0.44), (2.10, 0.42), (2.28, 0.32), (2.10, 0.22),
-             (0.85, 0.24), (-0.40, 0.22), (-0.58, 0.32)],
+    "amr1": [(0.75, 0.44), (2.10, 0.42), (2.28, 0.32), (2.10, 0.22), (0.85, 0.24),
+             (-0.40, 0.22), (-0.58, 0.32), (-0.40, 0.42)],
     "amr2": [(2.10, -0.44), (0.85, -0.42), (-0.40, -0.44), (-0.58, -0.34), (-0.40, -0.24),
              (0.85, -0.26), (2.10, -0.24), (2.28, -0.34)],
 }
@@ -146,9 +146,15 @@ def _wide(opts: dict[str, Any]) -> Scene:
     if isinstance(idx, bool) or idx not in (0, 1):
         raise ValueError(f"scene 'wide': camera must be 0 or 1, got {idx!r}")
     speed = float(opts.pop("speed", 0.25))
+    clock = opts.pop("clock", "frame")
+    epoch = float(opts.pop("epoch", 0.0))
+    if clock not in ("frame", "wall"):
+        raise ValueError(f"scene 'wide': clock must be frame or wall, got {clock!r}")
     if opts.get("robots", True) is True:
+        paths = {n: LoopPath(_WIDE_LOOPS[n], speed=speed) for n in _WIDE_LOOPS}
         opts["robots"] = [SimRobot(name, markers, height, length, sep,
-                                   LoopPath(_WIDE_LOOPS[name], speed=speed))
+                                   WallClock(paths[name], epoch) if clock == "wall"
+                                   else paths[name])
                           for name, markers, height, length, sep in DEFAULT_FLEET]
     opts.setdefault("world_map", wide_map())
     opts.setdefault("floor", (-0.85, 0.85 + WIDE_DX, -0.6, 0.6))
@@ -244,7 +250,8 @@ _SCENES: dict[str, tuple[str, Callable[[dict[str, Any]], Scene]]] = {
                                     **o})),
     "wide": ("two floors side by side (3.4 x 1.2 m), camera 0 over the left one; "
              "camera=1: over the right one; the default robots drive across the 0.41 m "
-             "overlap at 0.25 m/s", _wide),
+             "overlap at 0.25 m/s (amr1 starts in it); clock=wall&epoch=T: robots move "
+             "with the Unix time - T (separate daemons agree)", _wide),
     "wide-cam1": ("the wide scene seen by camera 1 (the same as wide?camera=1)",
                   lambda o: _wide({"camera": 1, **o})),
 }
