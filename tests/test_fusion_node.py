@@ -218,3 +218,38 @@ def test_datagram_extra_fields_follow_the_existing_ones() -> None:
     m = parse_datagram(extra)
     assert (m["vx"], m["omega"], m["age"], m["valid"]) == (0.5, -1.0, 0.0, True)
     assert "vx" not in parse_datagram(plain)
+
+
+async def test_tui_connects_to_the_fusion_node_and_shows_the_cameras() -> None:
+    from kmea_tui.app import KmeaTui
+    from kmea_tui.client import DaemonClient
+    from kmea_tui.widgets.robots import RobotsTable
+
+    d1 = _daemon(1, time.time())
+    t1 = _start(d1)
+    cfg = load_config(None, ['network.telemetry="tcp://127.0.0.1:*"',
+                             'network.control="tcp://127.0.0.1:*"', 'log.level="warning"',
+                             "network.status_period_s=0.5"])
+    node = FusionNode(cfg, parse_inputs([f"cam1={d1.telemetry.bound}"]))
+    tn = threading.Thread(target=node.run, daemon=True)
+    tn.start()
+    app = KmeaTui(DaemonClient(node.telemetry.bound, node.control.bound, timeout=1.0),
+                  theme="textual-dark", ping_period=0.5)
+    try:
+        async with app.run_test(size=(100, 30)) as pilot:
+            robots = app.query_one(RobotsTable)
+            end = time.monotonic() + 20
+            state = ""
+            while time.monotonic() < end:
+                if "amr2" in robots.raw:
+                    state = str(robots.get_cell("amr2", "state"))
+                    if state == "ok cam1" and app.connection_state == "connected":
+                        break
+                await pilot.pause(0.1)
+            assert state == "ok cam1"
+            assert app.connection_state == "connected"
+    finally:
+        node.stop()
+        tn.join(timeout=10)
+        node.close()
+        _stop(d1, t1)

@@ -17,7 +17,10 @@ measurements and overall, outliers rejected / reported, good measurements reject
 delay of re-acquisition after the hand move.
 
 Tuning (the Kalman noise densities and model, the IIR alpha) uses the "tune" set only; the
-table reports the held-out sets (other seeds, speeds, noise, frame rates).
+table reports the held-out sets (other seeds, speeds, noise, frame rates, accelerations).
+The robustness rule of :func:`tune` (within 5 % of the best score, the largest process
+noise) was added after seeing set C (4 m/s^2, harder than the tuning drives); set D was
+added then and never looked at before the rule was fixed.
 """
 
 from __future__ import annotations
@@ -153,6 +156,8 @@ TUNED = TrackerConfig()
 
 HELD_OUT = (
     MotionSet("held-out A", (101, 102, 103, 104, 105, 106), 1.5, 3.0, 0.003, 30.0),
+    MotionSet("held-out D", (401, 402, 403, 404, 405, 406), 1.2, 3.0, 0.004, 25.0,
+              max_accel=3.0),
     MotionSet("held-out B", (201, 202, 203, 204, 205, 206), 0.8, 2.0, 0.0015, 30.0),
     MotionSet("held-out C", (301, 302, 303, 304, 305, 306), 1.5, 3.0, 0.006, 20.0,
               max_accel=4.0),
@@ -259,7 +264,7 @@ def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple]]:
     models = ("cv", "ctrv")
     accel = (0.06, 0.12, 0.25, 0.5, 1.0, 4.0) if not quick else (0.25, 1.0)
     turn = (0.6, 2.5, 10.0) if not quick else (2.5,)
-    best = (math.inf, None)
+    scored = []
     for m in models:
         for qa in accel:
             for qw in turn:
@@ -267,8 +272,14 @@ def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple]]:
                 a = evaluate(mset, "kalman", cfg)
                 s = _score(a, mset)
                 grid.append((m, qa, qw, a["pos"], a["head"], a["lag"], s))
-                if s < best[0]:
-                    best = (s, cfg)
+                scored.append((s, cfg))
+    # Robustness rule: among the configurations within 5 % of the best score, the one that
+    # trusts the motion model least (largest accel_noise, then turn_noise): the robots'
+    # real accelerations are not known in advance, and too small a process noise gates out
+    # good measurements when a robot brakes harder than the tuning drives did.
+    s_best = min(s for s, _ in scored)
+    near = [c for s, c in scored if s <= 1.05 * s_best]
+    best = (s_best, max(near, key=lambda c: (c.accel_noise, c.turn_noise)))
     return best_a, best[1], grid
 
 
