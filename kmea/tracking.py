@@ -80,7 +80,8 @@ def chi2_quantile_3(p: float) -> float:
 class TrackerConfig:
     """Tuning of the tracking filter (units: m, rad, s).
 
-    model: "cv" or "ctrv" (module docstring). accel_noise: m^2/s^3; turn_noise: rad^2/s^3.
+    model: "cv" or "ctrv" (module docstring). accel_noise: m^2/s^3; turn_noise: rad^2/s^3
+    (defaults: tuned by ``kmea bench tracking``, as in config.toml).
     gate_probability: chi-square gate (3 dof). reacquire_n: consistent rejected measurements
     that restart a track; reacquire_window_s: they must fall within this time.
     reset_after_s: a track not updated for this long restarts from its next measurement.
@@ -90,9 +91,9 @@ class TrackerConfig:
     max_speed, max_turn_rate: 1-sigma of the initial velocity and turn rate (m/s, rad/s).
     """
 
-    model: str = "cv"
-    accel_noise: float = 4.0
-    turn_noise: float = 40.0
+    model: str = "ctrv"
+    accel_noise: float = 0.25
+    turn_noise: float = 2.5
     gate_probability: float = 0.9999
     reacquire_n: int = 3
     reacquire_window_s: float = 1.0
