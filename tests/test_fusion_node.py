@@ -90,7 +90,7 @@ def test_two_cameras_fused_stop_and_return(tmp_path: Path,
         'network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"',
         f'robots=[{{name="amr1", markers=[40, 41], height=0.2, {dest}}}, '
         f'{{name="amr2", markers=[42], height=0.2, {dest}}}]',
-        "relay.extra_fields=true", "relay.stale_after_s=0.5", f'log.csv="{log}"',
+        "relay.extra_fields=true", "relay.stale_after_s=1.5", f'log.csv="{log}"',
         'log.level="warning"'])
     node = FusionNode(cfg, parse_inputs([d0.telemetry.bound, d1.telemetry.bound,
                                          f"junk={junk_ep}"]))
@@ -136,13 +136,14 @@ def test_two_cameras_fused_stop_and_return(tmp_path: Path,
         # 3. Camera 1 stops: amr2 (only it saw) goes stale, amr1 stays valid on camera 0.
         _stop(d1, t1)
         t_stop = time.time()
+        # (1.5 s without a measurement: a daemon stalled by a busy machine is not "stopped")
         seen = udp.wait(lambda s: any(m["name"] == "amr2" and not m["valid"] for _, m in s),
-                        5.0)
+                        10.0)
         assert any(m["name"] == "amr2" and not m["valid"] for _, m in seen)
         seen = udp.wait(lambda s: sum(m["name"] == "amr1" for _, m in s) > 5, 5.0)
         amr1 = [m for _, m in seen if m["name"] == "amr1"]
-        assert len(amr1) > 5 and all(m["valid"] for m in amr1)
-        assert all(m["t"] > t_stop - 0.5 for m in amr1)
+        assert len(amr1) > 5 and all(m["valid"] for m in amr1), (amr1, node.status_body())
+        assert all(m["t"] > t_stop - 1.5 for m in amr1)
 
         # 4. It comes back on the same endpoint: amr2 is picked up again.
         d1 = _daemon(1, epoch, telemetry=node.inputs[1].endpoint)
