@@ -102,9 +102,11 @@ def raised_overrides(world_map: MarkerMap, ids: Sequence[int],
 #: ids 66-98 (A's floor ids in order), so one DICT_5X5_100 map holds both floors.
 WIDE_DX = 1.70
 WIDE_CAMERA_HEIGHT = 1.75
-# Each floor's centre seen from 1.75 m: the Pi Camera v2 (62.2 deg wide) covers +-1.055 m
-# in x at the floor, so the views overlap on a 0.41 m strip around x = 0.85 (both floors'
-# facing marker columns, x = 0.695 and 1.005, lie in it).
+#: Each camera 0.15 m inward of its floor's centre: the Pi Camera v2 (62.2 deg wide) covers
+#: +-1.055 m in x at the floor from 1.75 m, so each sees all of its floor and the views
+#: overlap on x = 0.50-1.20 m (0.70 m) at the floor, x = 0.62-1.09 m (0.47 m) at the robots'
+#: marker plane 0.20 m up; both floors' facing marker columns (x = 0.695, 1.005) lie in it.
+WIDE_CAMERA_X = (0.15, WIDE_DX - 0.15)
 _WIDE_LOOPS = {
     "amr1": [(0.75, 0.44), (2.10, 0.42), (2.28, 0.32), (2.10, 0.22), (0.85, 0.24),
              (-0.40, 0.22), (-0.58, 0.32), (-0.40, 0.42)],
@@ -133,9 +135,9 @@ def wide_map() -> MarkerMap:
 
 
 def wide_cameras() -> list[np.ndarray]:
-    """cam2world of the wide scene's two cameras (over each floor's centre, 1.75 m)."""
-    return [scenario1_camera(WIDE_CAMERA_HEIGHT, center=(0.0, 0.0)),
-            scenario1_camera(WIDE_CAMERA_HEIGHT, center=(WIDE_DX, 0.0))]
+    """cam2world of the wide scene's two cameras (1.75 m up, looking down, at
+    x = WIDE_CAMERA_X)."""
+    return [scenario1_camera(WIDE_CAMERA_HEIGHT, center=(x, 0.0)) for x in WIDE_CAMERA_X]
 
 
 def _wide(opts: dict[str, Any]) -> Scene:
@@ -249,7 +251,7 @@ _SCENES: dict[str, tuple[str, Callable[[dict[str, Any]], Scene]]] = {
                                                   20: ((0.0, 0.0, 0.0), (0.0, 0.0, 10.0))},
                                     **o})),
     "wide": ("two floors side by side (3.4 x 1.2 m), camera 0 over the left one; "
-             "camera=1: over the right one; the default robots drive across the 0.41 m "
+             "camera=1: over the right one; the default robots drive across the 0.47 m "
              "overlap at 0.25 m/s (amr1 starts in it); clock=wall&epoch=T: robots move "
              "with the Unix time - T (separate daemons agree)", _wide),
     "wide-cam1": ("the wide scene seen by camera 1 (the same as wide?camera=1)",
