@@ -54,7 +54,7 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         proc = subprocess.Popen(
             [sys.executable, "-m", "kmea.cli", "fuse", "--config", str(cfg), "--headless",
              "--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""',
-             "--set", 'log.level="error"', *sum((["--input", e] for e in eps), [])],
+             "--set", 'log.level="error"', *(a for e in eps for a in ("--input", e))],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         lat: list[float] = []
         got = [0]

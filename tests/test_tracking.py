@@ -16,7 +16,6 @@ from kmea.benchmarks.tracking import (
 )
 from kmea.tracking import Track, Tracker, TrackerConfig, chi2_quantile_3
 
-
 HEADING = math.atan2(-0.2, 0.5)  # of the default line: robots drive along their heading
 
 

@@ -20,7 +20,7 @@ def test_two_floors_in_one_map_and_the_default_fleet() -> None:
     assert len(m) == len(base) + 33 and m.dictionary == "DICT_5X5_100"
     floor = [i for i in base.ids if base[i].on_floor]
     for k, mid in enumerate(floor):
-        assert np.allclose(m[66 + k].position, base[mid].position + [WIDE_DX, 0.0, 0.0])
+        assert np.allclose(m[66 + k].position, base[mid].position + np.array([WIDE_DX, 0.0, 0.0]))
     assert [(r.name, r.markers) for r in s1.robots] == [(n, mk) for n, mk, *_ in DEFAULT_FLEET]
     assert s0.cam_position[0] < 0.85 < s1.cam_position[0]
     assert s0.name == "wide" and s1.name == "wide-cam1"
