@@ -18,7 +18,6 @@ BENCHES: dict[str, str] = {
     "pipeline": "kmea.benchmarks.pipeline:run",
     "tracking": "kmea.benchmarks.tracking:run",
     "fusion": "kmea.benchmarks.fusion:run",
-    "fusion-node": "kmead.fusion_bench:run",
 }
 
 

@@ -57,7 +57,10 @@ def _daemon_benches() -> dict:
         from kmead import bench
     except ImportError:
         return {}
-    return {"daemon": bench.run_daemon, "latency": bench.run_latency}
+    from kmead import fusion_bench
+
+    return {"daemon": bench.run_daemon, "latency": bench.run_latency,
+            "fusion-node": fusion_bench.run}
 
 
 if __name__ == "__main__":

@@ -104,7 +104,8 @@ _NUM = (int, float)
 
 
 def measurement_from(label: str, body: dict, names: set[str]) -> Measurement | None:
-    """A measurement from a ``robot.NAME`` body, None for a valid=0 (stale) message;
+    """A measurement from a ``robot.NAME`` body (its ``raw`` measurement when the camera's
+    daemon filters with the tracking filter), None for a valid=0 (stale) message;
     ``ValueError`` names the bad field."""
     name = body.get("name")
     if not isinstance(name, str) or name not in names:
@@ -114,13 +115,17 @@ def measurement_from(label: str, body: dict, names: set[str]) -> Measurement | N
         raise ValueError("field 'valid': expected true or false")
     if not valid:
         return None
+    raw = body.get("raw")
+    # A daemon with the tracking filter sends its filtered pose and the measurement ("raw"):
+    # fuse the measurement (filtering filtered poses again would count the noise twice).
+    src = {**body, **raw} if isinstance(raw, dict) else body
     vals = {}
     for k in ("t", "x", "y", "theta"):
-        v = body.get(k)
+        v = src.get(k)
         if isinstance(v, bool) or not isinstance(v, _NUM) or not math.isfinite(v):
             raise ValueError(f"field {k!r}: expected a finite number, got {v!r}")
         vals[k] = float(v)
-    sigma = body.get("sigma")
+    sigma = src.get("sigma")
     if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, _NUM)
                               or not math.isfinite(sigma) or sigma < 0):
         raise ValueError(f"field 'sigma': expected a number >= 0 or null, got {sigma!r}")

