@@ -49,40 +49,27 @@ class WideRun:
 def record(frames: int, fps: float = 15.0, width: int = 820, speed: float = 0.4,
            algorithm: str = "kmea") -> WideRun:
     """Render and measure ``frames`` instants of both wide-scene cameras."""
-    from kmea import estimators
-    from kmea.robots import robot_pose
+    from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
     from kmea.sim.renderer import Renderer
     from kmea.sim.scenes import get_scene
-    from kmea.vision.detection import DetectorConfig, MarkerDetector
-    from kmea.vision.marker_pose import estimate_marker_poses
 
-    est = estimators.get(algorithm)
     ts = np.arange(frames) / fps
     truth: list[dict] = []
     meas: list[list[dict]] = [[], []]
     for cam in (0, 1):
         scene = get_scene("wide", camera=cam, width=width, fps=fps, speed=speed)
         rend = Renderer(scene)
-        world_map = scene.effective_map()
-        det = MarkerDetector(DetectorConfig(dictionary=world_map.dictionary))
-        specs = scene.robot_specs()
-        lengths = {m: s.length for s in specs for m in s.markers}
-        heights = {m: s.height for s in specs for m in s.markers}
+        # What a camera's daemon computes (no leave-one-out; robots unfiltered: the raw
+        # measurements with their sigmas, as a daemon sends them to a fusion node).
+        pipe = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
+            algorithm=algorithm, loo=False, robots=tuple(scene.robot_specs())))
         for i in range(frames):
             fr = rend.render(i)
             if cam == 0:
                 truth.append(dict(fr.truth.robots))
-            d = det.detect(fr.image)
-            obs, _ = estimate_marker_poses(d.ids, d.corners, scene.camera, lengths, world_map)
-            e = est.estimate(obs, world_map, camera=scene.camera.intrinsics,
-                             plane_heights=heights)
-            out = {}
-            if e.ok:
-                for s in specs:
-                    p = robot_pose(s, e.markers)
-                    if p is not None:
-                        out[s.name] = (p.x, p.y, p.theta, p.sigma)
-            meas[cam].append(out)
+            res = pipe.process(FrameInput(i, fr.timestamp, fr.image))
+            meas[cam].append({n: (f.x, f.y, f.theta, f.sigma) for n, f in res.robots.items()}
+                             if res.ok else {})
     return WideRun(ts, truth, meas)
 
 
