@@ -170,3 +170,32 @@ def test_kalman_beats_raw_measurements_on_a_drive() -> None:
     assert kal["pos"] < raw["pos"] and kal["head"] < raw["head"]
     assert kal["caught"] >= 0.9 * kal["outliers"] > 0 and raw["caught"] == 0
     assert kal["jumps_outlier"] < raw["jumps_outlier"]
+
+
+def test_pipeline_robot_filter_kind_kalman_reports_rejections() -> None:
+    from kmea.estimators.base import Estimate, MarkerEstimate
+    from kmea.maps import default_map
+    from kmea.pipeline import Pipeline, PipelineSettings
+    from kmea.robots import RobotSpec
+    from kmea.vision.camera import pi_camera_v2
+
+    spec = RobotSpec("amr2", (42,), height=0.2)
+    settings = PipelineSettings(filter_kind="kalman", robots=(spec,))
+    pipe = Pipeline(pi_camera_v2(), default_map(), settings)
+
+    def est(x: float, y: float) -> Estimate:
+        me = MarkerEstimate(42, np.array([x, y, 0.2]), np.eye(3), 0.0, 0.003)
+        return Estimate("kmea", True, {42: me})
+
+    for k in range(30):  # driving along +x at 0.3 m/s
+        fixes = pipe.robot_fixes(est(0.01 * k, 0.0), k / 30)
+    fix = fixes["amr2"]
+    assert fix.vx == pytest.approx(0.3, abs=0.1) and fix.omega is not None
+    assert fix.raw == pytest.approx((0.29, 0.0, 0.0, 0.003))
+    rejections: dict[str, str] = {}
+    assert pipe.robot_fixes(est(0.45, 0.0), 1.0, rejections) == {}
+    assert "position jump 15." in rejections["amr2"]
+    # The paper's filter (the library's default kind): every measurement, no velocity.
+    iir = Pipeline(pi_camera_v2(), default_map(), PipelineSettings(robots=(spec,)))
+    fix = iir.robot_fixes(est(0.45, 0.0), 1.0)["amr2"]
+    assert (fix.x, fix.vx, fix.raw) == (pytest.approx(0.45), None, None)
