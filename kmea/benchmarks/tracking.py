@@ -286,8 +286,8 @@ def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple]]:
 def _row(name: str, c: dict, a: dict) -> str:
     re = "-" if math.isnan(a["reacquire_s"]) else f"{a['reacquire_s'] * 1000:.0f} ms"
     return (f"  {name:<16} {c['pos'] * 1000:6.2f} {math.degrees(c['head']):5.2f} "
-            f"{c['lag'] * 1000:4.0f} {a['pos'] * 1000:6.2f} {math.degrees(a['head']):5.2f} "
-            f"{a['lag'] * 1000:4.0f} {a['jumps_outlier']:4d}/{a['outliers']:<4d} "
+            f"{round(c['lag'] * 1000):4d} {a['pos'] * 1000:6.2f} {math.degrees(a['head']):5.2f} "
+            f"{round(a['lag'] * 1000):4d} {a['jumps_outlier']:4d}/{a['outliers']:<4d} "
             f"{a['max_jump_outlier'] * 1000:7.1f} "
             f"{a['jumps_all']:6d} {a['caught']:4d}/{a['outliers']:<4d} {a['false_rej']:6d} "
             f"{re:>9}")
@@ -304,7 +304,7 @@ def run(quick: bool = False) -> None:
     print("  grid (model, accel, turn: pos mm, head deg, lag ms):")
     for m, qa, qw, p, h, lag, _ in grid:
         print(f"    {m:<4} {qa:5g} {qw:5g}: {p * 1000:6.2f} {math.degrees(h):6.2f} "
-              f"{lag * 1000:5.0f}")
+              f"{round(lag * 1000):5d}")
     sets = HELD_OUT if not quick else tuple(
         MotionSet(s.name, s.seeds[:2], s.max_speed, s.max_turn, s.sigma, s.fps, 20.0,
                   s.max_accel)
