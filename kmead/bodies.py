@@ -95,10 +95,7 @@ def robots_body(res: FrameResult, tracks: Iterable[RobotTrack]) -> RobotsBody:
                     "valid": tr.name in res.robots,
                     "age_s": (res.timestamp - tr.last_seen) if seen else None,
                     "stale": tr.stale, "destinations": list(tr.destinations),
-                    "sent": tr.sent, "seq": tr.seq, "send_errors": tr.errors,
-                    # the tracking filter's velocity (m/s) and turn rate (rad/s), else None
-                    "vx": tr.extra.get("vx"), "vy": tr.extra.get("vy"),
-                    "omega": tr.extra.get("omega")})
+                    "sent": tr.sent, "seq": tr.seq, "send_errors": tr.errors})
     return {"t": res.timestamp, "frame": res.index, "robots": out}
 
 

@@ -29,9 +29,9 @@ from typing import Any
 
 import zmq
 
+from kmea import protocol as P
 from kmea.fusion import Fusion, Measurement
 from kmea.tracking import TrackerConfig
-from kmead import protocol as P
 from kmead.config import Config, ConfigError
 from kmead.csvlog import CsvLog, row
 from kmead.relay import Relay
@@ -131,6 +131,24 @@ def measurement_from(label: str, body: dict, names: set[str]) -> Measurement | N
         raise ValueError(f"field 'sigma': expected a number >= 0 or null, got {sigma!r}")
     return Measurement(label, name, vals["t"], vals["x"], vals["y"], vals["theta"],
                        None if sigma is None else float(sigma))
+
+
+class _NoStats:
+    """The statistics a fusion node does not have (no markers): an empty window."""
+
+    window = 0
+    mean_error = None
+    max_error = None
+
+    def per_marker(self) -> dict:
+        return {}
+
+    def reset(self) -> None:
+        pass
+
+
+class _NoPipeline:
+    algorithm = "fusion"
 
 
 class FusionNode:
@@ -285,7 +303,9 @@ class FusionNode:
         return {"t": now if math.isfinite(now) else time.time(), "frame": self.outputs,
                 "robots": out}
 
-    def status_body(self) -> dict:
+    def status(self) -> P.StatusBody:
+        """The ``status`` body: a daemon's, without camera (zeros) and map (its robots),
+        plus ``inputs`` and ``fusion``."""
         c = self.csv
         now_wall = time.time()
         lat = sorted(self.latency_ms)
@@ -293,10 +313,12 @@ class FusionNode:
             "t": now_wall, "uptime": now_wall - self.t0,
             "source": "fusion: " + ", ".join(f"{i.label}={i.endpoint}" for i in self.inputs),
             "config_file": self.cfg.user_file or "<default config>",
-            "config_files": self.cfg.files, "algorithm": "fusion",
+            "config_files": self.cfg.files, "algorithm": "fusion", "algorithms": ["fusion"],
             "logging": {"active": c is not None, "path": str(c.path) if c else None,
                         "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
             "recording": {"active": False, "path": None, "frames": 0, "bytes": 0},
+            "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
+            "map": {"name": "(fusion node: no map)", "n": 0},
             "frames": self.outputs, "dropped": sum(i.dropped_old for i in self.inputs),
             "bad_frames": sum(i.bad for i in self.inputs),
             "inputs": [i.body(now_wall) for i in self.inputs],
@@ -318,17 +340,11 @@ class FusionNode:
     def event(self, level: str, text: str) -> None:
         getattr(log, "warning" if level == "warning" else level, log.info)(text)
 
-    @property
-    def last_frame_body(self) -> dict | None:
-        return None
-
-    @property
-    def last_result(self) -> None:
-        return None
-
-    def _stats_body(self, res: Any = None) -> dict:
-        return {"t": time.time(), "frame": self.outputs, "algorithm": "fusion", "window": 0,
-                "mean_error": None, "max_error": None, "markers": []}
+    # No frames, no marker statistics: what the control thread's get_state reads.
+    last_frame_body: dict = {}  # never mutated
+    last_result = None
+    pipeline = _NoPipeline()
+    stats = _NoStats()
 
     def tick(self) -> None:
         """Stale robots on the fusion clock (called by the control thread and the loop)."""
@@ -371,15 +387,11 @@ class FusionNode:
 
     start_recording = stop_recording = reload_map = save_config = _unsupported
 
-    @property
-    def stats(self) -> Any:
-        raise ValueError("not available on a fusion node (no statistics)")
-
     # ------------------------------------------------------------------ run
     def run(self) -> int:
         if self.control is not None:
             self.control.start()
-        self.publish(P.TOPIC_STATUS, self.status_body())
+        self.publish(P.TOPIC_STATUS, self.status())
         log.info("fusion: %d inputs (%s), telemetry %s", len(self.inputs),
                  ", ".join(i.endpoint for i in self.inputs), self.telemetry.bound or "off")
         poller = zmq.Poller()
@@ -411,7 +423,7 @@ class FusionNode:
                 if self.control is None and now - last_status >= \
                         self.cfg["network"]["status_period_s"]:
                     last_status = now
-                    self.publish(P.TOPIC_STATUS, self.status_body())
+                    self.publish(P.TOPIC_STATUS, self.status())
         except zmq.ZMQError as e:
             if e.errno != zmq.ETERM:
                 raise

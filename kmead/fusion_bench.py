@@ -22,7 +22,7 @@ from pathlib import Path
 
 import zmq
 
-from kmead import protocol as P
+from kmea import protocol as P
 from kmead.relay import parse_datagram
 
 

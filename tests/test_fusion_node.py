@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 import zmq
 
+from kmea import protocol as P
 from kmea.cli import main as kmea_main
 from kmea.sim.scenes import get_scene
-from kmead import protocol as P
 from kmead.config import ConfigError, load_config
 from kmead.csvlog import HEADER
 from kmead.daemon import Daemon
@@ -125,12 +125,14 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
             assert math.hypot(m["x"] - x, m["y"] - y) < 0.02, m
             assert abs(m["vx"]) < 0.5 and m["age"] == 0.0  # 0.01 m/s, 10 noisy fixes/s
         sources = {}
-        end = time.monotonic() + 5
-        while time.monotonic() < end and sources.get("amr1") != "cam0+cam1":
+        expected = {"amr1": "cam0+cam1", "amr2": "cam1"}
+        end = time.monotonic() + 10
+        while time.monotonic() < end and sources != expected:
             if sub.poll(200):
                 body = P.decode(sub.recv_multipart())[1]
                 sources = {r["name"]: r["source"] for r in body["robots"]}
-        assert sources == {"amr1": "cam0+cam1", "amr2": "cam1"}
+        assert sources == expected, (node.status(),
+                                                                  list(node.fusion.tracker.rejections))
 
         # 2. Hostile input: junk frames, wrong fields, a non-finite pose; nothing breaks.
         for frames in ([b"robot.amr1", b"\xff\x00"], [b"robot.amr1"],
@@ -152,7 +154,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
         assert any(m["name"] == "amr2" and not m["valid"] for _, m in seen)
         seen = udp.wait(lambda s: sum(m["name"] == "amr1" for _, m in s) > 5, 5.0)
         amr1 = [m for _, m in seen if m["name"] == "amr1"]
-        assert len(amr1) > 5 and all(m["valid"] for m in amr1), (amr1, node.status_body())
+        assert len(amr1) > 5 and all(m["valid"] for m in amr1), (amr1, node.status())
         assert all(m["t"] > t_stop - 1.5 for m in amr1)
 
         # 4. It comes back on the same endpoint: amr2 is picked up again.
@@ -163,12 +165,16 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
     finally:
         node.stop()
         tn.join(timeout=10)
-        status = node.status_body()
+        status = node.status()
+        robots_body = node.robots_body()
         node.close()
         sub.close(linger=0)
         junk.close(linger=0)
         udp.sock.close()
     assert status["fusion"]["latency_ms_p99"] is not None
+    # The same declared message types as a daemon's (with the fusion node's own fields).
+    P.check_body(P.TOPIC_STATUS, status, exact=True)
+    P.check_body(P.TOPIC_ROBOTS, robots_body, exact=True)
     assert [i["label"] for i in status["inputs"]] == ["cam0", "cam1", "junk"]
 
     # 5. The CSV log is the daemon's format.
@@ -192,7 +198,8 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
 def test_fuse_command_line_errors(capsys: pytest.CaptureFixture) -> None:
     assert kmea_main(["fuse", "--headless"]) == 2
     assert "no input" in capsys.readouterr().err
-    assert kmea_main(["fuse", "--input", "tcp://nowhere", "--headless"]) == 2
+    off = ["--set", 'network.telemetry=""', "--set", 'network.control=""']
+    assert kmea_main(["fuse", "--input", "tcp://nowhere", "--headless", *off]) == 2
     assert "--input" in capsys.readouterr().err
     assert kmea_main(["fuse", "--input", "tcp://127.0.0.1:1", "--set", "fusion.max_age_s=0",
                       "--headless"]) == 2
