@@ -204,6 +204,12 @@ def test_fuse_command_line_errors(capsys: pytest.CaptureFixture) -> None:
     assert kmea_main(["fuse", "--input", "tcp://127.0.0.1:1", "--set", "fusion.max_age_s=0",
                       "--headless"]) == 2
     assert "fusion.max_age_s" in capsys.readouterr().err
+    for bad, key in (("filter.kind=\"ukf\"", "filter.kind"),
+                     ("filter.gate_probability=1.0", "filter.gate_probability"),
+                     ("fusion.inputs=[\"http://x\"]", "fusion.inputs")):
+        assert kmea_main(["fuse", "--input", "tcp://127.0.0.1:1", "--set", bad,
+                          "--headless", *off]) == 2
+        assert key in capsys.readouterr().err
 
 
 def test_inputs_and_measurements_are_checked() -> None:
