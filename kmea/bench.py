@@ -16,6 +16,8 @@ BENCHES: dict[str, str] = {
     "detection": "kmea.benchmarks.detection:run",
     "render": "kmea.benchmarks.render:run",
     "pipeline": "kmea.benchmarks.pipeline:run",
+    "tracking": "kmea.benchmarks.tracking:run",
+    "fusion": "kmea.benchmarks.fusion:run",
 }
 
 

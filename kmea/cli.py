@@ -1,4 +1,4 @@
-"""``kmea``: the tools (calibrate, print, experiment, bench, map).
+"""``kmea``: the tools (calibrate, print, experiment, bench, map, fuse).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
@@ -18,6 +18,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
     "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
     "bench": ("kmea.bench", "benchmarks that print figures"),
+    # The one place the library reaches into the daemon, lazily: the fusion node is a
+    # daemon-side tool (sockets, UDP, files).
+    "fuse": ("kmead.fusion", "fuse several cameras' robot poses (docs/fusion.md)"),
 }
 
 
@@ -54,7 +57,10 @@ def _daemon_benches() -> dict:
         from kmead import bench
     except ImportError:
         return {}
-    return {"daemon": bench.run_daemon, "latency": bench.run_latency}
+    from kmead import fusion_bench
+
+    return {"daemon": bench.run_daemon, "latency": bench.run_latency,
+            "fusion-node": fusion_bench.run}
 
 
 if __name__ == "__main__":

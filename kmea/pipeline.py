@@ -26,6 +26,7 @@ from kmea.filters import PoseFilter
 from kmea.geometry import wrap_angle
 from kmea.maps import MarkerMap
 from kmea.robots import RobotSpec, robot_pose
+from kmea.tracking import Tracker, TrackerConfig
 from kmea.vision.camera import CameraModel
 from kmea.vision.detection import DetectorConfig, MarkerDetector
 
@@ -60,7 +61,11 @@ class FrameInput:
 
 @dataclass
 class RobotFix:
-    """A robot pose in one frame: world x, y (m), theta (rad), 1-sigma (m) or None."""
+    """A robot pose in one frame: world x, y (m), theta (rad), 1-sigma (m) or None.
+
+    With the tracking filter: vx, vy (world velocity, m/s), omega (turn rate, rad/s), and
+    raw, the measurement before filtering (x, y, theta, sigma), which a fusion node fuses.
+    """
 
     name: str
     x: float
@@ -68,6 +73,10 @@ class RobotFix:
     theta: float
     sigma: float | None
     markers: list[int]
+    vx: float | None = None
+    vy: float | None = None
+    omega: float | None = None
+    raw: tuple[float, float, float, float | None] | None = None
 
 
 @dataclass
@@ -88,6 +97,8 @@ class FrameResult:
     timings: dict[str, float]
     t_capture: float = 0.0
     meta: dict = field(default_factory=dict)
+    #: robot name -> why the tracking filter rejected its measurement in this frame
+    robot_rejections: dict[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -102,8 +113,9 @@ class PipelineSettings:
     see :class:`kmea.vision.detection.DetectorConfig`; fast, fast_window, full_every: the
     fast detector (:mod:`kmea.vision.fastdetect`); marker_length: side of markers the map
     and the robots do not size; algorithm: an estimator name (:func:`kmea.estimators.get`);
-    alpha, reset_after_s: the pose filter; loo: compute leave-one-out errors; robots: the
-    robots carrying markers.
+    alpha, reset_after_s: the pose filter; filter_kind: the robots' filter, "iir" (the
+    paper's, with alpha) or "kalman" (:mod:`kmea.tracking`, configured by ``tracker``);
+    loo: compute leave-one-out errors; robots: the robots carrying markers.
     """
 
     dictionary: str = ""
@@ -116,6 +128,8 @@ class PipelineSettings:
     algorithm: str = "kmea"
     alpha: float = 1.0
     reset_after_s: float = 1.0
+    filter_kind: str = "iir"
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
     loo: bool = True
     robots: tuple[RobotSpec, ...] = ()
 
@@ -129,11 +143,20 @@ class PipelineSettings:
                    fast_window=int(d["fast_window"]), full_every=int(d["full_every"]),
                    marker_length=float(d["marker_length"]),
                    algorithm=data["estimator"]["algorithm"], alpha=f["alpha"],
-                   reset_after_s=f["reset_after_s"], loo=bool(data["stats"]["loo"]),
+                   reset_after_s=f["reset_after_s"], filter_kind=f.get("kind", "iir"),
+                   tracker=tracker_config(f), loo=bool(data["stats"]["loo"]),
                    robots=tuple(RobotSpec(name=r["name"], markers=tuple(r["markers"]),
                                           height=r["height"], length=r["length"],
                                           separation=r["separation"])
                                 for r in data["robots"]))
+
+
+def tracker_config(f: Mapping[str, Any]) -> TrackerConfig:
+    """The tracking filter's configuration from a ``[filter]`` table (missing keys: the
+    defaults of :class:`TrackerConfig`)."""
+    keys = ("model", "accel_noise", "turn_noise", "gate_probability", "reacquire_n",
+            "reset_after_s")
+    return TrackerConfig(**{k: f[k] for k in keys if k in f})
 
 
 def new_detector(config: DetectorConfig, fast: bool = False, fast_window: int = 0,
@@ -238,6 +261,9 @@ class Pipeline:
     def configure_filter(self) -> None:
         s = self.settings
         self.filter = PoseFilter(alpha=s.alpha, reset_after_s=s.reset_after_s)
+        if s.filter_kind not in ("iir", "kalman"):
+            raise ValueError(f"filter kind must be iir or kalman, got {s.filter_kind!r}")
+        self.tracker = Tracker(s.tracker) if s.filter_kind == "kalman" else None
 
     def configure_robots(self) -> None:
         self.robot_specs = list(self.settings.robots)
@@ -330,7 +356,8 @@ class Pipeline:
                 markers[mid] = (np.asarray(p, dtype=float), float(yaw))
         t4 = time.perf_counter()
         tm["filter"] = (t4 - t3) * 1e3
-        robots = self.robot_fixes(est, inp.timestamp)
+        rejections: dict[str, str] = {}
+        robots = self.robot_fixes(est, inp.timestamp, rejections)
         if on_robots is not None:
             on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
         t5 = time.perf_counter()
@@ -343,18 +370,32 @@ class Pipeline:
                 loo_err = {}
         tm["loo"] = (time.perf_counter() - t5) * 1e3
         return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
-                           est, markers, loo_err, robots, tm, inp.t_capture, inp.meta)
+                           est, markers, loo_err, robots, tm, inp.t_capture, inp.meta,
+                           rejections)
 
-    def robot_fixes(self, est: Estimate, t: float) -> dict[str, RobotFix]:
-        """Robot poses from the raw marker estimates (kmea.robots), then filtered per robot."""
+    def robot_fixes(self, est: Estimate, t: float,
+                    rejections: dict[str, str] | None = None) -> dict[str, RobotFix]:
+        """Robot poses from the raw marker estimates (kmea.robots), then filtered per robot
+        (the IIR filter, or the tracking filter: a measurement it rejects gives no fix this
+        frame, and its reason goes to ``rejections``)."""
         out: dict[str, RobotFix] = {}
         for spec in self.robot_specs:
             pose = robot_pose(spec, est.markers)
             if pose is None:
+                continue
+            if self.tracker is not None:
+                o = self.tracker.update(spec.name, t, pose.x, pose.y, pose.theta, pose.sigma)
+                if not o.accepted or o.state is None:
+                    if rejections is not None:
+                        rejections[spec.name] = o.reason
+                    continue
+                st = o.state
+                out[spec.name] = RobotFix(spec.name, st.x, st.y, st.theta, st.sigma,
+                                          list(pose.markers_seen), st.vx, st.vy, st.omega,
+                                          (pose.x, pose.y, pose.theta, pose.sigma))
                 continue
             p, th = self.filter.update(("robot", spec.name), t,
                                        np.array([pose.x, pose.y, pose.z]), pose.theta)
             out[spec.name] = RobotFix(spec.name, float(p[0]), float(p[1]), float(th),
                                       pose.sigma, list(pose.markers_seen))
         return out
-

@@ -109,7 +109,20 @@ class MarkersBody(TypedDict):
     markers: list[MarkerRow]
 
 
-class RobotRow(TypedDict):
+class _RobotRowExtra(TypedDict, total=False):
+    """Optional fields of a ``robots`` row, sent by a fusion node (``kmea fuse``): the
+    tracking filter's world velocity (m/s) and turn rate (rad/s), ``source`` (the cameras
+    that saw the robot recently, "cam0+cam1") and ``sources`` (camera -> s since its last
+    measurement). A daemon sends the velocity in ``robot.<name>`` only."""
+
+    vx: float | None
+    vy: float | None
+    omega: float | None
+    source: str
+    sources: dict[str, float]
+
+
+class RobotRow(_RobotRowExtra):
     """One configured robot of a ``robots`` body."""
 
     name: str
@@ -135,7 +148,31 @@ class RobotsBody(TypedDict):
     robots: list[RobotRow]
 
 
-class RobotMessage(TypedDict):
+class RawMeasurement(TypedDict):
+    """A robot measurement before the tracking filter (m, rad; sigma m or None)."""
+
+    x: float
+    y: float
+    theta: float
+    sigma: float | None
+
+
+class _RobotMessageExtra(TypedDict, total=False):
+    """Optional fields of a valid ``robot.<name>`` message with the tracking filter: world
+    velocity vx, vy (m/s), turn rate omega (rad/s), age (s predicted past the measurement),
+    raw (the measurement, what a fusion node fuses); from a fusion node, source and
+    t_capture (the newest measurement's time, s) instead of raw."""
+
+    vx: float
+    vy: float
+    omega: float
+    age: float
+    raw: RawMeasurement
+    source: str
+    t_capture: float
+
+
+class RobotMessage(_RobotMessageExtra):
     """``robot.<name>``: one relay message (the UDP datagram's fields)."""
 
     name: str
@@ -198,7 +235,39 @@ class MapInfo(TypedDict):
     n: int
 
 
-class StatusBody(TypedDict):
+class InputState(TypedDict):
+    """A fusion node's input (one camera's telemetry): counters, seconds since its last
+    message, median delay (arrival - capture time, s)."""
+
+    label: str
+    endpoint: str
+    received: int
+    measurements: int
+    bad: int
+    dropped_old: int
+    silent_s: float | None
+    delay_s: float | None
+
+
+class FusionState(TypedDict):
+    """A fusion node's tracking counters and the latency it adds (ms)."""
+
+    accepted: int
+    rejected: int
+    reacquired: int
+    dropped_old: int
+    latency_ms_p50: float | None
+    latency_ms_p99: float | None
+
+
+class _StatusExtra(TypedDict, total=False):
+    """A fusion node's ``status`` (``kmea fuse``) also has its inputs and counters."""
+
+    inputs: list[InputState]
+    fusion: FusionState
+
+
+class StatusBody(_StatusExtra):
     """``status``: the daemon's state (every ``network.status_period_s``)."""
 
     t: float

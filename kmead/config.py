@@ -141,6 +141,19 @@ def _dictionary(v: Any, where: str) -> str:
     return s
 
 
+def _probability(v: Any, where: str) -> float:
+    x = _number(v, where)
+    if not 0 < x < 1:
+        raise ConfigError(f"{where}: must be in (0, 1), got {v!r}")
+    return x
+
+
+def _endpoints(v: Any, where: str) -> list[str]:
+    if not isinstance(v, list):
+        raise ConfigError(f"{where}: expected a list of ZeroMQ endpoints")
+    return [_endpoint(e, f"{where}[{i}]") for i, e in enumerate(v)]
+
+
 def _endpoint(v: Any, where: str) -> str:
     s = _str(v, where)
     if s and not re.match(r"^(tcp://[^:/]+:(\d+|\*)|ipc://.+|inproc://.+)$", s):
@@ -172,10 +185,14 @@ SCHEMA: dict[str, dict[str, Check]] = {
                  "parameters": _detector_parameters, "workers": _int_ge(0),
                  "fast": _bool, "fast_window": _int_ge(0), "full_every": _int_ge(1)},
     "estimator": {"algorithm": _algorithm},
-    "filter": {"alpha": _alpha, "reset_after_s": _positive},
+    "filter": {"alpha": _alpha, "reset_after_s": _positive, "kind": _choice("iir", "kalman"),
+               "model": _choice("cv", "ctrv"), "accel_noise": _positive,
+               "turn_noise": _positive, "gate_probability": _probability,
+               "reacquire_n": _int_ge(1), "predict": _bool},
     "stats": {"loo": _bool, "window": _int_ge(1), "displaced_threshold": _positive,
               "displaced_frames": _int_ge(1)},
-    "relay": {"stale_after_s": _positive, "stale_repeat_s": _nonneg},
+    "relay": {"stale_after_s": _positive, "stale_repeat_s": _nonneg, "extra_fields": _bool},
+    "fusion": {"inputs": _endpoints, "max_age_s": _positive},
     "network": {"telemetry": _endpoint, "control": _endpoint, "status_period_s": _positive},
     "log": {"csv": _str, "record": _str,
             "level": _choice("debug", "info", "warning", "error")},
@@ -186,8 +203,10 @@ ROBOT_KEYS = ("name", "markers", "height", "length", "separation", "destinations
 # Keys a live ``set`` request may change (the rest need a restart).
 LIVE_KEYS = {
     "estimator.algorithm", "filter.alpha", "filter.reset_after_s", "robots",
-    "relay.stale_after_s", "relay.stale_repeat_s", "stats.window", "stats.loo",
-    "stats.displaced_threshold", "stats.displaced_frames", "log.level",
+    "filter.kind", "filter.model", "filter.accel_noise", "filter.turn_noise",
+    "filter.gate_probability", "filter.reacquire_n", "filter.predict",
+    "relay.stale_after_s", "relay.stale_repeat_s", "relay.extra_fields", "stats.window",
+    "stats.loo", "stats.displaced_threshold", "stats.displaced_frames", "log.level",
 }
 LIVE_SECTIONS = {"detector"}
 # Keys of a live section that still need a restart (the detection threads start once).

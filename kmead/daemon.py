@@ -114,7 +114,8 @@ class Daemon:
         except OSError as e:
             raise StartupError(str(e), EXIT_RUNTIME) from None
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
-                           cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish)
+                           cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish,
+                           extra_fields=cfg["relay"]["extra_fields"])
         if net["control"]:
             try:
                 self.control = ControlServer(net["control"], self)
@@ -197,6 +198,7 @@ class Daemon:
             elif key.startswith("relay."):
                 self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
                 self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
+                self.relay.extra_fields = self.cfg["relay"]["extra_fields"]
             elif key == "stats.window":
                 self.stats = WindowStats(v, self.world_map.ref_length())
             elif key in ("stats.displaced_threshold", "stats.displaced_frames"):
@@ -308,6 +310,9 @@ class Daemon:
         for mid, e in res.loo.items():
             self.stats.add(mid, e)
         self._displacement_events(res)
+        for name, reason in res.robot_rejections.items():
+            self.event("warning", f"robot {name}: measurement rejected by the tracking "
+                                  f"filter: {reason}")
         # 3. files
         if self.csv is not None:
             self.csv.write_rows(csv_lines(res, self.world_map, self.pipeline.robot_heights))
@@ -344,8 +349,25 @@ class Daemon:
     def _relay_robots(self, t: float, fixes: dict) -> None:
         """Robot messages, sent from inside the pipeline as soon as the poses are known."""
         tot = self.totals
+        tracker = self.pipeline.tracker
+        # Latency compensation: the pose predicted to the send time (live sources only: a
+        # file's timestamps are not the wall clock).
+        predict = self.cfg["filter"]["predict"] and self.live and tracker is not None
         for fix in fixes.values():
-            self.relay.update(fix.name, t, fix.x, fix.y, fix.theta, fix.sigma)
+            extra = None
+            t_fix, x, y, th, sigma = t, fix.x, fix.y, fix.theta, fix.sigma
+            if fix.vx is not None:
+                extra = {"vx": fix.vx, "vy": fix.vy, "omega": fix.omega, "age": 0.0}
+                if fix.raw is not None:  # the measurement itself, for a fusion node
+                    extra["raw"] = dict(zip(("x", "y", "theta", "sigma"), fix.raw,
+                                            strict=True))
+                if predict:
+                    now = time.time()
+                    st = tracker.predict(fix.name, now)
+                    if st is not None and now >= t:
+                        t_fix, x, y, th, sigma = now, st.x, st.y, st.theta, st.sigma
+                        extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t)
+            self.relay.update(fix.name, t_fix, x, y, th, sigma, extra)
             tot.robots_seen.add(fix.name)
         for name in self.relay.tick(t):
             self.event("warning", f"robot {name} not seen for "

@@ -4,10 +4,20 @@ Datagram (one line of ASCII, no newline, ``;``-separated ``key=value``)::
 
     name=amr1;seq=17;t=1700000000.123456;x=0.512300;y=0.200100;theta=1.570800;valid=1
 
-``seq`` counts this robot's messages (all destinations share it), ``t`` is the frame
-timestamp (s), x/y metres in the world frame, theta radians in [-pi, pi). ``valid=0``: the
-robot has not been seen for ``relay.stale_after_s``; x/y/theta then repeat the last known
-pose (or 0 if never seen).
+``seq`` counts this robot's messages (all destinations share it), ``t`` is the time the
+pose refers to (s): the frame's capture time, or the send time when ``filter.predict`` is on
+(the pose is then predicted to it). x/y metres in the world frame, theta radians in
+[-pi, pi). ``valid=0``: the robot has not been seen for ``relay.stale_after_s``; x/y/theta
+then repeat the last known pose (or 0 if never seen).
+
+With ``relay.extra_fields`` on, fields follow ``valid`` (after the existing ones, whose
+order never changes, so a parser reading the first seven keeps working)::
+
+    ...;valid=1;vx=0.120000;vy=-0.010000;omega=0.300000;sigma=0.002000;age=0.000000
+
+vx, vy: world velocity m/s; omega: turn rate rad/s (tracking filter; 0 with the IIR
+filter); sigma: 1-sigma position m (0 when unknown); age: s from the newest measurement to
+``t`` (0 unless predicted).
 """
 
 from __future__ import annotations
@@ -45,24 +55,34 @@ class RobotTrack:
     extra: dict = field(default_factory=dict)
 
 
+EXTRA_FIELDS = ("vx", "vy", "omega", "sigma", "age")
+
+
 def datagram(name: str, seq: int, t: float, x: float, y: float, theta: float,
-             valid: bool) -> bytes:
-    """The ASCII datagram of one message (see the module docstring)."""
-    def f(v: float) -> str:
-        return f"{(v if math.isfinite(v) else 0.0):.6f}"
-    return (f"name={name};seq={seq};t={t:.6f};x={f(x)};y={f(y)};theta={f(theta)};"
-            f"valid={int(valid)}").encode("ascii")
+             valid: bool, extra: dict[str, float] | None = None) -> bytes:
+    """The ASCII datagram of one message (see the module docstring); ``extra``: the
+    :data:`EXTRA_FIELDS` to append (missing or non-finite ones are sent as 0)."""
+    def f(v: float | None) -> str:
+        return f"{(v if v is not None and math.isfinite(v) else 0.0):.6f}"
+    text = (f"name={name};seq={seq};t={t:.6f};x={f(x)};y={f(y)};theta={f(theta)};"
+            f"valid={int(valid)}")
+    if extra is not None:
+        text += "".join(f";{k}={f(extra.get(k))}" for k in EXTRA_FIELDS)
+    return text.encode("ascii")
 
 
 def parse_datagram(data: bytes) -> dict[str, Any]:
-    """Inverse of :func:`datagram` (for tests and for clients written in Python)."""
+    """Inverse of :func:`datagram` (for tests and for clients written in Python); extra
+    fields, when present, are floats under their names."""
     out: dict[str, Any] = {}
     for part in data.decode("ascii").split(";"):
         k, _, v = part.partition("=")
         out[k] = v
-    return {"name": out["name"], "seq": int(out["seq"]), "t": float(out["t"]),
-            "x": float(out["x"]), "y": float(out["y"]), "theta": float(out["theta"]),
-            "valid": out["valid"] == "1"}
+    res = {"name": out["name"], "seq": int(out["seq"]), "t": float(out["t"]),
+           "x": float(out["x"]), "y": float(out["y"]), "theta": float(out["theta"]),
+           "valid": out["valid"] == "1"}
+    res.update({k: float(out[k]) for k in EXTRA_FIELDS if k in out})
+    return res
 
 
 def _resolve(host: str, port: int) -> tuple[str, int] | None:
@@ -80,9 +100,10 @@ class Relay:
     """Sends robot poses; ``publish`` is called with (topic, body) for the telemetry topic."""
 
     def __init__(self, robots: list[dict], stale_after_s: float, stale_repeat_s: float,
-                 publish=None) -> None:
+                 publish=None, extra_fields: bool = False) -> None:
         self.stale_after_s = stale_after_s
         self.stale_repeat_s = stale_repeat_s
+        self.extra_fields = extra_fields
         self.publish = publish
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
@@ -105,7 +126,10 @@ class Relay:
 
     def _send(self, tr: RobotTrack, t: float, valid: bool) -> None:
         tr.seq += 1
-        data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid)
+        extra = None
+        if self.extra_fields:
+            extra = {"sigma": tr.sigma, **tr.extra} if valid else {}
+        data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid, extra)
         for addr in tr.addrs:
             if addr is None:  # a host name that did not resolve at configuration time
                 tr.errors += 1
@@ -117,15 +141,20 @@ class Relay:
                 # Unresolvable host, no route, full buffer: count it, never stall the loop.
                 tr.errors += 1
         if self.publish is not None:
-            self.publish(robot_topic(tr.name), {"name": tr.name, "seq": tr.seq, "t": t,
-                                                 "x": tr.x, "y": tr.y, "theta": tr.theta,
-                                                 "valid": valid, "sigma": tr.sigma})
+            body = {"name": tr.name, "seq": tr.seq, "t": t, "x": tr.x, "y": tr.y,
+                    "theta": tr.theta, "valid": valid, "sigma": tr.sigma}
+            if valid and tr.extra:
+                body.update(tr.extra)
+            self.publish(robot_topic(tr.name), body)
 
     def update(self, name: str, t: float, x: float, y: float, theta: float,
-               sigma: float | None = None) -> None:
-        """A fix of robot ``name`` at source time ``t``: send it everywhere."""
+               sigma: float | None = None, extra: dict[str, Any] | None = None) -> None:
+        """A fix of robot ``name`` at time ``t`` (the time the pose refers to): send it
+        everywhere. ``extra``: vx, vy, omega, age (datagram extra fields, telemetry) and
+        anything else for the telemetry body (e.g. the fusion's ``source``)."""
         tr = self.tracks[name]
         tr.x, tr.y, tr.theta, tr.sigma = x, y, theta, sigma
+        tr.extra = dict(extra) if extra else {}
         tr.last_seen = t
         tr.stale = False
         tr.last_stale_sent = None

@@ -17,11 +17,11 @@ ROOT = Path(__file__).resolve().parent.parent
 PKG = ROOT / "kmea"
 ALGORITHM_FILES = sorted(
     [PKG / "map_model.py", PKG / "aruco_names.py", PKG / "metrics.py",
-     PKG / "filters.py",
+     PKG / "filters.py", PKG / "tracking.py", PKG / "fusion.py",
      PKG / "robots.py", *(PKG / "estimators").glob("*.py"), *(PKG / "geometry").glob("*.py")]
 )
 ALGORITHM_MODULES = {"kmea", "kmea.map_model", "kmea.aruco_names",
-                     "kmea.metrics", "kmea.filters",
+                     "kmea.metrics", "kmea.filters", "kmea.tracking", "kmea.fusion",
                      "kmea.robots", "kmea.estimators", "kmea.geometry"} | {
     f"kmea.{pkg}.{p.stem}" for pkg in ("estimators", "geometry")
     for p in (PKG / pkg).glob("*.py") if p.stem != "__init__"}

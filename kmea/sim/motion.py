@@ -8,13 +8,14 @@ not entered the scene yet). Robots drive forwards: their heading is the path's t
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["CrossingPath", "LoopPath", "Path", "Stationary"]
+__all__ = ["CrossingPath", "LoopPath", "Path", "Stationary", "WallClock"]
 
 Pose2D = tuple[float, float, float]
 
@@ -154,3 +155,17 @@ class CrossingPath:
         x1, y1 = float(self.end[0]), float(self.end[1])
         th = math.atan2(y1 - y0, x1 - x0) if self.theta is None else float(self.theta)
         return (x0 + a * (x1 - x0), y0 + a * (y1 - y0), th)
+
+
+@dataclass(frozen=True)
+class WallClock:
+    """``path`` driven by the Unix time, ``time.time() - epoch`` s, instead of the frame time:
+    several simulated cameras rendered by separate processes, started at different moments,
+    show the robots where they are at the same instant (a paced source's timestamps are
+    Unix times too). Not reproducible from frame indices: for live runs only."""
+
+    path: Path
+    epoch: float = 0.0
+
+    def pose(self, t: float) -> Pose2D | None:
+        return self.path.pose(time.time() - self.epoch)

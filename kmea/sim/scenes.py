@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from kmea.maps import MarkerMap, default_map
-from kmea.sim.motion import LoopPath
+from kmea.sim.motion import LoopPath, WallClock
 from kmea.sim.scene import Effects, Occluder, Scene, SimRobot, look_at, pose_matrix
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
@@ -28,6 +28,8 @@ __all__ = [
     "scenario1_camera",
     "scenario2_camera",
     "scene_from_spec",
+    "wide_cameras",
+    "wide_map",
 ]
 
 #: The default fleet (as in config.toml): name, markers, height m, length m, separation m.
@@ -93,6 +95,80 @@ def raised_overrides(world_map: MarkerMap, ids: Sequence[int],
         m = world_map[mid]
         out[mid] = pose_matrix(m.rotation, m.position + np.array([0.0, 0.0, dz]))
     return out
+
+
+# ---------------------------------------------------------------------------- wide floor
+#: The wide scene: floor B is floor A moved by WIDE_DX m along +x; its floor markers carry
+#: ids 66-98 (A's floor ids in order), so one DICT_5X5_100 map holds both floors.
+WIDE_DX = 1.70
+WIDE_CAMERA_HEIGHT = 1.75
+#: Each camera 0.15 m inward of its floor's centre: the Pi Camera v2 (62.2 deg wide) covers
+#: +-1.055 m in x at the floor from 1.75 m, so each sees all of its floor and the views
+#: overlap on x = 0.50-1.20 m (0.70 m) at the floor, x = 0.62-1.09 m (0.47 m) at the robots'
+#: marker plane 0.20 m up; both floors' facing marker columns (x = 0.695, 1.005) lie in it.
+WIDE_CAMERA_X = (0.15, WIDE_DX - 0.15)
+_WIDE_LOOPS = {
+    "amr1": [(0.75, 0.44), (2.10, 0.42), (2.28, 0.32), (2.10, 0.22), (0.85, 0.24),
+             (-0.40, 0.22), (-0.58, 0.32), (-0.40, 0.42)],
+    "amr2": [(2.10, -0.44), (0.85, -0.42), (-0.40, -0.44), (-0.58, -0.34), (-0.40, -0.24),
+             (0.85, -0.26), (2.10, -0.24), (2.28, -0.34)],
+}
+
+
+def wide_map() -> MarkerMap:
+    """Two RobotAtFactory floors side by side (module constants above); floor A keeps its
+    markers (walls included), floor B has its 33 floor markers as ids 66-98."""
+    from dataclasses import replace
+
+    from kmea.maps import Marker
+
+    base = default_map()
+    markers = dict(base.markers)
+    floor_ids = [i for i in base.ids if base[i].on_floor]
+    for k, mid in enumerate(floor_ids):
+        m = base[mid]
+        markers[66 + k] = Marker(66 + k, m.position + np.array([WIDE_DX, 0.0, 0.0]),
+                                 m.rotation, m.length)
+    return replace(base, markers=markers, reference_length=None,
+                   name="RobotAtFactory 4.0 wide (two floors)",
+                   source="<built-in wide scene map>", extra={})
+
+
+def wide_cameras() -> list[np.ndarray]:
+    """cam2world of the wide scene's two cameras (1.75 m up, looking down, at
+    x = WIDE_CAMERA_X)."""
+    return [scenario1_camera(WIDE_CAMERA_HEIGHT, center=(x, 0.0)) for x in WIDE_CAMERA_X]
+
+
+def _wide(opts: dict[str, Any]) -> Scene:
+    opts = dict(opts)
+    idx = opts.pop("camera", 0)
+    if isinstance(idx, CameraModel):  # a camera model, as for the other scenes
+        opts["camera"], idx = idx, 0
+    if isinstance(idx, bool):  # the source-spec parser reads "0"/"1" as booleans
+        idx = int(idx)
+    if idx not in (0, 1):
+        raise ValueError(f"scene 'wide': camera must be 0 or 1, got {idx!r}")
+    speed = float(opts.pop("speed", 0.25))
+    clock = opts.pop("clock", "frame")
+    epoch = float(opts.pop("epoch", 0.0))
+    if clock not in ("frame", "wall"):
+        raise ValueError(f"scene 'wide': clock must be frame or wall, got {clock!r}")
+    if opts.get("robots", True) is True:
+        paths = {n: LoopPath(_WIDE_LOOPS[n], speed=speed) for n in _WIDE_LOOPS}
+        opts["robots"] = [SimRobot(name, markers, height, length, sep,
+                                   WallClock(paths[name], epoch) if clock == "wall"
+                                   else paths[name])
+                          for name, markers, height, length, sep in DEFAULT_FLEET]
+    opts.setdefault("world_map", wide_map())
+    opts.setdefault("floor", (-0.85, 0.85 + WIDE_DX, -0.6, 0.6))
+    rows, cols = [-0.355, -0.15, 0.0, 0.15, 0.355], [-0.695, 0.0, 0.695]
+    opts.setdefault("floor_lines", [((-0.695 + dx, y), (0.695 + dx, y))
+                                    for dx in (0.0, WIDE_DX) for y in rows]
+                    + [((x + dx, -0.355), (x + dx, 0.355))
+                       for dx in (0.0, WIDE_DX) for x in cols])
+    name = "wide" if idx == 0 else "wide-cam1"
+    return _build(name, lambda c: wide_cameras()[idx], True, opts)
 
 
 # ---------------------------------------------------------------------------- registry
@@ -176,6 +252,12 @@ _SCENES: dict[str, tuple[str, Callable[[dict[str, Any]], Scene]]] = {
                                    {"misplaced": {7: (0.02, 0.0, 0.0),
                                                   20: ((0.0, 0.0, 0.0), (0.0, 0.0, 10.0))},
                                     **o})),
+    "wide": ("two floors side by side (3.4 x 1.2 m), camera 0 over the left one; "
+             "camera=1: over the right one; the default robots drive across the 0.47 m "
+             "overlap at 0.25 m/s (amr1 starts in it); clock=wall&epoch=T: robots move "
+             "with the Unix time - T (separate daemons agree)", _wide),
+    "wide-cam1": ("the wide scene seen by camera 1 (the same as wide?camera=1)",
+                  lambda o: _wide({"camera": 1, **o})),
 }
 
 

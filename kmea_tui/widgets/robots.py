@@ -1,4 +1,7 @@
-"""Robots tab: pose, age of the last fix, relay destinations and messages sent per robot."""
+"""Robots tab: pose, age of the last fix, relay destinations and messages sent per robot.
+
+From a fusion node (``kmea fuse``) the state cell also names the cameras that saw the robot
+(the body's ``source``, e.g. ``ok cam0+cam1``)."""
 
 from __future__ import annotations
 
@@ -55,7 +58,8 @@ def robot_cells(r: dict[str, Any]) -> list[str | Text]:
         fmt(math.degrees(th), ".0f") if isinstance(th, (int, float)) else DASH,
         fmt(r.get("sigma"), ".1f", 1000.0),
         fmt(r.get("age_s"), ".1f"),
-        Text(state, style="bold red" if state == "STALE" else
+        Text(state + (f" {src}" if (src := r.get("source")) and isinstance(src, str) else ""),
+             style="bold red" if state == "STALE" else
              ("green" if state == "ok" else "yellow")),
         sent_cell(r),
         # UDP is the only kind of destination: the prefix costs columns at 80x24.

@@ -1,0 +1,476 @@
+"""A per-robot tracking filter on (x, y, theta): Kalman filtering with gating, numpy only.
+
+Each robot has a :class:`Track`, an extended Kalman filter whose measurement is the robot
+pose (x, y in world metres, theta in radians) with the measurement's own uncertainty:
+``sigma`` (1-sigma position, m, as :class:`kmea.robots.RobotPose` gives it) and a heading
+sigma (rad; by default ``sigma / heading_lever``, the heading error of two points
+``2 * heading_lever`` m apart each known to ``sigma``). Two motion models:
+
+- ``"cv"`` constant velocity: state (x, y, theta, vx, vy, omega); position and heading move
+  independently (holonomic robots, robots that reverse). Linear.
+- ``"ctrv"`` constant turn rate and velocity: state (x, y, theta, v, omega); the robot drives
+  along its heading (differential drive), v signed.
+
+Process noise is white acceleration of spectral density ``accel_noise`` (m^2/s^3) and white
+angular acceleration of ``turn_noise`` (rad^2/s^3). Heading innovations are wrapped to
+[-pi, pi) and the heading state is kept wrapped.
+
+Gating: a measurement whose Mahalanobis distance d^2 to the prediction exceeds the
+chi-square quantile of 3 degrees of freedom at ``gate_probability`` is rejected (not
+followed) and reported with the reason (a position jump, a heading flip). Rejected
+measurements that agree with each other (each inside the gate of a track started from the
+first) are candidates: after ``reacquire_n`` of them within ``reacquire_window_s`` the track
+restarts from them (the robot really was moved by hand); an accepted measurement clears them.
+
+Time: ``t`` is in seconds on any clock shared by the measurements of one robot.
+:meth:`Track.predict` gives the state at another time (latency compensation: predict to the
+send time). A measurement older than the track's last one (out of order, e.g. from a slower
+camera) is applied at its own time through the model (retrodicted); one more than
+``reset_after_s`` older is dropped and reported.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+
+__all__ = [
+    "MODELS",
+    "Outcome",
+    "Track",
+    "TrackState",
+    "Tracker",
+    "TrackerConfig",
+    "chi2_quantile_3",
+]
+
+MODELS = ("cv", "ctrv")
+_TWO_PI = 2.0 * math.pi
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % _TWO_PI - math.pi
+
+
+def _chi2_cdf_3(x: float) -> float:
+    """CDF of the chi-square distribution with 3 degrees of freedom."""
+    if x <= 0.0:
+        return 0.0
+    return math.erf(math.sqrt(x / 2.0)) - math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0)
+
+
+def chi2_quantile_3(p: float) -> float:
+    """x with P(chi2_3 <= x) = p, 0 < p < 1 (bisection; 0.99 -> 11.34, 0.999 -> 16.27)."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"chi-square probability must be in (0, 1), got {p!r}")
+    lo, hi = 0.0, 200.0
+    for _ in range(100):
+        mid = (lo + hi) / 2.0
+        if _chi2_cdf_3(mid) < p:
+            lo = mid
+        else:
+            hi = mid
+    return (lo + hi) / 2.0
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Tuning of the tracking filter (units: m, rad, s).
+
+    model: "cv" or "ctrv" (module docstring). accel_noise: m^2/s^3; turn_noise: rad^2/s^3
+    (defaults: tuned by ``kmea bench tracking``, as in config.toml).
+    gate_probability: chi-square gate (3 dof). reacquire_n: consistent rejected measurements
+    that restart a track; reacquire_window_s: they must fall within this time.
+    reset_after_s: a track not updated for this long restarts from its next measurement.
+    default_sigma: position sigma when a measurement has none; min_sigma: floor on any
+    position sigma (estimators can be over-confident); heading_lever: m (heading sigma =
+    sigma / heading_lever); min_sigma_theta: floor on heading sigma, rad.
+    max_speed, max_turn_rate: 1-sigma of the initial velocity and turn rate (m/s, rad/s).
+    """
+
+    model: str = "ctrv"
+    accel_noise: float = 0.25
+    turn_noise: float = 2.5
+    gate_probability: float = 0.9999
+    reacquire_n: int = 3
+    reacquire_window_s: float = 1.0
+    reset_after_s: float = 1.0
+    default_sigma: float = 0.005
+    min_sigma: float = 0.002
+    heading_lever: float = 0.05
+    min_sigma_theta: float = 0.01
+    max_speed: float = 1.5
+    max_turn_rate: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"tracker model must be one of {', '.join(MODELS)}, "
+                             f"got {self.model!r}")
+        for f in fields(self):
+            if f.name == "model":
+                continue
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v <= 0:
+                raise ValueError(f"tracker {f.name} must be a finite number > 0, got {v!r}")
+        if not self.gate_probability < 1.0:
+            raise ValueError(f"tracker gate_probability must be in (0, 1), got "
+                             f"{self.gate_probability!r}")
+        if int(self.reacquire_n) != self.reacquire_n:
+            raise ValueError(f"tracker reacquire_n must be an integer >= 1, got "
+                             f"{self.reacquire_n!r}")
+
+    def with_(self, **changes: object) -> TrackerConfig:
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class TrackState:
+    """A robot's estimated state at time ``t`` (s).
+
+    x, y: m; theta: rad in [-pi, pi); vx, vy: world velocity, m/s; speed: |v| m/s (signed
+    along the heading for "ctrv"); omega: turn rate, rad/s; sigma: 1-sigma position
+    uncertainty (m, the larger axis of the position covariance); sigma_theta: rad.
+    cov: (3, 3) covariance of (x, y, theta).
+    """
+
+    t: float
+    x: float
+    y: float
+    theta: float
+    vx: float
+    vy: float
+    speed: float
+    omega: float
+    sigma: float
+    sigma_theta: float
+    cov: np.ndarray = field(repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one measurement did to a track.
+
+    kind: "init" (track started), "update" (accepted), "rejected" (gated out or too old;
+    ``reason`` says why), "reacquired" (the track restarted from consistent rejected
+    measurements), "reset" (restarted after ``reset_after_s`` without measurements).
+    d2: Mahalanobis distance squared to the prediction (nan when not computed).
+    state: the track's state after the measurement, at the measurement's time (a rejected
+    one: the prediction; an out-of-order one: at the track's newest time; None when a too-old
+    measurement was dropped).
+    """
+
+    kind: str
+    reason: str
+    d2: float
+    state: TrackState | None
+
+    @property
+    def accepted(self) -> bool:
+        return self.kind != "rejected"
+
+
+class _Model:
+    """Motion model: state transition f, its Jacobian and process noise."""
+
+    n = 0
+
+    def __init__(self, cfg: TrackerConfig) -> None:
+        self.qa = cfg.accel_noise
+        self.qw = cfg.turn_noise
+
+    def init(self, z: np.ndarray, R: np.ndarray, cfg: TrackerConfig
+             ) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def step(self, s: np.ndarray, P: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def velocity(self, s: np.ndarray) -> tuple[float, float, float, float]:
+        """(vx, vy, speed, omega)."""
+        raise NotImplementedError
+
+
+def _pv_noise(q: float, dt: float) -> np.ndarray:
+    """Continuous white-acceleration noise of a (position, velocity) pair over dt."""
+    a = abs(dt)
+    return q * np.array([[a ** 3 / 3.0, a * a / 2.0 * np.sign(dt)],
+                         [a * a / 2.0 * np.sign(dt), a]])
+
+
+class _CV(_Model):
+    n = 6  # x, y, theta, vx, vy, omega
+
+    def init(self, z, R, cfg):
+        s = np.array([z[0], z[1], z[2], 0.0, 0.0, 0.0])
+        P = np.zeros((6, 6))
+        P[:3, :3] = R
+        P[3, 3] = P[4, 4] = cfg.max_speed ** 2
+        P[5, 5] = cfg.max_turn_rate ** 2
+        return s, P
+
+    def step(self, s, P, dt):
+        F = np.eye(6)
+        F[0, 3] = F[1, 4] = F[2, 5] = dt
+        s = F @ s
+        s[2] = _wrap(s[2])
+        Q = np.zeros((6, 6))
+        for i, j, q in ((0, 3, self.qa), (1, 4, self.qa), (2, 5, self.qw)):
+            B = _pv_noise(q, dt)
+            Q[i, i], Q[i, j], Q[j, i], Q[j, j] = B[0, 0], B[0, 1], B[1, 0], B[1, 1]
+        # Backwards (dt < 0, retrodiction) the uncertainty still grows.
+        return s, F @ P @ F.T + Q
+
+    def velocity(self, s):
+        return float(s[3]), float(s[4]), float(math.hypot(s[3], s[4])), float(s[5])
+
+
+class _CTRV(_Model):
+    n = 5  # x, y, theta, v, omega
+
+    def init(self, z, R, cfg):
+        s = np.array([z[0], z[1], z[2], 0.0, 0.0])
+        P = np.zeros((5, 5))
+        P[:3, :3] = R
+        P[3, 3] = cfg.max_speed ** 2
+        P[4, 4] = cfg.max_turn_rate ** 2
+        return s, P
+
+    def step(self, s, P, dt):
+        x, y, th, v, w = s
+        c, sn = math.cos(th), math.sin(th)
+        F = np.eye(5)
+        if abs(w * dt) > 1e-6:
+            th2 = th + w * dt
+            c2, s2 = math.cos(th2), math.sin(th2)
+            nx = x + v / w * (s2 - sn)
+            ny = y + v / w * (c - c2)
+            F[0, 2] = v / w * (c2 - c)
+            F[0, 3] = (s2 - sn) / w
+            F[0, 4] = v * dt * c2 / w - v / (w * w) * (s2 - sn)
+            F[1, 2] = v / w * (s2 - sn)
+            F[1, 3] = (c - c2) / w
+            F[1, 4] = v * dt * s2 / w - v / (w * w) * (c - c2)
+        else:
+            nx = x + v * dt * c
+            ny = y + v * dt * sn
+            F[0, 2] = -v * dt * sn
+            F[0, 3] = dt * c
+            F[0, 4] = -v * dt * dt * sn / 2.0
+            F[1, 2] = v * dt * c
+            F[1, 3] = dt * sn
+            F[1, 4] = v * dt * dt * c / 2.0
+        F[2, 4] = dt
+        s2v = np.array([nx, ny, _wrap(th + w * dt), v, w])
+        a = abs(dt)
+        # White linear and angular acceleration mapped through the model (discretised).
+        G = np.array([[a * a / 2.0 * c, 0.0], [a * a / 2.0 * sn, 0.0], [0.0, a * a / 2.0],
+                      [a, 0.0], [0.0, a]])
+        Q = G @ np.diag([self.qa, self.qw]) @ G.T / a if a > 0 else np.zeros((5, 5))
+        return s2v, F @ P @ F.T + Q
+
+    def velocity(self, s):
+        v, th = float(s[3]), float(s[2])
+        return v * math.cos(th), v * math.sin(th), v, float(s[4])
+
+
+def _model(cfg: TrackerConfig) -> _Model:
+    return _CV(cfg) if cfg.model == "cv" else _CTRV(cfg)
+
+
+class Track:
+    """The tracking filter of one robot (see the module docstring)."""
+
+    def __init__(self, name: str = "", config: TrackerConfig | None = None) -> None:
+        self.name = name
+        self.config = config or TrackerConfig()
+        self.gate = chi2_quantile_3(self.config.gate_probability)
+        self._model = _model(self.config)
+        self.s: np.ndarray | None = None
+        self.P: np.ndarray | None = None
+        self.t: float | None = None  # time of the newest measurement applied
+        self._cand: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self._cand_track: Track | None = None
+
+    # ------------------------------------------------------------------ measurement
+    def noise(self, sigma: float | None, sigma_theta: float | None = None) -> np.ndarray:
+        """(3, 3) measurement covariance of a pose with position sigma ``sigma`` m."""
+        cfg = self.config
+        sp = cfg.default_sigma if sigma is None or not math.isfinite(sigma) else float(sigma)
+        sp = max(sp, cfg.min_sigma)
+        if sigma_theta is None or not math.isfinite(sigma_theta):
+            sigma_theta = sp / cfg.heading_lever
+        st = max(float(sigma_theta), cfg.min_sigma_theta)
+        return np.diag([sp * sp, sp * sp, st * st])
+
+    def update(self, t: float, x: float, y: float, theta: float, sigma: float | None = None,
+               sigma_theta: float | None = None) -> Outcome:
+        """Apply one pose measurement taken at ``t`` s; see :class:`Outcome`."""
+        if not all(math.isfinite(v) for v in (t, x, y, theta)):
+            return Outcome("rejected", "not finite", math.nan, self.state())
+        z = np.array([float(x), float(y), _wrap(float(theta))])
+        R = self.noise(sigma, sigma_theta)
+        cfg = self.config
+        if self.s is None:
+            self._start(t, z, R)
+            return Outcome("init", "first measurement", math.nan, self.state())
+        dt = t - self.t
+        if dt > cfg.reset_after_s:
+            self._start(t, z, R)
+            return Outcome("reset", f"no measurement for {dt:.2f} s", math.nan, self.state())
+        if dt < -cfg.reset_after_s:
+            return Outcome("rejected", f"too old ({-dt:.2f} s before the last measurement)",
+                           math.nan, None)
+        s, P = self._model.step(self.s, self.P, dt)
+        H = np.zeros((3, self._model.n))
+        H[0, 0] = H[1, 1] = H[2, 2] = 1.0
+        y_ = z - s[:3]
+        y_[2] = _wrap(y_[2])
+        S = P[:3, :3] + R
+        try:
+            Si = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
+        d2 = float(y_ @ Si @ y_)
+        if d2 > self.gate:
+            reason = self._reason(y_, S, d2)
+            if self._candidate(t, z, R):
+                return Outcome("reacquired", f"{cfg.reacquire_n} consistent measurements away "
+                               f"from the track ({reason})", d2, self.state())
+            return Outcome("rejected", reason, d2, self.predict(max(t, self.t)))
+        self._cand.clear()
+        self._cand_track = None
+        K = P[:, :3] @ Si
+        s = s + K @ y_
+        s[2] = _wrap(s[2])
+        I_KH = np.eye(self._model.n) - K @ H
+        P = I_KH @ P @ I_KH.T + K @ R @ K.T  # Joseph form: stays symmetric positive
+        if dt >= 0:
+            self.s, self.P, self.t = s, P, t
+        else:
+            # Out of order: the correction is applied at the measurement's time, then the
+            # track is brought back to its newest time.
+            self.s, self.P = self._model.step(s, P, -dt)
+        return Outcome("update", "", d2, self.state())
+
+    def _reason(self, y_: np.ndarray, S: np.ndarray, d2: float) -> str:
+        dpos = math.hypot(y_[0], y_[1])
+        dth = abs(y_[2])
+        sp = math.sqrt(max(S[0, 0], S[1, 1]))
+        st = math.sqrt(S[2, 2])
+        if dth > math.pi / 2:
+            what = f"heading flip {math.degrees(dth):.0f} deg"
+        elif dpos / sp >= dth / st:
+            what = f"position jump {dpos * 100:.1f} cm"
+        else:
+            what = f"heading jump {math.degrees(dth):.1f} deg"
+        return f"{what} (d2 {d2:.1f} > gate {self.gate:.1f})"
+
+    def _candidate(self, t: float, z: np.ndarray, R: np.ndarray) -> bool:
+        """Keep a rejected measurement; True when the track restarted from the candidates."""
+        cfg = self.config
+        c = self._cand_track
+        if c is not None and self._cand and t - self._cand[0][0] > cfg.reacquire_window_s:
+            c = None
+        if c is not None:
+            out = c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
+            if out.kind != "update":
+                c = None
+        if c is None:
+            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9))
+            c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
+            self._cand = []
+        self._cand.append((t, z, R))
+        self._cand_track = c
+        if len(self._cand) >= cfg.reacquire_n:
+            self.s, self.P, self.t = c.s.copy(), c.P.copy(), c.t
+            self._cand = []
+            self._cand_track = None
+            return True
+        return False
+
+    def _start(self, t: float, z: np.ndarray, R: np.ndarray) -> None:
+        self.s, self.P = self._model.init(z, R, self.config)
+        self.t = float(t)
+        self._cand = []
+        self._cand_track = None
+
+    # ------------------------------------------------------------------ output
+    @property
+    def started(self) -> bool:
+        return self.s is not None
+
+    def state(self) -> TrackState | None:
+        """The state at the newest measurement's time, or None before the first one."""
+        if self.s is None:
+            return None
+        return self._state(self.t, self.s, self.P)
+
+    def predict(self, t: float) -> TrackState | None:
+        """The state predicted to time ``t`` s (latency compensation); the track is not
+        changed. None before the first measurement."""
+        if self.s is None:
+            return None
+        if t == self.t:
+            return self.state()
+        s, P = self._model.step(self.s, self.P, t - self.t)
+        return self._state(t, s, P)
+
+    def _state(self, t: float, s: np.ndarray, P: np.ndarray) -> TrackState:
+        vx, vy, speed, omega = self._model.velocity(s)
+        cov = P[:3, :3].copy()
+        sig = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
+        return TrackState(float(t), float(s[0]), float(s[1]), _wrap(float(s[2])), vx, vy,
+                          speed, omega, sig, math.sqrt(max(float(cov[2, 2]), 0.0)), cov)
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A rejected measurement, for reports: robot, time (s), measured pose, reason."""
+
+    name: str
+    t: float
+    x: float
+    y: float
+    theta: float
+    reason: str
+    source: str = ""
+
+
+class Tracker:
+    """Tracks of several robots by name; keeps the last ``keep`` rejections for reports."""
+
+    def __init__(self, config: TrackerConfig | None = None, keep: int = 1000) -> None:
+        self.config = config or TrackerConfig()
+        self.tracks: dict[str, Track] = {}
+        self.rejections: deque[Rejection] = deque(maxlen=keep)
+        self.counts = {"init": 0, "update": 0, "rejected": 0, "reacquired": 0, "reset": 0}
+
+    def track(self, name: str) -> Track:
+        tr = self.tracks.get(name)
+        if tr is None:
+            tr = self.tracks[name] = Track(name, self.config)
+        return tr
+
+    def update(self, name: str, t: float, x: float, y: float, theta: float,
+               sigma: float | None = None, sigma_theta: float | None = None,
+               source: str = "") -> Outcome:
+        """One measurement of robot ``name`` (see :meth:`Track.update`)."""
+        out = self.track(name).update(t, x, y, theta, sigma, sigma_theta)
+        self.counts[out.kind] += 1
+        if out.kind == "rejected":
+            self.rejections.append(Rejection(name, t, x, y, theta, out.reason, source))
+        return out
+
+    def predict(self, name: str, t: float) -> TrackState | None:
+        tr = self.tracks.get(name)
+        return None if tr is None else tr.predict(t)
+
+    def reset(self, name: str | None = None) -> None:
+        if name is None:
+            self.tracks.clear()
+        else:
+            self.tracks.pop(name, None)

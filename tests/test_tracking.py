@@ -1,0 +1,201 @@
+"""The tracking filter: noise reduction, velocity, wrapping, gating, re-acquisition,
+prediction, out-of-order measurements, configuration errors; and its evaluation harness."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from kmea.benchmarks.tracking import (
+    MotionSet,
+    evaluate,
+    make_measurements,
+    trajectory,
+)
+from kmea.tracking import Track, Tracker, TrackerConfig, chi2_quantile_3
+
+HEADING = math.atan2(-0.2, 0.5)  # of the default line: robots drive along their heading
+
+
+def _line(n: int = 90, v: tuple[float, float] = (0.5, -0.2), fps: float = 30.0,
+          sigma: float = 0.003, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fps
+    truth = np.column_stack([0.1 + v[0] * t, -0.3 + v[1] * t])
+    meas = truth + rng.normal(0.0, sigma, truth.shape)
+    return t, truth, meas
+
+
+@pytest.mark.parametrize("model", ["cv", "ctrv"])
+def test_straight_run_filters_noise_and_finds_the_velocity(model: str) -> None:
+    t, truth, meas = _line()
+    heading = math.atan2(-0.2, 0.5)
+    tr = Track("r", TrackerConfig(model=model, accel_noise=0.01))
+    errs_f, errs_m = [], []
+    for k in range(len(t)):
+        out = tr.update(t[k], meas[k, 0], meas[k, 1], heading, 0.003)
+        assert out.accepted
+        if k >= 30:
+            errs_f.append(math.hypot(out.state.x - truth[k, 0], out.state.y - truth[k, 1]))
+            errs_m.append(math.hypot(*(meas[k] - truth[k])))
+    assert np.sqrt(np.mean(np.square(errs_f))) < 0.7 * np.sqrt(np.mean(np.square(errs_m)))
+    st = tr.state()
+    assert st.vx == pytest.approx(0.5, abs=0.1) and st.vy == pytest.approx(-0.2, abs=0.1)
+    assert abs(st.speed) == pytest.approx(math.hypot(0.5, 0.2), abs=0.1)
+    # Latency compensation: 100 ms ahead is 100 ms further along the line.
+    ahead = tr.predict(t[-1] + 0.1)
+    assert ahead.x == pytest.approx(0.1 + 0.5 * (t[-1] + 0.1), abs=0.01)
+    assert ahead.y == pytest.approx(-0.3 - 0.2 * (t[-1] + 0.1), abs=0.01)
+    assert ahead.sigma > st.sigma  # less certain about the future
+    assert tr.state() == st  # predicting does not change the track
+
+
+def test_turn_rate_and_heading_wrap_through_pi() -> None:
+    # A robot turning at 2 rad/s on a circle of 0.3 m: theta passes +-pi many times.
+    w, r, fps = 2.0, 0.3, 30.0
+    rng = np.random.default_rng(3)
+    tr = Track("r", TrackerConfig(model="ctrv"))
+    worst = 0.0
+    for k in range(150):
+        t = k / fps
+        th = math.pi / 2 + w * t
+        x, y = r * math.cos(w * t), r * math.sin(w * t)
+        meas_th = math.remainder(th + rng.normal(0, 0.02), 2 * math.pi)
+        out = tr.update(t, x + rng.normal(0, 0.002), y + rng.normal(0, 0.002), meas_th, 0.002)
+        assert out.accepted, out.reason
+        assert -math.pi <= out.state.theta < math.pi
+        if k > 30:
+            worst = max(worst, abs(math.remainder(out.state.theta - th, 2 * math.pi)))
+    assert worst < 0.08
+    assert tr.state().omega == pytest.approx(w, abs=0.25)
+    assert tr.state().speed == pytest.approx(w * r, abs=0.05)
+
+
+def test_outlier_is_rejected_and_reported_not_followed() -> None:
+    t, _truth, meas = _line(60)
+    trk = Tracker(TrackerConfig())
+    for k in range(40):
+        trk.update("amr1", t[k], meas[k, 0], meas[k, 1], HEADING, 0.003,
+                   source="cam0")
+    before = trk.predict("amr1", t[40])
+    out = trk.update("amr1", t[40], meas[40, 0] + 0.08, meas[40, 1], HEADING, 0.003,
+                     source="cam1")
+    assert out.kind == "rejected" and "position jump 8." in out.reason
+    assert math.hypot(out.state.x - before.x, out.state.y - before.y) < 1e-9
+    flip = trk.update("amr1", t[41], meas[41, 0], meas[41, 1], HEADING + math.pi, 0.003)
+    assert flip.kind == "rejected" and "heading flip 17" in flip.reason
+    assert [r.source for r in trk.rejections] == ["cam1", ""]
+    assert trk.rejections[0].name == "amr1" and trk.rejections[0].t == t[40]
+    assert trk.counts["rejected"] == 2
+    # The next good measurement is accepted: two unrelated outliers never re-acquire.
+    assert trk.update("amr1", t[42], meas[42, 0], meas[42, 1], HEADING, 0.003).kind == "update"
+
+
+def test_robot_moved_by_hand_is_reacquired_after_n_consistent_measurements() -> None:
+    tr = Track("r", TrackerConfig(reacquire_n=3))
+    for k in range(30):
+        tr.update(k / 30, 0.0, 0.0, 0.0, 0.002)
+    kinds = [tr.update((30 + k) / 30, 0.4, 0.1, 1.0, 0.002).kind for k in range(4)]
+    assert kinds == ["rejected", "rejected", "reacquired", "update"]
+    st = tr.state()
+    assert st.x == pytest.approx(0.4, abs=0.005) and st.theta == pytest.approx(1.0, abs=0.05)
+
+
+def test_out_of_order_and_too_old_measurements() -> None:
+    t, truth, meas = _line(60)
+    tr = Track("r")
+    for k in range(0, 60, 2):  # even frames on time
+        tr.update(t[k], meas[k, 0], meas[k, 1], HEADING, 0.003)
+    last_t = tr.t
+    late = tr.update(t[57], meas[57, 0], meas[57, 1], HEADING, 0.003)  # older than the last
+    assert late.kind == "update" and tr.t == last_t
+    assert math.hypot(tr.state().x - truth[58, 0], tr.state().y - truth[58, 1]) < 0.01
+    old = tr.update(t[58] - 5.0, 0.0, 0.0, 0.0, 0.003)
+    assert old.kind == "rejected" and "too old" in old.reason and old.state is None
+    assert tr.update(math.nan, 0, 0, 0).kind == "rejected"
+
+
+def test_gap_longer_than_reset_restarts_the_track() -> None:
+    tr = Track("r", TrackerConfig(reset_after_s=0.5))
+    assert tr.update(0.0, 0.0, 0.0, 0.0).kind == "init"
+    assert tr.update(0.1, 0.001, 0.0, 0.0).kind == "update"
+    out = tr.update(1.0, 1.0, 1.0, 0.0)
+    assert out.kind == "reset" and out.state.x == 1.0
+
+
+def test_sigma_drives_the_weight_of_a_measurement() -> None:
+    a, b = Track("a"), Track("b")
+    for tr in (a, b):
+        tr.update(0.0, 0.0, 0.0, 0.0, 0.002)
+        tr.update(1 / 30, 0.0, 0.0, 0.0, 0.002)
+    a.update(2 / 30, 0.004, 0.0, 0.0, 0.002)   # a precise measurement moves it more
+    b.update(2 / 30, 0.004, 0.0, 0.0, 0.02)
+    assert a.state().x > 2 * b.state().x > 0
+
+
+def test_bad_configuration_names_the_key() -> None:
+    with pytest.raises(ValueError, match="model"):
+        TrackerConfig(model="ukf")
+    with pytest.raises(ValueError, match="accel_noise"):
+        TrackerConfig(accel_noise=-1.0)
+    with pytest.raises(ValueError, match="gate_probability"):
+        TrackerConfig(gate_probability=1.0)
+    with pytest.raises(ValueError, match="reacquire_n"):
+        TrackerConfig(reacquire_n=2.5)
+
+
+def test_chi_square_quantiles() -> None:
+    assert chi2_quantile_3(0.99) == pytest.approx(11.345, abs=0.01)
+    assert chi2_quantile_3(0.999) == pytest.approx(16.266, abs=0.01)
+    with pytest.raises(ValueError):
+        chi2_quantile_3(1.0)
+
+
+def test_simulated_drive_respects_its_limits_and_outlier_rate() -> None:
+    tr = trajectory(5, duration=20.0, max_speed=1.5, max_turn=3.0)
+    assert np.max(np.abs(tr.v)) <= 1.5 + 1e-9 and np.max(np.abs(tr.omega)) <= 3.0 + 1e-9
+    assert np.max(np.abs(tr.v)) > 0.5  # it does drive
+    ms = make_measurements(tr, 5, fps=30.0, sigma=0.003, outliers=0.05)
+    assert 0.02 < ms.outlier.mean() < 0.09
+    jump = np.hypot(*(ms.z[ms.outlier, :2] - np.column_stack(tr.at(ms.t)[:2])[ms.outlier]).T)
+    assert np.all((jump > 0.04) & (jump < 0.23))
+
+
+def test_kalman_beats_raw_measurements_on_a_drive() -> None:
+    s = MotionSet("t", (11,), 1.5, 3.0, 0.003, 30.0, 15.0)
+    raw = evaluate(s, "iir", 1.0)
+    kal = evaluate(s, "kalman", TrackerConfig(model="ctrv"))
+    assert kal["pos"] < raw["pos"] and kal["head"] < raw["head"]
+    assert kal["caught"] >= 0.9 * kal["outliers"] > 0 and raw["caught"] == 0
+    assert kal["jumps_outlier"] < raw["jumps_outlier"]
+
+
+def test_pipeline_robot_filter_kind_kalman_reports_rejections() -> None:
+    from kmea.estimators.base import Estimate, MarkerEstimate
+    from kmea.maps import default_map
+    from kmea.pipeline import Pipeline, PipelineSettings
+    from kmea.robots import RobotSpec
+    from kmea.vision.camera import pi_camera_v2
+
+    spec = RobotSpec("amr2", (42,), height=0.2)
+    settings = PipelineSettings(filter_kind="kalman", robots=(spec,))
+    pipe = Pipeline(pi_camera_v2(), default_map(), settings)
+
+    def est(x: float, y: float) -> Estimate:
+        me = MarkerEstimate(42, np.array([x, y, 0.2]), np.eye(3), 0.0, 0.003)
+        return Estimate("kmea", True, {42: me})
+
+    for k in range(30):  # driving along +x at 0.3 m/s
+        fixes = pipe.robot_fixes(est(0.01 * k, 0.0), k / 30)
+    fix = fixes["amr2"]
+    assert fix.vx == pytest.approx(0.3, abs=0.1) and fix.omega is not None
+    assert fix.raw == pytest.approx((0.29, 0.0, 0.0, 0.003))
+    rejections: dict[str, str] = {}
+    assert pipe.robot_fixes(est(0.45, 0.0), 1.0, rejections) == {}
+    assert "position jump 15." in rejections["amr2"]
+    # The paper's filter (the library's default kind): every measurement, no velocity.
+    iir = Pipeline(pi_camera_v2(), default_map(), PipelineSettings(robots=(spec,)))
+    fix = iir.robot_fixes(est(0.45, 0.0), 1.0)["amr2"]
+    assert (fix.x, fix.vx, fix.raw) == (pytest.approx(0.45), None, None)
