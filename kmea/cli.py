@@ -18,6 +18,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
     "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
     "bench": ("kmea.bench", "benchmarks that print figures"),
+    # Daemon-side tool, imported only when run (kmea never imports kmead otherwise).
+    "doctor": ("kmead.doctor", "check a Raspberry Pi install: versions, camera, ports, files"),
 }
 
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import importlib
 import inspect
 import logging
 import re
@@ -102,8 +103,10 @@ def import_picamera2() -> tuple[Any, Any, Any]:
     only repeat a traceback through picamera2's imports).
     """
     try:
-        import libcamera
-        from picamera2 import MappedArray, Picamera2
+        # picamera2 first: with neither installed, the missing one to name is picamera2.
+        picamera2 = importlib.import_module("picamera2")
+        libcamera = importlib.import_module("libcamera")
+        Picamera2, MappedArray = picamera2.Picamera2, picamera2.MappedArray
     except ModuleNotFoundError as e:
         if e.name == "libcamera":
             msg = ("picamera2 is installed but libcamera's Python bindings are not (picamera2 "
@@ -221,7 +224,8 @@ class PiCameraSource(FrameSource):
             raise SourceError(f"picamera: reopen must be >= 0, got {reopen}")
         self.fps = float(fps)
         self.camera = int(camera)
-        self.timeout = float(timeout) if timeout is not None else max(MIN_STALL_TIMEOUT_S, 10.0 / self.fps)
+        self.timeout = (float(timeout) if timeout is not None
+                        else max(MIN_STALL_TIMEOUT_S, 10.0 / self.fps))
         self.reopen = int(reopen)
         self.requested = (int(width), int(height))
         self.buffer_count = int(buffer_count)
