@@ -8,6 +8,7 @@ import re
 import shlex
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -121,7 +122,10 @@ def test_constraints_files_pin_the_apt_numpy() -> None:
 
 def test_no_pi_extra() -> None:
     """picamera2 comes from apt only (README, On the Raspberry Pi)."""
-    import tomllib
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
 
     extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"][
         "optional-dependencies"]
