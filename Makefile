@@ -2,7 +2,12 @@
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
+# On a Raspberry Pi the venv keeps the apt numpy picamera2 is built for: pip installs with
+# constraints/<codename>.txt (README, On the Raspberry Pi). Elsewhere: none (today's stack).
+ON_PI := $(shell grep -qs 'Raspberry Pi' /proc/device-tree/model && echo yes)
+CODENAME := $(shell . /etc/os-release 2>/dev/null && echo $$VERSION_CODENAME)
+CONSTRAINTS ?= $(if $(ON_PI),$(wildcard constraints/$(CODENAME).txt))
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml $(CONSTRAINTS) | cksum | cut -d' ' -f1)
 # The Raspberry Pi OS Bookworm stack (Python 3.11, numpy 1.24, OpenCV 4.11): `make test` runs
 # the suite on it as well, installed with the same constraints file as on the Pi.
 PY_BOOKWORM ?= python3.11
@@ -14,9 +19,9 @@ STACK = -c 'import sys, numpy, cv2; print("== suite on Python %d.%d.%d, numpy %s
 .PHONY: run test test-current test-bookworm lint bench install-service clean
 
 $(STAMP): pyproject.toml
-	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	test -x $(BIN)/python || $(PY) -m venv $(if $(ON_PI),--system-site-packages) $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,plots]'
+	$(BIN)/python -m pip install -q $(if $(CONSTRAINTS),-c $(CONSTRAINTS)) -e '.[dev,plots]'
 	rm -f $(VENV)/.installed-* && touch $@
 
 $(BW_STAMP): pyproject.toml constraints/bookworm.txt
