@@ -309,6 +309,8 @@ class PiCameraSource(FrameSource):
                 what = f"capture failed ({type(e).__name__}: {e})"
             else:
                 return self._frame_from(request)
+            if self._closed:  # closed from another thread while this one waited
+                return None
             if stalls > self.reopen:
                 raise SourceError(f"picamera: {what}, {stalls} times in a row (camera reopened "
                                   f"{stalls - 1} times): the camera stalled; exiting so the "
@@ -346,6 +348,6 @@ class PiCameraSource(FrameSource):
 
     def close(self) -> None:
         if not self._closed:
+            super().close()  # first: a read() waiting in another thread must not reopen
             self._close_cam()
-        super().close()
 
