@@ -48,8 +48,9 @@ class Rig:
     scene: Callable[[int, int, int], np.ndarray] = gradient  # (n, w, h) -> (h, w) uint8
     exposure_us: int = 8000
     readout_s: float = 0.004               # arrival of the frame - start of its readout
-    # Stalls: the k-th open of a camera (0-based) delivers stall_after[k] frames and then no
-    # more; opens past the list deliver forever.
+    # Stalls: the k-th open of a camera (0-based) hands stall_after[k] frames to the
+    # application and then completes no more; opens past the list deliver forever. (Counted
+    # in delivered frames, not sensor frames, so a slow test machine sees the same story.)
     stall_after: list[int] = field(default_factory=list)
     opens: int = 0                         # Picamera2 instances that acquired the camera
     instances: list = field(default_factory=list)

@@ -147,6 +147,7 @@ class Picamera2:
         self.started = True
         self._t0 = time.monotonic()
         self._made = 0  # frames the sensor has produced since start()
+        self._delivered = 0  # of which handed to the application
         self._period = self.camera_config["controls"]["FrameDurationLimits"][0] * 1e-6
         k = self._open_index
         self._limit = rig.stall_after[k] if k < len(rig.stall_after) else None
@@ -162,7 +163,7 @@ class Picamera2:
 
     def _next_arrival(self) -> float | None:
         """When the next frame completes, or None when none will (stalled or stopped)."""
-        if not self.started or (self._limit is not None and self._made >= self._limit):
+        if not self.started or (self._limit is not None and self._delivered >= self._limit):
             return None
         return self._t0 + (self._made + 1) * self._period
 
@@ -178,6 +179,7 @@ class Picamera2:
             req = self._make_request(n, t)
             if self._job_list:
                 self._held += 1
+                self._delivered += 1
                 self._job_list.pop(0).signal(req)
             elif self.camera_config["queue"] and self.camera_config["buffer_count"] > 1:
                 self._completed = req
@@ -212,6 +214,7 @@ class Picamera2:
         if self._completed is not None:
             self._held += 1
             req, self._completed = self._completed, None
+            self._delivered += 1
             job.signal(req)
         else:
             self._job_list.append(job)
