@@ -11,6 +11,12 @@ Differences handled here:
 - ``cv2.undistortPoints(..., criteria=...)``: 5.x takes the iteration criteria as a keyword;
   4.x rejects it (``'criteria' is an invalid keyword argument``) and has the separate
   ``cv2.undistortPointsIter(src, K, D, R, P, criteria)`` instead (removed in 5.x).
+
+Checked against the binding's signatures of 4.11 and 5.0 for every ``cv2`` function and
+constant and every ``cv2.aruco`` class method the project calls: the others differ only by
+optional arguments or overloads added in 5.x (``putText``, ``getTextSize``,
+``warpPerspective``, ``Dictionary.getBitsFromByteList``) and by the numeric values of the
+``SOLVEPNP_*`` flags, which the code uses by name only (never store them as numbers).
 """
 
 from __future__ import annotations
