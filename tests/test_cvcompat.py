@@ -6,7 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from kmea.estimators.camera_np import dist14, project
+from kmea.geometry import check_distortion as dist14
+from kmea.geometry import project
 from kmea.vision import cvcompat
 
 
