@@ -232,7 +232,7 @@ class PiCameraSource(FrameSource):
         self.reopened = 0  # times the camera was opened again after a stall (whole run)
         self.stride: int | None = None
         self._Picamera2, self._MappedArray, self._libcamera = import_picamera2()
-        # write=False (no cache flush back to the buffer) exists since picamera2 0.3.13.
+        # write=False (no cache flush back to the buffer) exists in newer picamera2 only.
         self._map_kw = ({"write": False} if "write" in _parameters(self._MappedArray)
                         else {})
         self._check_present()

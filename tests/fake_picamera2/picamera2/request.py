@@ -66,7 +66,7 @@ def _shape(flat: np.ndarray, config: dict) -> np.ndarray:
 class MappedArray:
     """request.py MappedArray(request, stream, reshape=True, write=True): a context manager
     giving the stream's buffer itself (no copy) as ``.array``, shaped as make_array; ``write``
-    (picamera2 >= 0.3.13) only chooses the DMA-buf sync direction there (here: a read-only
+    (newer picamera2 only) chooses the DMA-buf sync direction there (here: a read-only
     view, so a write through it would show). After ``__exit__`` the array is deleted."""
 
     def __init__(self, request: CompletedRequest, stream: str, reshape: bool = True,
