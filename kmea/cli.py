@@ -18,9 +18,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
     "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
     "bench": ("kmea.bench", "benchmarks that print figures"),
-    # The one place the library reaches into the daemon, lazily: the fusion node is a
-    # daemon-side tool (sockets, UDP, files).
+    # Daemon-side tools (sockets, UDP, files, the Pi), imported only when run: the one place
+    # the library reaches into the daemon.
     "fuse": ("kmead.fusion", "fuse several cameras' robot poses (docs/fusion.md)"),
+    "doctor": ("kmead.doctor", "check a Raspberry Pi install: versions, camera, ports, files"),
 }
 
 

@@ -269,8 +269,9 @@ class Daemon:
     # ------------------------------------------------------------------ per frame
     def _frame_input(self, frame, capture_ms: float, t_cap: float) -> FrameInput:
         ts = frame.timestamp
-        if self.live:
-            # Live: unix time of the capture, so robots can age a fix with their own clock.
+        if self.live and "sensor_timestamp_ns" not in frame.meta:
+            # Live: unix time of the capture, so robots can age a fix with their own clock
+            # (picamera's frames carry it already, from the sensor timestamp).
             ts = time.time() - (time.perf_counter() - t_cap)
         rep = frame.meta.get("replay")
         if rep is not None:

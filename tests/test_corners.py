@@ -16,6 +16,7 @@ from kmea.estimators.corners import CornerPnP
 from kmea.estimators.loo import loo_errors
 from kmea.geometry import check_distortion as dist14
 from kmea.geometry import project, rotvec_to_matrix, undistort, wrap_angle
+from kmea.vision.cvcompat import undistort_points
 
 DISPLACED = {4: (0.02, -0.03), 13: (-0.03, 0.02), 16: (0.025, 0.025)}
 ROOT = Path(__file__).resolve().parent.parent
@@ -44,7 +45,7 @@ def test_projection_and_undistortion_match_opencv(dist):
     xy = undistort(uv, K, dist14(d))
     assert np.abs(xy - P[:, :2] / P[:, 2:]).max() < 1e-12
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15)
-    xy_cv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, d, criteria=crit)
+    xy_cv = undistort_points(uv.reshape(-1, 1, 2), K, d, criteria=crit)
     assert np.abs(xy - xy_cv.reshape(-1, 2)).max() < 1e-9
 
 

@@ -15,10 +15,10 @@ import subprocess
 import sys
 import threading
 import time
-import types
 from pathlib import Path
 
 import cv2
+import fakepi
 import numpy as np
 import pytest
 import zmq
@@ -353,70 +353,52 @@ def test_sigterm_flushes_and_summarises_sigkill_leaves_whole_rows(tmp_path: Path
         assert frames == sorted(frames)
 
 
-class _FakeRequest:
-    def __init__(self, image: np.ndarray, n: int) -> None:
-        self.image, self.n = image, n
-
-    def make_array(self, name: str) -> np.ndarray:
-        h, w = self.image.shape
-        arr = np.full((h * 3 // 2, w), 128, np.uint8)  # YUV420: Y plane on top
-        arr[:h] = self.image
-        return arr
-
-    def get_metadata(self) -> dict:
-        return {"SensorTimestamp": 5_000_000_000 + self.n * 33_333_333}
-
-    def release(self) -> None:
-        pass
-
-
 def test_picamera_source_through_the_daemon(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                             capsys: pytest.CaptureFixture) -> None:
+    """The daemon on the fake picamera2 (tests/fake_picamera2): rows for every frame, times
+    from the sensor timestamps (unix time of the start of readout)."""
     frames, scene = _render(2)
+    rig = fakepi.install(monkeypatch).rig
+    try:
+        rig.scene = lambda n, w, h: frames[n % 2]
+        rig.readout_s = 5.0  # far larger than the real ~20 ms: the row times must show it
+        cam = tmp_path / "pi.yml"
+        save_camera(scene.camera, cam)
+        out = tmp_path / "pi.csv"
+        t0 = time.time()
+        code = cli.main(["--source", "picamera", "--camera", str(cam), *SMALL, "--frames", "6",
+                         "--headless", "--log", str(out), *NET])
+        t1 = time.time()
+        assert code == 0, capsys.readouterr().err
+        rows = read_csv(out)
+        assert len({r["frame"] for r in rows}) == 6
+        assert {r["id"] for r in rows if r["kind"] == "robot"} == {"amr1", "amr2"}
+        stamps = sorted({float(r["timestamp"]) for r in rows})
+        # each frame's time is the start of its readout, 5 s before it reached the daemon
+        assert t0 - 5.5 < stamps[0] and stamps[-1] < t1 - 4.5
+    finally:
+        fakepi.forget()
 
-    class FakePicamera2:
-        def __init__(self, camera_num: int = 0) -> None:
-            self.n = 0
 
-        def create_video_configuration(self, main: dict, controls: dict, buffer_count: int
-                                       ) -> dict:
-            assert main["format"] == "YUV420" and tuple(main["size"]) == (640, 480)
-            return {"main": main}
-
-        def configure(self, config: dict) -> None:
-            self.config = config
-
-        def stream_configuration(self, name: str) -> dict:
-            return self.config[name]
-
-        def start(self) -> None:
-            pass
-
-        def capture_request(self) -> _FakeRequest:
-            time.sleep(1 / 60)  # a sensor delivers at its frame rate
-            self.n += 1
-            return _FakeRequest(frames[self.n % 2], self.n)
-
-        def stop(self) -> None:
-            pass
-
-        def close(self) -> None:
-            pass
-
-    mod = types.ModuleType("picamera2")
-    mod.Picamera2 = FakePicamera2  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "picamera2", mod)
-    cam = tmp_path / "pi.yml"
-    save_camera(scene.camera, cam)
-    out = tmp_path / "pi.csv"
-    code = cli.main(["--source", "picamera", "--camera", str(cam), *SMALL, "--frames", "6",
-                     "--headless", "--log", str(out), *NET])
-    assert code == 0, capsys.readouterr().err
-    rows = read_csv(out)
-    assert len({r["frame"] for r in rows}) == 6
-    assert {r["id"] for r in rows if r["kind"] == "robot"} == {"amr1", "amr2"}
-    # live source: timestamps are unix time of the capture
-    assert abs(float(rows[-1]["timestamp"]) - time.time()) < 60
+def test_stalled_picamera_ends_the_daemon_non_zero(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture) -> None:
+    """A camera that stops delivering: reopened, then the daemon exits 1 (systemd restarts it
+    with Restart=on-failure) instead of hanging."""
+    frames, _ = _render(1)
+    rig = fakepi.install(monkeypatch).rig
+    try:
+        rig.scene = lambda n, w, h: frames[0]
+        rig.stall_after = [2, 0, 0, 0]
+        # default timeout: 10 frame periods (0.1 s at 100 fps) when that is above the floor
+        monkeypatch.setattr("kmea.vision.picamera_source.MIN_STALL_TIMEOUT_S", 0.0)
+        code = cli.main(["--source", "picamera", *SMALL, "--set", "source.fps=100",
+                         "--headless", *NET])
+        err = capsys.readouterr().err
+        assert code == 1, err
+        assert "4 times in a row (camera reopened 3 times)" in err
+    finally:
+        fakepi.forget()
 
 
 def test_picamera2_missing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch,

@@ -9,8 +9,9 @@
   ``kmead`` nor OpenCV nor numpy.
 - No import circles inside a package: every import counts (module level, inside functions,
   under ``TYPE_CHECKING``), except the lazy imports of a factory listed in
-  :data:`LAZY_FACTORIES` (``kmea.vision.sources.open_source`` picks the simulator's or the
-  replay's source by the spec's name, and those sources build on ``kmea.vision.sources``).
+  :data:`LAZY_FACTORIES` (``kmea.vision.sources.open_source`` picks the simulator's, the
+  replay's or the Pi camera's source by the spec's name, and those sources build on
+  ``kmea.vision.sources``).
 
 Imports are read from the AST of every module, and dynamic imports by name
 (``import_module("kmead.bench")``, ``"kmead.bench:run"`` tables) are found as string
@@ -35,7 +36,8 @@ KMEA_CLI_DAEMON_TOOLS = {"kmead", "kmead.bench", "kmead.cli", "kmead.config", "k
                          "kmead.fuse", "kmead.fusion", "kmead.fusion_bench", "kmead.doctor"}
 TUI_MAY_IMPORT = {"kmea", "kmea.protocol", "kmea.jsonsafe", "kmea.tomlvalue"}
 # Functions' lazy imports that do not count as edges for the cycle check (module -> targets).
-LAZY_FACTORIES = {"kmea.vision.sources": {"kmea.sim.source", "kmea.recording", "kmea.sim"}}
+LAZY_FACTORIES = {"kmea.vision.sources": {"kmea.sim.source", "kmea.recording", "kmea.sim",
+                                          "kmea.vision.picamera_source"}}
 # Backports of standard modules, for Python versions before they joined the stdlib.
 STDLIB_BACKPORTS = {"tomli"}  # tomllib before 3.11
 

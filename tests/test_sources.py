@@ -1,9 +1,8 @@
-"""Frame sources: image folders (with a corrupt file), video files, cameras, fake picamera2."""
+"""Frame sources: image folders (with a corrupt file), video files, cameras (picamera: see
+test_picamera_source.py)."""
 
 from __future__ import annotations
 
-import sys
-import types
 from pathlib import Path
 
 import cv2
@@ -11,7 +10,6 @@ import numpy as np
 import pytest
 
 from kmea.vision.sources import (
-    PICAMERA2_MISSING,
     Frame,
     FrameSource,
     SourceError,
@@ -139,112 +137,6 @@ def test_register_source_plugs_in_a_prefix() -> None:
     assert [f.meta["rest"] for f in frames] == ["abc"] * 3
     with pytest.raises(ValueError, match="prefix"):
         register_source("Bad Prefix", _Counter)
-
-
-# ---------------------------------------------------------------------------- picamera2
-
-
-class _FakeRequest:
-    def __init__(self, cam: _FakePicamera2, n: int) -> None:
-        self.cam, self.n, self.released = cam, n, False
-
-    def make_array(self, name: str) -> np.ndarray:
-        assert name == "main" and not self.released
-        w, h = self.cam.config["main"]["size"]
-        stride = (w + 63) // 64 * 64  # libcamera pads rows
-        arr = np.full((h * 3 // 2, stride), 128, np.uint8)  # chroma and padding: 128
-        arr[:h, :w] = (np.arange(w)[None, :] + np.arange(h)[:, None] + self.n) % 200
-        arr[:h, w:] = 255  # padding that must not leak into the frame
-        return arr
-
-    def get_metadata(self) -> dict:
-        return {"SensorTimestamp": 1_000_000_000 + self.n * 33_333_333, "ExposureTime": 8000}
-
-    def release(self) -> None:
-        self.released = True
-        self.cam.released += 1
-
-
-class _FakePicamera2:
-    """Mimics picamera2.Picamera2: create_video_configuration, configure, start,
-    capture_request (-> make_array, get_metadata, release), stop, close."""
-
-    instances: list[_FakePicamera2] = []
-
-    def __init__(self, camera_num: int = 0) -> None:
-        self.config: dict = {}
-        self.started = self.closed = False
-        self.requests: list[_FakeRequest] = []
-        self.released = 0
-        _FakePicamera2.instances.append(self)
-
-    def create_video_configuration(self, main: dict | None = None, lores: dict | None = None,
-                                   raw: dict | None = None, controls: dict | None = None,
-                                   buffer_count: int = 6, **kw: object) -> dict:
-        return {"main": dict(main or {}), "controls": dict(controls or {}),
-                "buffer_count": buffer_count}
-
-    def configure(self, config: dict) -> None:
-        self.config = config
-
-    def stream_configuration(self, name: str = "main") -> dict:
-        return self.config[name]
-
-    def start(self) -> None:
-        assert self.config, "configure() before start()"
-        self.started = True
-
-    def capture_request(self) -> _FakeRequest:
-        assert self.started
-        r = _FakeRequest(self, len(self.requests))
-        self.requests.append(r)
-        return r
-
-    def stop(self) -> None:
-        self.started = False
-
-    def close(self) -> None:
-        self.closed = True
-
-
-@pytest.fixture
-def fake_picamera2(monkeypatch: pytest.MonkeyPatch) -> type[_FakePicamera2]:
-    mod = types.ModuleType("picamera2")
-    mod.Picamera2 = _FakePicamera2  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "picamera2", mod)
-    _FakePicamera2.instances = []
-    return _FakePicamera2
-
-
-def test_picamera_gray_frames_and_sensor_timestamps(fake_picamera2: type) -> None:
-    with open_source("picamera?width=640&height=480&fps=40") as src:
-        assert src.live and src.size == (640, 480)
-        frames = [src.read() for _ in range(3)]
-    cam = fake_picamera2.instances[0]
-    assert cam.config["main"] == {"size": (640, 480), "format": "YUV420"}
-    assert cam.config["controls"] == {"FrameRate": 40.0}
-    assert cam.released == 3 and all(r.released for r in cam.requests)
-    assert cam.closed and not cam.started
-    for n, f in enumerate(frames):
-        assert f is not None and f.image.shape == (480, 640) and f.image.dtype == np.uint8
-        expect = (np.arange(640)[None, :] + np.arange(480)[:, None] + n) % 200
-        np.testing.assert_array_equal(f.image, expect)
-        assert f.meta["sensor_timestamp_ns"] == 1_000_000_000 + n * 33_333_333
-        assert f.meta["exposure_time_us"] == 8000
-    assert frames[1].timestamp - frames[0].timestamp == pytest.approx(0.033333333)
-
-
-def test_picamera_takes_no_argument(fake_picamera2: type) -> None:
-    with pytest.raises(SourceError, match="takes no argument"):
-        open_source("picamera:0")
-
-
-def test_picamera2_missing(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(sys.modules, "picamera2", None)  # import now raises ImportError
-    with pytest.raises(SourceError) as e:
-        open_source("picamera")
-    assert PICAMERA2_MISSING in str(e.value)
-    assert "sudo apt install python3-picamera2" in str(e.value)
 
 
 def test_sim_spec_reaches_the_simulator() -> None:

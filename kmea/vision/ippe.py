@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from kmea.geometry import distort, matrices_to_rotvecs, project_to_so3, rotvecs_to_matrices
+from kmea.vision.cvcompat import undistort_points
 
 __all__ = ["FALLBACK_PX", "exact_corners", "ippe_square", "reprojection_rms", "solve_pnp_pair"]
 
@@ -30,7 +31,7 @@ def exact_corners(corners: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarr
     its reprojection error is ~0 only for exact (synthetic) corners and >> 1e-3 px for any
     real detection. Batched over all markers.
     """
-    u = cv2.undistortPoints(
+    u = undistort_points(
         np.ascontiguousarray(corners.reshape(-1, 1, 2)), K, D,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)).reshape(-1, 4, 2)
     obj = np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]]) / 2.0  # unit square

@@ -22,7 +22,6 @@ delivering, raises :class:`SourceError`.
 
 from __future__ import annotations
 
-import contextlib
 import re
 import sys
 import time
@@ -35,12 +34,10 @@ import numpy as np
 
 __all__ = [
     "IMAGE_SUFFIXES",
-    "PICAMERA2_MISSING",
     "CameraSource",
     "Frame",
     "FrameSource",
     "ImageFolderSource",
-    "PiCameraSource",
     "SourceError",
     "SourceOptionError",
     "SourceSpec",
@@ -53,9 +50,6 @@ __all__ = [
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm",
                   ".webp")
-
-PICAMERA2_MISSING = ("picamera2 is not installed: on Raspberry Pi OS run `sudo apt install "
-                     "python3-picamera2` and create the venv with --system-site-packages")
 
 
 class SourceError(RuntimeError):
@@ -303,83 +297,6 @@ class CameraSource(FrameSource):
         super().close()
 
 
-class PiCameraSource(FrameSource):
-    """The Raspberry Pi camera through picamera2, greyscale (the Y plane of YUV420).
-
-    Options: ``width``, ``height`` (default 1640x1232, the IMX219 full-field binned mode),
-    ``fps`` (default 30), ``buffer_count`` (default 4). Timestamps: the sensor timestamp of
-    the request metadata (``SensorTimestamp``, ns) in seconds; ``meta`` keeps the raw value and
-    ``ExposureTime`` (us) when present. picamera2 is imported only when this source is opened.
-    """
-
-    live = True
-
-    def __init__(self, width: int = 1640, height: int = 1232, fps: float = 30.0,
-                 buffer_count: int = 4) -> None:
-        super().__init__()
-        self.spec = "picamera"
-        try:
-            from picamera2 import Picamera2
-        except ImportError:
-            raise SourceError(f"picamera: {PICAMERA2_MISSING}") from None
-        self.fps = float(fps)
-        try:
-            self._cam = Picamera2()
-        except Exception as e:  # libcamera raises several types when no camera is attached
-            raise SourceError(f"picamera: cannot open the camera: {e}") from None
-        try:
-            config = self._cam.create_video_configuration(
-                main={"size": (int(width), int(height)), "format": "YUV420"},
-                controls={"FrameRate": self.fps}, buffer_count=int(buffer_count))
-            self._cam.configure(config)
-            size = (int(width), int(height))
-            with contextlib.suppress(Exception):  # older picamera2: keep the requested size
-                size = tuple(self._cam.stream_configuration("main")["size"])  # type: ignore
-            self.size = (int(size[0]), int(size[1]))
-            self._cam.start()
-        except Exception as e:
-            self._cam.close()
-            raise SourceError(f"picamera: cannot start {width}x{height} at {fps} fps: "
-                              f"{e}") from None
-        self._index = 0
-
-    def read(self) -> Frame | None:
-        if self._closed:
-            return None
-        try:
-            request = self._cam.capture_request()
-        except Exception as e:
-            raise SourceError(f"picamera: capture failed: {e}") from None
-        try:
-            yuv = request.make_array("main")
-            md = request.get_metadata() or {}
-        finally:
-            request.release()  # the buffer goes back to libcamera; we keep a copy
-        w, h = self.size or (yuv.shape[1], yuv.shape[0] * 2 // 3)
-        # The YUV420 array is (H * 3/2, stride): Y rows first, possibly padded to the stride.
-        gray = np.ascontiguousarray(yuv[:h, :w])
-        ts_ns = md.get("SensorTimestamp")
-        meta: dict[str, Any] = {}
-        if ts_ns is not None:
-            meta["sensor_timestamp_ns"] = int(ts_ns)
-            t = int(ts_ns) * 1e-9
-        else:
-            t = time.monotonic()
-        if "ExposureTime" in md:
-            meta["exposure_time_us"] = md["ExposureTime"]
-        i = self._index
-        self._index += 1
-        return Frame(i, t, gray, meta)
-
-    def close(self) -> None:
-        if not self._closed:
-            try:
-                self._cam.stop()
-            finally:
-                self._cam.close()
-        super().close()
-
-
 # ---------------------------------------------------------------------------- registry
 
 SourceFactory = Callable[..., FrameSource]
@@ -484,6 +401,8 @@ def _picamera(rest: str, **opts: Any) -> FrameSource:
     if rest:
         raise SourceError(f"picamera:{rest}: the Pi camera takes no argument; use options "
                           f"(picamera?width=1640&height=1232&fps=30)")
+    from kmea.vision.picamera_source import PiCameraSource  # picamera2 only on the Pi
+
     return PiCameraSource(**opts)
 
 

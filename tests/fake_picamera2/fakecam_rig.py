@@ -1,0 +1,70 @@
+"""The fake Pi camera's hardware and system: what is attached, what it sees, how it fails.
+
+``tests/fake_picamera2`` holds test doubles of ``picamera2``, ``libcamera`` (its Python
+bindings) and ``simplejpeg``, put first on ``sys.path`` by :func:`fakepi.install` so that
+``import picamera2`` really runs their module code (import failures happen where they do on a
+Pi). Their signatures and behaviours are picamera2's own (raspberrypi/picamera2, the calls
+KMEA makes are unchanged since v0.3.12); each behaviour's comment says where it comes from.
+This module is the "rig" the tests turn: reset it with :func:`reset` before each test.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# IMX219 (Pi Camera v2) as libcamera reports it (CameraManager.cameras[i].properties and id).
+IMX219 = {"Model": "imx219", "Location": 2, "Rotation": 180,
+          "Id": "/base/soc/i2c0mux/i2c@1/imx219@10"}
+
+# The IMX219's raw modes as `rpicam-hello --list-cameras` lists them on a Pi 4 (10-bit).
+IMX219_MODES = [
+    {"format": "SRGGB10_CSI2P", "size": (640, 480), "fps": 206.65, "bit_depth": 10,
+     "crop_limits": (1000, 752, 1280, 960)},
+    {"format": "SRGGB10_CSI2P", "size": (1640, 1232), "fps": 41.85, "bit_depth": 10,
+     "crop_limits": (0, 0, 3280, 2464)},
+    {"format": "SRGGB10_CSI2P", "size": (1920, 1080), "fps": 47.57, "bit_depth": 10,
+     "crop_limits": (680, 692, 1920, 1080)},
+    {"format": "SRGGB10_CSI2P", "size": (3280, 2464), "fps": 21.19, "bit_depth": 10,
+     "crop_limits": (0, 0, 3280, 2464)},
+]
+
+
+def gradient(n: int, w: int, h: int) -> np.ndarray:
+    """Default scene: full-range luma 0..255 across the image, shifted by the frame number."""
+    x = (np.arange(w)[None, :] * 256 // max(w, 1) + np.zeros((h, 1), int) + n) % 256
+    x[0, 0], x[-1, -1] = 0, 255  # both ends of the range in every frame
+    return x.astype(np.uint8)
+
+
+@dataclass
+class Rig:
+    cameras: list[dict] = field(default_factory=lambda: [dict(IMX219)])
+    busy: bool = False                     # another process has acquired the camera
+    libcamera_installed: bool = True       # apt python3-libcamera present
+    simplejpeg_numpy_major: int | None = None  # numpy major simplejpeg was built for (None: same)
+    scene: Callable[[int, int, int], np.ndarray] = gradient  # (n, w, h) -> (h, w) uint8
+    exposure_us: int = 8000
+    readout_s: float = 0.004               # arrival of the frame - start of its readout
+    # Stalls: the k-th open of a camera (0-based) hands stall_after[k] frames to the
+    # application and then completes no more; opens past the list deliver forever. (Counted
+    # in delivered frames, not sensor frames, so a slow test machine sees the same story.)
+    stall_after: list[int] = field(default_factory=list)
+    opens: int = 0                         # Picamera2 instances that acquired the camera
+    instances: list = field(default_factory=list)
+
+
+rig = Rig()
+
+
+def reset() -> Rig:
+    """A fresh rig: one IMX219, free, nothing broken."""
+    global rig
+    rig = Rig()
+    return rig
+
+
+def numpy_major() -> int:
+    return int(np.__version__.split(".")[0])

@@ -1,0 +1,158 @@
+"""``kmea doctor``: on this machine for real (no camera), and on the fake picamera2."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fakepi import forget, install
+
+from kmea.vision.camera import pi_camera_v2, save_camera
+from kmead.doctor import Doctor
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def rig(monkeypatch: pytest.MonkeyPatch):
+    yield install(monkeypatch).rig
+    forget()
+
+
+def _lines(doc: Doctor, name: str) -> list[str]:
+    return [c.line() for c in doc.results if c.name == name]
+
+
+def _config(tmp_path: Path, body: str) -> str:
+    p = tmp_path / "kmead.toml"
+    p.write_text(body)
+    return str(p)
+
+
+NET_ANY = '[network]\ntelemetry = "tcp://127.0.0.1:*"\ncontrol = "tcp://127.0.0.1:*"\n'
+
+
+def test_doctor_on_this_machine_says_no_camera_with_the_fix(tmp_path: Path) -> None:
+    """The real command, on a machine without camera or picamera2."""
+    cfg = _config(tmp_path, NET_ANY)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-m", "kmea.cli", "doctor", "--config", cfg],
+                       capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+    out = r.stdout
+    assert r.returncode == 1, r.stderr
+    assert r.stderr == ""
+    lines = out.splitlines()
+    assert all(line.startswith(("OK   ", "FIX  ")) for line in lines[:-1]), out
+    assert lines[-1].startswith("kmea doctor: ") and lines[-1].endswith(" to fix")
+    assert f"OK   numpy: {np.__version__}" in out
+    import cv2
+
+    assert f"OK   opencv: {cv2.__version__}" in out
+    if not any(Path("/dev").glob("media*")) and not any(Path("/dev").glob("video*")):
+        assert "FIX  camera: no camera device (/dev/media*, /dev/video*): connect the camera" in out
+    assert "FIX  picamera2: picamera2 is not installed" in out
+    assert f"OK   configuration: {cfg}: source sim" in out
+
+
+def test_doctor_with_the_fake_camera_lists_modes(rig, tmp_path: Path) -> None:
+    cam = tmp_path / "camera.yml"
+    save_camera(pi_camera_v2(), cam)
+    cfg = _config(tmp_path, f'[source]\nspec = "picamera"\n[camera]\nfile = "{cam}"\n'
+                            + NET_ANY)
+    doc = Doctor(config=cfg, codename=None, groups=lambda: [44], dev=tmp_path)
+    doc.run_all()
+    assert _lines(doc, "camera 0") == [
+        "OK   camera 0: imx219 (/base/soc/i2c0mux/i2c@1/imx219@10), modes 640x480@207, "
+        "1640x1232@42, 1920x1080@48, 3280x2464@21"]
+    assert _lines(doc, "picamera2")[0].startswith("OK   picamera2: ")
+    assert "import together" in _lines(doc, "picamera2")[0]
+    assert _lines(doc, "camera file") == [f"OK   camera file: {cam} (1640x1232, fx 1357 px)"]
+    assert not any(i.is_open for i in rig.instances)  # opened for the modes, then closed
+
+
+def test_doctor_camera_busy_and_missing(rig, tmp_path: Path) -> None:
+    cfg = _config(tmp_path, NET_ANY)
+    rig.busy = True
+    doc = Doctor(config=cfg, dev=tmp_path)
+    doc.run_all()
+    (line,) = _lines(doc, "camera 0")
+    assert line.startswith("FIX  camera 0: imx219 (/base/soc/i2c0mux/i2c@1/imx219@10): camera 0 "
+                           "is busy: another program holds it")
+    rig.busy, rig.cameras = False, []
+    doc = Doctor(config=cfg, dev=tmp_path)
+    doc.run_all()
+    assert _lines(doc, "camera")[0].startswith("FIX  camera: libcamera sees no camera: check the "
+                                               "ribbon cable")
+
+
+def test_doctor_numpy_mismatch_is_a_fix(rig, tmp_path: Path) -> None:
+    rig.simplejpeg_numpy_major = 2 if np.__version__.startswith("1.") else 1
+    doc = Doctor(config=_config(tmp_path, NET_ANY), codename="bookworm", dev=tmp_path)
+    doc.run_all()
+    (line,) = _lines(doc, "picamera2")
+    assert line.startswith(f"FIX  picamera2: picamera2 cannot be imported with numpy "
+                           f"{np.__version__}")
+    assert "constraints/" in line
+
+
+def test_doctor_numpy_shadowing_the_apt_numpy(tmp_path: Path) -> None:
+    """A venv numpy of another major than the apt one: the fix before picamera2 even fails."""
+    other = "1.24.2" if not np.__version__.startswith("1.") else "2.2.4"
+    site = tmp_path / "dist-packages"
+    (site / f"numpy-{other}.dist-info").mkdir(parents=True)
+    doc = Doctor(system_site=site, codename="bookworm")
+    doc.check_numpy_opencv()
+    (line,) = _lines(doc, "numpy")
+    assert line.startswith(f"FIX  numpy: {np.__version__} from the venv hides the apt numpy "
+                           f"{other}")
+    assert "pip uninstall -y numpy" in line and "constraints/bookworm.txt" in line
+
+
+def test_doctor_python_of_another_release(tmp_path: Path) -> None:
+    doc = Doctor(codename="trixie" if sys.version_info[:2] != (3, 13) else "bookworm",
+                 system_site=tmp_path)
+    doc.check_python()
+    assert _lines(doc, "python")[0].startswith("FIX  python: ")
+    assert "/usr/bin/python3 -m venv --system-site-packages" in _lines(doc, "python")[0]
+
+
+def test_doctor_port_in_use_and_group(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        cfg = _config(tmp_path, f'[network]\ntelemetry = "tcp://127.0.0.1:{port}"\n'
+                                'control = ""\n')
+        doc = Doctor(config=cfg, groups=lambda: [], dev=tmp_path)
+        loaded = doc.load()
+        doc.check_ports(loaded)
+    (tele,) = _lines(doc, "port telemetry")
+    assert tele.startswith(f"FIX  port telemetry: tcp://127.0.0.1:{port}: Address already in use")
+    assert "--set network.telemetry=tcp://127.0.0.1:PORT" in tele
+    assert _lines(doc, "port control") == ["OK   port control: off"]
+    if os.geteuid() != 0:
+        doc.check_permissions()
+        assert "is not in the group video" in _lines(doc, "permissions")[0]
+
+
+def test_doctor_bad_files_and_disk(tmp_path: Path) -> None:
+    bad = tmp_path / "cam.yml"
+    bad.write_text("not a camera\n")
+    cfg = _config(tmp_path, f'[camera]\nfile = "{bad}"\n' + NET_ANY)
+    doc = Doctor(config=cfg, min_free_bytes=1 << 60)
+    loaded = doc.load()
+    doc.check_files(loaded)
+    doc.check_disk(loaded)
+    (cam,) = _lines(doc, "camera file")
+    assert cam.startswith("FIX  camera file: ") and str(bad) in cam
+    assert _lines(doc, "disk")[0].startswith("FIX  disk: ")
+    broken = _config(tmp_path, "[source]\nfps = -1\n")
+    doc = Doctor(config=broken)
+    assert doc.load() is None
+    (line,) = _lines(doc, "configuration")
+    assert line.startswith("FIX  configuration: ") and "source.fps" in line
