@@ -74,7 +74,12 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     return o
 
 
-def _setup_logging(level: str, timestamps: bool) -> None:
+def _setup_logging(level: str, timestamps: bool | None = None) -> None:
+    """kmead's stderr log handler; ``timestamps`` None: unless stderr is the journal."""
+    if timestamps is None:
+        from kmead.status_line import stderr_is_journal
+
+        timestamps = not stderr_is_journal()
     root = logging.getLogger("kmead")
     root.setLevel(level.upper())
     # One stderr handler, on the stderr of this call (main() may run more than once in a
