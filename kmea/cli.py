@@ -1,4 +1,4 @@
-"""``kmea``: the tools (calibrate, print, experiment, bench, map, fuse).
+"""kmea: the tools (map, calibrate, print, experiment, bench, fuse, export, snapshot).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
@@ -22,11 +22,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # the library reaches into the daemon.
     "fuse": ("kmead.fusion", "fuse several cameras' robot poses (docs/fusion.md)"),
     "doctor": ("kmead.doctor", "check a Raspberry Pi install: versions, camera, ports, files"),
+    "export": ("kmead.mcap_export", "a kmead recording as MCAP for Foxglove (needs the foxglove extra)"),
+    "snapshot": ("kmead.snapshot_cli", "save a running kmead's camera frame as PNG"),
 }
 
 
 def main(argv: list[str] | None = None) -> int:
+    from kmea import __version__
+
     parser = argparse.ArgumentParser(prog="kmea", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"kmea {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     modules = {}
     argv = sys.argv[1:] if argv is None else argv

@@ -23,7 +23,7 @@ from kmea.maps import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = __doc__.splitlines()[0]
+    p.description = __doc__.splitlines()[0].replace("``", "")
     p.add_argument("action", nargs="?", choices=("show", "check", "convert"), default="show",
                    help="show the table (default), check the file, or convert CSV to TOML")
     p.add_argument("file", nargs="?", type=Path, metavar="FILE",

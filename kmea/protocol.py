@@ -35,6 +35,7 @@ TOPIC_STATS = "stats"
 TOPIC_STATUS = "status"
 TOPIC_EVENT = "event"
 TOPIC_LOG = "log"
+TOPIC_CAMERA = "camera"  # thumbnails, only while a client holds a camera_watch lease
 
 DEFAULT_TELEMETRY = "tcp://127.0.0.1:5555"
 DEFAULT_CONTROL = "tcp://127.0.0.1:5556"
@@ -261,10 +262,13 @@ class FusionState(TypedDict):
 
 
 class _StatusExtra(TypedDict, total=False):
-    """A fusion node's ``status`` (``kmea fuse``) also has its inputs and counters."""
+    """A fusion node's ``status`` (``kmea fuse``) also has its inputs and counters.
+    ``state`` is only in the last status a daemon sends, at shutdown: ``"stopped"`` (a UI
+    then says "daemon stopped" instead of showing frozen data as live)."""
 
     inputs: list[InputState]
     fusion: FusionState
+    state: str
 
 
 class StatusBody(_StatusExtra):
@@ -286,6 +290,35 @@ class StatusBody(_StatusExtra):
     bad_frames: int
     telemetry: str
     control: str
+
+
+class CameraOutline(TypedDict):
+    """One marker outline of a ``camera`` body: corners in full-frame pixels (OpenCV:
+    pixel centres at integer coordinates; TL, TR, BR, BL). kind: detected | suspect |
+    rejected | expected (a map marker in view that was not detected)."""
+
+    id: int
+    kind: str
+    corners: list[list[float]]
+
+
+class CameraBody(TypedDict):
+    """``camera``: a greyscale thumbnail while a client holds a ``camera_watch`` lease.
+
+    data: base64 of ``width * height`` bytes, row-major (encoding "gray8"). focus: variance
+    of the Laplacian over the detected markers' regions, or None.
+    """
+
+    t: float
+    frame: int
+    width: int
+    height: int
+    full_width: int
+    full_height: int
+    encoding: str
+    data: str
+    focus: float | None
+    markers: list[CameraOutline]
 
 
 class EventBody(TypedDict):
@@ -315,6 +348,11 @@ class ControlRequest(_RequestBase, total=False):
     key: str
     value: Any
     path: str
+    width: int  # camera_watch: thumbnail size, pixels
+    height: int
+    lease_s: float  # camera_watch: seconds
+    overlay: bool  # snapshot
+    limit: int  # get_log
 
 
 class _ReplyBase(TypedDict):
@@ -353,7 +391,7 @@ class ConfigReply(TypedDict):
 TOPIC_TYPES: dict[str, type] = {
     TOPIC_FRAME: FrameBody, TOPIC_MARKERS: MarkersBody, TOPIC_ROBOTS: RobotsBody,
     TOPIC_STATS: StatsBody, TOPIC_STATUS: StatusBody, TOPIC_EVENT: EventBody,
-    TOPIC_LOG: LogBody,
+    TOPIC_LOG: LogBody, TOPIC_CAMERA: CameraBody,
 }
 REPLY_TYPES: dict[str, type] = {"get_state": StateReply, "get_config": ConfigReply}
 

@@ -17,6 +17,7 @@ settings reproduces the recorded run's estimates exactly. NaN is written as ``nu
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from pathlib import Path
@@ -201,6 +202,7 @@ class ReplaySource(FrameSource):
         self._f.readline()
         self._line = 1
         self._count = 0
+        self.truncated = False  # the last line was partial (a recording cut by a kill)
 
     def read(self) -> Frame | None:
         if self._closed:
@@ -210,6 +212,10 @@ class ReplaySource(FrameSource):
             return None
         self._line += 1
         if not text.endswith("\n"):  # a recording cut by a kill: the last line is partial
+            self.truncated = True
+            logging.getLogger("kmead").warning(
+                "%s: line %d is partial (a recording cut short?); replay ends at frame %d",
+                self.path.name, self._line, self._count)
             return None
         where = f"{self.path.name}: line {self._line}"
         try:

@@ -19,14 +19,15 @@ from pathlib import Path
 from typing import Any
 
 from textual import work
-from textual.app import App, ComposeResult
+from textual.app import App, ComposeResult, ScreenStackError
 from textual.binding import Binding
 from textual.css.query import NoMatches
-from textual.widgets import Footer, HelpPanel, TabbedContent, TabPane
+from textual.widgets import Footer, HelpPanel, Input, Select, TabbedContent, TabPane
 
 from kmea import protocol
 from kmea_tui.client import DaemonClient, RecordingClient
 from kmea_tui.messages import ConnectionChanged, ControlReply, ControlRequest, TelemetryBatch
+from kmea_tui.widgets.camera_view import CameraFrame, CameraPane, FrameError, display_size
 from kmea_tui.widgets.config_form import ConfigPane
 from kmea_tui.widgets.floor_map import FloorMap, MapData, MapPane
 from kmea_tui.widgets.live_table import LiveTable
@@ -39,7 +40,12 @@ from kmea_tui.widgets.status_bar import StatusBar
 Client = DaemonClient | RecordingClient
 
 TABS = (("markers", "1 Markers"), ("robots", "2 Robots"), ("stats", "3 Statistics"),
-        ("map", "4 Map"), ("config", "5 Config"), ("log", "6 Log"))
+        ("map", "4 Map"), ("config", "5 Config"), ("log", "6 Log"), ("camera", "7 Camera"))
+# States in which the shown data is not live: rows greyed, no frame rate, no robot "ok".
+FROZEN_STATES = ("stale", "disconnected", "stopped", "connecting")
+# The Camera tab renews its thumbnail lease this often, for this long (docs/protocol.md).
+CAMERA_RENEW_S = 1.5
+CAMERA_LEASE_S = 4.0
 # Tables refresh at most this often. Each refresh re-renders every visible DataTable cell
 # (30-70 ms of CPU here for a full markers table), and on the Pi the UI shares the CPU
 # (and, inside kmead, the GIL) with the pipeline: 4 Hz is plenty for a person.
@@ -85,7 +91,10 @@ class KmeaTui(App[None]):
     BINDINGS = [
         *(Binding(str(i + 1), f"show_tab('{tab}')", title, show=False)
           for i, (tab, title) in enumerate(TABS)),
-        Binding("q", "quit", "Quit"),
+        # q quits outside text fields (an Input takes the letter); Ctrl+Q from anywhere.
+        Binding("q", "quit", "Quit", show=False),
+        Binding("ctrl+q", "quit", "Quit", key_display="^q", priority=True),
+        Binding("escape", "leave_field", "Leave field", show=False),
         Binding("x", "reset_stats", "Reset stats"),
         Binding("plus,equals_sign", "magnify(1)", "Error ×"),
         Binding("minus", "magnify(-1)", "Error ÷"),
@@ -118,6 +127,10 @@ class KmeaTui(App[None]):
         self.last_telemetry: float | None = None
         self.connection_state = "connecting"
         self.config_loaded = False
+        self.daemon_stopped = False
+        self.frozen = False
+        self.camera_size: tuple[int, int] | None = None  # the frame size, from the status
+        self._log_attached = False
         self._ui_ready = asyncio.Event()
 
     # -- layout ----------------------------------------------------------------------------
@@ -135,6 +148,8 @@ class KmeaTui(App[None]):
                 yield ConfigPane(id="config-pane")
             with TabPane(TABS[5][1], id="log"):
                 yield LogPane(id="log-pane")
+            with TabPane(TABS[6][1], id="camera"):
+                yield CameraPane(id="camera-pane")
         yield StatusBar(id="status")
         yield Footer()
 
@@ -147,6 +162,8 @@ class KmeaTui(App[None]):
             self.set_interval(0.5, self.update_connection_state)
         self.control("get_state")
         self.control("get_config")
+        if self.client.live:
+            self.control("get_log")  # what the daemon logged before we attached
         self.update_connection_state()
         self.query_one("#markers-table").focus()
 
@@ -204,8 +221,14 @@ class KmeaTui(App[None]):
         with self.batch_update():
             if (body := latest.get(protocol.TOPIC_FRAME)) is not None:
                 self.frame = body
+                self.daemon_stopped = False
             if (body := latest.get(protocol.TOPIC_STATUS)) is not None:
                 self.show_status(body)
+            if (body := latest.get(protocol.TOPIC_CAMERA)) is not None:
+                try:
+                    self.query_one(CameraPane).show_frame(CameraFrame.from_body(body))
+                except FrameError as e:
+                    self.query_one(CameraPane).show_caption(str(e), error=True)
             if (body := latest.get(protocol.TOPIC_MARKERS)) is not None:
                 self.markers_body = body
                 self.moved = self.query_one(MarkersPane).update_markers(body)
@@ -227,8 +250,13 @@ class KmeaTui(App[None]):
             self.update_connection_state()
 
     def show_status(self, body: dict[str, Any]) -> None:
-        """The daemon's ``status``: logging/recording state and the algorithms it offers."""
+        """The daemon's ``status``: logging/recording state and the algorithms it offers;
+        its shutdown (``state`` stopped); the camera's frame size (for the Camera tab)."""
         self.status = body
+        # The daemon announces its end: say so rather than show frozen data.
+        self.daemon_stopped = body.get("state") == "stopped"
+        cam = body["camera"]
+        self.camera_size = (cam["width"], cam["height"])
         self.query_one(LogPane).update_status(body)
         self.query_one(ConfigPane).set_algorithms(body["algorithms"])
 
@@ -266,6 +294,8 @@ class KmeaTui(App[None]):
     def compute_state(self, now: float | None = None) -> tuple[str, str]:
         if not self.client.live:
             return ("replay end" if self.replay_done else "replay"), self.client.name
+        if self.daemon_stopped:
+            return "stopped", "the daemon announced its shutdown"
         return connection_state(self.ping_ok, self.ping_detail, self.last_telemetry,
                                 time.monotonic() if now is None else now, self.stale_after)
 
@@ -276,8 +306,21 @@ class KmeaTui(App[None]):
             # Telemetry arrives but is not understood (e.g. another protocol version).
             detail = f"{bad} messages not understood: {getattr(self.client, 'last_error', '')}"
         self.connection_state = state
-        with suppress(NoMatches):  # shutting down
+        frozen = state in FROZEN_STATES
+        with suppress(NoMatches, ScreenStackError):  # shutting down
             self.query_one(StatusBar).show(state, self.frame, detail)
+            if frozen != self.frozen:
+                self._set_frozen(frozen)
+
+    def _set_frozen(self, frozen: bool) -> None:
+        """Grey the data and stop claiming it is live (or undo that)."""
+        self.frozen = frozen
+        self.screen.set_class(frozen, "-frozen")
+        robots = self.query_one(RobotsPane)
+        robots.frozen = frozen
+        if self.robots_body is not None:
+            robots.update_robots(self.robots_body)
+        self.query_one(CameraPane).set_dim(frozen)
 
     # -- control -------------------------------------------------------------------------------
     def control(self, cmd: str, **args: Any) -> None:
@@ -313,19 +356,41 @@ class KmeaTui(App[None]):
                 overlay = reply.get("overlay_file")
                 config_pane.show_config(
                     reply["config"],
-                    save_target=(f"{overlay} (an overlay with only the changed keys; "
-                                 f"the commented configuration file is never rewritten)"
+                    save_target=(f"{overlay} (changed keys only; read at the next start)"
                                  if overlay else None),
                     source=reply.get("config_file")
                     or ", ".join(map(str, reply.get("config_files") or [])) or None)
             elif args:
                 config_pane.show_reply(f"get_config: {error}", False)
             return
+        if cmd == "get_log":
+            if ok and isinstance(reply.get("lines"), list) and not self._log_attached:
+                self._log_attached = True
+                lines = [ln for ln in reply["lines"] if isinstance(ln, dict)]
+                log_pane.note(f"the daemon's last {len(lines)} log lines (before this UI "
+                              "attached):", True)
+                log_pane.add_events([("log", ln) for ln in lines])
+            return
+        if cmd == "camera_watch":
+            if not ok:
+                self.query_one(CameraPane).show_caption(f"camera: {error}", error=True)
+            elif reply.get("images") is False:
+                self.query_one(CameraPane).show_caption(
+                    "camera: this source has no images (a replay of detections)", error=True)
+            return
+        if cmd == "snapshot":
+            text = (f"snapshot saved: {reply.get('path')}" if ok else f"snapshot: {error}")
+            log_pane.note(text, ok)
+            self.query_one(CameraPane).show_caption(text, error=not ok)
+            self.notify(text, severity="information" if ok else "error")
+            return
         if cmd == "set":
             text = f"{args.get('key')} = {args.get('value')!r}"
             config_pane.show_reply(f"set {text}" if ok else f"set {text}: {error}", ok)
             if ok:
                 self.control("get_config")
+            else:
+                config_pane.revert(str(args.get("key", "")))
             self.notify(f"set {args.get('key')}" + ("" if ok else f": {error}"),
                         severity="information" if ok else "error")
             return
@@ -347,6 +412,8 @@ class KmeaTui(App[None]):
     # -- key actions -------------------------------------------------------------------------
     def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
         tab = self.query_one(TabbedContent).active if self.is_mounted else ""
+        if action == "leave_field":
+            return isinstance(self.focused, (Input, Select))
         if action == "reset_stats":
             return tab == "stats"
         if action in ("magnify", "auto_magnification"):
@@ -355,12 +422,43 @@ class KmeaTui(App[None]):
 
     def on_tabbed_content_tab_activated(self, event: TabbedContent.TabActivated) -> None:
         self.refresh_bindings()
+        if event.pane.id == "camera" and self.client.live:
+            self.camera_watch_loop()
+        elif event.pane.id == "camera":
+            self.query_one(CameraPane).show_caption(
+                f"camera: no images when replaying {self.client.name}")
+        else:
+            self.workers.cancel_group(self, "camera")  # the lease runs out by itself
+
+    @work(exclusive=True, group="camera")
+    async def camera_watch_loop(self) -> None:
+        """While the Camera tab is shown: renew the daemon's thumbnail lease, sized to
+        the pane (the daemon sends nothing to a UI that does not watch)."""
+        while True:
+            view = self.query_one(CameraPane).view
+            cols, rows = view.size.width or 78, view.size.height or 18
+            fw, fh = self.camera_size or (640, 480)
+            w, h = display_size(fw, fh, cols, rows, view.braille)
+            reply = await self.client.request("camera_watch", width=w, height=h,
+                                              lease_s=CAMERA_LEASE_S)
+            self.post_message(ControlReply("camera_watch", {}, reply))
+            await asyncio.sleep(CAMERA_RENEW_S)
+
+    def action_leave_field(self) -> None:
+        """Escape: out of a text field or list, back to the tab's main widget (so q and
+        the tab numbers are keys again, not text)."""
+        tab = self.query_one(TabbedContent).active
+        target = {"config": "#config-pane", "log": "#events"}.get(tab)
+        if target is None:
+            self.action_show_tab(tab)
+        else:
+            self.query_one(target).focus()
 
     def action_show_tab(self, tab: str) -> None:
         self.query_one(TabbedContent).active = tab
         focus = {"markers": "#markers-table", "robots": "#robots-table",
                  "stats": "#stats-table", "map": FloorMap, "config": "#algorithm",
-                 "log": "#events"}[tab]
+                 "log": "#events", "camera": "#camera-view"}[tab]
         self.query_one(focus).focus()  # type: ignore[call-overload]
         self.refresh_bindings()
 

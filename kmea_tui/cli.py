@@ -1,4 +1,4 @@
-"""``kmea-tui``: the terminal UI on a running kmead, or on a recorded telemetry stream."""
+"""kmea-tui: the terminal UI on a running kmead, or on a recorded telemetry stream."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="kmea-tui",
         description="Terminal UI for kmead: markers, robots, statistics, floor map, "
-                    "configuration and logging. Keys: 1-6 tabs, q quit.")
+                    "configuration, log and camera. Keys: 1-7 tabs, q quit (Ctrl+Q from a "
+                    "text field), ? help.")
     p.add_argument("--telemetry", default=protocol.DEFAULT_TELEMETRY, metavar="ENDPOINT",
                    help="the daemon's telemetry PUB socket (default %(default)s)")
     p.add_argument("--control", default=protocol.DEFAULT_CONTROL, metavar="ENDPOINT",
@@ -37,6 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="terminal size for --screenshots (default %(default)s)")
     p.add_argument("--rate", type=float, default=4.0, metavar="HZ",
                    help="table and map refreshes per second, at most (default %(default)s)")
+    from kmea import __version__
+
+    p.add_argument("--version", action="version", version=f"kmea-tui {__version__}")
     p.add_argument("--theme", default="auto",
                    help="Textual theme; 'auto' picks ansi-dark on 16-colour terminals "
                         "and textual-dark otherwise")

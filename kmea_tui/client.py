@@ -42,6 +42,7 @@ UI_TOPICS = (
     protocol.TOPIC_STATUS,
     protocol.TOPIC_EVENT,
     protocol.TOPIC_LOG,
+    protocol.TOPIC_CAMERA,  # sent by the daemon only while the Camera tab holds a lease
 )
 
 Reply = dict[str, Any]

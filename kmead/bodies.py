@@ -111,12 +111,14 @@ def stats_body(stats: WindowStats, algorithm: str, res: FrameResult | None) -> S
 def status_body(*, t0: float, source: str, config_file: str, config_files: list[str],
                 algorithm: str, algorithms: list[str], csv: Any, recorder: Any,
                 camera: CameraModel, world_map: MarkerMap, frames: int, dropped: int,
-                bad_frames: int, telemetry: str, control: str) -> StatusBody:
+                bad_frames: int, telemetry: str, control: str,
+                stopped: bool = False) -> StatusBody:
     """``status``: the daemon's state. t0: unix start time; csv, recorder: the open CSV log
-    and recording (``path``, ``rows``/``frames``, ``bytes``) or None."""
+    and recording (``path``, ``rows``/``frames``, ``bytes``) or None; stopped: the last
+    status, at shutdown (adds ``"state": "stopped"``)."""
     now = time.time()
     c, r = csv, recorder
-    return {
+    body: StatusBody = {
         "t": now, "uptime": now - t0, "source": source,
         "config_file": config_file, "config_files": list(config_files),
         "algorithm": algorithm, "algorithms": list(algorithms),
@@ -130,3 +132,6 @@ def status_body(*, t0: float, source: str, config_file: str, config_files: list[
         "frames": frames, "dropped": dropped, "bad_frames": bad_frames,
         "telemetry": telemetry, "control": control,
     }
+    if stopped:
+        body["state"] = "stopped"
+    return body

@@ -1,4 +1,4 @@
-"""``kmead``: the localization daemon (see docs/daemon.md for the command-line contract).
+"""kmead: the localization daemon (see docs/daemon.md for the command-line contract).
 
 Exit codes: 0 done (end of a file source, --frames, SIGINT/SIGTERM); 1 runtime failure (a
 camera that cannot be opened or stops, a port in use); 2 bad configuration, map, camera
@@ -17,13 +17,24 @@ from typing import Any
 from kmead.config import ConfigError, load_config
 from kmead.startup import EXIT_CONFIG
 
+STATUS_PERIOD_S = 5.0
+FREE_PORTS = ['network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"']
+
+
+def version() -> str:
+    from kmea import __version__
+
+    return __version__
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="kmead",
         description="Marker-based localization daemon: camera -> ArUco -> KMEA -> robots.",
-        epilog="Configuration: the packaged default (config.toml), overlaid by --config FILE, "
-               "FILE.local.toml, then these options. See docs/daemon.md.")
+        epilog="Configuration: the packaged default (config.toml), overlaid by --config FILE "
+               "and FILE.local.toml (without --config: ~/.config/kmead/kmead.local.toml, "
+               "what the UI's Save wrote), then these options. kmead --check shows the "
+               "result. See docs/daemon.md.")
     p.add_argument("--config", metavar="FILE", help="configuration file overlaid on the default")
     p.add_argument("--source", metavar="SPEC",
                    help="sim, sim:SCENE, picamera, camera:INDEX, video:PATH, images:DIR, "
@@ -38,6 +49,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", metavar="FILE", help="record detections for replay (log.record)")
     p.add_argument("--frames", metavar="N", type=int,
                    help="stop after N processed frames")
+    p.add_argument("--check", action="store_true",
+                   help="validate the configuration, map and camera files, print the "
+                        "effective configuration and the warnings, then exit (0 OK, 2 not); "
+                        "opens no camera and binds no port")
+    p.add_argument("--free-ports", action="store_true",
+                   help="bind telemetry and control to free ports on 127.0.0.1 (printed at "
+                        "start), e.g. next to another running kmead")
+    p.add_argument("--status-every", metavar="SECONDS", type=float, default=STATUS_PERIOD_S,
+                   help="headless: a one-line status on stderr this often "
+                        "(default %(default)g s; 0 = none)")
+    p.add_argument("--version", action="version", version=f"kmead {version()}")
     return p
 
 
@@ -52,16 +74,32 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     return o
 
 
-def _setup_logging(level: str) -> None:
+def _setup_logging(level: str, timestamps: bool | None = None) -> None:
+    """kmead's stderr log handler; ``timestamps`` None: unless stderr is the journal."""
+    if timestamps is None:
+        from kmead.status_line import stderr_is_journal
+
+        timestamps = not stderr_is_journal()
     root = logging.getLogger("kmead")
     root.setLevel(level.upper())
-    if not any(isinstance(h, logging.StreamHandler) and getattr(h, "_kmead", False)
-               for h in root.handlers):
-        h = logging.StreamHandler(sys.stderr)
-        h.setFormatter(logging.Formatter("kmead: %(levelname)s: %(message)s"))
-        h._kmead = True  # type: ignore[attr-defined]
-        root.addHandler(h)
+    # One stderr handler, on the stderr of this call (main() may run more than once in a
+    # process: tests, the UI's embedded daemon), with the time unless journald stamps it.
+    for h in [h for h in root.handlers if getattr(h, "_kmead", False)]:
+        root.removeHandler(h)
+    h = logging.StreamHandler(sys.stderr)
+    fmt = "kmead: %(levelname)s: %(message)s"
+    h.setFormatter(logging.Formatter(f"%(asctime)s {fmt}" if timestamps else fmt,
+                                     "%Y-%m-%d %H:%M:%S"))
+    h._kmead = True  # type: ignore[attr-defined]
+    root.addHandler(h)
     root.propagate = False
+
+
+def _port_hint(text: str) -> str:
+    if "Address already in use" not in text and "address in use" not in text.lower():
+        return text
+    return (f"{text}; another kmead is probably running (stop it: systemctl stop kmead, or "
+            "Ctrl+C in its terminal), or start this one with --free-ports")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,20 +107,33 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames is not None and args.frames < 1:
         print("kmead: --frames: must be >= 1", file=sys.stderr)
         return EXIT_CONFIG
+    if not args.status_every >= 0:
+        print("kmead: --status-every: give seconds >= 0", file=sys.stderr)
+        return EXIT_CONFIG
+    sets = [*FREE_PORTS, *args.set] if args.free_ports else args.set
     try:
-        cfg = load_config(args.config, args.set, _overrides(args))
+        cfg = load_config(args.config, sets, _overrides(args))
     except ConfigError as e:
         print(f"kmead: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
-    _setup_logging(cfg["log"]["level"])
+    if args.check:
+        from kmead.check import run_check
+
+        return run_check(cfg)
+    from kmead.status_line import StatusReporter, stderr_is_journal
+
+    journal = stderr_is_journal()
+    _setup_logging(cfg["log"]["level"], timestamps=not journal)
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
 
     from kmead.daemon import Daemon, StartupError
+    from kmead.notify import Notifier, monotonic_alive
 
+    notifier = Notifier()
     try:
         daemon = Daemon(cfg, max_frames=args.frames)
     except StartupError as e:
-        print(f"kmead: {e}", file=sys.stderr)
+        print(f"kmead: {_port_hint(str(e))}", file=sys.stderr)
         return e.code
     except ConfigError as e:
         print(f"kmead: configuration error: {e}", file=sys.stderr)
@@ -93,6 +144,19 @@ def main(argv: list[str] | None = None) -> int:
     endpoints = [f"telemetry {daemon.telemetry.bound or 'off'}",
                  f"control {daemon.control.bound if daemon.control else 'off'}"]
     print(f"kmead: {', '.join(endpoints)}", file=sys.stderr, flush=True)
+    if len(cfg.files) > 1:  # say which files, so a saved overlay never surprises anyone
+        print(f"kmead: configuration: {', '.join(cfg.files)}", file=sys.stderr, flush=True)
+    # systemd (Type=notify): ready once the sockets are bound; the watchdog pings while the
+    # main loop shows signs of life; the status line doubles as STATUS=.
+    notifier.ready(f"running: {cfg['source']['spec']}")
+    if notifier.interval is not None:
+        notifier.start_watchdog(monotonic_alive(lambda: daemon.progress_t,
+                                                max(10.0, 4 * notifier.interval)))
+    reporter = StatusReporter(daemon.progress, args.status_every or STATUS_PERIOD_S,
+                              stream=None if ui else sys.stderr, timestamps=not journal,
+                              on_line=notifier.status if notifier.enabled else None)
+    if (not ui and args.status_every > 0) or notifier.enabled:
+        reporter.start()
     code = 0
     try:
         if ui:
@@ -108,8 +172,17 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         daemon.stop()
     finally:
+        reporter.stop()
+        notifier.stopping("stopping")
         daemon.close()
+        notifier.close()
     print(daemon.summary(), flush=True)
+    why = "stop requested" if daemon.stop_event.is_set() else (
+        f"--frames {args.frames} reached" if args.frames is not None
+        and daemon.totals.frames >= args.frames else "the source ended")
+    final = (f"stopped ({why}): {daemon.totals.frames} frames, exit code {code}"
+             if code == 0 else f"stopped with an error: exit code {code}")
+    print(reporter.stamp(final), file=sys.stderr, flush=True)
     return code
 
 

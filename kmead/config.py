@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import re
 import sys
 from collections.abc import Callable
@@ -87,6 +88,13 @@ def _int_ge(lo: int) -> Check:
             raise ConfigError(f"{where}: must be >= {lo}, got {v}")
         return v
     return check
+
+
+def _port(v: Any, where: str) -> int:
+    p = _int_ge(0)(v, where)
+    if p > 65535:
+        raise ConfigError(f"{where}: a TCP port is 0 (any free port) to 65535, got {p}")
+    return p
 
 
 def _alpha(v: Any, where: str) -> float:
@@ -196,6 +204,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
     "network": {"telemetry": _endpoint, "control": _endpoint, "status_period_s": _positive},
     "log": {"csv": _str, "record": _str,
             "level": _choice("debug", "info", "warning", "error")},
+    "foxglove": {"enabled": _bool, "host": _str, "port": _port, "image_hz": _nonneg},
 }
 
 ROBOT_KEYS = ("name", "markers", "height", "length", "separation", "destinations")
@@ -376,7 +385,24 @@ class Config:
         if self.user_file:
             p = Path(self.user_file)
             return p.with_name(p.name.removesuffix(".toml") + ".local.toml")
-        return Path("kmead.local.toml").resolve()
+        return default_overlay_path()
+
+
+def default_overlay_path() -> Path:
+    """The overlay of a plain start (no --config): ``$XDG_CONFIG_HOME/kmead/kmead.local.toml``
+    (``~/.config/kmead/...``), the working directory's ``kmead.local.toml`` without a home."""
+    base = os.environ.get("XDG_CONFIG_HOME", "")
+    if not base:
+        try:
+            base = str(Path.home() / ".config")
+        except RuntimeError:  # no home directory (a bare service account)
+            return Path("kmead.local.toml").resolve()
+    return Path(base) / "kmead" / "kmead.local.toml"
+
+
+# The kmead option that sets a key (errors name what the user typed).
+OPTION_OF = {"source.spec": "--source", "camera.file": "--camera", "map.file": "--map",
+             "estimator.algorithm": "--algorithm", "log.csv": "--log", "log.record": "--record"}
 
 
 def load_config(path: str | None = None, sets: list[str] | None = None,
@@ -395,11 +421,13 @@ def load_config(path: str | None = None, sets: list[str] | None = None,
         files.append(str(p))
     cfg = Config(data=data, files=files, user_file=str(Path(path).resolve()) if path else None)
     cfg.base = copy.deepcopy(data)
-    if path is not None and use_local and cfg.overlay_path.exists():
+    # FILE.local.toml next to --config FILE; without --config, the per-user overlay (what
+    # the UI's Save wrote during an earlier plain start).
+    if use_local and cfg.overlay_path.exists():
         _merge(data, _read_toml(cfg.overlay_path), str(cfg.overlay_path))
         files.append(str(cfg.overlay_path))
     for key, value in (overrides or {}).items():
-        cfg.set(key, value, where=f"--{key.split('.')[-1]}")
+        cfg.set(key, value, where=OPTION_OF.get(key, f"--{key.split('.')[-1]}"))
     for item in sets or []:
         key, value = parse_set(item)
         cfg.set(key, value, where="--set")
@@ -431,6 +459,7 @@ def save_overlay(cfg: Config, path: str | Path | None = None) -> tuple[Path, dic
     head = (f"# Written by kmead save_config at {time.strftime('%Y-%m-%d %H:%M:%S')}.\n"
             f"# Settings changed at run time; they overlay {cfg.user_file or 'the default config'}"
             ".\n# Delete this file to go back to that configuration.\n")
+    p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(p.name + ".tmp")
     tmp.write_text(head + tomli_w.dumps(doc))
     tmp.replace(p)

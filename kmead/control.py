@@ -26,7 +26,8 @@ log = logging.getLogger("kmead.control")
 SOCKET_MAX_BYTES = 16 * P.MAX_MESSAGE_BYTES
 
 COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop", "record_start",
-            "record_stop", "reload_map", "save_config", "reset_stats")
+            "record_stop", "reload_map", "save_config", "reset_stats", "camera_watch",
+            "snapshot", "get_log")
 
 
 class Daemon(Protocol):
@@ -214,3 +215,19 @@ class ControlServer:
         with self.daemon.lock:
             self.daemon.stats.reset()
         return {}
+
+    def _cmd_camera_watch(self, req: dict) -> dict:
+        """Thumbnails on the ``camera`` topic until the lease ends (renew to keep them)."""
+        d = self.daemon
+        reply = d.camera_feed.watch(req.get("width"), req.get("height"), req.get("lease_s"))
+        return {**reply, "images": not d.replay}
+
+    def _cmd_snapshot(self, req: dict) -> dict:
+        overlay = bool(_field(req, "overlay", bool, required=False))
+        return self.daemon.snapshot(overlay)
+
+    def _cmd_get_log(self, req: dict) -> dict:
+        limit = _field(req, "limit", int, required=False)
+        if limit is not None and not 1 <= limit <= 1000:
+            raise RequestError("field 'limit': expected 1 to 1000")
+        return {"lines": self.daemon.log_ring.lines(limit)}

@@ -28,10 +28,12 @@ from kmea.moved import MovedMonitor
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
 from kmea.recording import Recorder, ReplaySource
 from kmead import bodies
+from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
 from kmead.csvlog import CsvLog
+from kmead.log_ring import LogRing
 from kmead.outputs import RunTotals, csv_lines, truth_record
 from kmead.relay import Relay
 from kmead.startup import (
@@ -81,6 +83,14 @@ class Daemon:
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
         self._log_handler: logging.Handler | None = None
+        # Field kit: liveness, the UI's camera view and log on attach, snapshots, Foxglove.
+        self.state = "starting"  # running, then stopped: in the status telemetry
+        self.progress_t = time.monotonic()  # the main loop's last sign of life (watchdog)
+        self.camera_feed = CameraFeed()
+        self.log_ring = LogRing()
+        logging.getLogger("kmead").addHandler(self.log_ring)
+        self.last_image = None  # the last processed frame's image (snapshots)
+        self.foxglove = None
         try:
             self._build()
         except BaseException:
@@ -100,6 +110,7 @@ class Daemon:
         self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(cfg)
         if self.world_map is None:
             self.world_map = load_configured_map(cfg, self.source)
+        self._map_warnings()
         camera = fit_camera(cfg, camera, self.source)
         try:
             self.pipeline = Pipeline(camera, self.world_map, PipelineSettings.from_config(cfg.data))
@@ -130,7 +141,33 @@ class Daemon:
             if cfg["log"]["record"]:
                 self.start_recording(cfg["log"]["record"])
         except ValueError as e:  # an unwritable path: name the key, do not start
-            raise StartupError(f"key 'log.{'record' if self.csv else 'csv'}': {e}") from None
+            key = "record" if str(e).startswith("record:") else "csv"
+            raise StartupError(f"key 'log.{key}': {e}") from None
+        if cfg.data.get("foxglove", {}).get("enabled"):
+            self._start_foxglove()
+
+    def _start_foxglove(self) -> None:
+        fx = self.cfg["foxglove"]
+        try:
+            from kmead.foxglove_bridge import FoxgloveServer
+        except ImportError:
+            raise StartupError("key 'foxglove.enabled': the foxglove extra is not installed "
+                               "(pip install 'kmea[foxglove]')") from None
+        try:
+            self.foxglove = FoxgloveServer(self.world_map, self.pipeline.camera, fx["host"],
+                                           fx["port"], fx["image_hz"])
+        except OSError as e:
+            raise StartupError(f"key 'foxglove.port': {e}; another kmead is probably running "
+                               "(or set foxglove.port = 0 for a free port)",
+                               EXIT_RUNTIME) from None
+        log.info("foxglove: serving %s (open it in Foxglove: Open connection, "
+                 "Foxglove WebSocket)", self.foxglove.url)
+
+    def _map_warnings(self) -> None:
+        from kmea.maps import check_map
+
+        for w in check_map(self.world_map):  # the same warnings as `kmea map check`
+            log.warning("map %s: %s", self.world_map.source, w)
 
     # ------------------------------------------------------------------ outputs on/off
     def start_csv(self, path: str) -> CsvLog:
@@ -243,7 +280,23 @@ class Daemon:
             frames=self.totals.frames, dropped=self.dropped,
             bad_frames=self.totals.bad_frames,
             telemetry=self.telemetry.bound if self.telemetry else "",
-            control=self.control.bound if self.control else "")
+            control=self.control.bound if self.control else "",
+            stopped=self.state == "stopped")
+
+    def progress(self) -> dict:
+        """A snapshot for the headless status line and systemd STATUS (any thread)."""
+        with self.lock:  # between two frames: the robot tracks are not changing
+            return self._progress()
+
+    def _progress(self) -> dict:
+        tracks = self.relay.tracks.values() if self.relay is not None else ()
+        loo = self.stats.mean_error
+        return {"frames": self.totals.frames, "fps": self.fps(),
+                "robots_tracked": sum(1 for tr in tracks
+                                      if tr.last_seen is not None and not tr.stale),
+                "robots": len(self.cfg["robots"]),
+                "loo_mean_m": loo if loo is not None and math.isfinite(loo) else None,
+                "dropped": self.dropped, "bad_frames": self.totals.bad_frames}
 
     @property
     def dropped(self) -> int:
@@ -284,6 +337,7 @@ class Daemon:
     def process_frame(self, frame, capture_ms: float, t_cap: float,
                       detections=None, detect_ms: float = 0.0) -> FrameResult | None:
         """One frame through the pipeline and every output (caller holds ``self.lock``)."""
+        self.progress_t = time.monotonic()
         if frame.image is None and "replay" not in frame.meta:
             self.totals.bad_frames += 1
             self.event("warning", f"frame {frame.index}: {frame.meta.get('error', 'no image')}"
@@ -301,7 +355,58 @@ class Daemon:
             log.debug("frame failure", exc_info=True)
             return None
         self._outputs(res)
+        self._camera_outputs(frame.image, res)
         return res
+
+    def _camera_outputs(self, image, res: FrameResult) -> None:
+        """The Camera tab's thumbnail (while watched) and Foxglove (when enabled)."""
+        self.last_image = image
+        lease = self.camera_feed.due() if image is not None else None
+        if lease is None and self.foxglove is None:
+            return
+        cache: list = []
+
+        def marks() -> list:  # the outlines, computed once and only when something uses them
+            if not cache:
+                cache.append(frame_outlines(res.observations, set(res.estimate.rejected),
+                                            res.estimate.cam2world, self.pipeline.camera,
+                                            self.world_map))
+            return cache[0]
+
+        if lease is not None:
+            self.publish(P.TOPIC_CAMERA, camera_body(image, marks(), lease.width, lease.height,
+                                                     res.index, res.timestamp))
+        if self.foxglove is not None:
+            from kmead.foxglove_bridge import FrameView, MarkerView, RobotView
+
+            rejected = set(res.estimate.rejected)
+            suspect = {o.id for o in res.observations if o.suspect}
+            markers = [MarkerView(mid, p, yaw, "rejected" if mid in rejected else
+                                  "suspect" if mid in suspect else "detected")
+                       for mid, (p, yaw) in res.markers.items()]
+            robots = [RobotView(tr.name, tr.x, tr.y, tr.theta, tr.name in res.robots)
+                      for tr in self.relay.tracks.values() if tr.last_seen is not None]
+            self.foxglove.publish(FrameView(res.timestamp, res.index, image, marks, markers,
+                                            robots, res.estimate.cam2world))
+
+    def snapshot(self, overlay: bool = False) -> dict:
+        """Save the last frame as PNG in the data directory (kmead's working directory)."""
+        from kmea.vision.overlay import focus_measure
+        from kmead.snapshot import save_snapshot
+
+        with self.lock:  # between two frames: take the image and what to draw on it
+            res, image = self.last_result, self.last_image
+            image = None if image is None else image.copy()
+            marks = [] if res is None or not overlay else frame_outlines(
+                res.observations, set(res.estimate.rejected), res.estimate.cam2world,
+                self.pipeline.camera, self.world_map)
+        focus = None
+        if overlay and image is not None and image.ndim == 2:
+            focus = focus_measure(image, [m.corners for m in marks if m.kind != "expected"])
+        # PNG encoding (tens of ms at full size) happens outside the lock.
+        path = save_snapshot(image, res.index if res else -1, ".", marks, focus, overlay)
+        log.info("snapshot saved: %s", path)
+        return {"path": str(path), "frame": res.index if res else None, "overlay": overlay}
 
     def _outputs(self, res: FrameResult) -> None:
         t_out = time.perf_counter()
@@ -425,6 +530,7 @@ class Daemon:
         if self.control is not None:
             self.control.start()
         self.totals.t_start = time.perf_counter()
+        self.state = "running"
         self.publish(P.TOPIC_STATUS, self.status())
         log.info("running: source %s, algorithm %s, map %s (%d markers)", self.source_spec,
                  self.pipeline.algorithm, self.world_map.name, len(self.world_map))
@@ -439,6 +545,7 @@ class Daemon:
                 except CaptureEnded as e:
                     self._source_ended(e)
                     break
+                self.progress_t = time.monotonic()
                 if got is None:
                     continue
                 (frame, cap_ms, t_cap), det, det_ms = got
@@ -455,6 +562,7 @@ class Daemon:
             self.exit_code = EXIT_RUNTIME
 
     def stop(self) -> None:
+        # Only a flag: this runs in a signal handler (no locks, no sockets here).
         self.stop_event.set()
 
     def close(self) -> None:
@@ -471,13 +579,22 @@ class Daemon:
                 self.stop_csv()
             if self.recorder is not None:
                 self.stop_recording()
+            if self.foxglove is not None:
+                self.foxglove.close()
+                self.foxglove = None
             if self.relay is not None:
                 self.relay.close()
                 self.relay = None
             if self._log_handler is not None:
                 logging.getLogger("kmead").removeHandler(self._log_handler)
                 self._log_handler = None
+            logging.getLogger("kmead").removeHandler(self.log_ring)
             if self.telemetry is not None:
+                # Announce the end, so a UI shows "daemon stopped" instead of frozen data.
+                if self.state != "starting":
+                    self.state = "stopped"
+                    self.telemetry.event("info", "kmead stopped")
+                    self.publish(P.TOPIC_STATUS, self.status())
                 self.telemetry.close()
                 self.telemetry = None
 

@@ -6,6 +6,7 @@ whose ``code`` is the process exit code.
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from kmea.maps import MapError, MarkerMap, default_map, load_map
@@ -90,6 +91,11 @@ def fit_camera(cfg: Config, cam: CameraModel | None, source: FrameSource) -> Cam
         if not isinstance(cam, CameraModel):
             cam = pi_camera_v2()
     if size and (cam.width, cam.height) != tuple(size):
+        if cfg["camera"]["file"]:
+            logging.getLogger("kmead").warning(
+                "camera: %s is for %dx%d; rescaled to the frame size %dx%d (calibrate at "
+                "this size for the best accuracy)", cfg["camera"]["file"], cam.width,
+                cam.height, *size)
         try:
             cam = cam.scaled_to(*size)
         except CameraError as e:

@@ -34,11 +34,36 @@ def format_summary(d: Daemon) -> str:
         f"source {d.source_spec}, algorithm {d.pipeline.algorithm}",
         f"  dropped frames: {d.dropped}, bad frames: {t.bad_frames}, "
         f"not estimated: {t.not_estimated}",
+    ]
+    why = []
+    if d.dropped:
+        why.append(f"{d.dropped} dropped: the pipeline was slower than the source, so the "
+                   "newest frame was taken and older ones skipped (see frames/s)")
+    if t.bad_frames:
+        why.append(f"{t.bad_frames} bad: frames that could not be read or processed "
+                   "(the log says which)")
+    if t.not_estimated:
+        why.append(f"{t.not_estimated} not estimated: too few usable map markers in view "
+                   "(the frame telemetry's 'reason' says which)")
+    lines += [f"    ({w})" for w in why]
+    lines += [
         f"  markers seen: {len(t.markers_seen)} ({len(in_map)} in the map of {len(d.world_map)}"
         f", {len(other)} others{': ' + ' '.join(map(str, other)) if other else ''})",
         f"  robots tracked: {len(t.robots_seen)} of {len(d.cfg['robots'])}"
         f"{': ' + ', '.join(sorted(t.robots_seen)) if t.robots_seen else ''}",
     ]
+    for r in d.cfg["robots"]:
+        if r["name"] in t.robots_seen:
+            continue
+        ids = r["markers"] if isinstance(r["markers"], list) else [r["markers"]]
+        seen = [i for i in ids if i in t.markers_seen]
+        missing = [i for i in ids if i not in t.markers_seen]
+        reason = (f"marker {', '.join(map(str, missing))} never detected" if missing
+                  else "its markers were seen but never together as a pair in one frame"
+                  if len(ids) == 2 else "no pose (its marker was only seen as suspect)")
+        if seen and missing:
+            reason += f" (seen: {', '.join(map(str, seen))})"
+        lines.append(f"    {r['name']} not tracked: {reason}")
     if t.loo_n:
         lines.append(f"  leave-one-out error: mean {t.loo_sum / t.loo_n * 1e3:.3f} mm, "
                      f"max {t.loo_max * 1e3:.3f} mm over {t.loo_n} marker estimates")

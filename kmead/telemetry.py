@@ -90,7 +90,8 @@ class Telemetry:
             self._thread.join(timeout=2.0)
             self._thread = None
         if self.sock is not None:
-            self.sock.close(linger=0)
+            # A short linger: the last messages (the "stopped" status) still go out.
+            self.sock.close(linger=500)
             self.sock = None
 
 

@@ -15,7 +15,14 @@ import pytest
 from kmea.cli import main
 from kmea.geometry import rot_z
 from kmea.maps import Marker, MarkerMap, default_map
-from kmea.vision.printing import charuco_page, floor_page, marker_page, px, save_printable
+from kmea.vision.printing import (
+    charuco_page,
+    floor_page,
+    label_box,
+    marker_page,
+    px,
+    save_printable,
+)
 
 
 def _detect(img: np.ndarray, dict_name: str) -> dict[int, np.ndarray]:
@@ -107,6 +114,21 @@ def test_floor_is_one_to_one_with_markers_at_map_positions() -> None:
         world = _world_of(c, w, h, dpi)
         expect = mp[mid].corners_world()[:, :2]
         assert np.abs(world - expect).max() < 1.5 * 0.0254 / dpi, mid  # corners, in order
+
+
+def test_floor_prints_each_markers_id_under_it() -> None:
+    dpi = 60.0
+    mp = default_map()
+    page = floor_page(mp, dpi=dpi)
+    found = _detect(page.image, "DICT_5X5_100")
+    side = 0.06 / (0.0254 / dpi)
+    for mid, c in found.items():
+        x0, y0, x1, y1 = label_box(c, side)
+        ink = page.image[y0:y1 + 1, x0:x1 + 1] < 128
+        assert ink.sum() > 5, mid  # the id's strokes
+        # Wider ids print wider: two-digit labels reach further from the centre.
+        cols = np.nonzero(ink.any(axis=0))[0]
+        assert (cols.max() - cols.min() > 0.8 * (y1 - y0)) == (mid >= 10), mid
 
 
 def test_floor_draws_yawed_markers_turned(tmp_path: Path) -> None:

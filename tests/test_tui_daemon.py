@@ -6,6 +6,7 @@ frames to keep it light) on free ports. Waits have generous timeouts; nothing as
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -31,10 +32,12 @@ class Daemon:
     """One kmead subprocess; ``telemetry``/``control`` are its bound endpoints."""
 
     def __init__(self, cwd: Path, telemetry: str = "tcp://127.0.0.1:*",
-                 control: str = "tcp://127.0.0.1:*") -> None:
+                 control: str = "tcp://127.0.0.1:*", source: str = "sim") -> None:
         self.cwd = cwd
         self.stderr_path = cwd / f"kmead-{time.monotonic_ns()}.err"
-        cmd = [sys.executable, "-m", "kmead.cli", "--source", "sim", "--headless",
+        # Its own config home: a plain start reads (and Save writes) the per-user overlay.
+        self.env = {**os.environ, "XDG_CONFIG_HOME": str(cwd / "config-home")}
+        cmd = [sys.executable, "-m", "kmead.cli", "--source", source, "--headless",
                "--set", f'network.telemetry="{telemetry}"',
                "--set", f'network.control="{control}"',
                "--set", "source.width=640", "--set", "source.height=480",
@@ -42,7 +45,8 @@ class Daemon:
                # 5 frames/s: Pilot waits for the app to idle after each key press.
                "--set", "source.fps=5"]
         with open(self.stderr_path, "w") as err:
-            self.proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=err)
+            self.proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=err,
+                                         env=self.env)
         deadline = time.monotonic() + START_TIMEOUT
         while time.monotonic() < deadline:
             text = self.stderr_path.read_text()
@@ -194,9 +198,11 @@ async def test_stopping_daemon_shows_disconnected_and_restart_reconnects(tmp_pat
         async with app.run_test(size=(80, 24)) as pilot:
             await wait_for(pilot, lambda: app.connection_state == "connected", "connected")
             first.stop()
-            await wait_for(pilot, lambda: app.connection_state == "disconnected",
-                           "disconnected after the daemon stopped")
-            assert "disconnected" in str(app.query_one("#status").render())
+            # The daemon announced its end on telemetry: "daemon stopped", not frozen data.
+            await wait_for(pilot, lambda: app.connection_state == "stopped",
+                           "stopped after the daemon announced it")
+            status = str(app.query_one("#status").render())
+            assert "daemon stopped" in status and "fps" not in status
             frames_before = app.received
             second = Daemon(tmp_path, telemetry=tel, control=ctl)  # same endpoints
             await wait_for(pilot, lambda: app.connection_state == "connected",
@@ -251,7 +257,13 @@ async def test_config_edits_apply_live_and_save_writes_the_overlay(daemon: Daemo
                        "amr3 removed")
         # Save: the daemon writes its overlay file, never the commented configuration.
         await pilot.press("ctrl+s")
-        overlay = daemon.cwd / "kmead.local.toml"
+        # Started without --config: Save writes the per-user overlay, which the next plain
+        # start reads (kmead --check shows the effective configuration without starting).
+        overlay = daemon.cwd / "config-home" / "kmead" / "kmead.local.toml"
         await wait_for(pilot, overlay.exists, f"{overlay}")
         assert "alpha = 0.5" in overlay.read_text()
+        check = subprocess.run([sys.executable, "-m", "kmead.cli", "--check"], cwd=daemon.cwd,
+                               env=daemon.env, capture_output=True, text=True, timeout=60)
+        assert check.returncode == 0, check.stderr
+        assert "alpha = 0.5" in check.stdout and str(overlay) in check.stdout
         assert str(overlay) in str(app.query_one("#save-note").render()).replace("\n", "")

@@ -70,13 +70,14 @@ def run(quick: bool = False) -> None:
         print(f"{'size':>10} {'static s':>9} {'fps wall':>9} {'fps cpu':>8}")
         for w, h in SIZES:
             build, fps_wall, fps_cpu = _speed(w, h, frames)
-            print(f"{w}x{h:<5} {build:9.2f} {fps_wall:9.1f} {fps_cpu:8.1f}", flush=True)
+            print(f"{f'{w}x{h}':>10} {build:9.2f} {fps_wall:9.1f} {fps_cpu:8.1f}", flush=True)
         indices = [0, 150, 300] if quick else list(range(0, 450, 45))
         print(f"corner fidelity (ArUco SUBPIX vs truth, {len(indices)} frames)")
         print(f"{'size':>10} {'found':>9} {'rms px':>7} {'mean dx':>8} {'mean dy':>8}")
         for w, h in SIZES:
             n, k, rms, mean = _fidelity(w, h, indices)
-            print(f"{w}x{h:<5} {k:4d}/{n:<4d} {rms:7.3f} {mean[0]:8.4f} {mean[1]:8.4f}",
+            found = f"{k}/{n}"
+            print(f"{f'{w}x{h}':>10} {found:>9} {rms:7.3f} {mean[0]:8.4f} {mean[1]:8.4f}",
                   flush=True)
     finally:
         cv2.setNumThreads(threads)

@@ -220,6 +220,8 @@ def _build(name: str, cam2world: Callable[[CameraModel], np.ndarray], robots: bo
         overrides.update(raised_overrides(world_map, raised, float(opts.pop("raise_by", 0.20))))
     opts.pop("raise_by", None)
     covered = opts.pop("covered", None)
+    if isinstance(covered, int) and not isinstance(covered, bool):
+        covered = [covered]  # ?covered=4 parses as one number, not a list
     if covered:
         effects.occluders += Occluder.covering(world_map, covered)
     kw = {k: opts.pop(k) for k in ("misplaced", "extra_markers", "seed", "fps", "floor",

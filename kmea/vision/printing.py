@@ -69,6 +69,29 @@ def _text_lines(img: np.ndarray, lines: list[str], x0: int, y0: int, width: int,
         y += base + max(2, th // 3)
 
 
+def label_box(corners_px: np.ndarray, side_px: float) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) pixels of a marker's id label: centred under the marker (page
+    down), a quarter of its side high, a fifth of its side below (clear of the quiet
+    zone the detector needs)."""
+    cx = float(corners_px[:, 0].mean())
+    y_top = float(corners_px[:, 1].max()) + 0.2 * side_px
+    h = max(6.0, 0.25 * side_px)
+    return round(cx - 1.5 * h), round(y_top), round(cx + 1.5 * h), round(y_top + h)
+
+
+def _id_label(img: np.ndarray, marker_id: int, corners_px: np.ndarray, side_px: float) -> None:
+    """The marker id in black under the marker (the printed floor names its markers)."""
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    x0, y0, x1, y1 = label_box(corners_px, side_px)
+    text = str(marker_id)
+    (_, h1), _ = cv2.getTextSize("0", font, 1.0, 1)
+    scale = (y1 - y0) / h1
+    thick = max(1, round(scale * 1.6))
+    (tw, _), _ = cv2.getTextSize(text, font, scale, thick)
+    org = (round((x0 + x1) / 2 - tw / 2), y1)
+    cv2.putText(img, text, org, font, scale, 0, thick, cv2.LINE_AA)
+
+
 def _check_dpi(dpi: float) -> float:
     if not (dpi >= 30 and dpi <= 2400):
         raise ValueError(f"dpi must be between 30 and 2400, got {dpi}")
@@ -128,8 +151,9 @@ def floor_page(marker_map: MarkerMap, dpi: float = 150.0,
     """The map's floor markers at 1:1 on a ``canvas_m`` (width, height) metre canvas, seen from
     above (page right = world +x, page up = world +y), centred on the floor markers' extent.
 
-    Each marker is drawn at its map position, side and yaw, from the dictionary of the map.
-    The margin text gives the canvas size and where the world origin lies.
+    Each marker is drawn at its map position, side and yaw, from the dictionary of the map,
+    with its id printed under it. The margin text gives the canvas size and where the world
+    origin lies.
     """
     dpi = _check_dpi(dpi)
     floor = [m for m in marker_map.markers.values() if m.on_floor]
@@ -156,6 +180,7 @@ def floor_page(marker_map: MarkerMap, dpi: float = 150.0,
         # Pixel edges: world x = left is the left edge of pixel 0, i.e. x_px = -0.5.
         dst = np.stack([(wc[:, 0] - left) / pitch - 0.5, (top - wc[:, 1]) / pitch - 0.5], 1)
         _paste_warped(canvas, img, dst)
+        _id_label(canvas, m.id, dst, m.length / pitch)
     ox_mm = (0.0 - left) * 1000
     oy_mm = (0.0 - (top - H * pitch)) * 1000
     lines = [f"{marker_map.name}: {len(floor)} floor markers ({marker_map.dictionary}), "

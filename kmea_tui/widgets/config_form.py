@@ -94,6 +94,8 @@ class ConfigPane(VerticalScroll):
     def compose(self) -> ComposeResult:
         yield Static("configuration not loaded yet (daemon not reachable?)", id="config-status",
                      classes="summary")
+        # Where Save writes, near the top so it is visible at 80x24 (long paths wrap).
+        yield Static("", id="save-note", classes="note", markup=False)
         with Horizontal(classes="form-row"):
             yield Label("algorithm", classes="form-label")
             yield Select([(a, a) for a in self.algorithms], allow_blank=True,
@@ -111,7 +113,6 @@ class ConfigPane(VerticalScroll):
             yield Button("Save [ctrl+s]", id="save", variant="primary")
             yield Button("Re-read [ctrl+r]", id="reread")
             yield Button("Reload map", id="reload-map")
-        yield Static("", id="save-note", classes="note")
 
     # -- showing the daemon's configuration ----------------------------------------------
     def set_algorithms(self, algorithms: list[str]) -> None:
@@ -150,8 +151,7 @@ class ConfigPane(VerticalScroll):
         for i, r in enumerate(self.robots):
             table.add_row(*robot_row(r), key=str(i))
         self._show_detector(config.get("detector", {}))
-        self.query_one("#save-note", Static).update(
-            f"Save writes {self.save_target}.")
+        self.query_one("#save-note", Static).update(f"Save writes {self.save_target}")
         self.query_one("#config-status", Static).update(Text.assemble(
             ("configuration", "bold"), f" ({source or 'the daemon'}): ",
             "Enter applies a value live; Save makes changes permanent"))
@@ -176,6 +176,28 @@ class ConfigPane(VerticalScroll):
                                    classes="form-row"))
         box.mount_all(rows)
 
+    def revert(self, key: str) -> None:
+        """Put the current value back in the field of ``key`` (after a refused ``set``)."""
+        section, _, name = key.partition(".")
+        value = (self.config.get(section) or {}).get(name) \
+            if isinstance(self.config.get(section), dict) else None
+        if value is None:
+            return
+        if key == "filter.alpha":
+            inputs = [self.query_one("#filter-alpha", Input)]
+        elif section == "detector":
+            inputs = [inp for inp in self.query_one("#detector-options", Vertical).query(Input)
+                      if inp.name == name]
+        else:
+            inputs = []
+        for inp in inputs:
+            inp.value = show_value(value)
+            inp.cursor_position = len(inp.value)
+        if key == "estimator.algorithm":
+            select = self.query_one("#algorithm", Select)
+            with select.prevent(Select.Changed):
+                select.value = value
+
     def show_reply(self, text: str, ok: bool) -> None:
         self.query_one("#config-status", Static).update(
             Text(("✓ " if ok else "✗ ") + text, style="green" if ok else "bold red"))
@@ -194,6 +216,7 @@ class ConfigPane(VerticalScroll):
         value = parse_value(event.value)
         if not isinstance(value, (int, float)) or isinstance(value, bool):
             self.show_reply(f"filter alpha must be a number, got {event.value!r}", False)
+            self.revert("filter.alpha")
             return
         self._set("filter.alpha", float(value))
 

@@ -69,15 +69,14 @@ def _sort_value(raw: dict[str, Any], col: str) -> Any:
 
 class MarkersTable(LiveTable):
     # Shown by Textual's help panel (``?`` or Ctrl+P "Keys") while the table has focus.
+    # Compact: it must fit the help panel at 80x24.
     HELP = "\n".join([
-        "**Markers**: every map marker and every detected marker outside the map.",
+        "**Markers**: map markers and detected others. *LOO mm*: leave-one-out error.",
         "",
-        "*LOO mm*: leave-one-out error of this frame. Flags:",
-        "",
-        *(f"- `{ch}` {text}" for ch, text in FLAGS_HELP),
+        *(f"`{ch}` {text.split(':')[0]}  " for ch, text in FLAGS_HELP),
         "",
         "Rows: **red** moved, dim unseen, yellow suspect, cyan not in the map.",
-        "`s` sorts by the next column, `S` reverses.",
+        "`s`/`S` sort.",
     ])
 
     def __init__(self, id: str | None = None) -> None:
@@ -133,14 +132,29 @@ class MarkersPane(Vertical):
         # This frame's suspect markers, counted from the rows shown (the same frame).
         n_suspect = sum(1 for m in markers if m["suspect"])
         evidence = ", ".join(moved_note(m) for m in markers if m["moved"])
-        summary = Text.assemble(
-            (f"frame {body['frame']}", "bold"),
-            f" · seen {seen}/{len(in_map)} map, {foreign} other · median LOO {med} · ",
-            (f"moved {len(bad)}", "bold red" if bad else ""),
-            f" ({evidence})" if evidence else "", " · ",
-            (f"suspect {n_suspect}", "bold yellow" if n_suspect else ""), " · ",
-            (table.sort_label() + " [s/S]", "italic"),
-        )
+        # Pieces by importance: the least important go first when the line is too long
+        # (one line at 80 columns; a wrapped summary pushes the table down).
+        pieces: list[tuple[int, str | tuple[str, str]]] = [
+            (0, (f"frame {body['frame']}", "bold")),
+            (0, f"map {seen}/{len(in_map)} seen"),
+            (4, f"{foreign} other"),
+            (2, f"LOO med {med}"),
+            (0, (f"moved {len(bad)}", "bold red" if bad else "")),
+            *([(1, f"({evidence})")] if evidence else []),
+            (1, (f"suspect {n_suspect}", "bold yellow" if n_suspect else "")),
+            (3, (table.sort_label(), "italic")),
+        ]
+        width = max((self.size.width or 80) - 2, 20)
+        for drop in (4, 3, 2, 1):
+            if sum(len(p if isinstance(p, str) else p[0]) + 3 for _, p in pieces) <= width:
+                break
+            pieces = [(k, p) for k, p in pieces if k < drop]
+        parts: list[str | tuple[str, str]] = []
+        for i, (_, p) in enumerate(pieces):
+            if i:  # the evidence belongs to "moved N": a space, not a separator
+                parts.append(" " if isinstance(p, str) and p.startswith("(") else " · ")
+            parts.append(p)
+        summary = Text.assemble(*parts, no_wrap=True, overflow="ellipsis")
         self.query_one("#markers-summary", Static).update(summary)
         return bad
 

@@ -22,7 +22,10 @@ COLUMNS = [
 ]
 
 
-def robot_state(r: dict[str, Any]) -> str:
+def robot_state(r: dict[str, Any], frozen: bool = False) -> str:
+    """``frozen``: the daemon is stopped or silent, so nobody knows the robot's state."""
+    if frozen:
+        return "unknown"
     if r.get("stale"):
         return "STALE"
     return "ok" if r.get("valid") else "no fix"
@@ -46,11 +49,11 @@ def sent_cell(r: dict[str, Any]) -> str | Text:
     return str(sent)
 
 
-def robot_cells(r: dict[str, Any]) -> list[str | Text]:
+def robot_cells(r: dict[str, Any], frozen: bool = False) -> list[str | Text]:
     th = r.get("theta")
     markers = r.get("markers") or []
     dests = r.get("destinations") or []
-    state = robot_state(r)
+    state = robot_state(r, frozen)
     cells: list[str | Text] = [
         str(r.get("name", "?")),
         "+".join(map(str, markers)) if isinstance(markers, list) else str(markers),
@@ -58,9 +61,10 @@ def robot_cells(r: dict[str, Any]) -> list[str | Text]:
         fmt(math.degrees(th), ".0f") if isinstance(th, (int, float)) else DASH,
         fmt(r.get("sigma"), ".1f", 1000.0),
         fmt(r.get("age_s"), ".1f"),
-        Text(state + (f" {src}" if (src := r.get("source")) and isinstance(src, str) else ""),
+        Text(state + (f" {src}" if (src := r.get("source")) and isinstance(src, str)
+                       and not frozen else ""),
              style="bold red" if state == "STALE" else
-             ("green" if state == "ok" else "yellow")),
+             ("green" if state == "ok" else "bright_black" if frozen else "yellow")),
         sent_cell(r),
         # UDP is the only kind of destination: the prefix costs columns at 80x24.
         ", ".join(str(d).removeprefix("udp:") for d in dests)
@@ -75,6 +79,8 @@ class RobotsTable(LiveTable):
 
 
 class RobotsPane(Vertical):
+    frozen = False  # set by the app when the daemon is stopped or silent
+
     def compose(self) -> ComposeResult:
         yield Static("waiting for telemetry…", id="robots-summary", classes="summary")
         yield RobotsTable(id="robots-table")
@@ -82,9 +88,10 @@ class RobotsPane(Vertical):
     def update_robots(self, body: dict[str, Any]) -> None:
         robots = [r for r in body.get("robots", []) if isinstance(r, dict) and "name" in r]
         table = self.query_one(RobotsTable)
-        table.sync({str(r["name"]): (r, robot_cells(r)) for r in robots})
+        table.sync({str(r["name"]): (r, robot_cells(r, self.frozen)) for r in robots})
         stale = sum(1 for r in robots if r.get("stale"))
         self.query_one("#robots-summary", Static).update(Text.assemble(
+            ("NOT LIVE: last known " if self.frozen else "", "bold red"),
             (f"frame {body.get('frame', DASH)}", "bold"),
             f" · {len(robots)} robots · ",
             (f"{stale} stale", "bold red" if stale else ""),

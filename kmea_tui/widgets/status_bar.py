@@ -10,7 +10,10 @@ from textual.widgets import Static
 STATE_STYLES = {
     "connected": "bold green", "stale": "bold yellow", "disconnected": "bold red",
     "connecting": "yellow", "replay": "bold cyan", "replay end": "cyan",
+    "stopped": "bold red",
 }
+LABELS = {"stopped": "daemon stopped"}
+LIVE_STATES = ("connected", "replay", "replay end")
 # Shown in this order, as long as the line has room.
 STAGES = ("detect", "pose", "estimate", "loo", "filter", "robots", "output", "capture")
 SHORT = {"capture": "cap", "detect": "det", "pose": "pose", "estimate": "est", "loo": "loo",
@@ -21,9 +24,13 @@ def status_text(state: str, frame: dict[str, Any] | None, width: int = 80,
                 detail: str = "") -> Text:
     """One line: state, fps, dropped frames, total time, then stages that fit ``width``."""
     t = Text(no_wrap=True, overflow="ellipsis")
-    t.append(f"● {state}", STATE_STYLES.get(state, "bold"))
+    t.append(f"● {LABELS.get(state, state)}", STATE_STYLES.get(state, "bold"))
     if detail and state in ("disconnected", "stale", "connecting"):
         t.append(f" ({detail})", "bright_black")
+    if frame and state not in LIVE_STATES:
+        # Not live: no frame rate or timings that would look current.
+        t.append(f"  last frame {frame.get('frame', '-')}", "bright_black")
+        return t
     if frame:
         fps = frame.get("fps")
         t.append(f"  {fps:.1f} fps" if isinstance(fps, (int, float)) else "  - fps")
