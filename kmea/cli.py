@@ -1,4 +1,4 @@
-"""``kmea``: the tools (calibrate, print, experiment, bench, map, fuse).
+"""``kmea``: the tools (calibrate, print, experiment, bench, map, fuse, doctor, keys).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # the library reaches into the daemon.
     "fuse": ("kmead.fusion", "fuse several cameras' robot poses (docs/fusion.md)"),
     "doctor": ("kmead.doctor", "check a Raspberry Pi install: versions, camera, ports, files"),
+    "keys": ("kmead.keys_cli", "make CURVE keys for kmead and its clients (docs/security.md)"),
 }
 
 
