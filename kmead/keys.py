@@ -239,7 +239,7 @@ def connect_client(ctx: zmq.Context, endpoint: str, keys_dir: str | Path,
 
         ctx = zmq.Context()
         req = connect_client(ctx, "tcp://pi.local:5556", "~/kmea-keys", "laptop")
-        req.send_json({"v": 1, "cmd": "ping"}); print(req.recv_json())
+        req.send_json({"v": 2, "cmd": "ping"}); print(req.recv_json())
 
     For telemetry pass ``socket_type=zmq.SUB`` and subscribe. A key the daemon does not
     know gets no connection at all (the socket stays silent; use a receive timeout).

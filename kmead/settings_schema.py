@@ -48,13 +48,13 @@ MAX_TEXT = 4096  # file names, endpoints, source specs
 MAX_THRESHOLD_PASSES = 12  # adaptive-threshold windows a frame (OpenCV's default: 3)
 
 
-def _short(v: Any) -> str:
+def _short(v: Any, n: int = 60) -> str:
     """``repr`` cut to a readable length (a hostile value can be megabytes long)."""
     try:
-        r = repr(v)
+        r = v if isinstance(v, str) and n > 60 else repr(v)
     except Exception:  # a value whose repr fails (huge int digits, recursion)
         r = f"<{type(v).__name__}>"
-    return r if len(r) <= 60 else r[:57] + "..."
+    return r if len(r) <= n else r[:n - 3] + "..."
 
 
 def _str(v: Any, where: str, remote: bool = False) -> str:
@@ -115,29 +115,16 @@ def choice(*options: str) -> Check:
 
 # ---------------------------------------------------------------------------- strings
 
-_SOURCE_RE = re.compile(r"^(sim(:.+)?|picamera(:.*)?|camera:\d{1,3}|video:.+|images:.+|"
-                        r"replay:.+)$")
-
-
 def _source_spec(v: Any, where: str, remote: bool = False) -> str:
+    from kmea.vision.sources import SourceError, parse_source_spec  # the one spec grammar
+
     s = _str(v, where)
-    if not _SOURCE_RE.match(s):
-        # Sources registered by plugins (kmea.vision.sources.register_source) are accepted too.
-        prefix = s.split(":", 1)[0]
-        if not _registered_source(prefix):
-            raise ConfigError(
-                f"{where}: unknown source {_short(s)}; use sim, sim:SCENE, picamera, "
-                "camera:INDEX, video:PATH, images:DIR or replay:FILE")
-    return s
-
-
-def _registered_source(prefix: str) -> bool:
     try:
-        from kmea.vision import sources
-    except Exception:
-        return False
-    reg = getattr(sources, "_REGISTRY", None) or getattr(sources, "SOURCES", None) or {}
-    return prefix in reg
+        parse_source_spec(s, check=True)
+    except SourceError as e:
+        raise ConfigError(f"{where}: {_short(str(e), 200)}; use sim, sim:SCENE, picamera, "
+                          "camera:INDEX, video:PATH, images:DIR or replay:FILE") from None
+    return s
 
 
 def _algorithm(v: Any, where: str, remote: bool = False) -> str:
@@ -154,12 +141,12 @@ def _dictionary(v: Any, where: str, remote: bool = False) -> str:
     s = _str(v, where)
     if s == "":
         return s
-    from kmea.vision.dictionary import get_dictionary, predefined_names
+    from kmea.aruco_names import canonical_name
+    from kmea.vision.dictionary import get_dictionary
 
     if remote:
         # Over the network a name only: a path would read files and tell whether they exist.
-        key = s.upper() if s.upper().startswith("DICT_") else "DICT_" + s.upper()
-        if key not in predefined_names():
+        if canonical_name(s) is None:
             raise ConfigError(f"{where}: over control the dictionary must be a predefined "
                               f"name such as DICT_5X5_100, got {_short(s)}")
         return s
@@ -181,6 +168,22 @@ def _endpoint(v: Any, where: str, remote: bool = False) -> str:
         raise ConfigError(f"{where}: expected a ZeroMQ endpoint like tcp://127.0.0.1:5555 "
                           f"(or \"\" for off), got {_short(s)}")
     return s
+
+
+def _probability(v: Any, where: str, remote: bool = False) -> float:
+    x = _real(v, where)
+    if not 0 < x < 1:
+        raise ConfigError(f"{where}: must be in (0, 1), got {_short(v)}")
+    return x
+
+
+MAX_INPUTS = 16
+
+
+def _endpoints(v: Any, where: str, remote: bool = False) -> list[str]:
+    if not isinstance(v, list) or len(v) > MAX_INPUTS:
+        raise ConfigError(f"{where}: expected a list of at most {MAX_INPUTS} ZeroMQ endpoints")
+    return [_endpoint(e, f"{where}[{i}]") for i, e in enumerate(v)]
 
 
 # ---------------------------------------------------------------------------- detector
@@ -349,27 +352,29 @@ def _robot(row: Any, where: str) -> dict:
     if bad:
         raise ConfigError(f"{where}: unknown key {_short(bad[0])} (robot keys: "
                           f"{', '.join(ROBOT_KEYS)})")
+    from kmea.robots import ROBOT_DEFAULTS, robot_from_table  # the one robot validation
+
     for k in ("name", "markers"):
         if k not in row:
             raise ConfigError(f"{where}: missing key {k!r}")
-    name = check_robot_name(row["name"], f"{where}.name")
+    # The ranges first (robot_from_table checks signs, not sizes, and prints values whole).
+    check_robot_name(row["name"], f"{where}.name")
     markers = row["markers"]
-    if isinstance(markers, int) and not isinstance(markers, bool):
-        markers = [markers]
-    if (not isinstance(markers, list) or len(markers) not in (1, 2)
+    ids = [markers] if isinstance(markers, int) and not isinstance(markers, bool) else markers
+    if (not isinstance(ids, list) or len(ids) not in (1, 2)
             or any(isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= MAX_MARKER_ID
-                   for m in markers)):
+                   for m in ids)):
         raise ConfigError(f"{where}.markers: expected one marker id or a pair [left, right], "
                           f"ids 0-{MAX_MARKER_ID}, got {_short(row['markers'])}")
-    if len(markers) == 2 and markers[0] == markers[1]:
-        raise ConfigError(f"{where}.markers: the pair needs two different ids, got {markers}")
-    height = number(0, 10, unit=" m")(row.get("height", 0.0), f"{where}.height")
-    length = number(0, 1, lo_open=True, unit=" m")(row.get("length", 0.06), f"{where}.length")
-    separation = number(0, 10, lo_open=True, unit=" m")(row.get("separation", 0.10),
-                                                        f"{where}.separation")
-    if len(markers) == 2 and separation < length:
-        raise ConfigError(f"{where}.separation: {separation} m is less than the marker length "
-                          f"{length} m (the two markers would overlap)")
+    for key, hi in (("height", 10.0), ("length", 1.0), ("separation", 10.0)):
+        number(0, hi, lo_open=key != "height", unit=" m")(
+            row.get(key, ROBOT_DEFAULTS[key]), f"{where}.{key}")
+    try:
+        spec = robot_from_table(row, where)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    name, markers = spec.name, list(spec.markers)
+    height, length, separation = spec.height, spec.length, spec.separation
     dests = row.get("destinations", [])
     if not isinstance(dests, list) or len(dests) > MAX_DESTINATIONS:
         raise ConfigError(f"{where}.destinations: expected a list of at most {MAX_DESTINATIONS} "
@@ -416,12 +421,18 @@ SCHEMA: dict[str, dict[str, Check]] = {
                  "full_every": integer(1, 100000)},
     "estimator": {"algorithm": _algorithm},
     "filter": {"alpha": number(0, 1, lo_open=True),
-               "reset_after_s": number(0, 3600, lo_open=True, unit=" s")},
+               "reset_after_s": number(0, 3600, lo_open=True, unit=" s"),
+               "kind": choice("iir", "kalman"), "model": choice("cv", "ctrv"),
+               "accel_noise": number(0, 1000, lo_open=True, unit=" m/s^2"),
+               "turn_noise": number(0, 1000, lo_open=True, unit=" rad/s^2"),
+               "gate_probability": _probability, "reacquire_n": integer(1, 1000),
+               "predict": _bool},
     "stats": {"loo": _bool, "window": integer(1, 100000),
               "displaced_threshold": number(0, 10, lo_open=True, unit=" m"),
               "displaced_frames": integer(1, 1000)},
     "relay": {"stale_after_s": number(0, 3600, lo_open=True, unit=" s"),
-              "stale_repeat_s": number(0, 3600, unit=" s")},
+              "stale_repeat_s": number(0, 3600, unit=" s"), "extra_fields": _bool},
+    "fusion": {"inputs": _endpoints, "max_age_s": number(0, 3600, lo_open=True, unit=" s")},
     "network": {"telemetry": _endpoint, "control": _endpoint,
                 "status_period_s": number(0.05, 3600, unit=" s"),
                 "keys": _str, "insecure": _bool},
