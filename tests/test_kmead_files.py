@@ -1,4 +1,4 @@
-"""The confined data directory (kmead.files) and JSON with limits (kmead.safejson)."""
+"""The confined data directory (kmead.files) and JSON with limits (kmea.jsonlimits)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from kmea.jsonlimits import JsonLimitError, json_depth, safe_loads
 from kmead.files import DataDir, FileRefused
-from kmead.safejson import JsonLimitError, json_depth, safe_loads
 
 
 def _listing(root: Path) -> set[str]:

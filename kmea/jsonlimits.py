@@ -1,4 +1,4 @@
-"""JSON from the network, with limits: size, nesting depth, no NaN/Infinity, exact version.
+"""JSON from the network, with limits: size, nesting depth, no NaN/Infinity (stdlib only).
 
 ``json.loads`` recurses once per nesting level: ``b"[" * 1000 + b"]" * 1000`` raised
 ``RecursionError`` inside the control thread. The depth is measured before parsing, on the
