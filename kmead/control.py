@@ -147,11 +147,10 @@ class ControlServer:
         """The encoded reply to one request: always exactly one, whatever happened."""
         role = None
         if self.curve is not None and frames:
-            who = self.curve.peer(frames[0])
-            role = who[0] if who else "unknown"
+            who = self.curve.peer(frames[0])  # (role, client name) from the key folders now
+            role = f"{who[0]} {who[1]!r}" if who else "revoked"
         try:
-            reply = self.serve([bytes(f.buffer) if hasattr(f, "buffer") else bytes(f)
-                                for f in frames], role=role)
+            reply = self.serve([f.bytes for f in frames], role=role)
             return P.encode_body(reply)
         except Exception as e:  # serve() replies to anything; this is the last line
             log.exception("control: reply failed")
@@ -160,14 +159,14 @@ class ControlServer:
     def serve(self, frames: list[bytes], role: str | None = None) -> dict:
         """The reply (without ``v``) to one request given as its ZeroMQ frames.
 
-        role: the CURVE role of the sender ("operator", "viewer", "unknown"), None without
-        keys. Never raises: anything it cannot handle becomes an error reply.
+        role: with CURVE keys, who sent it ("operator 'NAME'", "viewer 'NAME'", "revoked");
+        None without keys. Never raises: anything it cannot handle becomes an error reply.
         """
         self.requests += 1
         try:
-            if role is not None and role != "operator":
-                raise RequestError(f"control refused: this client's key is a {role}'s "
-                                   "(viewers may only watch telemetry)")
+            if role is not None and not role.startswith("operator "):
+                raise RequestError(f"control refused: key of {role}; only operator keys may "
+                                   "control (viewers watch telemetry)")
             if len(frames) != 1:
                 raise RequestError(f"expected one JSON frame, got {len(frames)} frames")
             try:
