@@ -12,6 +12,9 @@ without keys. Each mode runs in its own pair of ZeroMQ contexts (publisher, subs
   per second, first send to last receive;
 - latency: messages published at ``--rate`` Hz, each carrying its send time
   (``time.perf_counter``, one process, one clock); p50 / p99 / max of receive - send.
+
+Plain and CURVE alternate ``--runs`` times and the medians are printed, so both modes see
+the same machine load.
 """
 
 from __future__ import annotations
@@ -134,29 +137,38 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--messages", type=int, default=20000, help="throughput messages")
     p.add_argument("--latency-messages", type=int, default=2000)
     p.add_argument("--rate", type=float, default=500.0, help="latency send rate, Hz")
+    p.add_argument("--runs", type=int, default=3,
+                   help="plain and CURVE alternate this many times; medians are printed")
     p.add_argument("--size", type=int, default=0,
                    help="message size in bytes (default: a 50-marker markers body)")
     args = p.parse_args(argv)
     bodies = ([("custom", b"x" * args.size)] if args.size else
               [("frame", _markers_body(1)[:600]), ("markers", _markers_body())])
     print(f"telemetry PUB -> SUB over tcp://127.0.0.1, pyzmq {zmq.__version__}, "
-          f"libzmq {zmq.zmq_version()}; latency at {args.rate:g} Hz")
+          f"libzmq {zmq.zmq_version()}; latency at {args.rate:g} Hz; median of "
+          f"{args.runs} alternating runs")
     print(f"{'message':<9} {'bytes':>6} {'mode':<6} {'msgs/s':>8} {'MB/s':>6} {'p50 ms':>7} "
           f"{'p99 ms':>7} {'max ms':>7}")
     with tempfile.TemporaryDirectory() as tmp:
         keys = Path(tmp) / "keys"
         init_keys(keys)
         for label, body in bodies:
-            for mode, k in (("plain", None), ("curve", keys)):
-                pair = _Pair(k)
-                try:
-                    rate = throughput(pair, body, args.messages)
-                    lat = latency(pair, body, args.latency_messages, args.rate)
-                finally:
-                    pair.close()
+            runs: dict[str, list[tuple[float, float, float, float]]] = {"plain": [],
+                                                                         "curve": []}
+            for _ in range(args.runs):  # alternate, so both see the same machine load
+                for mode, k in (("plain", None), ("curve", keys)):
+                    pair = _Pair(k)
+                    try:
+                        rate = throughput(pair, body, args.messages)
+                        lat = latency(pair, body, args.latency_messages, args.rate)
+                    finally:
+                        pair.close()
+                    runs[mode].append((rate, _pct(lat, 50), _pct(lat, 99), max(lat)))
+            for mode, rs in runs.items():
+                rate, p50, p99, worst = (statistics.median(c) for c in zip(*rs, strict=True))
                 print(f"{label:<9} {len(body):>6} {mode:<6} {rate:>8.0f} "
-                      f"{rate * len(body) / 1e6:>6.1f} {_pct(lat, 50):>7.3f} "
-                      f"{_pct(lat, 99):>7.3f} {max(lat):>7.3f}", flush=True)
+                      f"{rate * len(body) / 1e6:>6.1f} {p50:>7.3f} {p99:>7.3f} {worst:>7.3f}",
+                      flush=True)
     return 0
 
 
