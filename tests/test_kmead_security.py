@@ -488,3 +488,37 @@ def test_missing_keys_directory_is_a_one_line_error(tmp_path: Path,
     err = [x for x in capsys.readouterr().err.splitlines() if "network.keys" in x]
     assert len(err) == 1 and "kmea keys init" in err[0] and "nokeys" in err[0]
 
+
+
+# ----------------------------------------------------------------------------- fusion node
+
+def test_fusion_node_has_the_same_rules(tmp_path: Path) -> None:
+    from kmead.config import ConfigError, load_config
+    from kmead.fusion import FusionNode, parse_inputs
+
+    inputs = parse_inputs(["tcp://127.0.0.1:1"])
+    open_ = load_config(None, ['network.control="tcp://0.0.0.0:*"',
+                               'network.telemetry="tcp://127.0.0.1:*"'])
+    with pytest.raises(ConfigError, match="kmea keys init DIR"):
+        FusionNode(open_, inputs)
+    cfg = load_config(None, ['network.control="tcp://127.0.0.1:*"',
+                             'network.telemetry="tcp://127.0.0.1:*"',
+                             f'log.dir="{tmp_path / "data"}"'])
+    node = FusionNode(cfg, inputs)
+    ctx = zmq.Context()
+    try:
+        node.control.start()
+        req = ctx.socket(zmq.REQ)
+        req.setsockopt(zmq.LINGER, 0)
+        req.connect(node.control.bound)
+        for path, why in ((str(tmp_path / "x.csv"), "plain file name"),
+                          ("../x.csv", "plain file name"), ("ok.csv", None)):
+            req.send(P.encode_body({"cmd": "log_start", "path": path}))
+            assert req.poll(5000)
+            reply = P.decode_body(req.recv())
+            assert reply["ok"] is (why is None) and (why is None or why in reply["error"])
+        assert (tmp_path / "data" / "ok.csv").exists() and not (tmp_path / "x.csv").exists()
+        req.close(0)
+    finally:
+        ctx.term()
+        node.close()
