@@ -1,4 +1,5 @@
-"""kmea: the tools (map, calibrate, print, experiment, bench, fuse, export, snapshot).
+"""``kmea``: the tools (map, calibrate, print, experiment, bench, fuse, doctor, keys, export,
+snapshot).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
@@ -22,8 +23,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # the library reaches into the daemon.
     "fuse": ("kmead.fusion", "fuse several cameras' robot poses (docs/fusion.md)"),
     "doctor": ("kmead.doctor", "check a Raspberry Pi install: versions, camera, ports, files"),
-    "export": ("kmead.mcap_export", "a kmead recording as MCAP for Foxglove (needs the foxglove extra)"),
+    "export": ("kmead.mcap_export", "a recording as MCAP for Foxglove (foxglove extra)"),
     "snapshot": ("kmead.snapshot_cli", "save a running kmead's camera frame as PNG"),
+    "keys": ("kmead.keys_cli", "make CURVE keys for kmead and its clients (docs/security.md)"),
 }
 
 

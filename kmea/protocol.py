@@ -20,6 +20,7 @@ import typing
 from collections.abc import Callable
 from typing import Any, TypedDict, Union
 
+from kmea.jsonlimits import MAX_DEPTH, JsonLimitError, safe_loads
 from kmea.jsonsafe import to_jsonable
 
 # 2: markers[].moved/moved_offset/moved_frames/moved_threshold (the daemon's "moved" decision
@@ -41,6 +42,8 @@ DEFAULT_TELEMETRY = "tcp://127.0.0.1:5555"
 DEFAULT_CONTROL = "tcp://127.0.0.1:5556"
 
 MAX_MESSAGE_BYTES = 1 << 20
+# Control requests are small (the largest is a robots list); bigger ones are refused unread.
+MAX_REQUEST_BYTES = 64 << 10
 
 
 class ProtocolError(ValueError):
@@ -590,20 +593,26 @@ def encode(topic: str, body: dict[str, Any] | Any) -> list[bytes]:
     return [topic.encode("ascii"), encode_body(body)]
 
 
-def decode_body(data: bytes) -> dict[str, Any]:
-    """Parse one JSON body and check its version; ``ProtocolError`` names the problem."""
-    if len(data) > MAX_MESSAGE_BYTES:
-        raise ProtocolError(f"message too large ({len(data)} bytes)")
+def decode_body(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES,
+                max_depth: int = MAX_DEPTH) -> dict[str, Any]:
+    """Parse one JSON body and check its version; ``ProtocolError`` names the problem.
+
+    Refused (:mod:`kmea.jsonlimits`): more than ``max_bytes``, nesting deeper than
+    ``max_depth``, not UTF-8 JSON, NaN or Infinity; then anything but an object, and a ``v``
+    other than exactly the integer :data:`PROTOCOL_VERSION` (``true`` or ``2.0`` are not
+    versions).
+    """
     try:
-        body = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ProtocolError(f"body is not UTF-8 JSON: {e}") from None
+        body = safe_loads(data, max_bytes, max_depth)
+    except JsonLimitError as e:
+        raise ProtocolError(str(e)) from None
     if not isinstance(body, dict):
         raise ProtocolError("body must be a JSON object")
     v = body.get("v")
-    if v != PROTOCOL_VERSION:
-        raise ProtocolError(f"field 'v': protocol version {v!r} not supported "
-                            f"(expected {PROTOCOL_VERSION})")
+    if type(v) is not int or v != PROTOCOL_VERSION:
+        shown = repr(v) if len(repr(v)) < 40 else repr(v)[:37] + "..."
+        raise ProtocolError(f"field 'v': protocol version {shown} not supported "
+                            f"(expected the integer {PROTOCOL_VERSION})")
     return body
 
 

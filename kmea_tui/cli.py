@@ -20,6 +20,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the daemon's telemetry PUB socket (default %(default)s)")
     p.add_argument("--control", default=protocol.DEFAULT_CONTROL, metavar="ENDPOINT",
                    help="the daemon's control REP socket (default %(default)s)")
+    p.add_argument("--keys", metavar="DIR",
+                   help="a kmead key directory (kmea keys init/add): connect with CURVE as "
+                        "--client; needed when the daemon sets network.keys")
+    p.add_argument("--client", default="operator", metavar="NAME",
+                   help="the client key pair DIR/clients/NAME.key_secret (default %(default)s)")
     p.add_argument("--replay", metavar="FILE.jsonl",
                    help="show a recorded telemetry stream instead of a daemon")
     p.add_argument("--speed", type=float, default=1.0,
@@ -49,11 +54,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from kmea.curve_client import CurveKeyError, read_client_keys
     from kmea_tui.client import DaemonClient, RecordingClient, check_endpoint, record_stream
 
+    if args.keys is not None:
+        try:  # a missing or bad key file: one line, before any socket
+            read_client_keys(args.keys, args.client)
+        except CurveKeyError as e:
+            print(f"kmea-tui: --keys: {e}", file=sys.stderr)
+            return 2
     if args.save_stream:
         n = asyncio.run(record_stream(args.telemetry, args.control, args.save_stream,
-                                      args.seconds, keep_frames=args.keep_frames))
+                                      args.seconds, keep_frames=args.keep_frames,
+                                      keys=args.keys, client=args.client))
         print(f"kmea-tui: wrote {n} messages to {args.save_stream}")
         return 0 if n else 1
     from kmea_tui.app import KmeaTui
@@ -92,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
             if problem:
                 print(f"kmea-tui: {opt} {endpoint!r}: {problem}", file=sys.stderr)
                 return 2
-        client = DaemonClient(args.telemetry, args.control)
+        client = DaemonClient(args.telemetry, args.control, keys=args.keys, client=args.client)
     if not 0.5 <= args.rate <= 30:
         print("kmea-tui: --rate: give 0.5 to 30 refreshes per second", file=sys.stderr)
         return 2

@@ -32,6 +32,7 @@ import zmq
 import zmq.asyncio
 
 from kmea import protocol
+from kmea.curve_client import DEFAULT_CLIENT, apply_client_keys, read_client_keys
 
 # Topics the UI shows. robot.<name> topics are for the robots themselves; "robots" has them all.
 UI_TOPICS = (
@@ -73,16 +74,25 @@ class DaemonClient:
         telemetry: ZeroMQ endpoint of the daemon's PUB socket.
         control: ZeroMQ endpoint of the daemon's REP socket.
         timeout: seconds to wait for a control reply before giving up on it.
+        keys: a kmead key directory (``kmea keys init``): both sockets speak CURVE with
+            the key pair of ``client`` (``keys/clients/CLIENT.key_secret``) and the daemon's
+            public key ``keys/server.key``. None: plain sockets (a daemon without keys).
+        client: the client name in ``keys`` (default ``operator``).
     """
 
     live = True
     ended = False
 
     def __init__(self, telemetry: str = protocol.DEFAULT_TELEMETRY,
-                 control: str = protocol.DEFAULT_CONTROL, timeout: float = 1.0) -> None:
+                 control: str = protocol.DEFAULT_CONTROL, timeout: float = 1.0,
+                 keys: str | Path | None = None, client: str = DEFAULT_CLIENT) -> None:
         self.telemetry = telemetry
         self.control = control
         self.timeout = timeout
+        self.keys = keys
+        self.client = client
+        if keys is not None:
+            read_client_keys(keys, client)  # CurveKeyError (one line) now, not at connect
         self.bad_messages = 0
         self.last_error = ""
         self._ctx: zmq.asyncio.Context | None = None
@@ -104,6 +114,8 @@ class DaemonClient:
         sub.setsockopt(zmq.RCVHWM, 1000)
         for topic in UI_TOPICS:
             sub.setsockopt(zmq.SUBSCRIBE, topic.encode())
+        if self.keys is not None:
+            apply_client_keys(sub, self.keys, self.client)
         if self.telemetry:  # "" = the daemon's telemetry is off: nothing to read
             sub.connect(self.telemetry)
         self._sub = sub
@@ -143,6 +155,8 @@ class DaemonClient:
         req.setsockopt(zmq.LINGER, 0)
         req.setsockopt(zmq.SNDTIMEO, int(self.timeout * 1000))
         req.setsockopt(zmq.RCVTIMEO, int(self.timeout * 1000))
+        if self.keys is not None:
+            apply_client_keys(req, self.keys, self.client)
         req.connect(self.control)
         return req
 
@@ -318,14 +332,15 @@ def trim_messages(messages: list[dict[str, Any]], keep_frames: int) -> list[dict
 
 
 async def record_stream(telemetry: str, control: str, path: str | Path, seconds: float,
-                        topics: Iterable[str] = UI_TOPICS, keep_frames: int = 0) -> int:
+                        topics: Iterable[str] = UI_TOPICS, keep_frames: int = 0,
+                        keys: str | Path | None = None, client: str = DEFAULT_CLIENT) -> int:
     """Record ``seconds`` of a daemon's telemetry into ``path`` (the replay format).
 
     The header holds the daemon's ``get_config`` and ``get_state`` replies when it answers.
     ``keep_frames`` > 0 trims the file with :func:`trim_messages`.
     Returns the number of messages written.
     """
-    client = DaemonClient(telemetry, control)
+    client = DaemonClient(telemetry, control, keys=keys, client=client)
     await client.open()
     wanted = tuple(topics)
     try:

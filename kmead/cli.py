@@ -195,14 +195,24 @@ def _run_with_ui(daemon) -> int:
         logging.getLogger("kmead").warning("terminal UI unavailable (%s); running headless", e)
         signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
         return daemon.run()
+    # A keyed daemon's own UI connects as the operator of its key directory.
+    from kmea.curve_client import CurveKeyError
+
+    try:
+        client = DaemonClient(_connectable(daemon.telemetry.bound),
+                              _connectable(daemon.control.bound if daemon.control else ""),
+                              keys=daemon.cfg["network"]["keys"] or None)
+    except CurveKeyError as e:
+        logging.getLogger("kmead").warning("terminal UI unavailable (%s); running headless", e)
+        signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
+        return daemon.run()
     result: dict[str, int] = {}
     # The UI owns the terminal: log lines go to its Log tab (telemetry "log"), not stderr.
     root = logging.getLogger("kmead")
     quiet = [h for h in root.handlers if getattr(h, "_kmead", False)]
     for h in quiet:
         root.removeHandler(h)
-    app = KmeaTui(DaemonClient(_connectable(daemon.telemetry.bound),
-                               _connectable(daemon.control.bound if daemon.control else "")))
+    app = KmeaTui(client)
     t = threading.Thread(target=lambda: result.setdefault("code", daemon.run()),
                          name="kmead-main", daemon=True)
     t.start()

@@ -1,9 +1,13 @@
 """Control: a ZeroMQ REP socket served by its own thread (see docs/protocol.md).
 
 The thread also publishes the 1 Hz ``status`` message and runs the daemon's watchdog. Every
-request gets exactly one reply: bad JSON, wrong types, unknown commands and oversized
-messages get ``{"v": 2, "ok": false, "error": "..."}``; nothing a client sends can raise
-out of this thread or hold the pipeline for longer than one frame.
+request gets exactly one reply: bad JSON, too deep or too large, wrong types, unknown
+commands, values out of range, a viewer's request get ``{"v": 2, "ok": false, "error":
+"..."}``; nothing a client sends can raise out of this thread, leave the REP socket without
+its reply, or hold the pipeline for longer than one frame.
+
+With CURVE keys (``network.keys``) a request is served only if the key that sent it is an
+operator's now (kmead.keys).
 """
 
 from __future__ import annotations
@@ -11,13 +15,17 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Protocol
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
 
 import zmq
 
 from kmea import protocol as P
 from kmead import bodies
-from kmead.config import LIVE_KEYS, ConfigError
+from kmead.config import LIVE_KEYS, ConfigError, validate_value
+
+if TYPE_CHECKING:
+    from kmead.keys import CurveServer
 
 log = logging.getLogger("kmead.control")
 
@@ -40,15 +48,17 @@ class Daemon(Protocol):
     pipeline: Any
     last_frame_body: dict
     last_result: Any
+    guard: Any  # kmead.rollback.ChangeGuard
+    data_dir: Any  # kmead.files.DataDir
 
     def status(self) -> P.StatusBody: ...
     def publish(self, topic: str, body: dict) -> None: ...
     def event(self, level: str, text: str) -> None: ...
     def tick(self) -> None: ...
-    def apply_setting(self, key: str, value: Any) -> Any: ...
-    def start_csv(self, path: str) -> Any: ...
+    def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any: ...
+    def start_csv(self, path: str, remote: bool = False) -> Any: ...
     def stop_csv(self) -> dict: ...
-    def start_recording(self, path: str) -> Any: ...
+    def start_recording(self, path: str, remote: bool = False) -> Any: ...
     def stop_recording(self) -> dict: ...
     def reload_map(self) -> Any: ...
     def save_config(self, path: str | None = None) -> dict: ...
@@ -56,6 +66,11 @@ class Daemon(Protocol):
 
 class RequestError(ValueError):
     """A request that cannot be served; the text goes to the client."""
+
+
+def _short(v: Any, n: int = 60) -> str:
+    r = repr(v) if not isinstance(v, str) or len(v) < 4 * n else repr(v[: 2 * n])
+    return r if len(r) <= n else r[: n - 3] + "..."
 
 
 def _field(req: dict, name: str, types: type | tuple[type, ...], required: bool = True) -> Any:
@@ -75,13 +90,16 @@ class ControlServer:
     """REP socket on ``endpoint`` serving ``daemon``; :meth:`start` runs the thread."""
 
     def __init__(self, endpoint: str, daemon: Daemon, context: zmq.Context | None = None,
-                 poll_ms: int = 100) -> None:
+                 poll_ms: int = 100, curve: CurveServer | None = None) -> None:
         self.daemon = daemon
         self.poll_ms = poll_ms
+        self.curve = curve
         ctx = context or zmq.Context.instance()
         self.sock = ctx.socket(zmq.REP)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.setsockopt(zmq.MAXMSGSIZE, SOCKET_MAX_BYTES)
+        if curve is not None:
+            curve.secure(self.sock, "control")
         try:
             self.sock.bind(endpoint)
         except zmq.ZMQError as e:
@@ -109,9 +127,8 @@ class ControlServer:
         while not self._stop.is_set():
             try:
                 if self.sock.poll(self.poll_ms, zmq.POLLIN):
-                    frames = self.sock.recv_multipart(zmq.NOBLOCK)
-                    reply = self.serve(frames)
-                    self.sock.send(P.encode_body(reply))
+                    frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                    self.sock.send(self._answer(frames))
             except zmq.ZMQError as e:
                 if self._stop.is_set() or e.errno == zmq.ETERM:
                     return
@@ -127,26 +144,54 @@ class ControlServer:
             except Exception:
                 log.exception("status/watchdog error")
 
-    def serve(self, frames: list[bytes]) -> dict:
-        """The reply (without ``v``) to one request given as its ZeroMQ frames."""
+    def _answer(self, frames: list) -> bytes:
+        """The encoded reply to one request: always exactly one, whatever happened."""
+        role = None
+        if self.curve is not None and frames:
+            who = self.curve.peer(frames[0])  # (role, client name) from the key folders now
+            role = f"{who[0]} {who[1]!r}" if who else "revoked"
+        try:
+            reply = self.serve([f.bytes for f in frames], role=role)
+            return P.encode_body(reply)
+        except Exception as e:  # serve() replies to anything; this is the last line
+            log.exception("control: reply failed")
+            return P.encode_body({"ok": False, "error": f"internal error: {type(e).__name__}"})
+
+    def serve(self, frames: list[bytes], role: str | None = None) -> dict:
+        """The reply (without ``v``) to one request given as its ZeroMQ frames.
+
+        role: with CURVE keys, who sent it ("operator 'NAME'", "viewer 'NAME'", "revoked");
+        None without keys. Never raises: anything it cannot handle becomes an error reply.
+        """
         self.requests += 1
         try:
+            if role is not None and not role.startswith("operator "):
+                raise RequestError(f"control refused: key of {role}; only operator keys may "
+                                   "control (viewers watch telemetry)")
             if len(frames) != 1:
                 raise RequestError(f"expected one JSON frame, got {len(frames)} frames")
             try:
-                req = P.decode_body(frames[0])
+                req = P.decode_body(frames[0], max_bytes=P.MAX_REQUEST_BYTES)
             except P.ProtocolError as e:
                 raise RequestError(str(e)) from None
             cmd = _field(req, "cmd", str)
             if cmd not in COMMANDS:
-                raise RequestError(f"unknown command {cmd!r} (commands: {', '.join(COMMANDS)})")
+                raise RequestError(f"unknown command {_short(cmd)} "
+                                   f"(commands: {', '.join(COMMANDS)})")
             reply = getattr(self, f"_cmd_{cmd}")(req)
             return {"ok": True, "cmd": cmd, **reply}
         except (RequestError, ConfigError, ValueError, OSError) as e:
-            self.errors += 1
             text = str(e) or type(e).__name__
+        except Exception as e:  # a bug, never the client's problem to crash us
+            log.exception("control request failed")
+            text = f"internal error: {type(e).__name__}: {_short(str(e), 200)}"
+        self.errors += 1
+        text = text if len(text) <= 500 else text[:497] + "..."
+        try:
             self.daemon.event("warning", f"control request refused: {text}")
-            return {"ok": False, "error": text}
+        except Exception:
+            log.exception("control: event")
+        return {"ok": False, "error": text}
 
     # ------------------------------------------------------------------ commands
     def _cmd_ping(self, req: dict) -> dict:
@@ -169,8 +214,10 @@ class ControlServer:
         key = _field(req, "key", str)
         if "value" not in req:
             raise RequestError("field 'value': missing")
+        # Checked before waiting for the frame loop: a refused value never holds the pipeline.
+        validate_value(key, req["value"], "control", remote=True)
         with self.daemon.lock:
-            v = self.daemon.apply_setting(key, req["value"])
+            v = self.daemon.apply_setting(key, req["value"], remote=True)
         return {"key": key, "value": v}
 
     def _path(self, req: dict) -> str | None:
@@ -180,10 +227,17 @@ class ControlServer:
         return p
 
     def _cmd_log_start(self, req: dict) -> dict:
+        # A name from the client: a new plain file in the data directory (kmead.files); no
+        # name: the configured log.csv (the operator's own path) or a timestamped name.
         d = self.daemon
-        path = self._path(req) or d.cfg["log"]["csv"] or time.strftime("kmead-%Y%m%d-%H%M%S.csv")
+        name = self._path(req)
+        if name is not None:  # refused before waiting for the frame loop
+            d.data_dir.check_name(name, "log")
         with d.lock:
-            c = d.start_csv(path)
+            if name is None and d.cfg["log"]["csv"]:
+                c = d.start_csv(d.cfg["log"]["csv"])
+            else:
+                c = d.start_csv(name or time.strftime("kmead-%Y%m%d-%H%M%S.csv"), remote=True)
         return {"path": str(c.path)}
 
     def _cmd_log_stop(self, req: dict) -> dict:
@@ -192,10 +246,15 @@ class ControlServer:
 
     def _cmd_record_start(self, req: dict) -> dict:
         d = self.daemon
-        path = (self._path(req) or d.cfg["log"]["record"]
-                or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl"))
+        name = self._path(req)
+        if name is not None:
+            d.data_dir.check_name(name, "record")
         with d.lock:
-            r = d.start_recording(path)
+            if name is None and d.cfg["log"]["record"]:
+                r = d.start_recording(d.cfg["log"]["record"])
+            else:
+                r = d.start_recording(name or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl"),
+                                      remote=True)
         return {"path": str(r.path)}
 
     def _cmd_record_stop(self, req: dict) -> dict:
@@ -208,8 +267,13 @@ class ControlServer:
         return {"map": {"name": m.name, "n": len(m)}}
 
     def _cmd_save_config(self, req: dict) -> dict:
+        path = self._path(req)
+        overlay = self.daemon.cfg.overlay_path
+        if path is not None and Path(path) != overlay:
+            raise RequestError(f"save_config writes only the daemon's overlay {overlay} "
+                               "(get_config: overlay_file); send it without a path")
         with self.daemon.lock:
-            return self.daemon.save_config(self._path(req))
+            return self.daemon.save_config()
 
     def _cmd_reset_stats(self, req: dict) -> dict:
         with self.daemon.lock:

@@ -27,16 +27,21 @@ from kmea.metrics import WindowStats
 from kmea.moved import MovedMonitor
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
 from kmea.recording import Recorder, ReplaySource
+from kmea.vision.camera import CameraModel
 from kmead import bodies
 from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
 from kmead.csvlog import CsvLog
+from kmead.files import DataDir, FileRefused, same_file
 from kmead.log_ring import LogRing
 from kmead.outputs import RunTotals, csv_lines, truth_record
 from kmead.relay import Relay
+from kmead.rollback import ChangeGuard
+from kmead.settings_schema import check_intrinsics
 from kmead.startup import (
+    EXIT_CONFIG,
     EXIT_OK,
     EXIT_RUNTIME,
     StartupError,
@@ -54,6 +59,10 @@ __all__ = ["Daemon", "StartupError"]
 log = logging.getLogger("kmead")
 
 DISPLACED_QUIET_S = 30.0
+# Live keys that can stop localisation, so a change goes on trial (kmead.rollback): the
+# detector's, and the estimator. Filter, statistics, relay and log keys cannot make a frame
+# fail.
+TRIAL_KEYS = {"estimator.algorithm"}
 
 
 class Daemon:
@@ -91,6 +100,10 @@ class Daemon:
         logging.getLogger("kmead").addHandler(self.log_ring)
         self.last_image = None  # the last processed frame's image (snapshots)
         self.foxglove = None
+        self.curve = None  # kmead.keys.CurveServer when network.keys is set
+        self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
+        self.guard = ChangeGuard()
+        self._resave = False  # save_config ran while a change was on trial
         try:
             self._build()
         except BaseException:
@@ -112,6 +125,12 @@ class Daemon:
             self.world_map = load_configured_map(cfg, self.source)
         self._map_warnings()
         camera = fit_camera(cfg, camera, self.source)
+        self._check_camera(camera)
+        self._check_ids()
+        try:
+            self.data_dir = DataDir(cfg["log"]["dir"])
+        except FileRefused as e:
+            raise StartupError(f"key 'log.dir': {e}") from None
         try:
             self.pipeline = Pipeline(camera, self.world_map, PipelineSettings.from_config(cfg.data))
         except ValueError as e:  # detector parameters, dictionary, algorithm options
@@ -120,8 +139,10 @@ class Daemon:
         self.monitor = MovedMonitor(cfg["stats"]["displaced_threshold"],
                                     cfg["stats"]["displaced_frames"])
         net = cfg["network"]
+        self._secure_network()
         try:
-            self.telemetry = Telemetry(net["telemetry"])
+            self.telemetry = Telemetry(net["telemetry"], context=self.zmq_context,
+                                       curve=self.curve)
         except OSError as e:
             raise StartupError(str(e), EXIT_RUNTIME) from None
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
@@ -129,7 +150,8 @@ class Daemon:
                            extra_fields=cfg["relay"]["extra_fields"])
         if net["control"]:
             try:
-                self.control = ControlServer(net["control"], self)
+                self.control = ControlServer(net["control"], self, context=self.zmq_context,
+                                             curve=self.curve)
             except OSError as e:
                 raise StartupError(str(e), EXIT_RUNTIME) from None
         self._log_handler = TelemetryLogHandler(self.telemetry, logging.NOTSET)
@@ -169,10 +191,89 @@ class Daemon:
         for w in check_map(self.world_map):  # the same warnings as `kmea map check`
             log.warning("map %s: %s", self.world_map.source, w)
 
+    def _secure_network(self) -> None:
+        """Keys (CURVE on both sockets) or loopback only, or an explicit insecure = true."""
+        from kmead.keys import exposure
+
+        net = self.cfg["network"]
+        error, warning = exposure({"network.telemetry": net["telemetry"],
+                                   "network.control": net["control"]},
+                                  net["keys"], net["insecure"])
+        if error:
+            raise StartupError(error, EXIT_CONFIG)
+        if warning:
+            log.warning("%s", warning)
+        if net["keys"]:
+            import zmq
+
+            from kmead.keys import CurveServer, KeysError
+
+            self.zmq_context = zmq.Context()
+            try:
+                self.curve = CurveServer(self.zmq_context, net["keys"])
+            except KeysError as e:
+                raise StartupError(str(e), EXIT_CONFIG) from None
+            log.info("CURVE on: keys %s (%d operator(s), %d viewer(s))", net["keys"],
+                     *self._key_counts())
+
+    def _key_counts(self) -> tuple[int, int]:
+        roles = [r for r, _ in self.curve.ring._roles.values()] if self.curve else []
+        return roles.count("operator"), roles.count("viewer")
+
+    def _check_camera(self, cam: CameraModel) -> None:
+        try:
+            check_intrinsics(cam.fx, cam.fy, float(cam.camera_matrix[0, 2]),
+                             float(cam.camera_matrix[1, 2]), cam.width, cam.height,
+                             f"camera: {self.cfg['camera']['file'] or 'default camera'}")
+        except ConfigError as e:
+            raise StartupError(str(e)) from None
+
+    def _dictionary_size(self) -> tuple[str, int | None]:
+        """The detector's dictionary and its size (None for a custom dictionary file)."""
+        from kmea.aruco_names import PREDEFINED, canonical_name
+
+        name = self.cfg["detector"]["dictionary"] or self.world_map.dictionary
+        known = canonical_name(name)
+        return name, PREDEFINED[known] if known else None
+
+    def _robot_ids_problem(self, robots: list[dict]) -> str | None:
+        name, size = self._dictionary_size()
+        for r in robots if size is not None else ():
+            bad = [m for m in r["markers"] if m >= size]
+            if bad:
+                return (f"robots: robot {r['name']!r} marker {bad[0]} is outside {name} "
+                        f"(ids 0-{size - 1}): it could never be found")
+        return None
+
+    def _check_ids(self) -> None:
+        """Map ids the detector's dictionary cannot hold: a warning naming them; a robot
+        marker it cannot hold: an error."""
+        name, size = self._dictionary_size()
+        big = [i for i in self.world_map.ids if size is not None and i >= size]
+        if big:
+            shown = ", ".join(map(str, big[:10])) + (" ..." if len(big) > 10 else "")
+            log.warning("map %s: ids %s are outside %s (ids 0-%d) and can never be detected",
+                        self.world_map.source, shown, name, size - 1)
+        problem = self._robot_ids_problem(self.cfg["robots"])
+        if problem:
+            raise StartupError(problem)
+
     # ------------------------------------------------------------------ outputs on/off
-    def start_csv(self, path: str) -> CsvLog:
+    def _output_path(self, name: str, kind: str, other: Any, remote: bool) -> str:
+        """Where an output goes: over control a new plain file in the data directory
+        (kmead.files); never the file the other output writes."""
+        busy = [other.path] if other is not None else []
+        if remote:
+            return str(self.data_dir.create(name, kind, busy))
+        for b in busy:
+            if same_file(name, b):
+                raise ValueError(f"{kind}: {name} is the file the other output writes")
+        return name
+
+    def start_csv(self, path: str, remote: bool = False) -> CsvLog:
         if self.csv is not None:
             raise ValueError(f"already logging to {self.csv.path}; stop it first")
+        path = self._output_path(path, "log", self.recorder, remote)
         try:
             self.csv = CsvLog(path)
         except OSError as e:
@@ -190,9 +291,10 @@ class Daemon:
         log.info("CSV log stopped: %s (%d rows)", c.path, c.rows)
         return {"path": str(c.path), "rows": c.rows, "bytes": c.bytes}
 
-    def start_recording(self, path: str) -> Recorder:
+    def start_recording(self, path: str, remote: bool = False) -> Recorder:
         if self.recorder is not None:
             raise ValueError(f"already recording to {self.recorder.path}; stop it first")
+        path = self._output_path(path, "record", self.csv, remote)
         try:
             self.recorder = Recorder(path, self.pipeline.camera, self.world_map,
                                      self.source_spec, self.cfg.to_dict())
@@ -211,15 +313,30 @@ class Daemon:
         return {"path": str(r.path), "frames": r.frames, "bytes": r.bytes}
 
     # ------------------------------------------------------------------ live settings
-    def apply_setting(self, key: str, value: Any) -> Any:
-        """Validate and apply one key live (``ConfigError``/``ValueError`` if not allowed)."""
-        section = key.partition(".")[0]
+    def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
+        """Validate and apply one key live (``ConfigError``/``ValueError`` if not allowed).
+
+        The change is then on trial (kmead.rollback): if most of the next frames fail, the
+        old value returns. ``remote``: the value came over the network.
+        """
+        old = self.cfg.get(key)  # ConfigError for an unknown key
         if not is_live(key):
             raise ConfigError(f"control: key {key!r} cannot change while running "
                               f"(live keys: {', '.join(sorted(LIVE_KEYS))}, detector.*); "
                               "save it and restart kmead")
-        old = self.cfg.get(key)
-        v = self.cfg.set(key, value, where="control")
+        v = self._apply(key, value, old, remote)
+        if key in TRIAL_KEYS or key.startswith("detector."):
+            self.guard.begin(key, old, v)
+        log.info("set %s = %r", key, v)
+        return v
+
+    def _apply(self, key: str, value: Any, old: Any, remote: bool = False) -> Any:
+        section = key.partition(".")[0]
+        v = self.cfg.set(key, value, where="control", remote=remote)
+        if key == "robots" and self._robot_ids_problem(v):
+            problem = self._robot_ids_problem(v)
+            self.cfg.set(key, old, where="control")
+            raise ConfigError(f"control: {problem}")
         try:
             self.pipeline.settings = PipelineSettings.from_config(self.cfg.data)
             if key == "estimator.algorithm":
@@ -231,7 +348,7 @@ class Daemon:
                 self.pipeline.configure_detector()
             elif key == "robots":
                 self.pipeline.configure_robots()
-                self.relay.configure(v)
+                self.relay.configure(v, t=self._now())
             elif key.startswith("relay."):
                 self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
                 self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
@@ -247,8 +364,36 @@ class Daemon:
             self.cfg.set(key, old, where="control")
             self.pipeline.settings = PipelineSettings.from_config(self.cfg.data)
             raise ValueError(f"control: key {key!r}: {e}") from None
-        log.info("set %s = %r", key, v)
         return v
+
+    def _now(self) -> float:
+        """The time of the last frame (the relay's clock), else the wall clock."""
+        return self.last_result.timestamp if self.last_result is not None else time.time()
+
+    def _judge(self, ok: bool) -> None:
+        """One frame's outcome for the change on trial; undo it if it broke the pipeline.
+
+        A save_config during the trial wrote the previous value; once the trial passes the
+        overlay is written again with the new one (after a rollback it is right as it is).
+        """
+        pending = bool(self.guard.trials)
+        condemned = self.guard.frame(ok)
+        if pending and not self.guard.trials and self._resave:
+            self._resave = False
+            if not condemned:
+                try:
+                    self.save_config()
+                except Exception as e:
+                    self.event("error", f"save_config after the trial: {e}")
+        for trial in condemned:
+            try:
+                self._apply(trial.key, trial.old, trial.new)
+            except Exception as e:  # the old value worked before; report if it does not now
+                self.event("error", f"rollback of {trial.key} failed: {e}")
+                continue
+            self.event("warning", f"set {trial.key} rolled back: {trial.failures} of the "
+                                  f"{trial.frames} frames after it failed; the previous "
+                                  f"value is back")
 
     def reload_map(self) -> MarkerMap:
         new = configured_map(self.cfg, self.source)
@@ -261,12 +406,33 @@ class Daemon:
         return new
 
     def save_config(self, path: str | None = None) -> dict:
-        p, doc = save_overlay(self.cfg, path)
+        from kmead.config import overlay_doc
+
+        doc = overlay_doc(self.cfg)
+        held = []
+        for key in list(self.guard.trials):  # on trial: the value before it is saved
+            section, _, name = key.partition(".")
+            old = self.guard.trials[key].old
+            if key == "robots":
+                doc.pop("robots", None)
+                if old != self.cfg.base.get("robots"):
+                    doc["robots"] = old
+            else:
+                doc.get(section, {}).pop(name, None)
+                if self.cfg.base.get(section, {}).get(name) != old:
+                    doc.setdefault(section, {})[name] = old
+            held.append(key)
+        doc = {k: v for k, v in doc.items() if v != {}}
+        p, doc = save_overlay(self.cfg, path, doc)
+        self._resave = bool(held)
+        if held:
+            log.info("save_config: %s on trial; saved the previous value for now (saved "
+                     "again when the trial passes)", ", ".join(held))
         keys = sorted(f"{s}.{k}" for s, t in doc.items() if s != "robots" for k in t)
         if "robots" in doc:
             keys.append("robots")
         log.info("configuration overlay saved: %s (%s)", p, ", ".join(keys) or "no changes")
-        return {"path": str(p), "keys": keys}
+        return {"path": str(p), "keys": keys, "held": held}
 
     # ------------------------------------------------------------------ telemetry bodies
     def status(self) -> P.StatusBody:
@@ -353,9 +519,11 @@ class Daemon:
             self.totals.bad_frames += 1
             self.event("error", f"frame {frame.index}: {type(e).__name__}: {e}; skipped")
             log.debug("frame failure", exc_info=True)
+            self._judge(False)
             return None
         self._outputs(res)
         self._camera_outputs(frame.image, res)
+        self._judge(bool(res.estimate.ok))
         return res
 
     def _camera_outputs(self, image, res: FrameResult) -> None:
@@ -404,7 +572,8 @@ class Daemon:
         if overlay and image is not None and image.ndim == 2:
             focus = focus_measure(image, [m.corners for m in marks if m.kind != "expected"])
         # PNG encoding (tens of ms at full size) happens outside the lock.
-        path = save_snapshot(image, res.index if res else -1, ".", marks, focus, overlay)
+        path = save_snapshot(image, res.index if res else -1, self.data_dir.root, marks, focus,
+                             overlay)
         log.info("snapshot saved: %s", path)
         return {"path": str(path), "frame": res.index if res else None, "overlay": overlay}
 
@@ -511,7 +680,8 @@ class Daemon:
             now = time.time()
             if now - self._last_frame_wall >= self.cfg["relay"]["stale_after_s"]:
                 with self.lock:
-                    for name in self.relay.tick(now):
+                    relay = self.relay  # close() sets it to None under the lock (SIGTERM)
+                    for name in relay.tick(now) if relay is not None else ():
                         self.event("warning", f"robot {name} not seen for "
                                               f"{self.relay.stale_after_s:g} s: stale "
                                               "(valid=0 sent)")
@@ -544,6 +714,7 @@ class Daemon:
                     got = self.feed.get(timeout=0.1)
                 except CaptureEnded as e:
                     self._source_ended(e)
+                    self._check_complete()
                     break
                 self.progress_t = time.monotonic()
                 if got is None:
@@ -556,6 +727,16 @@ class Daemon:
             self.totals.t_end = time.perf_counter()
         return self.exit_code
 
+    def _check_complete(self) -> None:
+        """A file source that announced more frames than it gave was cut short."""
+        src = self.source
+        want, got = getattr(src, "expected_frames", 0), getattr(src, "frames_read", None)
+        if want and got is not None and got < want and not self.stop_event.is_set() and (
+                self.max_frames is None or self.totals.frames < self.max_frames):
+            self.event("error", f"source {self.source_spec} ended after {got} of the {want} "
+                                "frames it announces (file truncated or damaged)")
+            self.exit_code = EXIT_RUNTIME
+
     def _source_ended(self, e: CaptureEnded) -> None:
         if e.args and e.args[0]:
             self.event("error", f"source stopped: {e.args[0]}")
@@ -565,9 +746,25 @@ class Daemon:
         # Only a flag: this runs in a signal handler (no locks, no sockets here).
         self.stop_event.set()
 
+    def _settle_trials(self) -> None:
+        """At shutdown: a change on trial whose frames so far mostly succeeded counts as
+        passed, so a save_config made during its trial gets the new value."""
+        trials = list(self.guard.trials.values())
+        if not (trials and self._resave):
+            return
+        t = trials[0]
+        self.guard.trials.clear()
+        self._resave = False
+        if t.frames and t.failures <= self.guard.ratio * t.frames:
+            try:
+                self.save_config()
+            except Exception as e:
+                log.error("save_config at shutdown: %s", e)
+
     def close(self) -> None:
         """Flush and close everything (idempotent)."""
         with self.lock:
+            self._settle_trials()
             if self.control is not None:
                 self.control.stop()
                 self.control = None
@@ -583,6 +780,10 @@ class Daemon:
                 self.foxglove.close()
                 self.foxglove = None
             if self.relay is not None:
+                try:  # robots must not keep following the last pose of a stopped daemon
+                    self.relay.shutdown(self._now())
+                except Exception:
+                    log.exception("relay shutdown")
                 self.relay.close()
                 self.relay = None
             if self._log_handler is not None:
@@ -597,6 +798,12 @@ class Daemon:
                     self.publish(P.TOPIC_STATUS, self.status())
                 self.telemetry.close()
                 self.telemetry = None
+            if self.curve is not None:
+                self.curve.stop()
+                self.curve = None
+            if self.zmq_context is not None:
+                self.zmq_context.term()
+                self.zmq_context = None
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> str:

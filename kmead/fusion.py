@@ -34,6 +34,8 @@ from kmea.fusion import Fusion, Measurement
 from kmea.tracking import TrackerConfig
 from kmead.config import Config, ConfigError
 from kmead.csvlog import CsvLog, row
+from kmead.files import DataDir
+from kmead.keys import CurveServer, KeysError, exposure
 from kmead.relay import Relay
 from kmead.telemetry import Telemetry, TelemetryLogHandler
 
@@ -51,11 +53,25 @@ def tracker_config(cfg: Config) -> TrackerConfig:
 
 
 def secure_subscriber(sock: zmq.Socket, endpoint: str, cfg: Config) -> None:
-    """Hook for CURVE: set the client keys on ``sock`` before it connects to ``endpoint``.
-
-    The security issue adds the keys to the configuration; until it lands the inputs are
-    plain TCP (keep them on a private network). Nothing to do yet.
+    """With ``network.keys``: make ``sock`` a CURVE client of the cameras (before it
+    connects to ``endpoint``) with the key pair ``clients/fusion.key_secret`` of that
+    directory, else ``clients/operator.key_secret`` (``kmea keys add DIR fusion --viewer``:
+    the node only watches the cameras). The cameras must share the key directory's server
+    key. Without keys the inputs are plain TCP (keep them on loopback or a private network).
     """
+    keys = cfg["network"]["keys"]
+    if not keys:
+        return
+    from pathlib import Path
+
+    from kmea.curve_client import CurveKeyError, apply_client_keys
+
+    name = "fusion" if (Path(keys).expanduser() / "clients" / "fusion.key_secret").exists() \
+        else "operator"
+    try:
+        apply_client_keys(sock, keys, name)
+    except CurveKeyError as e:
+        raise ConfigError(f"network.keys: {e}") from None
 
 
 @dataclass
@@ -168,10 +184,28 @@ class FusionNode:
         self.lock = threading.RLock()
         self.stop_event = threading.Event()
         self.t0 = time.time()
-        self.ctx = context or zmq.Context.instance()
+        self.curve = None
+        net = cfg["network"]
+        error, warning = exposure({"network.telemetry": net["telemetry"],
+                                   "network.control": net["control"]},
+                                  net["keys"], net["insecure"])
+        if error:
+            raise ConfigError(error)
+        if warning:
+            log.warning("%s", warning)
+        # A keyed node has its own context: one ZAP handler per context (kmead.keys).
+        self._own_ctx = zmq.Context() if net["keys"] else None
+        self.ctx = self._own_ctx or context or zmq.Context.instance()
+        if net["keys"]:
+            try:
+                self.curve = CurveServer(self.ctx, net["keys"])
+            except KeysError as e:
+                self.close()
+                raise ConfigError(str(e)) from None
+        self.data_dir = DataDir(cfg["log"]["dir"])
         self.fusion = Fusion(tracker_config(cfg), cfg["fusion"]["max_age_s"])
         self.names = {r["name"] for r in cfg["robots"]}
-        self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx)
+        self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx, curve=self.curve)
         self._log_handler = TelemetryLogHandler(self.telemetry)
         logging.getLogger("kmead").addHandler(self._log_handler)
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
@@ -208,7 +242,8 @@ class FusionNode:
             from kmead.control import ControlServer
 
             try:
-                self.control = ControlServer(cfg["network"]["control"], self, self.ctx)
+                self.control = ControlServer(cfg["network"]["control"], self, self.ctx,
+                                             curve=self.curve)
             except OSError:
                 self.close()
                 raise
@@ -357,9 +392,11 @@ class FusionNode:
                                       f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
                 self.publish(P.TOPIC_ROBOTS, self.robots_body())
 
-    def start_csv(self, path: str) -> CsvLog:
+    def start_csv(self, path: str, remote: bool = False) -> CsvLog:
         if self.csv is not None:
             self.csv.close()
+        if remote:  # over control: a new plain name in the data directory (kmead.files)
+            path = str(self.data_dir.create(path, "log"))
         try:
             self.csv = CsvLog(path)
         except OSError as e:
@@ -374,10 +411,10 @@ class FusionNode:
         self.csv = None
         return {"path": str(c.path), "rows": c.rows}
 
-    def apply_setting(self, key: str, value: Any) -> Any:
+    def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
         if key not in ("relay.stale_after_s", "relay.stale_repeat_s", "log.level"):
             raise ValueError(f"{key}: not settable on a fusion node (restart it with --set)")
-        v = self.cfg.set(key, value)
+        v = self.cfg.set(key, value, remote=remote)
         self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
         self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
         return v
@@ -446,11 +483,21 @@ class FusionNode:
             logging.getLogger("kmead").removeHandler(self._log_handler)
             self._log_handler = None
         if getattr(self, "relay", None) is not None:
+            try:  # robots must not keep following the last fused pose
+                self.relay.shutdown(time.time())
+            except Exception:
+                log.exception("relay shutdown")
             self.relay.close()
             self.relay = None
         if getattr(self, "telemetry", None) is not None:
             self.telemetry.close()
             self.telemetry = None
+        if getattr(self, "curve", None) is not None:
+            self.curve.stop()
+            self.curve = None
+        if getattr(self, "_own_ctx", None) is not None:
+            self._own_ctx.term()
+            self._own_ctx = None
 
     def summary(self) -> str:
         lat = sorted(self.latency_ms)

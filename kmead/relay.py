@@ -7,8 +7,10 @@ Datagram (one line of ASCII, no newline, ``;``-separated ``key=value``)::
 ``seq`` counts this robot's messages (all destinations share it), ``t`` is the time the
 pose refers to (s): the frame's capture time, or the send time when ``filter.predict`` is on
 (the pose is then predicted to it). x/y metres in the world frame, theta radians in
-[-pi, pi). ``valid=0``: the robot has not been seen for ``relay.stale_after_s``; x/y/theta
-then repeat the last known pose (or 0 if never seen).
+[-pi, pi). ``valid=0``: the robot has not been seen for ``relay.stale_after_s``, or the daemon
+stops (SIGTERM, SIGINT, end of frames: one message to every robot), or the robot or one of
+its destinations was removed live (one message to what was removed); x/y/theta then repeat
+the last known pose (or 0 if never seen).
 
 With ``relay.extra_fields`` on, fields follow ``valid`` (after the existing ones, whose
 order never changes, so a parser reading the first seven keeps working)::
@@ -18,6 +20,10 @@ order never changes, so a parser reading the first seven keeps working)::
 vx, vy: world velocity m/s; omega: turn rate rad/s (tracking filter; 0 with the IIR
 filter); sigma: 1-sigma position m (0 when unknown); age: s from the newest measurement to
 ``t`` (0 unless predicted).
+
+Each destination has its own connected UDP socket, so a destination that refuses (ICMP port
+unreachable, e.g. nothing listening) is reported by the kernel at the next send and counted
+in ``errors`` rather than ``sent``.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from kmea.protocol import robot_topic
-from kmead.config import parse_destination
+from kmead.settings_schema import parse_destination
 
 log = logging.getLogger("kmead.relay")
 
@@ -105,40 +111,76 @@ class Relay:
         self.stale_repeat_s = stale_repeat_s
         self.extra_fields = extra_fields
         self.publish = publish
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setblocking(False)
+        self._socks: dict[tuple[str, int], socket.socket] = {}
         self.tracks: dict[str, RobotTrack] = {}
+        self.withdrawn = 0  # valid=0 messages for removed robots and destinations
         self.configure(robots)
 
-    def configure(self, robots: list[dict]) -> None:
-        """Replace the robot list, keeping the state of robots that stay."""
+    def _sock(self, addr: tuple[str, int]) -> socket.socket | None:
+        s = self._socks.get(addr)
+        if s is None:
+            try:
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                s.setblocking(False)
+                s.connect(addr)  # UDP connect: no packet; lets the kernel report refusals
+            except OSError as e:
+                log.warning("relay destination udp:%s:%d: %s", addr[0], addr[1], e)
+                return None
+            self._socks[addr] = s
+        return s
+
+    def configure(self, robots: list[dict], t: float | None = None) -> None:
+        """Replace the robot list, keeping the state of robots that stay.
+
+        A robot that goes, and each destination a robot loses, gets one ``valid=0`` message
+        (at time ``t``, default its last-seen time): it must not keep following a stale pose.
+        """
         old = self.tracks
         self.tracks = {}
         for r in robots:
             addrs = [_resolve(*parse_destination(d, f"robot {r['name']}"))
                      for d in r["destinations"]]
-            tr = old.get(r["name"])
+            tr = old.pop(r["name"], None)
+            if tr is not None:
+                gone = [a for a in tr.addrs if a is not None and a not in addrs]
+                if gone:
+                    self._send(tr, self._t(tr, t), False, gone)
+                    self.withdrawn += 1
             if tr is None or tr.markers != r["markers"]:
-                tr = RobotTrack(r["name"], list(r["markers"]), list(r["destinations"]), addrs)
+                tr = RobotTrack(r["name"], list(r["markers"]), list(r["destinations"]), addrs,
+                                seq=tr.seq if tr else 0)
             else:
                 tr.destinations, tr.addrs = list(r["destinations"]), addrs
             self.tracks[r["name"]] = tr
+        for tr in old.values():  # removed robots
+            self._send(tr, self._t(tr, t), False)
+            self.withdrawn += 1
+        live = {a for tr in self.tracks.values() for a in tr.addrs if a is not None}
+        for addr in [a for a in self._socks if a not in live]:
+            self._socks.pop(addr).close()
 
-    def _send(self, tr: RobotTrack, t: float, valid: bool) -> None:
+    @staticmethod
+    def _t(tr: RobotTrack, t: float | None) -> float:
+        return t if t is not None else (tr.last_seen if tr.last_seen is not None else 0.0)
+
+    def _send(self, tr: RobotTrack, t: float, valid: bool,
+              addrs: list[tuple[str, int] | None] | None = None) -> None:
         tr.seq += 1
         extra = None
         if self.extra_fields:
             extra = {"sigma": tr.sigma, **tr.extra} if valid else {}
         data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid, extra)
-        for addr in tr.addrs:
-            if addr is None:  # a host name that did not resolve at configuration time
+        for addr in tr.addrs if addrs is None else addrs:
+            s = self._sock(addr) if addr is not None else None
+            if s is None:  # a host name that did not resolve at configuration time
                 tr.errors += 1
                 continue
             try:
-                self.sock.sendto(data, addr)
+                s.send(data)
                 tr.sent += 1
             except OSError:
-                # Unresolvable host, no route, full buffer: count it, never stall the loop.
+                # Refused (an earlier datagram drew ICMP port unreachable), no route, full
+                # buffer: count it, never stall the loop.
                 tr.errors += 1
         if self.publish is not None:
             body = {"name": tr.name, "seq": tr.seq, "t": t, "x": tr.x, "y": tr.y,
@@ -182,5 +224,14 @@ class Relay:
                 self._send(tr, now, False)
         return newly
 
+    def shutdown(self, t: float) -> None:
+        """One ``valid=0`` message to every robot: the daemon stops (SIGTERM, SIGINT, end of
+        frames); robots must not keep following their last pose."""
+        for tr in self.tracks.values():
+            tr.stale = True
+            self._send(tr, t, False)
+
     def close(self) -> None:
-        self.sock.close()
+        for s in self._socks.values():
+            s.close()
+        self._socks.clear()

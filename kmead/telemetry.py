@@ -26,7 +26,7 @@ class Telemetry:
     """
 
     def __init__(self, endpoint: str, context: zmq.Context | None = None,
-                 queue_size: int = 2000) -> None:
+                 queue_size: int = 2000, curve: Any = None) -> None:
         self.endpoint = endpoint
         self.bound = ""
         self.sent = 0
@@ -39,6 +39,8 @@ class Telemetry:
             self.sock = ctx.socket(zmq.PUB)
             self.sock.setsockopt(zmq.LINGER, 0)
             self.sock.setsockopt(zmq.SNDHWM, 1000)
+            if curve is not None:  # kmead.keys.CurveServer: encrypted, known keys only
+                curve.secure(self.sock, "telemetry")
             try:
                 self.sock.bind(endpoint)
             except zmq.ZMQError as e:

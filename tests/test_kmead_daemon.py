@@ -159,7 +159,7 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
               f'destinations=["udp:127.0.0.1:{port}"]}}, '
               '{name="amr2", markers=[42], height=0.2}]')
     cfg = load_config(str(site), [*(a for a in FAST[1::2]), *(a for a in NET[1::2]),
-                                  robots, f'log.csv="{out}"'])
+                                  robots, f'log.csv="{out}"', f'log.dir="{tmp_path}"'])
     daemon = Daemon(cfg, max_frames=100000)
     runner = threading.Thread(target=daemon.run)
     sub = _Sub(daemon.telemetry.bound)
@@ -236,7 +236,7 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
         assert stopped["ok"] and stopped["path"] == str(out)
         assert _cmd(ctx, ctrl, "log_stop")["ok"] is False  # not logging any more
         second = tmp_path / "second.csv"
-        assert _cmd(ctx, ctrl, "log_start", path=str(second))["path"] == str(second)
+        assert _cmd(ctx, ctrl, "log_start", path="second.csv")["path"] == str(second)
         time.sleep(0.3)
     finally:
         daemon.stop()

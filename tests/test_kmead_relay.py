@@ -67,3 +67,57 @@ def test_unreachable_destination_never_raises(udp: socket.socket) -> None:
         assert relay.tracks["r"].errors == 1 and relay.tracks["r"].sent == 1
     finally:
         relay.close()
+
+
+def _udp_listener() -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    s.settimeout(2.0)
+    return s
+
+
+def test_removed_robots_and_destinations_get_valid0_then_nothing() -> None:
+    a, b, c = _udp_listener(), _udp_listener(), _udp_listener()
+    dest = {s: f"udp:127.0.0.1:{s.getsockname()[1]}" for s in (a, b, c)}
+    robots = [{"name": "amr1", "markers": [40, 41], "destinations": [dest[a], dest[b]]},
+              {"name": "amr2", "markers": [42], "destinations": [dest[c]]}]
+    relay = Relay(robots, 0.5, 0.0)
+    try:
+        relay.update("amr1", 5.0, 1.0, 2.0, 0.5)
+        relay.update("amr2", 5.0, 3.0, 4.0, 0.0)
+        assert parse_datagram(a.recv(1024))["valid"] and parse_datagram(b.recv(1024))["valid"]
+        assert parse_datagram(c.recv(1024))["valid"]
+        # Live change: amr2 removed, amr1 loses destination b.
+        relay.configure([{**robots[0], "destinations": [dest[a]]}], t=5.1)
+        gone_b, gone_c = parse_datagram(b.recv(1024)), parse_datagram(c.recv(1024))
+        assert (gone_b["name"], gone_b["valid"], gone_b["x"]) == ("amr1", False, 1.0)
+        assert (gone_c["name"], gone_c["valid"], gone_c["t"]) == ("amr2", False, 5.1)
+        relay.update("amr1", 5.2, 1.1, 2.0, 0.5)
+        assert parse_datagram(a.recv(1024))["x"] == 1.1
+        for s in (b, c):  # nothing more to what was removed
+            s.settimeout(0.2)
+            with pytest.raises(TimeoutError):
+                s.recv(1024)
+        relay.shutdown(6.0)
+        last = parse_datagram(a.recv(1024))
+        assert (last["valid"], last["t"], last["x"]) == (False, 6.0, 1.1)
+    finally:
+        relay.close()
+        for s in (a, b, c):
+            s.close()
+
+
+def test_refused_destination_is_counted_as_errors() -> None:
+    closed = _udp_listener()
+    port = closed.getsockname()[1]
+    closed.close()  # nothing listens there now: the kernel answers port unreachable
+    relay = Relay([{"name": "r", "markers": [1], "destinations": [f"udp:127.0.0.1:{port}"]}],
+                  0.5, 0.0)
+    try:
+        for i in range(20):
+            relay.update("r", float(i), 0.0, 0.0, 0.0)
+        tr = relay.tracks["r"]
+        assert tr.sent + tr.errors == 20
+        assert tr.errors >= 9, (tr.sent, tr.errors)  # at least every other send refused
+    finally:
+        relay.close()

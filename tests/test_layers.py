@@ -33,9 +33,10 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("kmea", "kmead", "kmea_tui")
 
 KMEA_CLI_DAEMON_TOOLS = {"kmead", "kmead.bench", "kmead.cli", "kmead.config", "kmead.keys",
-                         "kmead.fuse", "kmead.fusion", "kmead.fusion_bench", "kmead.doctor",
-                         "kmead.mcap_export", "kmead.snapshot_cli"}
-TUI_MAY_IMPORT = {"kmea", "kmea.protocol", "kmea.jsonsafe", "kmea.tomlvalue"}
+                         "kmead.keys_cli", "kmead.fuse", "kmead.fusion", "kmead.fusion_bench",
+                         "kmead.doctor", "kmead.mcap_export", "kmead.snapshot_cli"}
+TUI_MAY_IMPORT = {"kmea", "kmea.protocol", "kmea.jsonsafe", "kmea.jsonlimits", "kmea.tomlvalue",
+                  "kmea.curve_client"}
 # Functions' lazy imports that do not count as edges for the cycle check (module -> targets).
 LAZY_FACTORIES = {"kmea.vision.sources": {"kmea.sim.source", "kmea.recording", "kmea.sim",
                                           "kmea.vision.picamera_source"}}

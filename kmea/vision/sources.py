@@ -223,6 +223,13 @@ class VideoSource(FrameSource):
         self.size = _cap_size(self._cap)
         self.gray = bool(gray)
         self._index = 0
+        # Frames the container announces (0 if unknown): fewer decoded means a cut file.
+        n = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        self.expected_frames = int(n) if n and 0 < n < 1e9 else 0
+
+    @property
+    def frames_read(self) -> int:
+        return self._index
 
     def read(self) -> Frame | None:
         if self._closed:

@@ -1,0 +1,96 @@
+"""The data directory: the only place a control request can make the daemon write.
+
+A name that arrives over the network (``log_start``, ``record_start``) must be a plain file
+name: letters, digits, ``.``, ``_`` and ``-``, not starting with a dot, with the suffix of
+its kind (``.csv`` for the CSV log, ``.jsonl`` for a recording). It names a new file directly
+inside the data directory: never an absolute path, ``..``, a sub-directory, an existing file
+or a symlink (dangling or not), and never the file the other output is writing. The file is
+created with ``O_CREAT | O_EXCL | O_NOFOLLOW``, so the check and the creation are one step.
+
+Paths from the command line and the configuration file are the operator's own and are not
+confined (they are checked for log = record only); see docs/security.md.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+__all__ = ["SUFFIXES", "DataDir", "FileRefused", "same_file"]
+
+
+class FileRefused(ValueError):
+    """A file name a control request may not use; the message says why, in one line."""
+
+
+# kind -> required suffix
+SUFFIXES = {"log": ".csv", "record": ".jsonl"}
+_NAME_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$")
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """True when two paths name the same file (resolved; existing or not)."""
+    try:
+        pa, pb = Path(a), Path(b)
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+        return pa.resolve() == pb.resolve()
+    except (OSError, ValueError):
+        return False
+
+
+class DataDir:
+    """The confined directory ``root`` (created if missing; "" = the working directory)."""
+
+    def __init__(self, root: str | Path = "") -> None:
+        p = Path(root or ".").expanduser()
+        try:
+            p.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise FileRefused(f"data directory {p}: cannot create it: {e.strerror or e}") from None
+        if not p.is_dir():
+            raise FileRefused(f"data directory {p}: not a directory")
+        self.root = p.resolve()
+
+    def check_name(self, name: Any, kind: str) -> Path:
+        """The path of a new file ``name`` of ``kind`` ("log" or "record") in the directory;
+        :class:`FileRefused` naming the rule it breaks."""
+        suffix = SUFFIXES[kind]
+        if not isinstance(name, str) or not name:
+            raise FileRefused(f"{kind} file: expected a file name, got {type(name).__name__}")
+        shown = name if len(name) <= 60 else name[:57] + "..."
+        if "/" in name or "\\" in name or "\x00" in name:
+            raise FileRefused(f"{kind} file {shown!r}: a plain file name only (no directories); "
+                              f"files go to the data directory {self.root}")
+        if name in (".", "..") or ".." in name:
+            raise FileRefused(f"{kind} file {shown!r}: '..' is not allowed")
+        if not _NAME_RE.match(name):
+            raise FileRefused(f"{kind} file {shown!r}: use letters, digits, '.', '_' and '-' "
+                              "(not starting with '.'), at most 128 characters")
+        if not name.endswith(suffix) or name == suffix:
+            raise FileRefused(f"{kind} file {shown!r}: the name must end with {suffix}")
+        path = self.root / name
+        if os.path.lexists(path):
+            raise FileRefused(f"{kind} file {shown!r}: already exists in {self.root}; "
+                              "choose a new name (existing files are never overwritten)")
+        return path
+
+    def create(self, name: Any, kind: str, busy: list[str | Path] = ()) -> Path:
+        """Check ``name`` and create the empty file atomically; ``busy``: paths of files the
+        daemon is writing (the other output), which ``name`` must not be."""
+        path = self.check_name(name, kind)
+        for other in busy:
+            if other and same_file(path, other):
+                raise FileRefused(f"{kind} file {name!r}: already in use by the other output")
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+        try:
+            fd = os.open(path, flags, 0o644)
+        except FileExistsError:
+            raise FileRefused(f"{kind} file {name!r}: already exists in {self.root}") from None
+        except OSError as e:
+            raise FileRefused(f"{kind} file {name!r}: cannot create it in {self.root}: "
+                              f"{e.strerror or e}") from None
+        os.close(fd)
+        return path

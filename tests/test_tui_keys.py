@@ -1,0 +1,68 @@
+"""kmea-tui --keys: the real Textual app (Pilot) on a keyed daemon over loopback."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from security_helpers import LiveDaemon
+
+from kmea import cli as kmea_cli
+from kmea_tui import cli as tui_cli
+from kmea_tui.app import KmeaTui
+from kmea_tui.client import DaemonClient
+
+
+async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return
+        await pilot.pause(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture
+def keyed(tmp_path: Path):
+    keys = tmp_path / "keys"
+    assert kmea_cli.main(["keys", "init", str(keys)]) == 0
+    assert kmea_cli.main(["keys", "add", str(keys), "wall", "--viewer"]) == 0
+    (tmp_path / "site").mkdir()
+    d = LiveDaemon(tmp_path / "site", sets=[f'network.keys="{keys}"'])
+    yield d, keys
+    d.close()
+
+
+async def test_operator_ui_connects_and_controls_viewer_ui_only_watches(keyed) -> None:
+    d, keys = keyed
+    app = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=2.0, keys=keys),
+                  theme="textual-dark", ping_period=0.5)
+    async with app.run_test(size=(80, 24)) as pilot:
+        await _wait(pilot, lambda: app.connection_state == "connected", "operator connected")
+        await _wait(pilot, lambda: app.markers_body is not None, "telemetry")
+        reply = await app.client.request("set", key="filter.alpha", value=0.7)
+        assert reply["ok"], reply
+    assert d.daemon.cfg["filter"]["alpha"] == 0.7
+
+    viewer = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=2.0, keys=keys,
+                                  client="wall"), theme="textual-dark", ping_period=0.5)
+    async with viewer.run_test(size=(80, 24)) as pilot:
+        await _wait(pilot, lambda: viewer.markers_body is not None, "viewer telemetry")
+        reply = await viewer.client.request("set", key="filter.alpha", value=0.2)
+        assert reply["ok"] is False and "viewer" in reply["error"]
+    assert d.daemon.cfg["filter"]["alpha"] == 0.7
+
+    # Without keys the same UI sees nothing from a keyed daemon.
+    plain = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=0.5), theme="textual-dark",
+                    ping_period=0.5)
+    async with plain.run_test(size=(80, 24)) as pilot:
+        await pilot.pause(1.0)
+        assert plain.markers_body is None and plain.connection_state != "connected"
+
+
+def test_tui_with_a_missing_key_file_exits_2_with_one_line(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture) -> None:
+    assert tui_cli.main(["--keys", str(tmp_path), "--client", "nobody"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "server.key" in err
