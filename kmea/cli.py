@@ -1,4 +1,4 @@
-"""``kmea``: the tools (map, calibrate, print, experiment, bench, fuse, doctor, keys, export,
+"""kmea: the tools (map, calibrate, print, experiment, bench, fuse, doctor, keys, export,
 snapshot).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
