@@ -172,14 +172,19 @@ def run_iir(ms: Measurements, alpha: float) -> tuple[np.ndarray, dict]:
         p, th = f.update("r", float(ms.t[k]), np.array([ms.z[k, 0], ms.z[k, 1], 0.0]),
                          float(ms.z[k, 2]))
         out[k] = (p[0], p[1], th)
-    return out, {"rejected": np.zeros(len(ms.t), bool), "reacquired": []}
+    # The IIR filter reports no uncertainty: its outputs are measured against the
+    # measurement's own sigma.
+    return out, {"rejected": np.zeros(len(ms.t), bool), "reported": np.zeros(len(ms.t), bool),
+                 "reacquired": [], "sigma": ms.sigma.copy()}
 
 
 def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
     """Tracking-filter outputs (M, 3) at the measurement times (a rejected measurement's
-    output is the prediction to its time)."""
-    trk = Tracker(cfg)
+    output is the prediction to its time), with the filter's own position sigma (M,) m and
+    which rejections were reported in :attr:`Tracker.rejections`."""
+    trk = Tracker(cfg, keep=len(ms.t) + 1)
     out = np.zeros_like(ms.z)
+    sig = np.zeros(len(ms.t))
     rejected = np.zeros(len(ms.t), bool)
     reacq = []
     for k in range(len(ms.t)):
@@ -187,18 +192,56 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
         o = trk.update("r", t, ms.z[k, 0], ms.z[k, 1], ms.z[k, 2], float(ms.sigma[k]))
         st = trk.predict("r", t)
         out[k] = (st.x, st.y, st.theta)
+        sig[k] = st.sigma
         rejected[k] = o.kind == "rejected"
+        if o.retracted is not None:  # the previous measurement, found to be an outlier
+            j = int(np.searchsorted(ms.t, o.retracted[0]))
+            rejected[j] = True
         if o.kind == "reacquired":
             reacq.append(t)
-    return out, {"rejected": rejected, "reacquired": reacq}
+    reported_t = {r.t for r in trk.rejections}
+    reported = np.array([float(t) in reported_t for t in ms.t]) & rejected
+    return out, {"rejected": rejected, "reported": reported, "reacquired": reacq,
+                 "sigma": sig}
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict) -> dict:
-    """The figures of one filter on one drive (module docstring)."""
+#: Frames after an outlier over which the jump it causes is measured (the outlier's own
+#: frame and the next ones: an outlier that got in pulls the track for a few frames).
+EFFECT_FRAMES = 4
+
+
+def outlier_effect(ms: Measurements, out: np.ndarray, sigma: np.ndarray, clean: np.ndarray,
+                   keep: np.ndarray, frames: int = EFFECT_FRAMES
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The jump each outlier causes: the position difference between the outputs ``out``
+    (M, 3) of a run with outliers and ``clean`` (M, 3) of the same drive, same noise, without
+    them, at the outlier's frame and the ``frames - 1`` following ones; the largest, in m and
+    in units of the filter's own reported position sigma ``sigma`` (M,) m at that output.
+
+    Returns arrays (K,) m and (K,) sigmas, one per outlier inside ``keep``. An
+    earlier outlier's effect still present is included (it is the outliers' doing too)."""
+    d = np.hypot(out[:, 0] - clean[:, 0], out[:, 1] - clean[:, 1])
+    ds = d / np.maximum(sigma, 1e-12)
+    idx = np.flatnonzero(ms.outlier & keep)
+    eff_m = np.zeros(len(idx))
+    eff_s = np.zeros(len(idx))
+    for j, k in enumerate(idx):
+        w = slice(k, min(k + frames, len(d)))
+        ok = keep[w]
+        if np.any(ok):
+            eff_m[j] = float(np.max(d[w][ok]))
+            eff_s[j] = float(np.max(ds[w][ok]))
+    return eff_m, eff_s
+
+
+def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
+            clean: np.ndarray | None = None) -> dict:
+    """The figures of one filter on one drive (module docstring); ``clean``: the outputs of
+    the same drive and noise without outliers (for the outlier-caused jumps)."""
     t = ms.t
     gx, gy, gth = tr.at(t)
     keep = (t >= 1.0) & ~((t >= tr.kidnap_t) & (t < tr.kidnap_t + 0.5))
@@ -212,6 +255,8 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict) -> di
         hx, hy, _ = tr.at(np.clip(t - tau, 0.0, None))
         r = float(np.mean(((out[:, 0] - hx) ** 2 + (out[:, 1] - hy) ** 2)[keep]))
         best = min(best, (r, float(tau)))
+    # Raw "error step": the change of the output error from one measurement to the next,
+    # against that measurement's sigma (it also counts the prediction through a manoeuvre).
     step = np.hypot(np.diff(ex), np.diff(ey))
     jump = step / ms.sigma[1:]
     kj = keep[1:] & keep[:-1]
@@ -219,30 +264,46 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict) -> di
     outl = ms.outlier & keep
     rej = info["rejected"]
     after = [r - tr.kidnap_t for r in info["reacquired"] if r >= tr.kidnap_t]
-    return {"pos": pos, "head": head, "lag": best[1],
-            "jumps_outlier": int(np.sum(big & ms.outlier[1:])), "jumps_all": int(np.sum(big)),
-            "max_jump_outlier": float(np.max(step[kj & ms.outlier[1:]], initial=0.0)),
-            "outliers": int(np.sum(outl)), "caught": int(np.sum(rej & outl)),
-            "false_rej": int(np.sum(rej & ~ms.outlier & keep)), "n": int(np.sum(keep)),
-            "reacquire_s": after[0] if after else math.nan}
+    res = {"pos": pos, "head": head, "lag": best[1],
+           "jumps_outlier": int(np.sum(big & ms.outlier[1:])), "jumps_all": int(np.sum(big)),
+           "max_jump_outlier": float(np.max(step[kj & ms.outlier[1:]], initial=0.0)),
+           "outliers": int(np.sum(outl)), "caught": int(np.sum(rej & outl)),
+           "reported": int(np.sum(info["reported"] & rej & outl)),
+           "false_rej": int(np.sum(rej & ~ms.outlier & keep)), "n": int(np.sum(keep)),
+           "reacquire_s": after[0] if after else math.nan,
+           "caused_big": 0, "caused_max_sig": 0.0, "caused_max_m": 0.0}
+    if clean is not None:
+        eff_m, eff_s = outlier_effect(ms, out, info["sigma"], clean, keep)
+        res["caused_big"] = int(np.sum(eff_s > 3.0))
+        res["caused_max_sig"] = float(np.max(eff_s, initial=0.0))
+        res["caused_max_m"] = float(np.max(eff_m, initial=0.0))
+    return res
 
 
 def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
              outliers: float = 0.05) -> dict:
     """Figures of one filter ("iir" with alpha, or "kalman" with a config) summed/averaged
-    over the drives of ``mset``, with a fraction ``outliers`` of the measurements jumps."""
+    over the drives of ``mset``, with a fraction ``outliers`` of the measurements jumps. With
+    outliers each drive is also run without them (same seed: same noise, same missing
+    frames) for the jumps the outliers cause (:func:`outlier_effect`)."""
     rows = []
+    run_f = (lambda m: run_iir(m, param)) if filt == "iir" else (lambda m: run_kalman(m, param))
     for seed in mset.seeds:
         tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel)
         ms = make_measurements(tr, seed, mset.fps, mset.sigma, outliers)
-        out, info = run_iir(ms, param) if filt == "iir" else run_kalman(ms, param)
-        rows.append(metrics(tr, ms, out, info))
+        out, info = run_f(ms)
+        clean = None
+        if outliers > 0:
+            clean, _ = run_f(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0))
+        rows.append(metrics(tr, ms, out, info, clean))
     agg = {"pos": math.sqrt(np.mean([r["pos"] ** 2 for r in rows])),
            "head": math.sqrt(np.mean([r["head"] ** 2 for r in rows])),
            "lag": float(np.mean([r["lag"] for r in rows]))}
-    for k in ("jumps_outlier", "jumps_all", "outliers", "caught", "false_rej", "n"):
+    for k in ("jumps_outlier", "jumps_all", "outliers", "caught", "reported", "false_rej",
+              "n", "caused_big"):
         agg[k] = sum(r[k] for r in rows)
-    agg["max_jump_outlier"] = max(r["max_jump_outlier"] for r in rows)
+    for k in ("max_jump_outlier", "caused_max_sig", "caused_max_m"):
+        agg[k] = max(r[k] for r in rows)
     re = [r["reacquire_s"] for r in rows]
     agg["reacquire_s"] = max(re) if re and not any(math.isnan(v) for v in re) else math.nan
     agg["reacquired"] = sum(not math.isnan(v) for v in re)
