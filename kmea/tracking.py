@@ -93,6 +93,10 @@ class TrackerConfig:
     measurement with d > robust_k moves the state by only robust_k / d of the Kalman
     correction (a borderline measurement, possibly an outlier inside the gate, cannot pull
     the track further than robust_k innovation sigmas); a large value disables it.
+    look_back: a measurement outside the gate may retract the accepted one just before it
+    when that one, not the new one, is the outlier (module docstring); the new one must
+    then fit the prediction without it inside the chi-square quantile at
+    look_back_probability.
     """
 
     model: str = "ctrv"
@@ -109,6 +113,8 @@ class TrackerConfig:
     max_speed: float = 1.5
     max_turn_rate: float = 3.0
     robust_k: float = 3.0
+    look_back: bool = True
+    look_back_probability: float = 0.99
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -117,10 +123,18 @@ class TrackerConfig:
         for f in fields(self):
             if f.name == "model":
                 continue
+            if f.name == "look_back":
+                if not isinstance(self.look_back, bool):
+                    raise ValueError(f"tracker look_back must be true or false, got "
+                                     f"{self.look_back!r}")
+                continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or v <= 0:
                 raise ValueError(f"tracker {f.name} must be a finite number > 0, got {v!r}")
+        if not self.look_back_probability < 1.0:
+            raise ValueError(f"tracker look_back_probability must be in (0, 1), got "
+                             f"{self.look_back_probability!r}")
         if not self.gate_probability < 1.0:
             raise ValueError(f"tracker gate_probability must be in (0, 1), got "
                              f"{self.gate_probability!r}")
@@ -297,6 +311,7 @@ class Track:
         self.name = name
         self.config = config or TrackerConfig()
         self.gate = chi2_quantile_3(self.config.gate_probability)
+        self.look_back_gate = chi2_quantile_3(self.config.look_back_probability)
         self._model = _model(self.config)
         self.s: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -348,7 +363,7 @@ class Track:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
         d2 = float(y_ @ Si @ y_)
         retracted = None
-        if d2 > self.gate and dt >= 0:
+        if d2 > self.gate and dt >= 0 and cfg.look_back:
             back = self._look_back(t, z, R)
             if back is not None:
                 s, P, y_, Si, S, d2, retracted = back
@@ -404,7 +419,9 @@ class Track:
         except np.linalg.LinAlgError:
             return None
         d2 = float(y_ @ Si @ y_)
-        if d2 > self.gate:
+        # Skipping a measurement widens the prediction, so the new one must fit it well (a
+        # tighter gate than the main one), not just pass.
+        if d2 > self.look_back_gate:
             return None
         # The accepted one against the track through the new measurement (smoothed at t1).
         K = P[:, :3] @ Si
