@@ -22,6 +22,15 @@ measurements that agree with each other (each inside the gate of a track started
 first) are candidates: after ``reacquire_n`` of them within ``reacquire_window_s`` the track
 restarts from them (the robot really was moved by hand); an accepted measurement clears them.
 
+Bounded update: an accepted measurement at Mahalanobis distance d > ``robust_k`` moves the
+state by ``robust_k / d`` of the Kalman correction (Huber weight; the covariance is that of
+the gain used). Look-back: an outlier inside the gate pulls the track so that the good
+measurements after it are rejected; when a measurement is rejected just after an accepted
+one, and predicted from before that one it fits well (inside the chi-square quantile at
+``look_back_probability``) while that one does not fit the track through it, that one is
+retracted (the track rebuilt without it) and reported as rejected, one measurement late
+(:attr:`Outcome.retracted`, :attr:`Tracker.rejections`).
+
 Time: ``t`` is in seconds on any clock shared by the measurements of one robot.
 :meth:`Track.predict` gives the state at another time (latency compensation: predict to the
 send time). A measurement older than the track's last one (out of order, e.g. from a slower
