@@ -22,6 +22,15 @@ measurements that agree with each other (each inside the gate of a track started
 first) are candidates: after ``reacquire_n`` of them within ``reacquire_window_s`` the track
 restarts from them (the robot really was moved by hand); an accepted measurement clears them.
 
+Bounded update: an accepted measurement at Mahalanobis distance d > ``robust_k`` moves the
+state by ``robust_k / d`` of the Kalman correction (Huber weight; the covariance is that of
+the gain used). Look-back: an outlier inside the gate pulls the track so that the good
+measurements after it are rejected; when a measurement is rejected just after an accepted
+one, and predicted from before that one it fits well (inside the chi-square quantile at
+``look_back_probability``) while that one does not fit the track through it, that one is
+retracted (the track rebuilt without it) and reported as rejected, one measurement late
+(:attr:`Outcome.retracted`, :attr:`Tracker.rejections`).
+
 Time: ``t`` is in seconds on any clock shared by the measurements of one robot.
 :meth:`Track.predict` gives the state at another time (latency compensation: predict to the
 send time). A measurement older than the track's last one (out of order, e.g. from a slower
@@ -89,6 +98,14 @@ class TrackerConfig:
     position sigma (estimators can be over-confident); heading_lever: m (heading sigma =
     sigma / heading_lever); min_sigma_theta: floor on heading sigma, rad.
     max_speed, max_turn_rate: 1-sigma of the initial velocity and turn rate (m/s, rad/s).
+    robust_k: Huber threshold on the Mahalanobis distance d = sqrt(d2): an accepted
+    measurement with d > robust_k moves the state by only robust_k / d of the Kalman
+    correction (a borderline measurement, possibly an outlier inside the gate, cannot pull
+    the track further than robust_k innovation sigmas); a large value disables it.
+    look_back: a measurement outside the gate may retract the accepted one just before it
+    when that one, not the new one, is the outlier (module docstring); the new one must
+    then fit the prediction without it inside the chi-square quantile at
+    look_back_probability.
     """
 
     model: str = "ctrv"
@@ -104,6 +121,9 @@ class TrackerConfig:
     min_sigma_theta: float = 0.01
     max_speed: float = 1.5
     max_turn_rate: float = 3.0
+    robust_k: float = 3.0
+    look_back: bool = True
+    look_back_probability: float = 0.99
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -112,10 +132,18 @@ class TrackerConfig:
         for f in fields(self):
             if f.name == "model":
                 continue
+            if f.name == "look_back":
+                if not isinstance(self.look_back, bool):
+                    raise ValueError(f"tracker look_back must be true or false, got "
+                                     f"{self.look_back!r}")
+                continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or v <= 0:
                 raise ValueError(f"tracker {f.name} must be a finite number > 0, got {v!r}")
+        if not self.look_back_probability < 1.0:
+            raise ValueError(f"tracker look_back_probability must be in (0, 1), got "
+                             f"{self.look_back_probability!r}")
         if not self.gate_probability < 1.0:
             raise ValueError(f"tracker gate_probability must be in (0, 1), got "
                              f"{self.gate_probability!r}")
@@ -158,6 +186,9 @@ class Outcome:
     ``reason`` says why), "reacquired" (the track restarted from consistent rejected
     measurements), "reset" (restarted after ``reset_after_s`` without measurements).
     d2: Mahalanobis distance squared to the prediction (nan when not computed).
+    retracted: when this measurement showed that the previous accepted one was an outlier
+    (module docstring, "look-back"), that one: (t, x, y, theta, reason); it is reported as
+    a rejection, late by one measurement.
     state: the track's state after the measurement, at the measurement's time (a rejected
     one: the prediction; an out-of-order one: at the track's newest time; None when a too-old
     measurement was dropped).
@@ -167,6 +198,7 @@ class Outcome:
     reason: str
     d2: float
     state: TrackState | None
+    retracted: tuple[float, float, float, float, str] | None = None
 
     @property
     def accepted(self) -> bool:
@@ -288,12 +320,16 @@ class Track:
         self.name = name
         self.config = config or TrackerConfig()
         self.gate = chi2_quantile_3(self.config.gate_probability)
+        self.look_back_gate = chi2_quantile_3(self.config.look_back_probability)
         self._model = _model(self.config)
         self.s: np.ndarray | None = None
         self.P: np.ndarray | None = None
         self.t: float | None = None  # time of the newest measurement applied
         self._cand: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._cand_track: Track | None = None
+        # The last accepted measurement and the state before it (for the look-back):
+        # (t_before, s_before, P_before, t, z, R, d2).
+        self._last: tuple | None = None
 
     # ------------------------------------------------------------------ measurement
     def noise(self, sigma: float | None, sigma_theta: float | None = None) -> np.ndarray:
@@ -335,6 +371,11 @@ class Track:
         except np.linalg.LinAlgError:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
         d2 = float(y_ @ Si @ y_)
+        retracted = None
+        if d2 > self.gate and dt >= 0 and cfg.look_back:
+            back = self._look_back(t, z, R)
+            if back is not None:
+                s, P, y_, Si, S, d2, retracted = back
         if d2 > self.gate:
             reason = self._reason(y_, S, d2)
             if self._candidate(t, z, R):
@@ -344,17 +385,69 @@ class Track:
         self._cand.clear()
         self._cand_track = None
         K = P[:, :3] @ Si
+        d = math.sqrt(d2)
+        if d > cfg.robust_k:
+            # Huber weight: the correction of a borderline measurement is bounded. The
+            # Joseph form below gives the true covariance of any gain, so the reported
+            # sigma stays honest.
+            K = K * (cfg.robust_k / d)
         s = s + K @ y_
         s[2] = _wrap(s[2])
         I_KH = np.eye(self._model.n) - K @ H
         P = I_KH @ P @ I_KH.T + K @ R @ K.T  # Joseph form: stays symmetric positive
         if dt >= 0:
+            self._last = (self.t, self.s, self.P, t, z, R, d2) if retracted is None else None
             self.s, self.P, self.t = s, P, t
         else:
             # Out of order: the correction is applied at the measurement's time, then the
             # track is brought back to its newest time.
+            self._last = None
             self.s, self.P = self._model.step(s, P, -dt)
+        if retracted is not None:
+            return Outcome("update", f"the previous measurement was an outlier: "
+                           f"{retracted[4]}", d2, self.state(), retracted)
         return Outcome("update", "", d2, self.state())
+
+    def _look_back(self, t: float, z: np.ndarray, R: np.ndarray) -> tuple | None:
+        """A measurement fell outside the gate just after an accepted one: if, without that
+        accepted one, it passes the gate and the accepted one does not (against the track
+        through the new one), the accepted one was the outlier (an outlier inside the gate
+        that pulled the track, so that the good measurements after it are rejected; typical
+        in hard manoeuvres). Returns the prediction from before it, with the new
+        measurement's innovation, and the retracted measurement; None otherwise."""
+        last = self._last
+        if last is None or last[3] != self.t:
+            return None
+        t0, s0, P0, t1, z1, R1, _d2_1 = last
+        s, P = self._model.step(s0, P0, t - t0)
+        y_ = z - s[:3]
+        y_[2] = _wrap(y_[2])
+        S = P[:3, :3] + R
+        try:
+            Si = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return None
+        d2 = float(y_ @ Si @ y_)
+        # Skipping a measurement widens the prediction, so the new one must fit it well (a
+        # tighter gate than the main one), not just pass.
+        if d2 > self.look_back_gate:
+            return None
+        # The accepted one against the track through the new measurement (smoothed at t1).
+        K = P[:, :3] @ Si
+        sn = s + K @ y_
+        Pn = (np.eye(self._model.n) - K @ np.eye(3, self._model.n)) @ P
+        s1, P1 = self._model.step(sn, Pn, t1 - t)
+        y1 = z1 - s1[:3]
+        y1[2] = _wrap(y1[2])
+        S1 = P1[:3, :3] + R1
+        try:
+            d2_1 = float(y1 @ np.linalg.inv(S1) @ y1)
+        except np.linalg.LinAlgError:
+            return None
+        if d2_1 <= self.gate:
+            return None  # both agree with the track: a manoeuvre, not an outlier
+        reason = self._reason(y1, S1, d2_1)
+        return s, P, y_, Si, S, d2, (t1, float(z1[0]), float(z1[1]), float(z1[2]), reason)
 
     def _reason(self, y_: np.ndarray, S: np.ndarray, d2: float) -> str:
         dpos = math.hypot(y_[0], y_[1])
@@ -387,6 +480,7 @@ class Track:
         self._cand_track = c
         if len(self._cand) >= cfg.reacquire_n:
             self.s, self.P, self.t = c.s.copy(), c.P.copy(), c.t
+            self._last = None
             self._cand = []
             self._cand_track = None
             return True
@@ -395,6 +489,7 @@ class Track:
     def _start(self, t: float, z: np.ndarray, R: np.ndarray) -> None:
         self.s, self.P = self._model.init(z, R, self.config)
         self.t = float(t)
+        self._last = None
         self._cand = []
         self._cand_track = None
 
@@ -448,6 +543,7 @@ class Tracker:
         self.tracks: dict[str, Track] = {}
         self.rejections: deque[Rejection] = deque(maxlen=keep)
         self.counts = {"init": 0, "update": 0, "rejected": 0, "reacquired": 0, "reset": 0}
+        self._sources: dict[str, str] = {}  # the source of each robot's last measurement
 
     def track(self, name: str) -> Track:
         tr = self.tracks.get(name)
@@ -463,6 +559,13 @@ class Tracker:
         self.counts[out.kind] += 1
         if out.kind == "rejected":
             self.rejections.append(Rejection(name, t, x, y, theta, out.reason, source))
+        if out.retracted is not None:
+            rt, rx, ry, rth, reason = out.retracted
+            self.counts["rejected"] += 1
+            self.rejections.append(Rejection(name, rt, rx, ry, rth,
+                                             f"{reason}, found by the next measurement",
+                                             self._sources.get(name, "")))
+        self._sources[name] = source
         return out
 
     def predict(self, name: str, t: float) -> TrackState | None:

@@ -11,10 +11,12 @@ missing, and ``outliers`` of the measurements are replaced by position jumps of 
 Every filter gets the same measurements (the IIR filter cannot use the sigmas).
 Figures per filter: position and heading RMSE (outputs at the measurement times, the first
 second and the 0.5 s after the hand move left out), lag (the time shift of the truth that
-minimises the position RMSE), output jumps larger than 3 sigma (the change of the output
-error from one measurement to the next, against that measurement's sigma) at the outlier
-measurements and overall, outliers rejected / reported, good measurements rejected, and the
-delay of re-acquisition after the hand move.
+minimises the position RMSE), the jumps the outliers cause (each drive run again with the
+same seed without outliers: the output difference at each outlier's frame and the 3 after
+it, in mm and in the filter's own reported sigma, :func:`outlier_effect`; docs/tracking.md),
+the raw "steps" (the change of the output error from one measurement to the next, against
+that measurement's sigma, at the outliers), outliers rejected / reported, good measurements
+rejected, and the delay of re-acquisition after the hand move.
 
 Tuning (the Kalman noise densities and model, the IIR alpha) uses the "tune" set only; the
 table reports the held-out sets (other seeds, speeds, noise, frame rates, accelerations).
@@ -34,7 +36,8 @@ import numpy as np
 from kmea.filters import PoseFilter
 from kmea.tracking import Tracker, TrackerConfig
 
-__all__ = ["MotionSet", "Trajectory", "evaluate", "make_measurements", "trajectory"]
+__all__ = ["MotionSet", "Trajectory", "evaluate", "make_measurements", "outlier_effect",
+           "table", "trajectory"]
 
 _PAIR_LEVER = 0.10 / math.sqrt(2.0)  # heading sigma of a 10 cm pair = sigma / this
 
@@ -172,14 +175,19 @@ def run_iir(ms: Measurements, alpha: float) -> tuple[np.ndarray, dict]:
         p, th = f.update("r", float(ms.t[k]), np.array([ms.z[k, 0], ms.z[k, 1], 0.0]),
                          float(ms.z[k, 2]))
         out[k] = (p[0], p[1], th)
-    return out, {"rejected": np.zeros(len(ms.t), bool), "reacquired": []}
+    # The IIR filter reports no uncertainty: its outputs are measured against the
+    # measurement's own sigma.
+    return out, {"rejected": np.zeros(len(ms.t), bool), "reported": np.zeros(len(ms.t), bool),
+                 "reacquired": [], "sigma": ms.sigma.copy()}
 
 
 def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
     """Tracking-filter outputs (M, 3) at the measurement times (a rejected measurement's
-    output is the prediction to its time)."""
-    trk = Tracker(cfg)
+    output is the prediction to its time), with the filter's own position sigma (M,) m and
+    which rejections were reported in :attr:`Tracker.rejections`."""
+    trk = Tracker(cfg, keep=len(ms.t) + 1)
     out = np.zeros_like(ms.z)
+    sig = np.zeros(len(ms.t))
     rejected = np.zeros(len(ms.t), bool)
     reacq = []
     for k in range(len(ms.t)):
@@ -187,18 +195,56 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
         o = trk.update("r", t, ms.z[k, 0], ms.z[k, 1], ms.z[k, 2], float(ms.sigma[k]))
         st = trk.predict("r", t)
         out[k] = (st.x, st.y, st.theta)
+        sig[k] = st.sigma
         rejected[k] = o.kind == "rejected"
+        if o.retracted is not None:  # the previous measurement, found to be an outlier
+            j = int(np.searchsorted(ms.t, o.retracted[0]))
+            rejected[j] = True
         if o.kind == "reacquired":
             reacq.append(t)
-    return out, {"rejected": rejected, "reacquired": reacq}
+    reported_t = {r.t for r in trk.rejections}
+    reported = np.array([float(t) in reported_t for t in ms.t]) & rejected
+    return out, {"rejected": rejected, "reported": reported, "reacquired": reacq,
+                 "sigma": sig}
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict) -> dict:
-    """The figures of one filter on one drive (module docstring)."""
+#: Frames after an outlier over which the jump it causes is measured (the outlier's own
+#: frame and the next ones: an outlier that got in pulls the track for a few frames).
+EFFECT_FRAMES = 4
+
+
+def outlier_effect(ms: Measurements, out: np.ndarray, sigma: np.ndarray, clean: np.ndarray,
+                   keep: np.ndarray, frames: int = EFFECT_FRAMES
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The jump each outlier causes: the position difference between the outputs ``out``
+    (M, 3) of a run with outliers and ``clean`` (M, 3) of the same drive, same noise, without
+    them, at the outlier's frame and the ``frames - 1`` following ones; the largest, in m and
+    in units of the filter's own reported position sigma ``sigma`` (M,) m at that output.
+
+    Returns arrays (K,) m and (K,) sigmas, one per outlier inside ``keep``. An
+    earlier outlier's effect still present is included (it is the outliers' doing too)."""
+    d = np.hypot(out[:, 0] - clean[:, 0], out[:, 1] - clean[:, 1])
+    ds = d / np.maximum(sigma, 1e-12)
+    idx = np.flatnonzero(ms.outlier & keep)
+    eff_m = np.zeros(len(idx))
+    eff_s = np.zeros(len(idx))
+    for j, k in enumerate(idx):
+        w = slice(k, min(k + frames, len(d)))
+        ok = keep[w]
+        if np.any(ok):
+            eff_m[j] = float(np.max(d[w][ok]))
+            eff_s[j] = float(np.max(ds[w][ok]))
+    return eff_m, eff_s
+
+
+def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
+            clean: np.ndarray | None = None) -> dict:
+    """The figures of one filter on one drive (module docstring); ``clean``: the outputs of
+    the same drive and noise without outliers (for the outlier-caused jumps)."""
     t = ms.t
     gx, gy, gth = tr.at(t)
     keep = (t >= 1.0) & ~((t >= tr.kidnap_t) & (t < tr.kidnap_t + 0.5))
@@ -212,6 +258,8 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict) -> di
         hx, hy, _ = tr.at(np.clip(t - tau, 0.0, None))
         r = float(np.mean(((out[:, 0] - hx) ** 2 + (out[:, 1] - hy) ** 2)[keep]))
         best = min(best, (r, float(tau)))
+    # Raw "error step": the change of the output error from one measurement to the next,
+    # against that measurement's sigma (it also counts the prediction through a manoeuvre).
     step = np.hypot(np.diff(ex), np.diff(ey))
     jump = step / ms.sigma[1:]
     kj = keep[1:] & keep[:-1]
@@ -219,30 +267,46 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict) -> di
     outl = ms.outlier & keep
     rej = info["rejected"]
     after = [r - tr.kidnap_t for r in info["reacquired"] if r >= tr.kidnap_t]
-    return {"pos": pos, "head": head, "lag": best[1],
-            "jumps_outlier": int(np.sum(big & ms.outlier[1:])), "jumps_all": int(np.sum(big)),
-            "max_jump_outlier": float(np.max(step[kj & ms.outlier[1:]], initial=0.0)),
-            "outliers": int(np.sum(outl)), "caught": int(np.sum(rej & outl)),
-            "false_rej": int(np.sum(rej & ~ms.outlier & keep)), "n": int(np.sum(keep)),
-            "reacquire_s": after[0] if after else math.nan}
+    res = {"pos": pos, "head": head, "lag": best[1],
+           "jumps_outlier": int(np.sum(big & ms.outlier[1:])), "jumps_all": int(np.sum(big)),
+           "max_jump_outlier": float(np.max(step[kj & ms.outlier[1:]], initial=0.0)),
+           "outliers": int(np.sum(outl)), "caught": int(np.sum(rej & outl)),
+           "reported": int(np.sum(info["reported"] & rej & outl)),
+           "false_rej": int(np.sum(rej & ~ms.outlier & keep)), "n": int(np.sum(keep)),
+           "reacquire_s": after[0] if after else math.nan,
+           "caused_big": 0, "caused_max_sig": 0.0, "caused_max_m": 0.0}
+    if clean is not None:
+        eff_m, eff_s = outlier_effect(ms, out, info["sigma"], clean, keep)
+        res["caused_big"] = int(np.sum(eff_s > 3.0))
+        res["caused_max_sig"] = float(np.max(eff_s, initial=0.0))
+        res["caused_max_m"] = float(np.max(eff_m, initial=0.0))
+    return res
 
 
 def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
              outliers: float = 0.05) -> dict:
     """Figures of one filter ("iir" with alpha, or "kalman" with a config) summed/averaged
-    over the drives of ``mset``, with a fraction ``outliers`` of the measurements jumps."""
+    over the drives of ``mset``, with a fraction ``outliers`` of the measurements jumps. With
+    outliers each drive is also run without them (same seed: same noise, same missing
+    frames) for the jumps the outliers cause (:func:`outlier_effect`)."""
     rows = []
+    run_f = (lambda m: run_iir(m, param)) if filt == "iir" else (lambda m: run_kalman(m, param))
     for seed in mset.seeds:
         tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel)
         ms = make_measurements(tr, seed, mset.fps, mset.sigma, outliers)
-        out, info = run_iir(ms, param) if filt == "iir" else run_kalman(ms, param)
-        rows.append(metrics(tr, ms, out, info))
+        out, info = run_f(ms)
+        clean = None
+        if outliers > 0:
+            clean, _ = run_f(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0))
+        rows.append(metrics(tr, ms, out, info, clean))
     agg = {"pos": math.sqrt(np.mean([r["pos"] ** 2 for r in rows])),
            "head": math.sqrt(np.mean([r["head"] ** 2 for r in rows])),
            "lag": float(np.mean([r["lag"] for r in rows]))}
-    for k in ("jumps_outlier", "jumps_all", "outliers", "caught", "false_rej", "n"):
+    for k in ("jumps_outlier", "jumps_all", "outliers", "caught", "reported", "false_rej",
+              "n", "caused_big"):
         agg[k] = sum(r[k] for r in rows)
-    agg["max_jump_outlier"] = max(r["max_jump_outlier"] for r in rows)
+    for k in ("max_jump_outlier", "caused_max_sig", "caused_max_m"):
+        agg[k] = max(r[k] for r in rows)
     re = [r["reacquire_s"] for r in rows]
     agg["reacquire_s"] = max(re) if re and not any(math.isnan(v) for v in re) else math.nan
     agg["reacquired"] = sum(not math.isnan(v) for v in re)
@@ -287,14 +351,47 @@ def _row(name: str, c: dict, a: dict) -> str:
     re = "-" if math.isnan(a["reacquire_s"]) else f"{a['reacquire_s'] * 1000:.0f} ms"
     return (f"  {name:<16} {c['pos'] * 1000:6.2f} {math.degrees(c['head']):5.2f} "
             f"{round(c['lag'] * 1000):4d} {a['pos'] * 1000:6.2f} {math.degrees(a['head']):5.2f} "
-            f"{round(a['lag'] * 1000):4d} {a['jumps_outlier']:4d}/{a['outliers']:<4d} "
-            f"{a['max_jump_outlier'] * 1000:7.1f} "
-            f"{a['jumps_all']:6d} {a['caught']:4d}/{a['outliers']:<4d} {a['false_rej']:6d} "
+            f"{round(a['lag'] * 1000):4d} {a['caused_big']:4d}/{a['outliers']:<4d} "
+            f"{a['caused_max_sig']:6.1f} {a['caused_max_m'] * 1000:6.1f} "
+            f"{a['jumps_outlier']:4d} {a['max_jump_outlier'] * 1000:6.1f} "
+            f"{a['caught']:4d}/{a['outliers']:<4d} {a['reported']:4d} {a['false_rej']:5d} "
             f"{re:>9}")
 
 
+def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig) -> None:
+    """Print the held-out table for IIR alpha 1 and ``alpha`` and the Kalman ``cfg``."""
+    print("  caused: outliers whose jump (output with outliers minus output of the same drive\n"
+          "  and noise without them, at the outlier and the 3 frames after) exceeds 3 sigma\n"
+          "  (the filter's own reported position sigma; IIR: the measurement's) / outliers;\n"
+          "  max s, max mm: the largest such jump in sigmas and in mm (not necessarily the\n"
+          "  same one). steps: outputs at an outlier whose error changed by more than 3\n"
+          "  measurement sigmas (raw, includes the prediction through manoeuvres), max mm.\n"
+          "  caught: outliers rejected; rep: of them reported in Tracker.rejections; false:\n"
+          "  good measurements rejected; reacquire: slowest re-acquisition after the hand move")
+    for s in sets:
+        print(f"{s.name}: seeds {s.seeds}, {s.duration:g} s, <= {s.max_speed} m/s, "
+              f"<= {s.max_turn} rad/s, <= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, "
+              f"{s.fps:g} fps, 5 % outliers of 5-20 cm")
+        print(f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}")
+        print(f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
+              f"{'lag':>4} {'caused':>9} {'max s':>6} {'max mm':>6} {'steps':>4} {'max mm':>6} "
+              f"{'caught':>9} {'rep':>4} {'false':>5} {'reacquire':>9}")
+        for a_ in sorted({1.0, alpha}, reverse=True):
+            print(_row(f"IIR alpha={a_:g}", evaluate(s, "iir", a_, 0.0),
+                       evaluate(s, "iir", a_)), flush=True)
+        print(_row(f"Kalman {cfg.model}", evaluate(s, "kalman", cfg, 0.0),
+                   evaluate(s, "kalman", cfg)), flush=True)
+
+
+def quick_sets() -> tuple[MotionSet, ...]:
+    """The held-out sets, shortened for --quick: 3 drives of 20 s each (same seeds)."""
+    return tuple(MotionSet(s.name, s.seeds[:3], s.max_speed, s.max_turn, s.sigma, s.fps, 20.0,
+                           s.max_accel) for s in HELD_OUT)
+
+
 def run(quick: bool = False) -> None:
-    """Tune on the tuning set, print the held-out table."""
+    """Tune on the tuning set, print the held-out table (--quick: a smaller grid, shorter
+    held-out drives)."""
     t0 = time.perf_counter()
     alpha, cfg, grid = tune(quick)
     print(f"tuned on {TUNE.name} (seeds {TUNE.seeds}, <= {TUNE.max_speed} m/s, "
@@ -305,26 +402,5 @@ def run(quick: bool = False) -> None:
     for m, qa, qw, p, h, lag, _ in grid:
         print(f"    {m:<4} {qa:5g} {qw:5g}: {p * 1000:6.2f} {math.degrees(h):6.2f} "
               f"{round(lag * 1000):5d}")
-    sets = HELD_OUT if not quick else tuple(
-        MotionSet(s.name, s.seeds[:2], s.max_speed, s.max_turn, s.sigma, s.fps, 20.0,
-                  s.max_accel)
-        for s in HELD_OUT)
-    print("held-out drives (40 s each; lag in ms).\n"
-          "  jumps: outputs whose error changed by more than 3 sigma (the measurement's) at\n"
-          "  an outlier / outliers; max mm: the largest such change at an outlier; >3s all:\n"
-          "  the same at any measurement; caught: outliers rejected and reported; false: good\n"
-          "  measurements rejected; reacquire: slowest re-acquisition after the hand move")
-    for s in sets:
-        print(f"{s.name}: seeds {s.seeds}, <= {s.max_speed} m/s, <= {s.max_turn} rad/s, "
-              f"<= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, {s.fps:g} fps, "
-              f"5 % outliers of 5-20 cm")
-        print(f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}")
-        print(f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
-              f"{'lag':>4} {'jumps':>9} {'max mm':>7} {'>3s all':>6} {'caught':>9} "
-              f"{'false':>6} {'reacquire':>9}")
-        for a_ in sorted({1.0, alpha}, reverse=True):
-            print(_row(f"IIR alpha={a_:g}", evaluate(s, "iir", a_, 0.0),
-                       evaluate(s, "iir", a_)), flush=True)
-        print(_row(f"Kalman {cfg.model}", evaluate(s, "kalman", cfg, 0.0),
-                   evaluate(s, "kalman", cfg)), flush=True)
+    table(HELD_OUT if not quick else quick_sets(), alpha, cfg)
     print(f"({time.perf_counter() - t0:.0f} s)")
