@@ -248,69 +248,33 @@ class Doctor:
         return cfg
 
     def check_files(self, cfg: Any) -> None:
-        try:
-            from kmead.check import CheckError, check_config  # kmead --check, when present
-        except ImportError:
-            check_config = None
-        if check_config is not None:
-            try:
-                warnings = check_config(cfg)
-            except CheckError as e:
-                self.add(False, "files", f"{e}: fix it, then `kmead --check`")
-                return
-            for w in warnings:
-                if "not opened by --check" not in w:
-                    self.add(False, "files", w)
-            self._describe_files(cfg)
-            return
-        self._load_files(cfg)
+        """The file checks of ``kmead --check`` (:func:`kmead.check.check_config`), one line
+        each for the map and the camera file."""
+        from kmea.vision.camera import load_camera
+        from kmead.check import CheckError, check_config
 
-    def _describe_files(self, cfg: Any) -> None:
+        try:
+            warnings = check_config(cfg)
+        except CheckError as e:
+            what, _, why = str(e).partition(": ")
+            name, fix = (("map", "fix the file (`kmea map check FILE`)") if what == "map" else
+                         ("camera file", "calibrate again (`kmea calibrate`) or fix camera.file")
+                         if what == "camera" else ("files", "fix it, then `kmead --check`"))
+            self.add(False, name, f"{why or e}: {fix}")
+            return
+        for w in warnings:
+            if "not opened by --check" not in w:
+                self.add(False, "files", w)
         self.add(True, "map", cfg["map"]["file"] or "the built-in RobotAtFactory 4.0 map")
         cam = cfg["camera"]["file"]
-        if cam:
-            self.add(True, "camera file", cam)
-        else:
-            self._no_camera_file()
-
-    def _no_camera_file(self) -> None:
-        self.add(False, "camera file", "none configured: a nominal Pi Camera v2 model is used; "
-                 "calibrate (`kmea calibrate --source picamera ... --out /etc/kmead/camera.yml`) "
-                 "and set camera.file")
-
-    def _load_files(self, cfg: Any) -> None:
-        """The file checks of ``kmead --check``, by the loaders kmead itself uses."""
-        from kmea.maps import MapError, check_map, default_map, load_map
-        from kmea.vision.camera import CameraError, load_camera
-
-        path = cfg["map"]["file"]
-        try:
-            m = (load_map(path, dictionary=cfg["detector"]["dictionary"] or "DICT_5X5_100",
-                          default_length=cfg["detector"]["marker_length"])
-                 if path else default_map())
-        except MapError as e:
-            self.add(False, "map", f"{e}: fix the file (`kmea map check FILE`)")
-        else:
-            warns = check_map(m)
-            self.add(not warns, "map", f"{path or 'the built-in RobotAtFactory 4.0 map'}: "
-                     f"{len(m)} markers" + (f"; {'; '.join(warns)}" if warns else ""))
-        cam = cfg["camera"]["file"]
         if not cam:
-            self._no_camera_file()
+            self.add(False, "camera file", "none configured: a nominal Pi Camera v2 model is "
+                     "used; calibrate (`kmea calibrate --source picamera ... --out "
+                     "/etc/kmead/camera.yml`) and set camera.file")
             return
-        try:
-            model = load_camera(cam)
-        except CameraError as e:
-            self.add(False, "camera file", f"{e}: calibrate again (`kmea calibrate`) or fix "
-                     f"camera.file")
-            return
-        w, h = cfg["source"]["width"], cfg["source"]["height"]
-        if w and h and model.width * h != model.height * w:
-            self.add(False, "camera file", f"{cam} is for {model.width}x{model.height}, "
-                     f"the capture {w}x{h} has another aspect ratio: calibrate at {w}x{h}")
-        else:
-            self.add(True, "camera file", f"{cam} ({model.width}x{model.height}, "
-                     f"fx {model.fx:.0f} px)")
+        model = load_camera(cam)  # check_config has loaded it once already: it loads
+        self.add(True, "camera file", f"{cam} ({model.width}x{model.height}, "
+                 f"fx {model.fx:.0f} px)")
 
     def check_ports(self, cfg: Any) -> None:
         for key in ("telemetry", "control"):
