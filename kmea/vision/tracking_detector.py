@@ -284,7 +284,7 @@ class TrackingDetector:
         corners, ids, _ = self.roi_detector.detectMarkers(gray[y0:y1, x0:x1])
         if ids is None or not len(corners):
             return np.zeros(0, np.int64), np.zeros((0, 4, 2))
-        c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + (x0, y0)
+        c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + np.array([x0, y0], float)
         return np.asarray(ids, np.int64).reshape(-1), c
 
     def _find_moving(self, gray: np.ndarray, mid: int, pred: np.ndarray
