@@ -45,14 +45,16 @@ import numpy as np
 
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector, as_gray
 
-__all__ = ["TrackingConfig", "TrackingDetector", "code_scores", "marker_codes", "verify_codes"]
+__all__ = ["CodeSampler", "TrackingConfig", "TrackingDetector", "code_scores", "marker_codes",
+           "verify_codes"]
 
 
 @dataclass
 class TrackingConfig:
     """Tracking settings (pixels, frames).
 
-    full_every: a background full detection every this many frames (new markers).
+    full_every: a background full detection every this many frames (new markers), at half
+    resolution except every ``full_res_every``-th (small, far markers) and after a loss.
     move_px: a static marker whose corners drift more than this moved.
     bump_fraction: this share of the static markers moved or missing (at least
     ``bump_min`` of them) = the camera was bumped.
@@ -63,6 +65,7 @@ class TrackingConfig:
     """
 
     full_every: int = 6
+    full_res_every: int = 10
     move_px: float = 1.0
     bump_fraction: float = 0.5
     bump_min: int = 3
@@ -103,49 +106,80 @@ def _homographies(quads: np.ndarray, size: int) -> np.ndarray:
     return np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
 
 
+class CodeSampler:
+    """Where to sample the modules of fixed quads (N, 4, 2) px with codes (N, M, M) bool.
+
+    Built once for the static markers' reference corners (the homographies and bilinear
+    weights do not change while the references do not); :meth:`scores` then reads a frame.
+    """
+
+    _grids: dict[int, np.ndarray] = {}
+
+    def __init__(self, quads: np.ndarray, codes: np.ndarray, shape: tuple[int, int]) -> None:
+        n = len(quads)
+        self.n = n
+        m = codes.shape[1] if n else 0
+        self.m = m
+        if n == 0:
+            return
+        grid = self._grids.get(m)
+        if grid is None:
+            g = np.arange(m) + 0.5
+            off = np.array([[-0.2, -0.2], [0.2, -0.2], [-0.2, 0.2], [0.2, 0.2]])
+            gx, gy = np.meshgrid(g, g)                                  # (m, m), x right
+            pts = np.stack([gx, gy], -1)[:, :, None, :] + off           # (m, m, 4, 2)
+            grid = np.concatenate([pts.reshape(-1, 2), np.ones((m * m * 4, 1))], 1)
+            self._grids[m] = grid
+        try:
+            H = _homographies(np.asarray(quads, float), m)
+            proj = np.einsum("nij,pj->npi", H, grid)                    # (N, P, 3)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv = proj[..., :2] / proj[..., 2:3]
+        except np.linalg.LinAlgError:
+            uv = np.full((n, grid.shape[0], 2), np.nan)
+        h, w = shape
+        self.finite = np.isfinite(uv).all(axis=(1, 2))
+        uv = np.nan_to_num(uv)
+        x = np.clip(uv[..., 0], 0, w - 1.001)
+        y = np.clip(uv[..., 1], 0, h - 1.001)
+        x0, y0 = x.astype(np.intp), y.astype(np.intp)
+        fx, fy = x - x0, y - y0
+        self.idx = (y0 * w + x0).ravel()
+        self.w = w
+        self.wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]
+                            ).reshape(4, -1)
+        ref = codes.reshape(n, m * m).astype(np.float64)
+        ref = ref - ref.mean(axis=1, keepdims=True)
+        self.ref = ref
+        self.ref_norm = np.sqrt((ref * ref).sum(axis=1))
+
+    def scores(self, gray: np.ndarray) -> np.ndarray:
+        """(N,) correlation of each code with the frame ``gray`` (see :func:`code_scores`)."""
+        if self.n == 0:
+            return np.zeros(0)
+        flat = gray.reshape(-1)
+        i, w = self.idx, self.w
+        v = (flat[i] * self.wts[0] + flat[i + 1] * self.wts[1] + flat[i + w] * self.wts[2]
+             + flat[i + w + 1] * self.wts[3])
+        vals = v.reshape(self.n, self.m * self.m, 4).mean(axis=2)
+        vals -= vals.mean(axis=1, keepdims=True)
+        num = (vals * self.ref).sum(axis=1)
+        den = np.sqrt((vals * vals).sum(axis=1)) * self.ref_norm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            score = np.where(den > 0, num / den, 0.0)
+        return np.where(self.finite, score, 0.0)
+
+
 def code_scores(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray) -> np.ndarray:
     """(N,) correlation (-1..1) between the image at each quad (N, 4, 2) px and its code
     (N, M, M) bool modules (border included).
 
     Each module is sampled (bilinear) at 4 points around its centre and averaged; the score
     is the normalised correlation of the M*M module values with the code: 1 for a sharp
-    marker, ~0.8 for a 10 px high wall marker seen edge-on, near 0 for a hidden one and 0
-    for a flat patch. Numpy, vectorised over the markers (~0.1 ms for 40 markers).
+    marker, ~0.85 for a 10 px high wall marker seen edge-on, lower for a hidden one and 0
+    for a flat patch. Numpy, vectorised over the markers.
     """
-    n = len(quads)
-    if n == 0:
-        return np.zeros(0)
-    m = codes.shape[1]
-    try:
-        H = _homographies(np.asarray(quads, float), m)
-    except np.linalg.LinAlgError:
-        return np.zeros(n)
-    g = (np.arange(m) + 0.5)
-    off = np.array([[-0.2, -0.2], [0.2, -0.2], [-0.2, 0.2], [0.2, 0.2]])
-    gx, gy = np.meshgrid(g, g)                                     # (m, m), x right
-    pts = np.stack([gx, gy], -1)[:, :, None, :] + off              # (m, m, 4, 2)
-    pts = np.concatenate([pts.reshape(-1, 2), np.ones((m * m * 4, 1))], 1)   # (P, 3)
-    proj = np.einsum("nij,pj->npi", H, pts)                        # (N, P, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = proj[..., :2] / proj[..., 2:3]
-    h, w = gray.shape
-    finite = np.isfinite(uv).all(axis=(1, 2))
-    uv = np.nan_to_num(uv)
-    x = np.clip(uv[..., 0], 0, w - 1.001)
-    y = np.clip(uv[..., 1], 0, h - 1.001)
-    x0, y0 = x.astype(np.intp), y.astype(np.intp)
-    fx, fy = x - x0, y - y0
-    v = (gray[y0, x0] * (1 - fx) * (1 - fy) + gray[y0, x0 + 1] * fx * (1 - fy)
-         + gray[y0 + 1, x0] * (1 - fx) * fy + gray[y0 + 1, x0 + 1] * fx * fy)
-    vals = v.reshape(n, m * m, 4).mean(axis=2)                     # (N, m*m)
-    vals = vals - vals.mean(axis=1, keepdims=True)
-    ref = codes.reshape(n, m * m).astype(np.float64)
-    ref = ref - ref.mean(axis=1, keepdims=True)
-    num = (vals * ref).sum(axis=1)
-    den = np.sqrt((vals * vals).sum(axis=1) * (ref * ref).sum(axis=1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        score = np.where(den > 0, num / den, 0.0)
-    return np.where(finite, score, 0.0)
+    return CodeSampler(np.asarray(quads, float), codes, gray.shape[:2]).scores(gray)
 
 
 def verify_codes(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray,
@@ -154,7 +188,7 @@ def verify_codes(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray,
     return code_scores(gray, quads, codes) >= min_score
 
 
-@dataclass
+@dataclass(eq=False)
 class _Track:
     corners: np.ndarray                     # (4, 2) last seen
     velocity: np.ndarray                    # (4, 2) px per frame
@@ -179,6 +213,8 @@ class TrackingDetector:
         self.roi_detector = MarkerDetector(config)._detector
         self.dictionary = self.full_detector.dictionary
         self._codes: dict[int, np.ndarray] = {}
+        self._sampler: tuple[tuple, CodeSampler] | None = None
+        self._tuned: dict[int, object] = {}
         self.tracks: dict[int, _Track] = {}
         self.frame = -1
         self.tracked = 0
@@ -207,33 +243,47 @@ class TrackingDetector:
                     self._cond.wait()
                 if self._closed:
                     return
-                frame_no, image = self._job
+                frame_no, image, half = self._job
                 self._job = None
             try:
-                d = det.detect(image)
+                d = self._discover(det, image, half)
             except Exception:  # a frame the detector cannot digest: no result
                 d = None
             with self._cond:
                 self._busy = False
                 if d is not None:
-                    self._result = (frame_no, d)
+                    self._result = (frame_no, d, half)
 
-    def _submit(self, image: np.ndarray) -> None:
-        """Queue a background full detection of ``image`` (one at a time; newest wins)."""
+    @staticmethod
+    def _discover(det: MarkerDetector, image: np.ndarray, half: bool) -> Detections:
+        """Full detection of ``image``, at half resolution when ``half`` (4x fewer pixels;
+        corners mapped back to full-resolution pixels, to be refined there)."""
+        if not half:
+            return det.detect(image)
+        h, w = image.shape[:2]
+        small = cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        d = det.detect(small)
+        # INTER_AREA by 2: small pixel i covers full pixels 2i and 2i+1 (centre 2i + 0.5).
+        return Detections(d.ids, d.corners * 2.0 + 0.5, d.rejected)
+
+    def _submit(self, image: np.ndarray, full_res: bool = False) -> None:
+        """Queue a background detection of ``image`` (one at a time; newest wins): at half
+        resolution, except every ``full_res_every``-th one and when ``full_res``."""
         self.background += 1
+        half = not full_res and self.background % max(1, self.settings.full_res_every) != 0
         if not self._use_thread:
-            self._result = (self.frame, self.full_detector.detect(image))
+            self._result = (self.frame, self._discover(self.full_detector, image, half), half)
             return
         with self._cond:
             if self._thread is None:
                 self._thread = threading.Thread(target=self._worker, daemon=True,
                                                 name="kmea-discover")
                 self._thread.start()
-            self._job = (self.frame, image)
+            self._job = (self.frame, image, half)
             self._busy = True
             self._cond.notify()
 
-    def _take_result(self) -> tuple[int, Detections] | None:
+    def _take_result(self) -> tuple[int, Detections, bool] | None:
         with self._cond:
             r, self._result = self._result, None
         return r
@@ -273,15 +323,31 @@ class TrackingDetector:
         self._since_full = 0
         self._want_full = False
 
-    def _detect_roi(self, gray: np.ndarray, center: np.ndarray, half: float
+    def _roi_detector(self, side: float):
+        """The ArUco detector for a region: one adaptive-threshold window of a fifth of the
+        marker side (the full parameters' three windows cost three times as much) when
+        ``side`` > 0 px, else the configured parameters."""
+        if side <= 0:
+            return self.roi_detector
+        win = max(3, round(side / 5.0) | 1)
+        det = self._tuned.get(win)
+        if det is None:
+            params = {**self.config.parameters, "adaptiveThreshWinSizeMin": win,
+                      "adaptiveThreshWinSizeMax": win}
+            det = self._tuned[win] = MarkerDetector(DetectorConfig(
+                self.config.dictionary, self.config.corner_refinement, params))._detector
+        return det
+
+    def _detect_roi(self, gray: np.ndarray, center: np.ndarray, half: float, side: float = 0.0
                     ) -> tuple[np.ndarray, np.ndarray]:
-        """(ids, corners) found in the square of half-side ``half`` px around ``center``."""
+        """(ids, corners) found in the square of half-side ``half`` px around ``center``
+        (``side``: the marker's side in px, for a tuned threshold window; 0: configured)."""
         h, w = gray.shape
         x0, y0 = max(0, int(center[0] - half)), max(0, int(center[1] - half))
         x1, y1 = min(w, int(center[0] + half) + 1), min(h, int(center[1] + half) + 1)
         if x1 - x0 < 16 or y1 - y0 < 16:
             return np.zeros(0, np.int64), np.zeros((0, 4, 2))
-        corners, ids, _ = self.roi_detector.detectMarkers(gray[y0:y1, x0:x1])
+        corners, ids, _ = self._roi_detector(side).detectMarkers(gray[y0:y1, x0:x1])
         if ids is None or not len(corners):
             return np.zeros(0, np.int64), np.zeros((0, 4, 2))
         c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + np.array([x0, y0], float)
@@ -295,9 +361,9 @@ class TrackingDetector:
         ctr = pred.mean(axis=0)
         span = float(np.max(np.abs(pred - ctr)))
         others: dict[int, np.ndarray] = {}
-        for grow in (1.0, 3.0):
+        for grow, tuned in ((1.0, True), (3.0, False)):
             half = span + self.settings.margin * side * grow + 4.0
-            ids, cs = self._detect_roi(gray, ctr, half)
+            ids, cs = self._detect_roi(gray, ctr, half, side if tuned else 0.0)
             found = None
             for i, c in zip(ids.tolist(), cs, strict=True):
                 if i == mid:
@@ -327,8 +393,11 @@ class TrackingDetector:
         moved: list[int] = []
         if st:
             ref = np.stack([self.tracks[m].corners for m in st])
-            seen = verify_codes(gray, ref, np.stack([self._code(m) for m in st]),
-                                s.min_score)
+            key = (tuple(st), tuple(self.tracks[m] for m in st), gray.shape)
+            if self._sampler is None or self._sampler[0] != key:
+                self._sampler = (key, CodeSampler(ref, np.stack([self._code(m) for m in st]),
+                                                  gray.shape))
+            seen = self._sampler[1].scores(gray) >= s.min_score
             refined = self._subpix(gray, ref)
             for m, r in zip(st, refined, strict=True):
                 if self.tracks[m].sub is None:  # first tracked frame since the reference
@@ -388,7 +457,7 @@ class TrackingDetector:
             self._merge(gray, got, out_ids, out_c)
         if lost or self._since_full >= s.full_every:
             self._since_full = 0
-            self._submit(gray)
+            self._submit(gray, full_res=lost)
         self.tracked += 1
         return self._result_of(out_ids, out_c, "tracked", events)
 
@@ -402,45 +471,48 @@ class TrackingDetector:
         refined = cv2.cornerSubPix(gray, pts, (win, win), (-1, -1), crit)
         return refined.reshape(-1, 4, 2).astype(np.float64)
 
-    def _merge(self, gray: np.ndarray, got: tuple[int, Detections], out_ids: list[int],
-               out_c: list[np.ndarray]) -> None:
-        """Add what the background detection found and is not tracked, checked in this
-        frame."""
-        frame_no, det = got
+    def _merge(self, gray: np.ndarray, got: tuple[int, Detections, bool],
+               out_ids: list[int], out_c: list[np.ndarray]) -> None:
+        """Add what the background detection found and is not tracked, detected again in
+        this frame around where it was found (full resolution)."""
+        frame_no, det, half = got
         have = set(out_ids)
         s = self.settings
-        for mid, c in zip(det.ids.tolist(), det.corners, strict=True):
+        same_px = 2.0 if half else 0.5
+        for mid, c0 in zip(det.ids.tolist(), det.corners, strict=True):
             t = self.tracks.get(mid)
-            if self._is_static(mid):
-                if t is not None and np.abs(c - t.corners).max() < 0.5:
-                    continue  # same place: nothing new
+            static = self._is_static(mid)
+            if t is not None and (t.seen > frame_no or mid in have) and (
+                    not static or np.abs(c0 - t.corners).max() < same_px):
+                continue  # tracked since, or a fixed marker at its place: nothing new
+            c, _ = self._find_moving(gray, mid, c0)
+            if c is None:
+                continue  # not in this frame (any more)
+            if static:
                 new = float(code_scores(gray, c[None], self._code(mid)[None])[0])
                 if new < s.add_score:
-                    continue  # hidden or half hidden now: wait for a clean look
-                if t is not None and t.seen == self.frame:
-                    # Reported at its reference: a better-looking place replaces a
-                    # reference taken while something covered part of the marker.
-                    old = float(code_scores(gray, t.corners[None], self._code(mid)[None])[0])
-                    if new < old + 0.05:
+                    continue  # half hidden now: wait for a clean look
+                if mid in have:
+                    # Reported at its reference, found elsewhere (> 0.5 px) by a full
+                    # detection of the whole marker that reads at least as well: the
+                    # reference was taken while something covered part of the marker.
+                    if np.abs(c - t.corners).max() < 0.5:
                         continue
-                    i = out_ids.index(mid)
-                    out_c[i] = c
+                    old = float(code_scores(gray, t.corners[None], self._code(mid)[None])[0])
+                    if new < old:
+                        continue
+                    out_c[out_ids.index(mid)] = c
                     self.tracks[mid] = _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
                     continue
                 self.tracks[mid] = _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
-                out_ids.append(mid)
-                out_c.append(c)
-                continue
-            if mid in have:
-                continue
-            if t is not None and t.seen > frame_no:
-                continue  # tracked since: the track is newer
-            fc, _ = self._find_moving(gray, mid, c)
-            if fc is not None:
-                vel = (fc - c) / max(1, self.frame - frame_no)
-                self.tracks[mid] = _Track(fc, vel, False, self.frame)
-                out_ids.append(mid)
-                out_c.append(fc)
+            else:
+                if mid in have:
+                    continue
+                vel = (c - c0) / max(1, self.frame - frame_no)
+                self.tracks[mid] = _Track(c, vel, False, self.frame)
+            out_ids.append(mid)
+            out_c.append(c)
+            have.add(mid)
 
     def _full(self, gray: np.ndarray, events: list[str]) -> Detections:
         det = self.full_detector.detect(gray)
