@@ -62,10 +62,13 @@ class TrackingConfig:
     the image at its reference corners (:func:`code_scores`); add_score: a static marker
     found by a background detection is taken (or replaces its reference) from this score.
     margin: search region around a moving marker's prediction, in marker sides.
+    average: a fixed marker's reference corners are the mean of up to this many
+    full-resolution detections.
     """
 
     full_every: int = 6
     full_res_every: int = 10
+    average: int = 8
     move_px: float = 1.0
     bump_fraction: float = 0.5
     bump_min: int = 3
@@ -195,6 +198,7 @@ class _Track:
     static: bool
     seen: int                               # frame number last seen
     sub: np.ndarray | None = None           # (4, 2) cornerSubPix at the reference (static)
+    looks: int = 1                          # full-resolution detections averaged (static)
 
 
 class TrackingDetector:
@@ -215,6 +219,7 @@ class TrackingDetector:
         self._codes: dict[int, np.ndarray] = {}
         self._sampler: tuple[tuple, CodeSampler] | None = None
         self._tuned: dict[int, object] = {}
+        self._half_ok = False
         self.tracks: dict[int, _Track] = {}
         self.frame = -1
         self.tracked = 0
@@ -270,7 +275,8 @@ class TrackingDetector:
         """Queue a background detection of ``image`` (one at a time; newest wins): at half
         resolution, except every ``full_res_every``-th one and when ``full_res``."""
         self.background += 1
-        half = not full_res and self.background % max(1, self.settings.full_res_every) != 0
+        half = (self._half_ok and not full_res
+                and self.background % max(1, self.settings.full_res_every) != 0)
         if not self._use_thread:
             self._result = (self.frame, self._discover(self.full_detector, image, half), half)
             return
@@ -314,14 +320,35 @@ class TrackingDetector:
         old = self.tracks
         # A static marker the detection missed (hidden now) keeps its place.
         self.tracks = {m: t for m, t in old.items() if t.static}
+        sides = []
         for mid, c in zip(det.ids.tolist(), det.corners, strict=True):
             prev = old.get(mid)
+            sides.append(float(np.linalg.norm(c[0] - c[2])) / np.sqrt(2.0))
+            if prev is not None and prev.static and self._is_static(mid):
+                self.tracks[mid] = self._averaged(prev, c)
+                continue
             vel = np.zeros((4, 2))
             if prev is not None and not prev.static and self.frame > prev.seen:
                 vel = (c - prev.corners) / (self.frame - prev.seen)
             self.tracks[mid] = _Track(c.copy(), vel, self._is_static(mid), self.frame)
+        if sides:
+            # Half-resolution discovery only when markers stay >= 20 px wide there.
+            self._half_ok = float(np.median(sides)) >= 40.0
         self._since_full = 0
         self._want_full = False
+
+    def _averaged(self, t: _Track, c: np.ndarray) -> _Track:
+        """A fixed marker's reference with one more full-resolution look ``c`` (4, 2) px:
+        the mean of up to ``average`` looks within ``move_px`` of it (single detections of
+        a 30-60 px marker scatter by up to ~1 px), else ``c`` (it moved)."""
+        if np.abs(c - t.corners).max() > 1.5 * self.settings.move_px:
+            return _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
+        if np.abs(c - t.corners).max() < 1e-9:
+            return t
+        n = min(t.looks + 1, self.settings.average)
+        new = _Track(t.corners + (c - t.corners) / n, np.zeros((4, 2)), True, self.frame)
+        new.looks = n
+        return new
 
     def _roi_detector(self, side: float):
         """The ArUco detector for a region: one adaptive-threshold window of a fifth of the
@@ -482,6 +509,14 @@ class TrackingDetector:
         for mid, c0 in zip(det.ids.tolist(), det.corners, strict=True):
             t = self.tracks.get(mid)
             static = self._is_static(mid)
+            if (static and not half and mid in have and t is not None
+                    and np.abs(c0 - t.corners).max() < 1.5 * s.move_px):
+                # Another full-resolution look at a fixed marker in place: averaged in.
+                nt = self._averaged(t, c0)
+                if nt is not t:
+                    self.tracks[mid] = nt
+                    out_c[out_ids.index(mid)] = nt.corners
+                continue
             if t is not None and (t.seen > frame_no or mid in have) and (
                     not static or np.abs(c0 - t.corners).max() < same_px):
                 continue  # tracked since, or a fixed marker at its place: nothing new
@@ -489,6 +524,10 @@ class TrackingDetector:
             if c is None:
                 continue  # not in this frame (any more)
             if static:
+                if np.abs(c - c0).max() > same_px:
+                    # A fixed marker found at two different places in two frames: part of
+                    # it was covered in one of them (a robot passing): wait for a clean look.
+                    continue
                 new = float(code_scores(gray, c[None], self._code(mid)[None])[0])
                 if new < s.add_score:
                     continue  # half hidden now: wait for a clean look
