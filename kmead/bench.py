@@ -11,6 +11,7 @@ tracking, measured by a UDP listener process (arrival time minus the datagram's 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -153,3 +154,91 @@ def run_latency(quick: bool = False) -> None:
               f"{a.max() if a.size else math.nan:.1f} ms")
     (fm, fp, _), (tm, tp, _) = rows.values()
     print(f"tracking / full detection: median {tm / fm:.2f}, p99 {tp / fp:.2f}")
+
+
+def _cpu_seconds(pid: int) -> float:
+    """utime + stime of process ``pid`` (all its threads), seconds (Linux /proc)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _frames_in(d: Daemon, seconds: float) -> float:
+    """The daemon's frame rate over the next ``seconds`` (frames/s)."""
+    f0, t0 = d.totals.frames, time.perf_counter()
+    time.sleep(seconds)
+    return (d.totals.frames - f0) / (time.perf_counter() - t0)
+
+
+def run_tui(quick: bool = False) -> None:
+    """CPU of ``kmea-tui`` at 120x40 on each tab (a process of its own in a pseudo-terminal,
+    attached to a daemon on the paced pre-rendered frames at 30 frames/s), and the daemon's
+    frame rate without the UI and with it, in the same run."""
+    import fcntl
+    import pty
+    import shutil
+    import struct
+    import termios
+    import threading
+
+    exe = shutil.which("kmea-tui") or str(Path(sys.executable).with_name("kmea-tui"))
+    if not Path(exe).exists():
+        print("kmea-tui not installed: no UI figures")
+        return
+    n = 150 if quick else 600
+    frames, scene = render(min(n, 150))
+    # Loop the pre-rendered frames for as long as the run lasts (robots jump back at the
+    # loop: the tracking detector re-finds them, as after an occlusion).
+    _BENCH.update(frames=[frames[i % len(frames)] for i in range(n * 4)], scene=scene)
+    cfg = load_config(None, ["source.spec=bench-live", *NET])
+    d = Daemon(cfg)
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    settle, window = (1.5, 3.0) if quick else (3.0, 8.0)
+    try:
+        time.sleep(settle)
+        alone = _frames_in(d, window)
+        print(f"daemon alone: {alone:.1f} frames/s (1640x1232, 30 frames/s paced, tracking)")
+        pid, fd = pty.fork()
+        if pid == 0:  # the UI, in a 120x40 pseudo-terminal
+            os.execv(exe, [exe, "--telemetry", d.telemetry.bound, "--control",
+                           d.control.bound])
+        fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+        stop = threading.Event()
+
+        def drain() -> None:  # the terminal's side: read (and drop) what the UI draws
+            while not stop.is_set():
+                try:
+                    if not os.read(fd, 65536):
+                        return
+                except OSError:
+                    return
+
+        reader = threading.Thread(target=drain, daemon=True)
+        reader.start()
+        time.sleep(settle * 2)
+        rates = []
+        for key, tab in (("1", "Markers"), ("2", "Robots"), ("3", "Statistics"), ("4", "Map"),
+                         ("5", "Config"), ("6", "Log")):
+            os.write(fd, key.encode())
+            time.sleep(settle)
+            c0, t0 = _cpu_seconds(pid), time.perf_counter()
+            fps = _frames_in(d, window)
+            cpu = (_cpu_seconds(pid) - c0) / (time.perf_counter() - t0) * 100
+            rates.append(fps)
+            print(f"kmea-tui 120x40, tab {tab}: {cpu:5.1f} % of a core; daemon {fps:.1f} "
+                  f"frames/s with the UI attached")
+        with_ui = float(np.mean(rates))
+        print(f"daemon frame rate with the UI / without: {with_ui:.1f} / {alone:.1f} = "
+              f"{with_ui / alone:.3f}")
+        os.write(fd, b"q")
+        time.sleep(0.5)
+        stop.set()
+        with contextlib.suppress(ChildProcessError, OSError):
+            os.kill(pid, 15)
+            os.waitpid(pid, 0)
+        os.close(fd)
+    finally:
+        d.stop()
+        runner.join(timeout=5)
+        d.close()
