@@ -185,16 +185,16 @@ def run_tui(quick: bool = False) -> None:
     if not Path(exe).exists():
         print("kmea-tui not installed: no UI figures")
         return
-    n = 150 if quick else 600
-    frames, scene = render(min(n, 150))
+    settle, window = (1.5, 3.0) if quick else (3.0, 8.0)
+    frames, scene = render(60 if quick else 150)
     # Loop the pre-rendered frames for as long as the run lasts (robots jump back at the
     # loop: the tracking detector re-finds them, as after an occlusion).
-    _BENCH.update(frames=[frames[i % len(frames)] for i in range(n * 4)], scene=scene)
+    n = int(30 * (3 * settle + 7 * (settle + window) + 20))
+    _BENCH.update(frames=[frames[i % len(frames)] for i in range(n)], scene=scene)
     cfg = load_config(None, ["source.spec=bench-live", *NET])
     d = Daemon(cfg)
     runner = threading.Thread(target=d.run, daemon=True)
     runner.start()
-    settle, window = (1.5, 3.0) if quick else (3.0, 8.0)
     try:
         time.sleep(settle)
         alone = _frames_in(d, window)
