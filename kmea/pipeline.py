@@ -278,6 +278,10 @@ class Pipeline:
         self.inc_poses.reset(set(self.world_map.markers) - robot_ids)
         self.inc_loo.reset()
         self.inc_loo.every = max(1, int(self.settings.loo_every))
+        est = getattr(self, "estimator", None)
+        if hasattr(est, "reset_warm"):
+            est.warm_start = self.settings.tracking
+            est.reset_warm()
 
     def new_detector(self):
         """A fresh detector as configured (one per detection thread); with
@@ -300,6 +304,9 @@ class Pipeline:
     def set_algorithm(self, name: str) -> None:
         self.estimator = estimators.get(name)
         self.algorithm = name
+        if hasattr(self.estimator, "warm_start"):
+            # Tracking (a fixed live camera): the camera fit starts from the previous one.
+            self.estimator.warm_start = self.settings.tracking
         if hasattr(self, "inc_loo"):
             self.inc_loo.reset()
 
