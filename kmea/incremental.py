@@ -41,7 +41,7 @@ class IncrementalPoses:
     ``posed`` / ``reused`` count markers over the run.
     """
 
-    def __init__(self, fixed: Collection[int] = (), anchors: int = 6) -> None:
+    def __init__(self, fixed: Collection[int] = (), anchors: int = 4) -> None:
         self.fixed = frozenset(fixed)
         self.anchors = anchors
         self._cache: dict[int, tuple[bytes, MarkerObservation]] = {}

@@ -160,10 +160,12 @@ class CornerPnP(EstimatorBase):
                                  min_references=self.min_references)
         self.warm_start = bool(warm_start)
         self._warm: tuple | None = None  # (key, refs, uv_refs, fit, inliers, dis)
+        self._placed: tuple | None = None  # (fit, map id, {id: (observation, estimate)})
 
     def reset_warm(self) -> None:
         """Forget the previous fit (the view changed: the next call solves afresh)."""
         self._warm = None
+        self._placed = None
 
     # ------------------------------------------------------------------ LM
     def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -367,7 +369,21 @@ class CornerPnP(EstimatorBase):
         if isinstance(res, Estimate):
             return res
         fit, refs, inliers, dis, obs = res
-        markers = self._markers(fit, obs, world_map, dict(plane_heights or {}))
+        heights = dict(plane_heights or {})
+        cache = self._placed if self.warm_start else None
+        if cache is not None and cache[0] is fit and cache[1] == id(world_map):
+            # The same fit (warm start): a map marker with the same observation object is
+            # placed as before; only the others (robots, markers seen anew) are computed.
+            done = {i: me for i, (o, me) in cache[2].items() if obs.get(i) is o}
+            todo = {i: o for i, o in obs.items() if i not in done}
+            placed = {**done, **(self._markers(fit, todo, world_map, heights) if todo else {})}
+            markers = {i: placed[i] for i in obs}
+        else:
+            markers = self._markers(fit, obs, world_map, heights)
+        if self.warm_start:
+            self._placed = (fit, id(world_map), {
+                i: (o, markers[i]) for i, o in obs.items()
+                if i in world_map and i not in heights})
         Rc2w = fit.R.T
         # A rejected reference is reported by how far its centre moved in its map plane and
         # how much it turned there (it was rejected on its corners' RMS disagreement).
