@@ -74,7 +74,7 @@ class TrackingConfig:
     bump_min: int = 3
     min_score: float = 0.6
     add_score: float = 0.75
-    margin: float = 0.6
+    margin: float = 0.4
     static_ids: frozenset[int] = field(default_factory=frozenset)
 
 
@@ -369,9 +369,16 @@ class TrackingDetector:
                     ) -> tuple[np.ndarray, np.ndarray]:
         """(ids, corners) found in the square of half-side ``half`` px around ``center``
         (``side``: the marker's side in px, for a tuned threshold window; 0: configured)."""
+        return self._detect_box(gray, (center[0] - half, center[1] - half,
+                                       center[0] + half, center[1] + half), side)
+
+    def _detect_box(self, gray: np.ndarray, box: tuple[float, float, float, float],
+                    side: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, corners) found in ``box`` (x0, y0, x1, y1) px; ``side`` as in
+        :meth:`_detect_roi`."""
         h, w = gray.shape
-        x0, y0 = max(0, int(center[0] - half)), max(0, int(center[1] - half))
-        x1, y1 = min(w, int(center[0] + half) + 1), min(h, int(center[1] + half) + 1)
+        x0, y0 = max(0, int(box[0])), max(0, int(box[1]))
+        x1, y1 = min(w, int(box[2]) + 1), min(h, int(box[3]) + 1)
         if x1 - x0 < 16 or y1 - y0 < 16:
             return np.zeros(0, np.int64), np.zeros((0, 4, 2))
         corners, ids, _ = self._roi_detector(side).detectMarkers(gray[y0:y1, x0:x1])
@@ -380,15 +387,50 @@ class TrackingDetector:
         c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + np.array([x0, y0], float)
         return np.asarray(ids, np.int64).reshape(-1), c
 
-    def _find_moving(self, gray: np.ndarray, mid: int, pred: np.ndarray
+    def _region(self, pred: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """(centre (2,), half-side px of the search square, marker side px) around a
+        predicted quad (4, 2) px."""
+        side = float(np.linalg.norm(pred[0] - pred[2])) / np.sqrt(2.0)
+        ctr = pred.mean(axis=0)
+        span = float(np.max(np.abs(pred - ctr)))
+        return ctr, span + self.settings.margin * side + 4.0, side
+
+    def _groups(self, preds: dict[int, np.ndarray]
+                ) -> list[tuple[tuple[float, float, float, float], float, set[int]]]:
+        """Search boxes (x0, y0, x1, y1) px, mean marker side and member ids: the regions
+        of ``preds`` (id -> predicted quad), overlapping ones joined when their union is
+        not much larger than the two (one detection call instead of two)."""
+        out: list[list] = []
+        for m, q in preds.items():
+            ctr, half, side = self._region(q)
+            box = [ctr[0] - half, ctr[1] - half, ctr[0] + half, ctr[1] + half]
+            for g in out:
+                b = g[0]
+                u = [min(b[0], box[0]), min(b[1], box[1]), max(b[2], box[2]),
+                     max(b[3], box[3])]
+                area = (u[2] - u[0]) * (u[3] - u[1])
+                if area <= 1.2 * ((b[2] - b[0]) * (b[3] - b[1])
+                                  + (box[2] - box[0]) * (box[3] - box[1])):
+                    g[0] = u
+                    g[1].append(side)
+                    g[2].add(m)
+                    break
+            else:
+                out.append([box, [side], {m}])
+        return [(tuple(b), float(np.mean(sides)), ids) for b, sides, ids in out]
+
+    def _find_moving(self, gray: np.ndarray, mid: int, pred: np.ndarray,
+                     wide_only: bool = False
                      ) -> tuple[np.ndarray | None, dict[int, np.ndarray]]:
         """Corners (4, 2) of moving marker ``mid`` near its prediction (None if not there),
-        and any other marker seen in the region (id -> corners)."""
+        and any other marker seen in the region (id -> corners). ``wide_only``: skip the
+        first, tight look (done already)."""
         side = float(np.linalg.norm(pred[0] - pred[2])) / np.sqrt(2.0)
         ctr = pred.mean(axis=0)
         span = float(np.max(np.abs(pred - ctr)))
         others: dict[int, np.ndarray] = {}
-        for grow, tuned in ((1.0, True), (3.0, False)):
+        tries = ((3.0, False),) if wide_only else ((1.0, True), (3.0, False))
+        for grow, tuned in tries:
             half = span + self.settings.margin * side * grow + 4.0
             ids, cs = self._detect_roi(gray, ctr, half, side if tuned else 0.0)
             found = None
@@ -457,12 +499,21 @@ class TrackingDetector:
                     # Just hidden or moved: one background look (a hidden one keeps its
                     # place; a moved one gets its new place from the full detection).
                     lost = True
-        # ---- moving markers: near their prediction
-        for m, t in list(self.tracks.items()):
-            if t.static:
-                continue
-            pred = t.corners + t.velocity * (self.frame - t.seen)
-            c, others = self._find_moving(gray, m, pred)
+        # ---- moving markers: near their prediction, one detection per group of nearby
+        # regions (a robot's two markers share one crop)
+        moving = [(m, t) for m, t in self.tracks.items() if not t.static]
+        found: dict[int, np.ndarray] = {}
+        others: dict[int, np.ndarray] = {}
+        preds = {m: t.corners + t.velocity * (self.frame - t.seen) for m, t in moving}
+        for box, side, members in self._groups(preds):
+            ids, cs = self._detect_box(gray, box, side)
+            for i, c in zip(ids.tolist(), cs, strict=True):
+                (found if i in members else others)[i] = c
+        for m, t in moving:
+            c = found.get(m)
+            if c is None:  # not where predicted: a wider look with the full parameters
+                c, more = self._find_moving(gray, m, preds[m], wide_only=True)
+                others.update(more)
             if c is None:
                 if t.seen == self.frame - 1:
                     # Just lost: it may have outrun the prediction; a robot visible in the
@@ -475,9 +526,9 @@ class TrackingDetector:
             t.corners, t.seen = c, self.frame
             out_ids.append(m)
             out_c.append(c)
-            for i, oc in others.items():
-                if i not in self.tracks:
-                    self.tracks[i] = _Track(oc, np.zeros((4, 2)), self._is_static(i), self.frame)
+        for i, oc in others.items():
+            if i not in self.tracks:
+                self.tracks[i] = _Track(oc, np.zeros((4, 2)), self._is_static(i), self.frame)
         # ---- discoveries of the background detection
         got = self._take_result()
         if got is not None:
