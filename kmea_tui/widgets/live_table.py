@@ -48,6 +48,7 @@ class LiveTable(DataTable):
         self.sort_column = sort_column or self._columns[0][0]
         self.sort_reverse = False
         self.raw: dict[str, dict[str, Any]] = {}
+        self._cells: dict[str, tuple[str | Text, ...]] = {}  # cells last shown, per row
         # Counters the tests read to prove rows are updated in place, not rebuilt.
         self.rows_added = 0
         self.rows_removed = 0
@@ -62,25 +63,46 @@ class LiveTable(DataTable):
         return [k for k, _ in self._columns]
 
     def sync(self, rows: dict[str, tuple[dict[str, Any], Sequence[str | Text]]]) -> None:
-        """Make the table show exactly ``rows``: {key: (raw values, cells in column order)}."""
+        """Make the table show exactly ``rows``: {key: (raw values, cells in column order)}.
+
+        Only cells that changed are updated (``update_cell``), inside one batch update; the
+        rows are sorted again only when a row came or went or a sort value changed.
+        """
         keys = self.column_keys
+        resort = False
         with self.app.batch_update():
             for key, (raw, cells) in rows.items():
+                old = self.raw.get(key)
                 self.raw[key] = raw
+                cells = tuple(cells)
                 if key in self.rows:
-                    for col, value in zip(keys, cells, strict=True):
-                        if self.get_cell(key, col) != value:
+                    last = self._cells.get(key)
+                    if last == cells:
+                        continue  # nothing changed in this row: not even a cell lookup
+                    for col, value, before in zip(keys, cells, last or (None,) * len(keys),
+                                                  strict=True):
+                        if before != value:
                             self.update_cell(key, col, value)
                             self.cells_updated += 1
+                    if old is None or self._sort_of(old) != self._sort_of(raw):
+                        resort = True
                 else:
                     self.add_row(*cells, key=key)
                     self.rows_added += 1
+                    resort = True
+                self._cells[key] = cells
             for row_key in list(self.rows):
                 if row_key.value not in rows:
                     self.remove_row(row_key)
                     self.raw.pop(row_key.value or "", None)
+                    self._cells.pop(row_key.value or "", None)
                     self.rows_removed += 1
-            self.apply_sort()
+            if resort:
+                self.apply_sort()
+
+    def _sort_of(self, raw: dict[str, Any]) -> Any:
+        col = self.sort_column
+        return self._sort_value(raw, col) if self._sort_value else raw.get(col)
 
     def apply_sort(self) -> None:
         if self.row_count < 2:
