@@ -63,6 +63,7 @@ class LiveTable(DataTable):
         self.raw: dict[str, dict[str, Any]] = {}
         self._cells: dict[str, tuple[str | Text, ...]] = {}  # cells last shown, per row
         self._value_cache: dict[tuple, Any] = {}  # rendered cells by value (_render_cell)
+        self._line_cache_by_value: dict[tuple, Any] = {}  # row lines by value
         # Counters the tests read to prove rows are updated in place, not rebuilt.
         self.rows_added = 0
         self.rows_removed = 0
@@ -139,6 +140,32 @@ class LiveTable(DataTable):
             lines = self._value_cache[key] = super()._render_cell(
                 row_index, column_index, base_style, width, cursor, hover)
         return lines
+
+    def _render_line_in_row(self, row_key: Any, line_no: int, base_style: Any,
+                            cursor_location: Any, hover_location: Any) -> Any:
+        """DataTable's row line, cached by the row's values (its own cache is keyed on the
+        table-wide update counter too: every visible line was joined again after any
+        update). The key holds everything the line depends on: the row's cells and place,
+        the column widths, the cursor and hover when they are on this row, the styles."""
+        if row_key not in self._row_locations or row_key.value not in self._cells:
+            return super()._render_line_in_row(row_key, line_no, base_style,
+                                               cursor_location, hover_location)
+        row_index = self._row_locations.get(row_key)
+        widths = tuple(c.get_render_width(self) for c in self.ordered_columns)
+        key = (row_key, line_no, base_style, row_index,
+               tuple(_value_key(v) for v in self._cells[row_key.value]), widths,
+               cursor_location if cursor_location.row == row_index else None,
+               hover_location if hover_location.row == row_index else None,
+               self.cursor_type, self.show_cursor, self._show_hover_cursor,
+               self._pseudo_class_state, self.fixed_columns, self.fixed_rows,
+               self.zebra_stripes, self.show_row_labels)
+        got = self._line_cache_by_value.get(key)
+        if got is None:
+            if len(self._line_cache_by_value) > 5000:
+                self._line_cache_by_value.clear()
+            got = self._line_cache_by_value[key] = super()._render_line_in_row(
+                row_key, line_no, base_style, cursor_location, hover_location)
+        return got
 
     def _sort_of(self, raw: dict[str, Any]) -> Any:
         col = self.sort_column
