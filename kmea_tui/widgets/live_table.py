@@ -27,6 +27,18 @@ def fmt(value: Any, spec: str = ".3f", scale: float = 1.0) -> str:
     return text
 
 
+def show_line(widget: Any, text: Text) -> None:
+    """``widget.update(text)`` for a one- or two-line summary, without the screen-wide
+    layout pass ``Static.update`` asks for unless the number of wrapped lines changes
+    (at 4 repaints a second the layout passes were most of the UI's time)."""
+    if text == getattr(widget, "_shown_text", None):
+        return
+    width = max(1, widget.content_size.width or widget.size.width or 80)
+    lines = -(-text.cell_len // width)
+    widget.update(text, layout=lines != getattr(widget, "_shown_lines", None))
+    widget._shown_text, widget._shown_lines = text, lines
+
+
 def _value_key(value: Any) -> Any:
     """A hashable stand-in for a cell value (rich ``Text`` is mutable: its text and
     styles)."""
