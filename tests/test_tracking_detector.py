@@ -200,3 +200,77 @@ def test_incremental_poses_and_leave_one_out_match_recomputation(default_frames)
             assert math.hypot(fix.x - other.x, fix.y - other.y) < 1e-3, (f.index, name)
     assert reused >= 5
     assert inc.inc_poses.reused > inc.inc_poses.posed
+
+
+def test_corner_pnp_warm_start_gives_the_fresh_solve(default_frames):
+    from kmea.estimators.corners import CornerPnP
+
+    frames, src = default_frames
+    specs = tuple(src.scene.robot_specs())
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs, tracking=True,
+                                                             algorithm="corner-pnp"))
+    p.observer.detector.close()
+    p.observer.detector = _tracker(src)
+    assert p.estimator.warm_start
+    fresh = CornerPnP()
+    intr = p.camera.intrinsics
+    heights = p.plane_heights
+    warm_used = 0
+    for f in frames[:10]:
+        before = p.estimator._warm
+        r = p.process(FrameInput(f.index, f.timestamp, f.image))
+        warm_used += before is not None and p.estimator._warm is not before
+        s = fresh.estimate(r.observations, src.world_map, camera=intr, plane_heights=heights)
+        assert r.estimate.ok and s.ok
+        assert set(r.estimate.references) == set(s.references)
+        for mid, me in s.markers.items():
+            d = np.linalg.norm(r.estimate.markers[mid].position - me.position)
+            assert d < 2e-5, (f.index, mid, d)  # 20 um: the same optimum
+            a, b = r.estimate.markers[mid].sigma, me.sigma
+            assert (a is None) == (b is None) and (a is None or abs(a - b) < 1e-6), (mid, a, b)
+    assert warm_used >= 1  # some frames started from the previous fit
+
+
+def test_live_daemon_tracks_and_reports_a_bumped_camera(caplog: pytest.LogCaptureFixture):
+    import logging
+    import threading
+
+    from kmea.sim.scenes import scene_from_spec
+    from kmea.vision.sources import register_source
+    from kmead.config import load_config
+    from kmead.daemon import Daemon
+
+    scene = scene_from_spec("sim:default", width=WIDTH)
+    src = SimSource("sim:default?bump_at=0.5&bump_deg=1.5", width=WIDTH, frames=36)
+    frames = [src.read() for _ in range(36)]
+    # A live source (served in real time at 30 frames/s) from frames rendered beforehand.
+    register_source("tracktest", lambda rest, **o: SimSource(scene, realtime=True,
+                                                             rendered=frames))
+    cfg = load_config(None, ["source.spec=tracktest", 'network.telemetry=""',
+                             'network.control=""'])
+    d = Daemon(cfg)
+    assert d.live and d.pipeline.settings.tracking
+    results = []
+    orig = d._outputs
+
+    def keep(res):
+        results.append(res)
+        orig(res)
+
+    d._outputs = keep
+    caplog.set_level(logging.WARNING, logger="kmead")
+    runner = threading.Thread(target=d.run)
+    try:
+        runner.start()
+        runner.join(timeout=60)
+    finally:
+        d.stop()
+        runner.join(timeout=5)
+        d.close()
+    assert len(results) >= 8  # live: newest frame wins, a loaded machine drops some
+    assert sum(r.detect_mode == "tracked" for r in results) >= len(results) // 2
+    moved = [r for r in caplog.records if "camera moved" in r.getMessage()]
+    assert len(moved) == 1, [r.getMessage() for r in caplog.records]
+    bumped = [r for r in results if r.restart]
+    assert len(bumped) == 1 and bumped[0].index >= 15
+    assert all(r.ok for r in results if r.index >= bumped[0].index)

@@ -1,4 +1,4 @@
-"""``kmea bench fixed-camera``: nothing lost with the tracking detector, on simulated 1640x1232 scenes.
+"""``kmea bench fixed-camera``: nothing lost with the tracking detector (1640x1232 sim).
 
 Frames are rendered beforehand, then fed to :class:`kmea.pipeline.Pipeline` with tracking
 (:mod:`kmea.vision.tracking_detector`, background detection on its thread) at the camera's
