@@ -239,8 +239,9 @@ class TrackingDetector:
     # ------------------------------------------------------------------ background detection
     def _worker(self) -> None:
         with contextlib.suppress(OSError, AttributeError):
-            # Below the frame path: on one core the tracked frames preempt discovery.
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+            # Below the frame path: on one core the tracked frames preempt discovery (nice 5:
+            # a third of the frame path's share; at nice 10 a loaded machine starved it).
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 5)
         det = MarkerDetector(self.config)
         while True:
             with self._cond:
