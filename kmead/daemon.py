@@ -492,14 +492,12 @@ class Daemon:
     # ------------------------------------------------------------------ per frame
     def _frame_input(self, frame, capture_ms: float, t_cap: float) -> FrameInput:
         ts = frame.timestamp
-        ns = frame.meta.get("sensor_timestamp_ns")
-        age = time.monotonic() - ns * 1e-9 if isinstance(ns, int) else -1.0
-        if self.live and 0.0 <= age < 1.0:
-            # picamera: the frame's time is the sensor's (libcamera's SensorTimestamp,
-            # CLOCK_MONOTONIC); the datagram's t and the latency count from it, not from
-            # when Python received the frame (docs/speed.md: the latency budget). A stamp
-            # from another clock or over a second old is not trusted.
-            ts = time.time() - age
+        age = time.time() - ts if "sensor_timestamp_ns" in frame.meta else -1.0
+        if self.live and 0.0 <= age < 60.0:
+            # picamera: the frame's time is the sensor's (the start of readout as unix time,
+            # kmea.vision.picamera_source); the datagram's t and the latency count from it,
+            # not from when Python received the frame (docs/speed.md: the latency budget).
+            # A stamp in the future or a minute old is not trusted.
             t_cap = time.perf_counter() - age
         elif self.live:
             # Live: unix time of the capture, so robots can age a fix with their own clock.

@@ -291,8 +291,8 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
 
 
 def test_live_frame_time_is_the_sensor_timestamp():
-    """A live frame with a sensor timestamp (picamera2's SensorTimestamp, CLOCK_MONOTONIC
-    ns) gets that instant as its time (unix s) and the latency is counted from it."""
+    """A live frame with a sensor timestamp (picamera2's SensorTimestamp, as unix time) keeps
+    that instant as its time and the latency is counted from it."""
     import threading
 
     from kmea.vision.sources import Frame, FrameSource, register_source
@@ -315,11 +315,12 @@ def test_live_frame_time_is_the_sensor_timestamp():
             if self.n >= 12:
                 return None
             time.sleep(1 / 30)
-            # Exposure began 40 ms before the frame reached Python.
+            # The readout began 40 ms before the frame reached Python (the picamera source
+            # gives it as unix time, the raw CLOCK_MONOTONIC value in the meta).
             ns = time.monotonic_ns() - 40_000_000
             expected[self.n] = time.time() - 0.040
             self.n += 1
-            return Frame(self.n - 1, ns * 1e-9, image, {"sensor_timestamp_ns": ns})
+            return Frame(self.n - 1, expected[self.n - 1], image, {"sensor_timestamp_ns": ns})
 
     register_source("sensortest", lambda rest, **o: Sensor())
     cfg = load_config(None, ["source.spec=sensortest", 'network.telemetry=""',
