@@ -18,6 +18,7 @@ BENCHES: dict[str, str] = {
     "pipeline": "kmea.benchmarks.pipeline:run",
     "tracking": "kmea.benchmarks.tracking:run",
     "fusion": "kmea.benchmarks.fusion:run",
+    "fixed-camera": "kmea.benchmarks.fixed_camera:run",
 }
 
 

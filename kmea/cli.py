@@ -68,7 +68,7 @@ def _daemon_benches() -> dict:
     from kmead import fusion_bench
 
     return {"daemon": bench.run_daemon, "latency": bench.run_latency,
-            "fusion-node": fusion_bench.run}
+            "fusion-node": fusion_bench.run, "tui": bench.run_tui}
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from kmea.maps import MarkerMap
 from kmea.robots import RobotSpec, robot_pose
 from kmea.tracking import Tracker, TrackerConfig
 from kmea.vision.camera import CameraModel
-from kmea.vision.detection import DetectorConfig, MarkerDetector
+from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector
 
 __all__ = ["STAGES", "FrameInput", "FrameResult", "MarkerObserver", "Pipeline",
            "PipelineSettings", "RobotFix", "new_detector"]
@@ -55,7 +55,8 @@ class FrameInput:
     meta: dict = field(default_factory=dict)
     t_capture: float = 0.0
     capture_ms: float = 0.0
-    detections: tuple[np.ndarray, np.ndarray] | None = None  # done by a worker thread
+    # Done by a worker thread: (ids, corners) or the detector's Detections (mode, events).
+    detections: tuple[np.ndarray, np.ndarray] | Detections | None = None
     detect_ms: float = 0.0
 
 
@@ -99,6 +100,12 @@ class FrameResult:
     meta: dict = field(default_factory=dict)
     #: robot name -> why the tracking filter rejected its measurement in this frame
     robot_rejections: dict[str, str] = field(default_factory=dict)
+    # What the detection noticed (a tracking detector: "camera moved: ..."); restart: the
+    # estimation restarted in this frame. detect_mode: "full" or "tracked".
+    events: tuple[str, ...] = ()
+    restart: bool = False
+    detect_mode: str = "full"
+    loo_fresh: bool = True
 
     @property
     def ok(self) -> bool:
@@ -116,6 +123,11 @@ class PipelineSettings:
     alpha, reset_after_s: the pose filter; filter_kind: the robots' filter, "iir" (the
     paper's, with alpha) or "kalman" (:mod:`kmea.tracking`, configured by ``tracker``);
     loo: compute leave-one-out errors; robots: the robots carrying markers.
+    tracking: a fixed live camera (:mod:`kmea.incremental`): the tracking detector
+    (:mod:`kmea.vision.tracking_detector`, a background full detection every
+    ``track_full_every`` frames), marker poses and leave-one-out errors reused while the
+    floor's detections do not change (recomputed at least every ``loo_every`` frames);
+    False: every frame from scratch (file sources: frame-exact).
     """
 
     dictionary: str = ""
@@ -132,11 +144,16 @@ class PipelineSettings:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     loo: bool = True
     robots: tuple[RobotSpec, ...] = ()
+    tracking: bool = False
+    track_full_every: int = 6
+    loo_every: int = 30
 
     @classmethod
-    def from_config(cls, data: Mapping[str, Any]) -> PipelineSettings:
+    def from_config(cls, data: Mapping[str, Any], live: bool = False) -> PipelineSettings:
         """From a configuration dict shaped like kmead's (``Config.data``: sections
-        ``detector``, ``estimator``, ``filter``, ``stats`` and the ``robots`` tables)."""
+        ``detector``, ``estimator``, ``filter``, ``stats`` and the ``robots`` tables).
+        live: the source is a live camera (``detector.tracking`` applies to live sources
+        only)."""
         d, f = data["detector"], data["filter"]
         return cls(dictionary=d["dictionary"], corner_refinement=d["corner_refinement"],
                    detector_parameters=dict(d["parameters"]), fast=bool(d["fast"]),
@@ -148,7 +165,9 @@ class PipelineSettings:
                    robots=tuple(RobotSpec(name=r["name"], markers=tuple(r["markers"]),
                                           height=r["height"], length=r["length"],
                                           separation=r["separation"])
-                                for r in data["robots"]))
+                                for r in data["robots"]),
+                   tracking=bool(live and d.get("tracking", False)),
+                   track_full_every=int(d.get("track_full_every", 6)))
 
 
 def tracker_config(f: Mapping[str, Any]) -> TrackerConfig:
@@ -225,6 +244,10 @@ class Pipeline:
         self.settings = settings or PipelineSettings()
         self.detector_generation = 0
         self.observer = MarkerObserver(None, camera, world_map)
+        from kmea.incremental import IncrementalLoo, IncrementalPoses
+
+        self.inc_poses = IncrementalPoses()
+        self.inc_loo = IncrementalLoo(self.settings.loo_every)
         self.configure(self.settings)
 
     # ------------------------------------------------------------------ configuration
@@ -242,12 +265,36 @@ class Pipeline:
         self.detector_config = DetectorConfig(
             dictionary=s.dictionary or self.world_map.dictionary,
             corner_refinement=s.corner_refinement, parameters=dict(s.detector_parameters))
+        old = self.observer.detector
         self.observer.detector = self.new_detector()
         self.detector_generation += 1
+        if hasattr(old, "close"):
+            old.close()
+        self.reset_incremental()
+
+    def reset_incremental(self) -> None:
+        """Forget reused poses and leave-one-out errors (new map, robots, camera, view)."""
+        robot_ids = {m for r in self.settings.robots for m in r.markers}
+        self.inc_poses.reset(set(self.world_map.markers) - robot_ids)
+        self.inc_loo.reset()
+        self.inc_loo.every = max(1, int(self.settings.loo_every))
+        est = getattr(self, "estimator", None)
+        if hasattr(est, "reset_warm"):
+            est.warm_start = self.settings.tracking
+            est.reset_warm()
 
     def new_detector(self):
-        """A fresh detector as configured (one per detection thread)."""
+        """A fresh detector as configured (one per detection thread); with
+        ``settings.tracking`` a :class:`kmea.vision.tracking_detector.TrackingDetector` told
+        which markers are fixed (the map's, minus the robots')."""
         s = self.settings
+        if s.tracking:
+            from kmea.vision.tracking_detector import TrackingConfig, TrackingDetector
+
+            robot_ids = {m for r in s.robots for m in r.markers}
+            static = frozenset(set(self.world_map.markers) - robot_ids)
+            return TrackingDetector(self.detector_config, TrackingConfig(
+                full_every=s.track_full_every, static_ids=static))
         return new_detector(self.detector_config, s.fast, s.fast_window, s.full_every)
 
     @property
@@ -257,6 +304,17 @@ class Pipeline:
     def set_algorithm(self, name: str) -> None:
         self.estimator = estimators.get(name)
         self.algorithm = name
+        if hasattr(self.estimator, "warm_start"):
+            # Tracking (a fixed live camera): the camera fit starts from the previous one.
+            self.estimator.warm_start = self.settings.tracking
+        if hasattr(self, "inc_loo"):
+            self.inc_loo.reset()
+
+    def close(self) -> None:
+        """Stop the detector's background thread, if it has one."""
+        close = getattr(self.observer.detector, "close", None)
+        if close is not None:
+            close()
 
     def configure_filter(self) -> None:
         s = self.settings
@@ -273,6 +331,7 @@ class Pipeline:
                               if m not in self.world_map}
         self.observer.lengths = self.robot_lengths
         self.observer.default_length = self.settings.marker_length
+        self.reset_incremental()
 
     def set_map(self, world_map: MarkerMap) -> None:
         self.world_map = world_map
@@ -284,6 +343,7 @@ class Pipeline:
         if (self.camera.width, self.camera.height) != (width, height):
             self.camera = self.base_camera.scaled_to(width, height)
             self.observer.camera = self.camera
+            self.reset_incremental()
         return self.camera
 
     # ------------------------------------------------------------------ per frame
@@ -309,23 +369,39 @@ class Pipeline:
         tm: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         tm["capture"] = inp.capture_ms
         t0 = time.perf_counter()
+        events: tuple[str, ...] = ()
+        restart = False
+        mode = "full"
+        incremental = self.settings.tracking
         if inp.observations is None:
             if inp.image is None:
                 raise ValueError(f"frame {inp.index}: no image")
             h, w = inp.image.shape[:2]
             self.camera_for(w, h)
-            if inp.detections is not None:
-                ids, corners = inp.detections
+            det = inp.detections
+            if det is not None:
                 t1 = time.perf_counter()
                 tm["detect"] = inp.detect_ms
             else:
-                ids, corners = self.detect(inp.image)
+                det = self.detector.detect(inp.image)
                 t1 = time.perf_counter()
                 tm["detect"] = (t1 - t0) * 1e3
-            obs, diag = self.poses(ids, corners)
+            if isinstance(det, Detections):
+                ids, corners = det.ids, det.corners
+                events, restart, mode = det.events, det.restart, det.mode
+            else:
+                ids, corners = det
+            if restart:  # the view changed: estimation starts again
+                self.reset_incremental()
+                self.configure_filter()
+            if incremental:
+                obs, diag = self.inc_poses.poses(self.poses, ids, corners)
+            else:
+                obs, diag = self.poses(ids, corners)
             t2 = time.perf_counter()
             tm["pose"] = (t2 - t1) * 1e3
         else:
+            incremental = False  # replay: recorded poses, frame-exact
             ids = np.asarray(inp.ids if inp.ids is not None else [o.id for o in inp.observations],
                              dtype=np.int64)
             corners = np.asarray(inp.corners if inp.corners is not None
@@ -363,15 +439,21 @@ class Pipeline:
         t5 = time.perf_counter()
         tm["robots"] = (t5 - t4) * 1e3
         loo_err: dict[int, float] = {}
+        fresh = True
         if both is not None and est.ok:
-            try:
-                loo_err = both.loo_errors  # computed here, from the estimate's own state
-            except ValueError:
-                loo_err = {}
+            def compute() -> dict[int, float]:
+                try:
+                    return both.loo_errors  # computed here, from the estimate's own state
+                except ValueError:
+                    return {}
+            if incremental:  # the floor's observations unchanged: the same errors
+                loo_err, fresh = self.inc_loo.get(obs, self.world_map.markers, compute)
+            else:
+                loo_err = compute()
         tm["loo"] = (time.perf_counter() - t5) * 1e3
         return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
                            est, markers, loo_err, robots, tm, inp.t_capture, inp.meta,
-                           rejections)
+                           rejections, events, restart, mode, fresh)
 
     def robot_fixes(self, est: Estimate, t: float,
                     rejections: dict[str, str] | None = None) -> dict[str, RobotFix]:

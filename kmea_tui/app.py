@@ -32,7 +32,7 @@ from kmea_tui.widgets.config_form import ConfigPane
 from kmea_tui.widgets.floor_map import FloorMap, MapData, MapPane
 from kmea_tui.widgets.live_table import LiveTable
 from kmea_tui.widgets.log_panel import LogPane
-from kmea_tui.widgets.markers import MarkersPane
+from kmea_tui.widgets.markers import MarkersPane, moved_ids
 from kmea_tui.widgets.robots import RobotsPane
 from kmea_tui.widgets.stats import StatsPane
 from kmea_tui.widgets.status_bar import StatusBar
@@ -117,6 +117,9 @@ class KmeaTui(App[None]):
         self.status: dict[str, Any] | None = None
         self.markers_body: dict[str, Any] | None = None
         self.robots_body: dict[str, Any] | None = None
+        self.stats_body: dict[str, Any] | None = None
+        # Tabs whose pane has not shown the last bodies yet (hidden tabs are not repainted).
+        self._dirty: set[str] = set()
         self.moved: set[int] = set()
         self.received = 0
         self.coalesced = 0
@@ -175,19 +178,28 @@ class KmeaTui(App[None]):
     @work(exclusive=True, group="stream")
     async def stream(self) -> None:
         """Read telemetry, coalesce per topic, post at most one batch per ``ui_period``."""
-        latest: dict[str, dict[str, Any]] = {}
+        latest: dict[str, Any] = {}
         events: deque[tuple[str, dict[str, Any]]] = deque()
         received = coalesced = 0
         next_post = 0.0
         ended_sent = False
+        # A live daemon: bodies are decoded only for the messages kept (the last of each
+        # topic per repaint), not for the ~100 a second it publishes.
+        raw = getattr(self.client, "recv_raw", None)
+        decode = getattr(self.client, "decode_raw", None)
         while True:
-            msgs = await self.client.recv(0.05)
+            msgs = await (raw(0.05) if raw is not None else self.client.recv(0.05))
             now = time.monotonic()
             if msgs:
                 self.last_telemetry = now
             for topic, body in msgs:
                 received += 1
                 if topic in (protocol.TOPIC_EVENT, protocol.TOPIC_LOG):
+                    if raw is not None:
+                        got = decode(body)
+                        if got is None:
+                            continue
+                        body = got[1]
                     events.append((topic, body))
                     if len(events) > EVENT_BACKLOG:
                         events.popleft()
@@ -199,6 +211,9 @@ class KmeaTui(App[None]):
             ended = self.client.ended
             pending = bool(latest or events) or (ended and not ended_sent)
             if pending and now >= next_post and self._ui_ready.is_set():
+                if raw is not None:
+                    latest = {t: m[1] for t, f in latest.items()
+                              if (m := decode(f)) is not None and m[0] == t}
                 self._ui_ready.clear()
                 self.post_message(TelemetryBatch(latest, list(events), received, coalesced,
                                                  ended=ended))
@@ -215,6 +230,9 @@ class KmeaTui(App[None]):
             self._ui_ready.set()
 
     def apply_batch(self, msg: TelemetryBatch) -> None:
+        """Store the batch's bodies and repaint only what is on screen: the status bar, the
+        log (a history: every event is kept) and the active tab; a hidden tab is brought up
+        to date when it is shown (:meth:`on_tabbed_content_tab_activated`)."""
         self.batches += 1
         self.received, self.coalesced = msg.received, msg.coalesced
         latest = msg.latest
@@ -224,6 +242,7 @@ class KmeaTui(App[None]):
                 self.daemon_stopped = False
             if (body := latest.get(protocol.TOPIC_STATUS)) is not None:
                 self.show_status(body)
+                self._dirty.add("map")
             if (body := latest.get(protocol.TOPIC_CAMERA)) is not None:
                 try:
                     self.query_one(CameraPane).show_frame(CameraFrame.from_body(body))
@@ -231,23 +250,37 @@ class KmeaTui(App[None]):
                     self.query_one(CameraPane).show_caption(str(e), error=True)
             if (body := latest.get(protocol.TOPIC_MARKERS)) is not None:
                 self.markers_body = body
-                self.moved = self.query_one(MarkersPane).update_markers(body)
+                self.moved = moved_ids(body.get("markers", []))
+                self._dirty.update(("markers", "map"))
             if (body := latest.get(protocol.TOPIC_ROBOTS)) is not None:
                 self.robots_body = body
-                self.query_one(RobotsPane).update_robots(body)
+                self._dirty.update(("robots", "map"))
             if (body := latest.get(protocol.TOPIC_STATS)) is not None:
-                self.query_one(StatsPane).update_stats(body)
+                self.stats_body = body
+                self._dirty.add("stats")
             if msg.events:
                 self.query_one(LogPane).add_events(msg.events)
-            if protocol.TOPIC_MARKERS in latest or protocol.TOPIC_ROBOTS in latest \
-                    or protocol.TOPIC_STATUS in latest:
-                self.query_one(MapPane).set_data(MapData(
-                    markers=(self.markers_body or {}).get("markers", []),
-                    robots=(self.robots_body or {}).get("robots", []),
-                    moved=self.moved))
+            self.show_tab_data(self.query_one(TabbedContent).active)
             if msg.ended:
                 self.replay_done = True
             self.update_connection_state()
+
+    def show_tab_data(self, tab: str) -> None:
+        """Bring tab ``tab``'s pane up to date with the last bodies, if they changed."""
+        if tab not in self._dirty:
+            return
+        self._dirty.discard(tab)
+        if tab == "markers" and self.markers_body is not None:
+            self.query_one(MarkersPane).update_markers(self.markers_body)
+        elif tab == "robots" and self.robots_body is not None:
+            self.query_one(RobotsPane).update_robots(self.robots_body)
+        elif tab == "stats" and self.stats_body is not None:
+            self.query_one(StatsPane).update_stats(self.stats_body)
+        elif tab == "map":
+            self.query_one(MapPane).set_data(MapData(
+                markers=(self.markers_body or {}).get("markers", []),
+                robots=(self.robots_body or {}).get("robots", []),
+                moved=self.moved))
 
     def show_status(self, body: dict[str, Any]) -> None:
         """The daemon's ``status``: logging/recording state and the algorithms it offers;
@@ -421,6 +454,8 @@ class KmeaTui(App[None]):
         return True
 
     def on_tabbed_content_tab_activated(self, event: TabbedContent.TabActivated) -> None:
+        with suppress(NoMatches):
+            self.show_tab_data(self.query_one(TabbedContent).active)
         self.refresh_bindings()
         if event.pane.id == "camera" and self.client.live:
             self.camera_watch_loop()

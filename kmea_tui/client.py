@@ -149,6 +149,44 @@ class DaemonClient:
                 self.last_error = str(e)
         return out
 
+    async def recv_raw(self, timeout: float) -> list[tuple[str, list[bytes]]]:
+        """Like :meth:`recv`, bodies not decoded yet: ``(topic, frames)``; the caller
+        decodes (:meth:`decode_raw`) only the messages it keeps (the UI keeps the last of
+        each topic per repaint: 4 of the daemon's 30 markers bodies a second)."""
+        sub = self._sub
+        if sub is None:
+            raise RuntimeError("DaemonClient.recv_raw before open()")
+        if not await sub.poll(timeout * 1000, zmq.POLLIN):
+            return []
+        out: list[tuple[str, list[bytes]]] = []
+        while len(out) < MAX_BATCH:
+            try:
+                frames = await sub.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            try:
+                topic = frames[0].decode("ascii") if len(frames) == 2 else None
+            except UnicodeDecodeError:
+                topic = None
+            if topic is None:
+                self._bad(protocol.ProtocolError(
+                    f"expected 2 frames [ASCII topic, body], got {len(frames)}"))
+                continue
+            out.append((topic, frames))
+        return out
+
+    def decode_raw(self, frames: list[bytes]) -> Message | None:
+        """A message of :meth:`recv_raw` decoded and checked, None (counted) if bad."""
+        try:
+            return protocol.decode(frames)
+        except protocol.ProtocolError as e:
+            self._bad(e)
+            return None
+
+    def _bad(self, e: Exception) -> None:
+        self.bad_messages += 1
+        self.last_error = str(e)
+
     def _new_req(self) -> zmq.asyncio.Socket:
         assert self._ctx is not None
         req = self._ctx.socket(zmq.REQ)

@@ -5,15 +5,19 @@ robots, relay, CSV, telemetry) on pre-rendered 1640x1232 simulator frames (rende
 counted), beside the rate of bare ``detectMarkers`` on the same frames, with 1 and 2
 detection threads (``detector.workers``). The library's own figures (detection variants,
 the pipeline in one thread) are ``kmea bench pipeline`` (:mod:`kmea.benchmarks.pipeline`).
-latency: frame-to-UDP-datagram latency at 30 frames/s from the paced simulator, measured by
-a real UDP receiver (arrival time minus the datagram's capture timestamp).
+latency: frame-to-UDP-datagram latency at 1640x1232 and 30 frames/s, full detection vs
+tracking, measured by a UDP listener process (arrival time minus the datagram's ``t``).
 """
 
 from __future__ import annotations
 
-import socket
+import contextlib
+import json
+import math
+import os
+import subprocess
+import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -24,7 +28,6 @@ from kmea.sim.source import SimSource
 from kmea.vision.sources import register_source
 from kmead.config import load_config
 from kmead.daemon import Daemon
-from kmead.relay import parse_datagram
 
 NET = ['network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"']
 
@@ -32,6 +35,9 @@ NET = ['network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.
 _BENCH: dict = {}
 # The pre-rendered frames, served by the simulator source (rendering not counted).
 register_source("bench", lambda rest, **o: SimSource(_BENCH["scene"], rendered=_BENCH["frames"]))
+# The same, served in real time at the scene's 30 frames/s (a live source).
+register_source("bench-live", lambda rest, **o: SimSource(_BENCH["scene"], realtime=True,
+                                                          rendered=_BENCH["frames"]))
 
 
 def _daemon_fps(tmp: str, sets: list[str]) -> tuple[float, dict, Daemon]:
@@ -70,48 +76,169 @@ def run_daemon(quick: bool = False) -> None:
                   + f"; non-detection stages {rest:.2f} ms = {rest / ms['total'] * 100:.0f} %")
 
 
+# The UDP listener of ``kmea bench latency``: a process of its own (measured outside the
+# daemon). Prints its port, records arrival time - the datagram's t (ms) of every valid
+# datagram until stdin closes, then prints them as JSON.
+LISTENER = r"""
+import json, selectors, socket, sys, time
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.bind(("127.0.0.1", 0))
+print(s.getsockname()[1], flush=True)
+sel = selectors.DefaultSelector()
+sel.register(s, selectors.EVENT_READ)
+sel.register(sys.stdin, selectors.EVENT_READ)
+lat = []
+while True:
+    for key, _ in sel.select():
+        if key.fileobj is s:
+            data = s.recv(512)
+            now = time.time()
+            f = dict(p.split("=", 1) for p in data.decode("ascii").split(";"))
+            if f.get("valid") == "1":
+                lat.append((now - float(f["t"])) * 1e3)
+        elif not sys.stdin.readline():
+            print(json.dumps(lat), flush=True)
+            sys.exit(0)
+"""
+
+
+def _listen() -> tuple[subprocess.Popen, int]:
+    proc = subprocess.Popen([sys.executable, "-c", LISTENER], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    return proc, int(proc.stdout.readline())
+
+
+def _collect(proc: subprocess.Popen) -> np.ndarray:
+    out, _ = proc.communicate("", timeout=30)  # stdin closed: the listener reports
+    return np.asarray(json.loads(out.strip().splitlines()[-1]), dtype=float)
+
+
 def run_latency(quick: bool = False) -> None:
-    n = 60 if quick else 300
-    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.bind(("127.0.0.1", 0))
-    rx.settimeout(0.5)
-    port = rx.getsockname()[1]
-    lat: list[float] = []
-    stop = threading.Event()
-
-    def receive() -> None:
-        while not stop.is_set():
-            try:
-                data = rx.recv(256)
-            except TimeoutError:
-                continue
-            m = parse_datagram(data)
-            if m["valid"]:
-                lat.append((time.time() - m["t"]) * 1e3)
-
-    robots = (f'robots=[{{name="amr1", markers=[40, 41], destinations=["udp:127.0.0.1:{port}"]}},'
-              f' {{name="amr2", markers=[42], destinations=["udp:127.0.0.1:{port}"]}}]')
-    for (w, h), workers in (((640, 480), 0), ((640, 480), 1), ((1640, 1232), 0),
-                            ((1640, 1232), 1)):
-        lat.clear()
-        stop.clear()
-        th = threading.Thread(target=receive, daemon=True)
-        th.start()
-        cfg = load_config(None, ["source.spec=sim", "source.fps=30", f"source.width={w}",
-                                 f"source.height={h}", f"detector.workers={workers}", robots,
-                                 *NET])
-        d = Daemon(cfg, max_frames=n)
+    """Frame-to-datagram latency at 1640x1232 and 30 frames/s: full detection of every
+    frame, then tracking (the default for live sources), back to back on the same
+    pre-rendered frames served in real time (the paced simulator without its rendering
+    time); a UDP listener process takes arrival time minus the datagram's ``t``. Run it
+    under ``taskset -c 0`` for the one-core (Pi stand-in) figures."""
+    n = 90 if quick else 240
+    frames, scene = render(n)
+    _BENCH.update(frames=frames, scene=scene)
+    cores = len(os.sched_getaffinity(0))
+    print(f"{n} pre-rendered frames {scene.size[0]}x{scene.size[1]} served at 30 frames/s "
+          f"(default scene, 2 moving robots); {cores} core(s)")
+    rows = {}
+    for label, sets in (("full detection every frame (detector.tracking=false)",
+                         ["detector.tracking=false"]),
+                        ("tracking (default)", [])):
+        proc, port = _listen()
+        robots = (f'robots=[{{name="amr1", markers=[40, 41], '
+                  f'destinations=["udp:127.0.0.1:{port}"]}}, {{name="amr2", markers=[42], '
+                  f'destinations=["udp:127.0.0.1:{port}"]}}]')
+        cfg = load_config(None, ["source.spec=bench-live", robots, *NET, *sets])
+        d = Daemon(cfg, max_frames=n - 2)
+        c0 = time.process_time()
         try:
             d.run()
         finally:
             d.close()
-            stop.set()
-            th.join()
+        cpu = time.process_time() - c0
+        a = _collect(proc)
         t = d.totals
-        a = np.asarray(lat)
-        print(f"sim {w}x{h} paced at 30 frames/s, detector.workers={workers}: "
-              f"{t.frames} frames processed, "
-              f"{d.capture.captured if d.capture else 0} captured, "
-              f"{d.dropped} dropped; frame-to-datagram latency over {a.size} datagrams: "
-              f"median {np.median(a):.1f} ms, p99 {np.percentile(a, 99):.1f} ms")
-    rx.close()
+        wall = t.t_end - t.t_start
+        fps = t.frames / wall if wall > 0 else 0.0
+        med, p99 = (np.median(a), np.percentile(a, 99)) if a.size else (math.nan, math.nan)
+        rows[label] = (med, p99, fps)
+        print(f"{label}: {t.frames} frames processed of {d.capture.captured if d.capture else 0}"
+              f" captured, {d.dropped} dropped, {fps:.1f} frames/s, CPU "
+              f"{cpu / max(1, t.frames) * 1e3:.1f} ms/frame; frame-to-datagram latency over "
+              f"{a.size} datagrams: median {med:.1f} ms, p99 {p99:.1f} ms, max "
+              f"{a.max() if a.size else math.nan:.1f} ms")
+    (fm, fp, _), (tm, tp, _) = rows.values()
+    print(f"tracking / full detection: median {tm / fm:.2f}, p99 {tp / fp:.2f}")
+
+
+def _cpu_seconds(pid: int) -> float:
+    """utime + stime of process ``pid`` (all its threads), seconds (Linux /proc)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _frames_in(d: Daemon, seconds: float) -> float:
+    """The daemon's frame rate over the next ``seconds`` (frames/s)."""
+    f0, t0 = d.totals.frames, time.perf_counter()
+    time.sleep(seconds)
+    return (d.totals.frames - f0) / (time.perf_counter() - t0)
+
+
+def run_tui(quick: bool = False) -> None:
+    """CPU of ``kmea-tui`` at 120x40 on each tab (a process of its own in a pseudo-terminal,
+    attached to a daemon on the paced pre-rendered frames at 30 frames/s), and the daemon's
+    frame rate without the UI and with it, in the same run."""
+    import fcntl
+    import pty
+    import shutil
+    import struct
+    import termios
+    import threading
+
+    exe = shutil.which("kmea-tui") or str(Path(sys.executable).with_name("kmea-tui"))
+    if not Path(exe).exists():
+        print("kmea-tui not installed: no UI figures")
+        return
+    settle, window = (1.5, 3.0) if quick else (3.0, 8.0)
+    frames, scene = render(60 if quick else 150)
+    # Loop the pre-rendered frames for as long as the run lasts (robots jump back at the
+    # loop: the tracking detector re-finds them, as after an occlusion).
+    n = int(30 * (3 * settle + 7 * (settle + window) + 20))
+    _BENCH.update(frames=[frames[i % len(frames)] for i in range(n)], scene=scene)
+    cfg = load_config(None, ["source.spec=bench-live", *NET])
+    d = Daemon(cfg)
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        time.sleep(settle)
+        alone = _frames_in(d, window)
+        print(f"daemon alone: {alone:.1f} frames/s (1640x1232, 30 frames/s paced, tracking)")
+        pid, fd = pty.fork()
+        if pid == 0:  # the UI, in a 120x40 pseudo-terminal
+            os.execv(exe, [exe, "--telemetry", d.telemetry.bound, "--control",
+                           d.control.bound])
+        fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+        stop = threading.Event()
+
+        def drain() -> None:  # the terminal's side: read (and drop) what the UI draws
+            while not stop.is_set():
+                try:
+                    if not os.read(fd, 65536):
+                        return
+                except OSError:
+                    return
+
+        reader = threading.Thread(target=drain, daemon=True)
+        reader.start()
+        time.sleep(settle * 2)
+        rates = []
+        for key, tab in (("1", "Markers"), ("2", "Robots"), ("3", "Statistics"), ("4", "Map"),
+                         ("5", "Config"), ("6", "Log")):
+            os.write(fd, key.encode())
+            time.sleep(settle)
+            c0, t0 = _cpu_seconds(pid), time.perf_counter()
+            fps = _frames_in(d, window)
+            cpu = (_cpu_seconds(pid) - c0) / (time.perf_counter() - t0) * 100
+            rates.append(fps)
+            print(f"kmea-tui 120x40, tab {tab}: {cpu:5.1f} % of a core; daemon {fps:.1f} "
+                  f"frames/s with the UI attached")
+        with_ui = float(np.mean(rates))
+        print(f"daemon frame rate with the UI / without: {with_ui:.1f} / {alone:.1f} = "
+              f"{with_ui / alone:.3f}")
+        os.write(fd, b"q")
+        time.sleep(0.5)
+        stop.set()
+        with contextlib.suppress(ChildProcessError, OSError):
+            os.kill(pid, 15)
+            os.waitpid(pid, 0)
+        os.close(fd)
+    finally:
+        d.stop()
+        runner.join(timeout=5)
+        d.close()

@@ -169,7 +169,7 @@ class DetectPool:
             loc.det, loc.gen = self.pipeline.new_detector(), gen
         t0 = time.perf_counter()
         d = loc.det.detect(frame.image)
-        return (d.ids, d.corners), (time.perf_counter() - t0) * 1e3
+        return d, (time.perf_counter() - t0) * 1e3
 
     def __iter__(self):
         from collections import deque
@@ -236,12 +236,13 @@ class LiveDetect:
                 result, ms = None, 0.0
                 if frame.image is not None:
                     if gen != self.pipeline.detector_generation:
+                        if det is not None and hasattr(det, "close"):
+                            det.close()  # a tracking detector's background thread
                         det, gen = (self.pipeline.new_detector(),
                                     self.pipeline.detector_generation)
                     t0 = time.perf_counter()
                     try:
-                        d = det.detect(frame.image)
-                        result = (d.ids, d.corners)
+                        result = det.detect(frame.image)  # Detections
                     except Exception:  # the main thread detects again and reports it
                         result = None
                     ms = (time.perf_counter() - t0) * 1e3
@@ -251,6 +252,8 @@ class LiveDetect:
                     self._slot = (item, result, ms)
                     self._cond.notify()
         finally:
+            if det is not None and hasattr(det, "close"):
+                det.close()
             with self._cond:
                 self._ended = True
                 self._cond.notify_all()

@@ -132,7 +132,7 @@ class Daemon:
         except FileRefused as e:
             raise StartupError(f"key 'log.dir': {e}") from None
         try:
-            self.pipeline = Pipeline(camera, self.world_map, PipelineSettings.from_config(cfg.data))
+            self.pipeline = Pipeline(camera, self.world_map, self._settings())
         except ValueError as e:  # detector parameters, dictionary, algorithm options
             raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
         self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
@@ -258,6 +258,10 @@ class Daemon:
         if problem:
             raise StartupError(problem)
 
+    def _settings(self) -> PipelineSettings:
+        """The pipeline's settings from the configuration (tracking only for live sources)."""
+        return PipelineSettings.from_config(self.cfg.data, live=self.live)
+
     # ------------------------------------------------------------------ outputs on/off
     def _output_path(self, name: str, kind: str, other: Any, remote: bool) -> str:
         """Where an output goes: over control a new plain file in the data directory
@@ -338,7 +342,7 @@ class Daemon:
             self.cfg.set(key, old, where="control")
             raise ConfigError(f"control: {problem}")
         try:
-            self.pipeline.settings = PipelineSettings.from_config(self.cfg.data)
+            self.pipeline.settings = self._settings()
             if key == "estimator.algorithm":
                 self.pipeline.set_algorithm(v)
                 self.stats.reset()
@@ -362,7 +366,7 @@ class Daemon:
                 logging.getLogger("kmead").setLevel(v.upper())
         except Exception as e:
             self.cfg.set(key, old, where="control")
-            self.pipeline.settings = PipelineSettings.from_config(self.cfg.data)
+            self.pipeline.settings = self._settings()
             raise ValueError(f"control: key {key!r}: {e}") from None
         return v
 
@@ -488,9 +492,15 @@ class Daemon:
     # ------------------------------------------------------------------ per frame
     def _frame_input(self, frame, capture_ms: float, t_cap: float) -> FrameInput:
         ts = frame.timestamp
-        if self.live and "sensor_timestamp_ns" not in frame.meta:
-            # Live: unix time of the capture, so robots can age a fix with their own clock
-            # (picamera's frames carry it already, from the sensor timestamp).
+        age = time.time() - ts if "sensor_timestamp_ns" in frame.meta else -1.0
+        if self.live and 0.0 <= age < 60.0:
+            # picamera: the frame's time is the sensor's (the start of readout as unix time,
+            # kmea.vision.picamera_source); the datagram's t and the latency count from it,
+            # not from when Python received the frame (docs/speed.md: the latency budget).
+            # A stamp in the future or a minute old is not trusted.
+            t_cap = time.perf_counter() - age
+        elif self.live:
+            # Live: unix time of the capture, so robots can age a fix with their own clock.
             ts = time.time() - (time.perf_counter() - t_cap)
         rep = frame.meta.get("replay")
         if rep is not None:
@@ -510,7 +520,7 @@ class Daemon:
                                   "; skipped")
             return None
         inp = self._frame_input(frame, capture_ms, t_cap)
-        self._t_capture = t_cap
+        self._t_capture = inp.t_capture
         if detections is not None:
             inp.detections, inp.detect_ms = detections, detect_ms
         try:
@@ -580,6 +590,8 @@ class Daemon:
     def _outputs(self, res: FrameResult) -> None:
         t_out = time.perf_counter()
         tot = self.totals
+        for text in res.events:  # e.g. the tracking detector noticed a bumped camera
+            self.event("warning", f"frame {res.index}: {text}")
         # 2. statistics
         tot.add_frame(res)
         for mid, e in res.loo.items():
@@ -768,6 +780,8 @@ class Daemon:
             if self.control is not None:
                 self.control.stop()
                 self.control = None
+            if getattr(self, "pipeline", None) is not None:
+                self.pipeline.close()
             if self.capture is not None:
                 self.capture.close()
             elif getattr(self, "source", None) is not None:

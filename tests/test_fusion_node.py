@@ -258,6 +258,7 @@ async def test_tui_connects_to_the_fusion_node_and_shows_the_cameras() -> None:
     try:
         async with app.run_test(size=(100, 30)) as pilot:
             robots = app.query_one(RobotsTable)
+            await pilot.press("2")  # the UI repaints the visible tab only
             end = time.monotonic() + 20
             state = ""
             while time.monotonic() < end:

@@ -4,8 +4,13 @@ On pre-rendered 1640x1232 simulator frames (scene "default", two robots; renderi
 counted): bare ``detectMarkers`` with the default parameters and with one 13 px
 threshold window, the fast detector (:mod:`kmea.vision.fastdetect`), then
 :class:`kmea.pipeline.Pipeline` (detection, pose, estimator, leave-one-out, filter, robots)
-with the normal and the fast detector. The daemon's figures with its threads, files and
-sockets are ``kmea bench daemon``.
+with the normal and the fast detector, then with tracking for a fixed camera
+(:mod:`kmea.vision.tracking_detector`, :mod:`kmea.incremental`) against full detection of
+every frame, with the default estimator and with ``corner-pnp``, back to back on the same
+frames. Times are wall-clock and CPU (``time.process_time``: every thread of the process,
+the tracking detector's background full detection and OpenCV's worker threads included),
+per frame and as a share of bare ``detectMarkers``. The daemon's figures with its threads,
+files and sockets are ``kmea bench daemon``.
 """
 
 from __future__ import annotations
@@ -31,32 +36,90 @@ def render(n: int):
     return [r.render(i) for i in range(n)], scene
 
 
-def bare_detection(images: list[np.ndarray], params: dict, dictionary: str
-                   ) -> tuple[float, list[set]]:
-    """Frames/s of bare ``detectMarkers`` and the ids found in each frame."""
+def bare_detection(images: list[np.ndarray], params: dict, dictionary: str,
+                   cpu: list[float] | None = None) -> tuple[float, list[set]]:
+    """Frames/s of bare ``detectMarkers`` and the ids found in each frame; ``cpu`` gets the
+    CPU ms per frame appended."""
     from kmea.vision.detection import DetectorConfig, MarkerDetector
 
     raw = MarkerDetector(DetectorConfig(dictionary, parameters=params))._detector
     raw.detectMarkers(images[0])  # warm-up
     found = []
+    c0 = time.process_time()
     t0 = time.perf_counter()
     for f in images:
         _, ids, _ = raw.detectMarkers(f)
         found.append(set() if ids is None else set(ids.ravel().tolist()))
+    if cpu is not None:
+        cpu.append((time.process_time() - c0) / len(images) * 1e3)
     return len(images) / (time.perf_counter() - t0), found
 
 
-def pipeline_rate(frames, scene, settings: PipelineSettings) -> tuple[float, dict[str, float]]:
-    """Frames/s of :meth:`Pipeline.process` and its mean stage times (ms)."""
+def pipeline_rate(frames, scene, settings: PipelineSettings, out: dict | None = None
+                  ) -> tuple[float, dict[str, float]]:
+    """Frames/s of :meth:`Pipeline.process` and its mean stage times (ms). ``out`` gets
+    ``cpu_ms`` (CPU per frame, all threads), ``results`` and the ``pipeline``."""
     p = Pipeline(scene.camera, scene.effective_map(), settings)
     sums: dict[str, float] = {}
+    results = []
+    c0, m0 = time.process_time(), time.thread_time()
     t0 = time.perf_counter()
     for f in frames:
         res = p.process(FrameInput(f.index, f.timestamp, f.image))
+        results.append(res)
         for k, v in res.timings.items():
             sums[k] = sums.get(k, 0.0) + v
     rate = len(frames) / (time.perf_counter() - t0)
+    cpu = (time.process_time() - c0) / len(frames) * 1e3
+    main = (time.thread_time() - m0) / len(frames) * 1e3
+    p.close()
+    if out is not None:
+        out.update(cpu_ms=cpu, main_cpu_ms=main, results=results, pipeline=p)
     return rate, {k: v / len(frames) for k, v in sums.items()}
+
+
+def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms) -> None:
+    """Full detection of every frame vs tracking, per estimator, on the same frames: time
+    per frame (wall, CPU) as a share of bare detection, markers and robots found, and the
+    leave-one-out error of the floor (accuracy)."""
+    robots = tuple(scene.robot_specs())
+    truth = [f.truth for f in frames]
+    for algo in algorithms:
+        row = {}
+        for label, tracking in (("full detection", False), ("tracking", True)):
+            out: dict = {}
+            rate, ms = pipeline_rate(frames, scene, PipelineSettings(
+                algorithm=algo, robots=robots, tracking=tracking), out)
+            res = out["results"]
+            loo = [e for r in res for e in r.loo.values()]
+            n_robot_frames = sum(len(r.robots) for r in res)
+            # A robot is visible when one of its markers is (truth: corners and centre seen).
+            visible = sum(sum(1 for spec in robots if set(spec.markers) & t.visible)
+                          for t in truth)
+            det = out["pipeline"].detector
+            extra = ""
+            if tracking:
+                inc = out["pipeline"]
+                extra = (f"; {det.tracked} tracked / {det.full} full frames, "
+                         f"{det.background} background full detections, poses "
+                         f"{inc.inc_poses.posed} computed / {inc.inc_poses.reused} reused, "
+                         f"leave-one-out {inc.inc_loo.computed} computed / "
+                         f"{inc.inc_loo.reused} reused")
+            wall = 1e3 / rate
+            row[label] = (wall, out["cpu_ms"])
+            print(f"{algo}, {label}: {wall:6.2f} ms/frame wall = "
+                  f"{wall / (1e3 / bare_fps) * 100:5.1f} % of bare detection, "
+                  f"{out['cpu_ms']:6.2f} ms/frame CPU = {out['cpu_ms'] / bare_cpu * 100:5.1f} % "
+                  f"of bare detection's CPU (main thread {out['main_cpu_ms']:.2f} ms); "
+                  f"{np.mean([len(r.ids) for r in res]):.1f} "
+                  f"markers/frame, robot poses {n_robot_frames} (robots visible "
+                  f"{visible}); floor leave-one-out error mean "
+                  f"{np.mean(loo) * 1e3 if loo else float('nan'):.2f} mm, max "
+                  f"{np.max(loo) * 1e3 if loo else float('nan'):.2f} mm; stage ms/frame: "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
+                  + extra)
+        (fw, fc), (tw, tc) = row["full detection"], row["tracking"]
+        print(f"{algo}: tracking / full detection = {tw / fw:.2f} (wall), {tc / fc:.2f} (CPU)")
 
 
 def run(quick: bool = False) -> None:
@@ -73,8 +136,10 @@ def run(quick: bool = False) -> None:
           f"in {time.perf_counter() - t0:.1f} s (not counted); cv2 threads "
           f"{cv2.getNumThreads()}, {len(os.sched_getaffinity(0))} cores")
     dic = scene.world_map.dictionary
-    bare, full_sets = bare_detection(images, {}, dic)
-    print(f"bare detectMarkers, default parameters: {bare:6.1f} frames/s, "
+    cpu: list[float] = []
+    bare, full_sets = bare_detection(images, {}, dic, cpu)
+    print(f"bare detectMarkers, default parameters: {bare:6.1f} frames/s "
+          f"({1e3 / bare:.2f} ms/frame wall, {cpu[0]:.2f} ms/frame CPU), "
           f"{np.mean([len(s) for s in full_sets]):.1f} markers/frame")
     tuned, tuned_sets = bare_detection(images, TUNED, dic)
     lost = sum(len(a - b) for a, b in zip(full_sets, tuned_sets, strict=True))
@@ -95,3 +160,4 @@ def run(quick: bool = False) -> None:
               "of bare default detection; stage ms/frame: "
               + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
               + f"; all stages {total:.2f} ms")
+    compare_tracking(frames, scene, bare, cpu[0], ("kmea", "corner-pnp"))

@@ -30,6 +30,14 @@ consensus: with a perfect calibration it costs about 2 % of floor accuracy (simu
 floor, 0.15 px noise: 0.098 instead of 0.096 mm leave-one-out), with the tutorial photo's
 rough calibration it divides the error by 5.
 
+Warm start (``warm_start``, off by default; the daemon's tracking mode for a fixed live
+camera turns it on): the fit of the previous call is kept; when the references and their
+corners are the same (a tracked fixed floor), that fit is the answer (a fresh solve would
+compute the same numbers); when they changed (a marker hidden, one more found), the
+Levenberg-Marquardt starts from the previous pose and intrinsics with the previous
+consensus instead of a robust start: a few iterations, not a fresh solve. Calls with
+``exclude`` (leave-one-out by exclusion) never use nor change it.
+
 Uncertainty (``MarkerEstimate.sigma``, m): the RMS position error predicted by first-order
 propagation of (a) the pose (and intrinsics) covariance ``sigma_px^2 (J^T J)^-1`` of the LM
 and (b) the marker's own corner noise ``sigma_px``, through the ray-plane intersection;
@@ -125,6 +133,7 @@ class CornerPnP(EstimatorBase):
         min_references: fewer consensus references give "not estimated" (>= 3).
         prior_f, prior_k1: 1-sigma of the intrinsics prior (relative focal length, k1).
         prior_px: corner noise (px) the prior is weighed against.
+        warm_start: start from the previous call's fit (see the module docstring).
     """
 
     name = "corner-pnp"
@@ -133,7 +142,7 @@ class CornerPnP(EstimatorBase):
                  huber_px: float = 1.0, refine_intrinsics: bool | str = "auto",
                  refine_min_references: int = 12, max_iterations: int = 50,
                  min_references: int = 3, prior_f: float = 0.05, prior_k1: float = 0.1,
-                 prior_px: float = 0.5) -> None:
+                 prior_px: float = 0.5, warm_start: bool = False) -> None:
         if refine_intrinsics not in (True, False, "auto"):
             raise ValueError(f"corner-pnp: refine_intrinsics must be true, false or 'auto', "
                              f"got {refine_intrinsics!r}")
@@ -149,6 +158,14 @@ class CornerPnP(EstimatorBase):
         # The start only has to find a consensus; the corner stage re-checks every reference.
         self._start = KMEARobust(threshold=start_threshold, trials=50,
                                  min_references=self.min_references)
+        self.warm_start = bool(warm_start)
+        self._warm: tuple | None = None  # (key, refs, uv_refs, fit, inliers, dis)
+        self._placed: tuple | None = None  # (fit, map id, {id: (observation, estimate)})
+
+    def reset_warm(self) -> None:
+        """Forget the previous fit (the view changed: the next call solves afresh)."""
+        self._warm = None
+        self._placed = None
 
     # ------------------------------------------------------------------ LM
     def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -270,30 +287,47 @@ class CornerPnP(EstimatorBase):
             d0 = check_distortion(camera.dist_coeffs)
         except ValueError as e:
             return Estimate.failed(self.name, f"camera: {e}")
-        P = np.array([obs[i].marker2cam_t for i in refs], dtype=float)
-        Q = world_map.positions(refs)
-        problem = reference_problem(Q, P, self.min_references)
-        if problem:
-            return Estimate.failed(self.name, f"robust start: {problem}")
-        try:
-            start_inl, (_, Rc2w, C), _ = self._start.consensus(
-                P, Q, refs, world_map.origin_id, np.array([world_map[i].normal for i in refs]))
-        except ValueError as e:
-            return Estimate.failed(self.name, f"robust start: {e}")
-        # The similarity maps the camera origin to C; its rotation is the camera's.
-        R, t = Rc2w.T, -Rc2w.T @ C
         uv_refs = self._stack_corners(refs, obs)
+        warm = None
+        key = None
+        if self.warm_start and not excl:
+            key = (id(world_map), K0.tobytes(), d0.tobytes())
+            if self._warm is not None and self._warm[0] == key:
+                warm = self._warm
+                if warm[1] == refs and np.array_equal(warm[2], uv_refs):
+                    return warm[3], refs, list(warm[4]), warm[5], obs  # the same fit
+        if warm is not None:
+            # A few iterations from the previous fit; references new to the fit are tried.
+            R, t = warm[3].R, warm[3].t
+            inliers = [i for i in refs if i in warm[4] or i not in warm[1]]
+            if len(inliers) < self.min_references:
+                warm = None
+        if warm is None:
+            P = np.array([obs[i].marker2cam_t for i in refs], dtype=float)
+            Q = world_map.positions(refs)
+            problem = reference_problem(Q, P, self.min_references)
+            if problem:
+                return Estimate.failed(self.name, f"robust start: {problem}")
+            try:
+                start_inl, (_, Rc2w, C), _ = self._start.consensus(
+                    P, Q, refs, world_map.origin_id,
+                    np.array([world_map[i].normal for i in refs]))
+            except ValueError as e:
+                return Estimate.failed(self.name, f"robust start: {e}")
+            # The similarity maps the camera origin to C; its rotation is the camera's.
+            R, t = Rc2w.T, -Rc2w.T @ C
+            inliers = [i for i, k in zip(refs, start_inl, strict=True) if k]
         row = {i: k for k, i in enumerate(refs)}
         X_refs = np.concatenate([world_map[i].corners_world() for i in refs])
         xy_refs = None
-        inliers = [i for i, k in zip(refs, start_inl, strict=True) if k]
         fit = None
         for _ in range(6):
             refine = (self.refine_intrinsics is True or (
                 self.refine_intrinsics == "auto" and len(inliers) >= self.refine_min_references))
             sel = np.concatenate([np.arange(4 * row[i], 4 * row[i] + 4) for i in inliers])
-            fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, refine,
-                           None if fit is None else (fit.K, fit.d))
+            prev = (fit.K, fit.d) if fit is not None else (
+                (warm[3].K, warm[3].d) if warm is not None and warm[3].refine else None)
+            fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, refine, prev)
             if fit is None:
                 return Estimate.failed(self.name, "reprojection fit failed (camera behind markers)")
             R, t = fit.R, fit.t
@@ -310,6 +344,8 @@ class CornerPnP(EstimatorBase):
                     self.name, f"no consensus: {len(new)} of {len(refs)} references agree "
                                f"within {self.threshold * 1e3:.0f} mm")
             inliers = new
+        if key is not None:
+            self._warm = (key, refs, uv_refs, fit, tuple(inliers), dis)
         return fit, refs, inliers, dis, obs
 
     def estimate(
@@ -333,7 +369,21 @@ class CornerPnP(EstimatorBase):
         if isinstance(res, Estimate):
             return res
         fit, refs, inliers, dis, obs = res
-        markers = self._markers(fit, obs, world_map, dict(plane_heights or {}))
+        heights = dict(plane_heights or {})
+        cache = self._placed if self.warm_start else None
+        if cache is not None and cache[0] is fit and cache[1] == id(world_map):
+            # The same fit (warm start): a map marker with the same observation object is
+            # placed as before; only the others (robots, markers seen anew) are computed.
+            done = {i: me for i, (o, me) in cache[2].items() if obs.get(i) is o}
+            todo = {i: o for i, o in obs.items() if i not in done}
+            placed = {**done, **(self._markers(fit, todo, world_map, heights) if todo else {})}
+            markers = {i: placed[i] for i in obs}
+        else:
+            markers = self._markers(fit, obs, world_map, heights)
+        if self.warm_start:
+            self._placed = (fit, id(world_map), {
+                i: (o, markers[i]) for i, o in obs.items()
+                if i in world_map and i not in heights})
         Rc2w = fit.R.T
         # A rejected reference is reported by how far its centre moved in its map plane and
         # how much it turned there (it was rejected on its corners' RMS disagreement).

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from kmea.maps import MarkerMap, default_map
-from kmea.sim.motion import LoopPath, WallClock
+from kmea.sim.motion import CrossingPath, LoopPath, WallClock
 from kmea.sim.scene import Effects, Occluder, Scene, SimRobot, look_at, pose_matrix
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
@@ -83,6 +83,32 @@ def default_robots(speed: float = 0.12) -> list[SimRobot]:
         path = LoopPath(_LOOPS[name], speed=speed)
         out.append(SimRobot(name, markers, height, length, sep, path))
     return out
+
+
+def entering_robot(t0: float, speed: float = 0.5) -> SimRobot:
+    """Robot "amr3" (marker 43, 0.20 m high) that waits beyond the left edge of the
+    scenario 1 view (x = -1.3 m) and drives into it at ``t0`` s, at ``speed`` m/s along
+    y = -0.05 m, for 3 s (scene option ``enter_at``)."""
+    if not math.isfinite(t0):
+        raise ValueError(f"scene option enter_at: must be a finite time in s, got {t0!r}")
+    return SimRobot("amr3", (43,), 0.20, 0.06, 0.10,
+                    _DriveIn(CrossingPath((-1.3, -0.05), (-1.3 + 3.0 * speed, -0.05), t0=t0,
+                                          duration=3.0)))
+
+
+class _DriveIn:
+    """A crossing that waits at its start before and stays at its end after (a robot always
+    has a pose)."""
+
+    def __init__(self, crossing: CrossingPath) -> None:
+        self.crossing = crossing
+
+    def pose(self, t: float) -> tuple[float, float, float]:
+        c = self.crossing
+        t = min(max(t, c.t0), c.t0 + c.duration)
+        p = c.pose(t)
+        assert p is not None  # inside the crossing's time span
+        return p
 
 
 def raised_overrides(world_map: MarkerMap, ids: Sequence[int],
@@ -213,6 +239,9 @@ def _build(name: str, cam2world: Callable[[CameraModel], np.ndarray], robots: bo
     else:
         fleet = list(with_robots)
     opts.pop("speed", None)
+    enter_at = opts.pop("enter_at", None)
+    if enter_at is not None:
+        fleet.append(entering_robot(float(enter_at)))
     effects = _effects(opts)
     raised = opts.pop("raised", None)
     overrides = dict(opts.pop("overrides", {}) or {})
@@ -276,7 +305,8 @@ def get_scene(name: str = "default", **options: Any) -> Scene:
     noise, blur (px), exposure, vignetting, gradient (gx or (gx, gy) per metre), occluders
     ("arm", "person" or Occluder objects), covered (floor marker ids under sheets), misplaced,
     overrides, raised (ids lifted by raise_by = 0.20 m, the effective map follows),
-    extra_markers, seed, fps, floor, floor_lines, supports, world_map.
+    extra_markers, seed, fps, floor, floor_lines, supports, world_map, enter_at (s: robot
+    amr3 with marker 43 drives into the view then, :func:`entering_robot`).
     """
     key = name.strip().lower() if isinstance(name, str) else name
     if key not in _SCENES:

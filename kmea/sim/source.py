@@ -6,10 +6,12 @@ The one simulator source: the daemon, ``open_source`` and the benchmarks all use
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
 import cv2
+import numpy as np
 
 from kmea.sim.renderer import Renderer, SimFrame
 from kmea.sim.scene import Scene
@@ -30,13 +32,21 @@ class SimSource(FrameSource):
     rendered: frames rendered beforehand (frame i = ``rendered[i - start]``), served instead
     of rendering (benchmarks that must not count rendering). ``camera`` is the true camera,
     ``world_map`` the scene's surveyed map.
+
+    bump_at, bump_deg: the camera is bumped at ``bump_at`` s: from then on it is turned by
+    ``bump_deg`` degrees (default 1) about its own x axis, as if knocked (spec options too:
+    ``sim:default?bump_at=2``). Robots and floor stay; the truth follows the new camera.
     """
 
     def __init__(self, scene: Scene | str = "sim", start: int = 0, *, frames: int | None = None,
                  realtime: bool = False, gray: bool = True,
                  rendered: list[SimFrame] | None = None, **options: Any) -> None:
         super().__init__()
+        bump_at, bump_deg = options.pop("bump_at", None), options.pop("bump_deg", None)
         if isinstance(scene, str):
+            scene, spec_bump = _strip_bump(scene)
+            bump_at = spec_bump.get("bump_at", bump_at)
+            bump_deg = spec_bump.get("bump_deg", bump_deg)
             self.scene = scene_from_spec(scene, **options)
         else:
             self.scene = apply_options(scene, **options)
@@ -44,6 +54,19 @@ class SimSource(FrameSource):
             raise ValueError(f"sim: start must be >= 0, got {start}")
         self.spec = f"sim:{self.scene.name}"
         self.renderer = Renderer(self.scene)
+        self.bump_at: float | None = None
+        self.bumped_renderer: Renderer | None = None
+        if bump_at is not None:
+            self.bump_at = float(bump_at)
+            deg = 1.0 if bump_deg is None else float(bump_deg)
+            if not (math.isfinite(self.bump_at) and math.isfinite(deg)):
+                raise ValueError(f"sim: bump_at and bump_deg must be finite, got {bump_at!r}, "
+                                 f"{bump_deg!r}")
+            a = math.radians(deg)
+            turn = np.eye(4)
+            turn[1:3, 1:3] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
+            self.bumped_renderer = Renderer(self.scene.with_(
+                cam2world=self.scene.cam2world @ turn))
         self.size = self.scene.size
         self.fps = self.scene.fps
         self.camera = self.scene.camera
@@ -74,7 +97,10 @@ class SimSource(FrameSource):
                 time.sleep(due - now)
         if self.rendered is not None:
             return self.rendered[i - self.start]
-        frame = self.renderer.render(i)
+        renderer = self.renderer
+        if self.bumped_renderer is not None and i / self.fps >= self.bump_at:
+            renderer = self.bumped_renderer
+        frame = renderer.render(i)
         if not self.gray:
             frame.image = cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
         return frame
@@ -83,6 +109,24 @@ class SimSource(FrameSource):
         """Make the next ``read`` return frame ``index``."""
         self._next = int(index)
         self._t0 = None
+
+
+def _strip_bump(spec: str) -> tuple[str, dict[str, float]]:
+    """(spec without ``bump_at`` / ``bump_deg``, their values): source options, not scene
+    options."""
+    base, q, query = spec.partition("?")
+    keep, bump = [], {}
+    for part in filter(None, query.split("&")):
+        k, _, v = part.partition("=")
+        if k.strip() in ("bump_at", "bump_deg"):
+            try:
+                bump[k.strip()] = float(v)
+            except ValueError:
+                raise ValueError(f"{spec}: option {k.strip()} must be a number, got {v!r}"
+                                 ) from None
+        else:
+            keep.append(part)
+    return base + (q + "&".join(keep) if keep else ""), bump
 
 
 def open_sim(rest: str, **options: Any) -> SimSource:

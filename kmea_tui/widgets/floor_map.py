@@ -265,11 +265,13 @@ class MapPane(Widget):
     def update_legend(self) -> None:
         from textual.widgets import Static
 
+        from kmea_tui.widgets.live_table import show_line
+
         fm = self.query_one(FloorMap)
         mag = fm.effective_magnification
         auto = "auto" if fm.magnification is None else "fixed"
         cell = fm.metres_per_cell() * 100 if fm.size.width else float("nan")
-        self.query_one("#map-legend", Static).update(Text.assemble(
+        show_line(self.query_one("#map-legend", Static), Text.assemble(
             ("■", STYLE_DETECTED), " seen ", ("■", STYLE_UNSEEN), " unseen ",
             ("■", STYLE_MOVED), " moved ", ("■", STYLE_SUSPECT), " suspect ",
             ("■", STYLE_FOREIGN), " not in map ",

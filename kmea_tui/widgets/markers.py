@@ -16,7 +16,7 @@ from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import Static
 
-from kmea_tui.widgets.live_table import DASH, LiveTable, fmt
+from kmea_tui.widgets.live_table import DASH, LiveTable, fmt, show_line
 
 COLUMNS = [
     ("id", "id"), ("map", "map"), ("det", "det"), ("x", "x m"), ("y", "y m"),
@@ -155,7 +155,7 @@ class MarkersPane(Vertical):
                 parts.append(" " if isinstance(p, str) and p.startswith("(") else " · ")
             parts.append(p)
         summary = Text.assemble(*parts, no_wrap=True, overflow="ellipsis")
-        self.query_one("#markers-summary", Static).update(summary)
+        show_line(self.query_one("#markers-summary", Static), summary)
         return bad
 
     def on_live_table_sort_changed(self, event: LiveTable.SortChanged) -> None:

@@ -13,7 +13,7 @@ from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import Static
 
-from kmea_tui.widgets.live_table import DASH, LiveTable, fmt
+from kmea_tui.widgets.live_table import DASH, LiveTable, fmt, show_line
 
 COLUMNS = [
     ("name", "name"), ("markers", "markers"), ("x", "x m"), ("y", "y m"),
@@ -90,7 +90,7 @@ class RobotsPane(Vertical):
         table = self.query_one(RobotsTable)
         table.sync({str(r["name"]): (r, robot_cells(r, self.frozen)) for r in robots})
         stale = sum(1 for r in robots if r.get("stale"))
-        self.query_one("#robots-summary", Static).update(Text.assemble(
+        show_line(self.query_one("#robots-summary", Static), Text.assemble(
             ("NOT LIVE: last known " if self.frozen else "", "bold red"),
             (f"frame {body.get('frame', DASH)}", "bold"),
             f" · {len(robots)} robots · ",

@@ -9,7 +9,7 @@ from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import Static
 
-from kmea_tui.widgets.live_table import DASH, LiveTable, fmt
+from kmea_tui.widgets.live_table import DASH, LiveTable, fmt, show_line
 
 COLUMNS = [
     ("id", "id"), ("n", "n"), ("rmse", "RMSE mm"), ("std", "STD mm"), ("mae", "MAE mm"),
@@ -45,7 +45,7 @@ class StatsPane(Vertical):
         rows = [s for s in body.get("markers", []) if isinstance(s, dict) and "id" in s]
         table = self.query_one(StatsTable)
         table.sync({str(s["id"]): (s, stats_cells(s)) for s in rows})
-        self.query_one("#stats-summary", Static).update(Text.assemble(
+        show_line(self.query_one("#stats-summary", Static), Text.assemble(
             ("algorithm ", ""), (str(body.get("algorithm", DASH)), "bold"),
             f" · window {body.get('window', DASH)} frames · mean ",
             (f"{fmt(body.get('mean_error'), '.2f', 1000.0)} mm", "bold"), " · max ",

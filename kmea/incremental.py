@@ -1,0 +1,139 @@
+"""Incremental per-frame work for a fixed camera: recompute only what changed.
+
+With :mod:`kmea.vision.tracking_detector` a floor marker that did not move is reported
+with the same corners, bit for bit, frame after frame. What depends only on those corners
+is then the same too, and is reused instead of recomputed:
+
+- its camera-frame pose (:class:`IncrementalPoses`): only markers with new corners (the
+  robots, a marker that reappeared) are posed, together with a few unchanged floor markers
+  as anchors, so the IPPE choice of a robot marker still has the scene's consensus to lean
+  on (the consensus of a handful of floor markers instead of all of them; the choice
+  differs only for a marker whose two poses are nearly equally likely);
+- the leave-one-out errors of the floor (:class:`IncrementalLoo`): they depend only on the
+  map markers' observations (robots are never references), so while those are the same
+  objects the last errors are exactly what a recomputation would give. They are
+  recomputed when any map marker's observation changes, and at least every ``every``
+  frames.
+
+``reset()`` after anything that invalidates them: a bumped camera, a new map, camera
+intrinsics or robot table. Not used for file sources (their results must be frame-exact
+and independent of the frames before).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Collection, Sequence
+
+import numpy as np
+
+from kmea.estimators.base import MarkerObservation
+
+__all__ = ["IncrementalLoo", "IncrementalPoses"]
+
+PoseFn = Callable[[np.ndarray, np.ndarray], tuple[list[MarkerObservation], dict]]
+
+
+class IncrementalPoses:
+    """Camera-frame poses, reusing those of fixed markers whose corners did not change.
+
+    fixed: ids of markers that do not move (the map's floor and wall markers, not the
+    robots'); anchors: how many unchanged fixed markers are posed with the changed ones.
+    ``posed`` / ``reused`` count markers over the run.
+    """
+
+    def __init__(self, fixed: Collection[int] = (), anchors: int = 4) -> None:
+        self.fixed = frozenset(fixed)
+        self.anchors = anchors
+        self._cache: dict[int, tuple[bytes, MarkerObservation]] = {}
+        self._diag: dict = {}
+        self.posed = 0
+        self.reused = 0
+
+    def reset(self, fixed: Collection[int] | None = None) -> None:
+        self._cache.clear()
+        self._diag = {}
+        if fixed is not None:
+            self.fixed = frozenset(fixed)
+
+    def poses(self, pose: PoseFn, ids: np.ndarray, corners: np.ndarray
+              ) -> tuple[list[MarkerObservation], dict]:
+        """Observations of ``ids`` (N,) with ``corners`` (N, 4, 2) px, in input order (minus
+        markers without a pose), and the pose diagnostics; ``pose(ids, corners)`` is the
+        full computation (:meth:`kmea.pipeline.MarkerObserver.poses`)."""
+        id_list = [int(i) for i in ids]
+        reuse: dict[int, MarkerObservation] = {}
+        todo: list[int] = []
+        for k, mid in enumerate(id_list):
+            hit = self._cache.get(mid)
+            if hit is not None and hit[0] == corners[k].tobytes():
+                reuse[mid] = hit[1]
+            else:
+                todo.append(k)
+        new: dict[int, MarkerObservation] = {}
+        if todo:
+            sel = list(todo)
+            if reuse:
+                # Anchors: the best-fitting unchanged fixed markers carry the consensus.
+                best = sorted((o.reproj_error, mid) for mid, o in reuse.items()
+                              if not o.suspect and mid in self.fixed)[:self.anchors]
+                index = {mid: k for k, mid in enumerate(id_list)}
+                sel += [index[mid] for _, mid in best]
+            got, diag = pose(ids[sel], corners[sel])
+            by_id = {o.id: o for o in got}
+            for k in todo:
+                o = by_id.get(id_list[k])
+                if o is None:
+                    continue
+                new[o.id] = o
+                if o.id in self.fixed:
+                    self._cache[o.id] = (corners[k].tobytes(), o)
+            self._diag = diag
+        obs = [reuse.get(mid) or new[mid] for mid in id_list if mid in reuse or mid in new]
+        self.posed += len(new)
+        self.reused += len(reuse)
+        return obs, self._counted(obs)
+
+    def _counted(self, obs: Sequence[MarkerObservation]) -> dict:
+        """The last full diagnostics with the per-frame counts taken from ``obs``."""
+        d = dict(self._diag)
+        d["n_markers"] = len(obs)
+        for flag, key in (("ambiguous", "ambiguous"), ("flipped", "flips"),
+                          ("suspect", "suspect")):
+            by = {o.id: 1 for o in obs if getattr(o, flag)}
+            d[f"n_{flag}"] = len(by)
+            d[f"{key}_by_id"] = by
+        return d
+
+
+class IncrementalLoo:
+    """Leave-one-out errors recomputed only when the map markers' observations change (or
+    every ``every`` frames). ``computed`` / ``reused`` count frames."""
+
+    def __init__(self, every: int = 30) -> None:
+        self.every = max(1, int(every))
+        self._key: tuple | None = None
+        self._value: dict[int, float] = {}
+        self._age = 0
+        self.computed = 0
+        self.reused = 0
+
+    def reset(self) -> None:
+        self._key = None
+        self._value = {}
+
+    def get(self, obs: Sequence[MarkerObservation], in_map: Collection[int],
+            compute: Callable[[], dict[int, float]]) -> tuple[dict[int, float], bool]:
+        """(errors, computed now): ``compute()`` unless the map markers' observations are
+        the same objects as last time and it ran fewer than ``every`` frames ago."""
+        key = tuple(o for o in obs if o.id in in_map)  # held: identities stay unique
+        self._age += 1
+        old = self._key
+        same = old is not None and len(old) == len(key) and all(
+            a is b for a, b in zip(old, key, strict=True))
+        if same and self._age < self.every:
+            self.reused += 1
+            return self._value, False
+        self._value = compute()
+        self._key, self._age = key, 0
+        self.computed += 1
+        return self._value, True

@@ -1,0 +1,627 @@
+"""Tracking detection for a fixed camera: look where the markers are, detect what is new.
+
+The camera is bolted above a static floor; only robots move. Full ``detectMarkers`` on
+every 1640x1232 frame thresholds two million pixels three times to find markers whose
+place is already known. :class:`TrackingDetector` keeps what the last frames found and,
+per frame:
+
+- **static markers** (the map's, minus robot markers): they are where they were. Their
+  reference corners (from the last full detection) are checked, not searched: the marker's
+  7x7 module grid is sampled at the reference quadrilateral and compared with its code
+  (:func:`verify_codes`: a hidden marker fails and is not reported in that frame), and
+  ``cv2.cornerSubPix`` from the reference corners measures how far each corner drifted.
+  A marker whose corners drifted more than ``move_px`` moved: a full detection follows.
+  When most static markers drift, or fail their code, the camera was bumped: a full
+  detection runs at once (in that frame), every reference is replaced and the result
+  carries a ``camera moved`` event (the pipeline then restarts its estimation).
+  The reported corners of a static marker stay its reference corners while it does not
+  move, so the pipeline can reuse its pose (:class:`kmea.pipeline.Pipeline`).
+- **moving markers** (robots, anything not in the map): predicted from their last two
+  positions (constant velocity in the image) and detected with the full parameters in a
+  small region around the prediction (``cv2.aruco.ArucoDetector`` on a crop), in a wider
+  one when the first misses. A moving marker lost there triggers one full detection in
+  the same frame (a robot visible in the frame keeps its pose for the frame).
+- **new markers**: a full detection runs in the background (its own low-priority thread)
+  every ``full_every`` frames and whenever a tracked marker is lost; what it finds that is
+  not tracked is checked in the current frame (a moving one detected around where it was
+  found) and reported from then on. At 30 frames/s, ``full_every`` = 6 reports a marker
+  entering the view within 0.2 s plus one background detection.
+
+Stateful: one instance per live source, called on consecutive frames. For file sources
+(frame-exact, reproducible results) the pipeline keeps full detection on every frame.
+Pixel convention: OpenCV's (the top-left pixel's centre is (0, 0)).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+from collections.abc import Collection
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector, as_gray
+
+__all__ = ["CodeSampler", "TrackingConfig", "TrackingDetector", "code_scores", "marker_codes",
+           "verify_codes"]
+
+
+@dataclass
+class TrackingConfig:
+    """Tracking settings (pixels, frames).
+
+    full_every: a background full detection every this many frames (new markers), at half
+    resolution except every ``full_res_every``-th (small, far markers) and after a loss.
+    move_px: a static marker whose corners drift more than this moved.
+    bump_fraction: this share of the static markers moved or missing (at least
+    ``bump_min`` of them) = the camera was bumped.
+    min_score: a static marker is seen when its code correlates at least this much with
+    the image at its reference corners (:func:`code_scores`); add_score: a static marker
+    found by a background detection is taken (or replaces its reference) from this score.
+    margin: search region around a moving marker's prediction, in marker sides.
+    average: a fixed marker's reference corners are the mean of up to this many
+    full-resolution detections.
+    """
+
+    full_every: int = 6
+    full_res_every: int = 10
+    average: int = 8
+    move_px: float = 1.0
+    bump_fraction: float = 0.5
+    bump_min: int = 3
+    min_score: float = 0.6
+    add_score: float = 0.75
+    margin: float = 0.4
+    static_ids: frozenset[int] = field(default_factory=frozenset)
+
+
+def marker_codes(dictionary: cv2.aruco.Dictionary, ids: Collection[int]) -> dict[int, np.ndarray]:
+    """id -> (S+2, S+2) bool module grid of the printed marker (True = white; black border
+    included), S the dictionary's marker size."""
+    size = int(dictionary.markerSize) + 2
+    out = {}
+    for mid in ids:
+        img = cv2.aruco.generateImageMarker(dictionary, int(mid), size, borderBits=1)
+        out[int(mid)] = img > 127
+    return out
+
+
+def _homographies(quads: np.ndarray, size: int) -> np.ndarray:
+    """(N, 3, 3) homographies mapping module coordinates [0, size]^2 (x right, y down) to the
+    image quads (N, 4, 2) TL, TR, BR, BL (batched direct linear solve)."""
+    src = np.array([[0, 0], [size, 0], [size, size], [0, size]], dtype=float)
+    n = len(quads)
+    A = np.zeros((n, 8, 8))
+    b = quads.reshape(n, 8)
+    for k in range(4):
+        x, y = src[k]
+        u, v = quads[:, k, 0], quads[:, k, 1]
+        A[:, 2 * k, 0:3] = (x, y, 1.0)
+        A[:, 2 * k, 6] = -x * u
+        A[:, 2 * k, 7] = -y * u
+        A[:, 2 * k + 1, 3:6] = (x, y, 1.0)
+        A[:, 2 * k + 1, 6] = -x * v
+        A[:, 2 * k + 1, 7] = -y * v
+    h = np.linalg.solve(A, b[..., None])[..., 0]
+    return np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
+
+
+class CodeSampler:
+    """Where to sample the modules of fixed quads (N, 4, 2) px with codes (N, M, M) bool.
+
+    Built once for the static markers' reference corners (the homographies and bilinear
+    weights do not change while the references do not); :meth:`scores` then reads a frame.
+    """
+
+    _grids: dict[int, np.ndarray] = {}
+
+    def __init__(self, quads: np.ndarray, codes: np.ndarray, shape: tuple[int, int]) -> None:
+        n = len(quads)
+        self.n = n
+        m = codes.shape[1] if n else 0
+        self.m = m
+        if n == 0:
+            return
+        grid = self._grids.get(m)
+        if grid is None:
+            g = np.arange(m) + 0.5
+            off = np.array([[-0.2, -0.2], [0.2, -0.2], [-0.2, 0.2], [0.2, 0.2]])
+            gx, gy = np.meshgrid(g, g)                                  # (m, m), x right
+            pts = np.stack([gx, gy], -1)[:, :, None, :] + off           # (m, m, 4, 2)
+            grid = np.concatenate([pts.reshape(-1, 2), np.ones((m * m * 4, 1))], 1)
+            self._grids[m] = grid
+        try:
+            H = _homographies(np.asarray(quads, float), m)
+            proj = np.einsum("nij,pj->npi", H, grid)                    # (N, P, 3)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv = proj[..., :2] / proj[..., 2:3]
+        except np.linalg.LinAlgError:
+            uv = np.full((n, grid.shape[0], 2), np.nan)
+        h, w = shape
+        self.finite = np.isfinite(uv).all(axis=(1, 2))
+        uv = np.nan_to_num(uv)
+        x = np.clip(uv[..., 0], 0, w - 1.001)
+        y = np.clip(uv[..., 1], 0, h - 1.001)
+        x0, y0 = x.astype(np.intp), y.astype(np.intp)
+        fx, fy = x - x0, y - y0
+        self.idx = (y0 * w + x0).ravel()
+        self.w = w
+        self.wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]
+                            ).reshape(4, -1)
+        ref = codes.reshape(n, m * m).astype(np.float64)
+        ref = ref - ref.mean(axis=1, keepdims=True)
+        self.ref = ref
+        self.ref_norm = np.sqrt((ref * ref).sum(axis=1))
+
+    def scores(self, gray: np.ndarray) -> np.ndarray:
+        """(N,) correlation of each code with the frame ``gray`` (see :func:`code_scores`)."""
+        if self.n == 0:
+            return np.zeros(0)
+        flat = gray.reshape(-1)
+        i, w = self.idx, self.w
+        v = (flat[i] * self.wts[0] + flat[i + 1] * self.wts[1] + flat[i + w] * self.wts[2]
+             + flat[i + w + 1] * self.wts[3])
+        vals = v.reshape(self.n, self.m * self.m, 4).mean(axis=2)
+        vals -= vals.mean(axis=1, keepdims=True)
+        num = (vals * self.ref).sum(axis=1)
+        den = np.sqrt((vals * vals).sum(axis=1)) * self.ref_norm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            score = np.where(den > 0, num / den, 0.0)
+        return np.where(self.finite, score, 0.0)
+
+
+def code_scores(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """(N,) correlation (-1..1) between the image at each quad (N, 4, 2) px and its code
+    (N, M, M) bool modules (border included).
+
+    Each module is sampled (bilinear) at 4 points around its centre and averaged; the score
+    is the normalised correlation of the M*M module values with the code: 1 for a sharp
+    marker, ~0.85 for a 10 px high wall marker seen edge-on, lower for a hidden one and 0
+    for a flat patch. Numpy, vectorised over the markers.
+    """
+    return CodeSampler(np.asarray(quads, float), codes, gray.shape[:2]).scores(gray)
+
+
+def verify_codes(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray,
+                 min_score: float = 0.6) -> np.ndarray:
+    """(N,) bool: does each quad show its code? (:func:`code_scores` >= ``min_score``)."""
+    return code_scores(gray, quads, codes) >= min_score
+
+
+@dataclass(eq=False)
+class _Track:
+    corners: np.ndarray                     # (4, 2) last seen
+    velocity: np.ndarray                    # (4, 2) px per frame
+    static: bool
+    seen: int                               # frame number last seen
+    sub: np.ndarray | None = None           # (4, 2) cornerSubPix at the reference (static)
+    looks: int = 1                          # full-resolution detections averaged (static)
+
+
+class TrackingDetector:
+    """``detect(image) -> Detections`` like :class:`MarkerDetector`, tracking what it knows
+    (see the module docstring). ``Detections.mode`` is "full" (a full detection answered)
+    or "tracked"; ``Detections.events`` carries "camera moved" and friends.
+
+    Counters: ``tracked`` / ``full`` frames, ``background`` full detections, ``bumps``.
+    """
+
+    def __init__(self, config: DetectorConfig, tracking: TrackingConfig | None = None,
+                 background: bool = True) -> None:
+        self.config = config
+        self.settings = tracking or TrackingConfig()
+        self.full_detector = MarkerDetector(config)
+        self.roi_detector = MarkerDetector(config)._detector
+        self.dictionary = self.full_detector.dictionary
+        self._codes: dict[int, np.ndarray] = {}
+        self._sampler: tuple[tuple, CodeSampler] | None = None
+        self._tuned: dict[int, object] = {}
+        self._half_ok = False
+        self.tracks: dict[int, _Track] = {}
+        self.frame = -1
+        self.tracked = 0
+        self.full = 0
+        self.background = 0
+        self.bumps = 0
+        self._since_full = 0
+        self._want_full = True
+        self._use_thread = background
+        self._job: tuple[int, np.ndarray] | None = None
+        self._result: tuple[int, Detections] | None = None
+        self._busy = False
+        self._cond = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    # ------------------------------------------------------------------ background detection
+    def _worker(self) -> None:
+        with contextlib.suppress(OSError, AttributeError):
+            # Below the frame path: on one core the tracked frames preempt discovery (nice 5:
+            # a third of the frame path's share; at nice 10 a loaded machine starved it).
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 5)
+        det = MarkerDetector(self.config)
+        while True:
+            with self._cond:
+                while self._job is None and not self._closed:
+                    self._cond.wait()
+                if self._closed:
+                    return
+                frame_no, image, half = self._job
+                self._job = None
+            try:
+                d = self._discover(det, image, half)
+            except Exception:  # a frame the detector cannot digest: no result
+                d = None
+            with self._cond:
+                self._busy = False
+                if d is not None:
+                    self._result = (frame_no, d, half)
+
+    @staticmethod
+    def _discover(det: MarkerDetector, image: np.ndarray, half: bool) -> Detections:
+        """Full detection of ``image``, at half resolution when ``half`` (4x fewer pixels;
+        corners mapped back to full-resolution pixels, to be refined there)."""
+        if not half:
+            return det.detect(image)
+        h, w = image.shape[:2]
+        small = cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        d = det.detect(small)
+        # INTER_AREA by 2: small pixel i covers full pixels 2i and 2i+1 (centre 2i + 0.5).
+        return Detections(d.ids, d.corners * 2.0 + 0.5, d.rejected)
+
+    def _submit(self, image: np.ndarray, full_res: bool = False) -> None:
+        """Queue a background detection of ``image`` (one at a time; newest wins): at half
+        resolution, except every ``full_res_every``-th one and when ``full_res``."""
+        self.background += 1
+        half = (self._half_ok and not full_res
+                and self.background % max(1, self.settings.full_res_every) != 0)
+        if not self._use_thread:
+            self._result = (self.frame, self._discover(self.full_detector, image, half), half)
+            return
+        with self._cond:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._worker, daemon=True,
+                                                name="kmea-discover")
+                self._thread.start()
+            self._job = (self.frame, image, half)
+            self._busy = True
+            self._cond.notify()
+
+    def _take_result(self) -> tuple[int, Detections, bool] | None:
+        with self._cond:
+            r, self._result = self._result, None
+        return r
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def __del__(self) -> None:  # the worker thread must not outlive its detector
+        with contextlib.suppress(Exception):
+            self.close()
+
+    # ------------------------------------------------------------------ helpers
+    def _code(self, mid: int) -> np.ndarray:
+        c = self._codes.get(mid)
+        if c is None:
+            c = self._codes[mid] = marker_codes(self.dictionary, [mid])[mid]
+        return c
+
+    def _is_static(self, mid: int) -> bool:
+        return mid in self.settings.static_ids
+
+    def _reset_from(self, det: Detections) -> None:
+        """Every track from a full detection of the current frame."""
+        old = self.tracks
+        # A static marker the detection missed (hidden now) keeps its place.
+        self.tracks = {m: t for m, t in old.items() if t.static}
+        sides = []
+        for mid, c in zip(det.ids.tolist(), det.corners, strict=True):
+            prev = old.get(mid)
+            sides.append(float(np.linalg.norm(c[0] - c[2])) / np.sqrt(2.0))
+            if prev is not None and prev.static and self._is_static(mid):
+                self.tracks[mid] = self._averaged(prev, c)
+                continue
+            vel = np.zeros((4, 2))
+            if prev is not None and not prev.static and self.frame > prev.seen:
+                vel = (c - prev.corners) / (self.frame - prev.seen)
+            self.tracks[mid] = _Track(c.copy(), vel, self._is_static(mid), self.frame)
+        if sides:
+            # Half-resolution discovery only when markers stay >= 20 px wide there.
+            self._half_ok = float(np.median(sides)) >= 40.0
+        self._since_full = 0
+        self._want_full = False
+
+    def _averaged(self, t: _Track, c: np.ndarray) -> _Track:
+        """A fixed marker's reference with one more full-resolution look ``c`` (4, 2) px:
+        the mean of up to ``average`` looks within ``move_px`` of it (single detections of
+        a 30-60 px marker scatter by up to ~1 px), else ``c`` (it moved)."""
+        if np.abs(c - t.corners).max() > 1.5 * self.settings.move_px:
+            return _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
+        if np.abs(c - t.corners).max() < 1e-9:
+            return t
+        n = min(t.looks + 1, self.settings.average)
+        new = _Track(t.corners + (c - t.corners) / n, np.zeros((4, 2)), True, self.frame)
+        new.looks = n
+        return new
+
+    def _roi_detector(self, side: float):
+        """The ArUco detector for a region: one adaptive-threshold window of a fifth of the
+        marker side (the full parameters' three windows cost three times as much) when
+        ``side`` > 0 px, else the configured parameters."""
+        if side <= 0:
+            return self.roi_detector
+        win = max(3, round(side / 5.0) | 1)
+        det = self._tuned.get(win)
+        if det is None:
+            params = {**self.config.parameters, "adaptiveThreshWinSizeMin": win,
+                      "adaptiveThreshWinSizeMax": win}
+            det = self._tuned[win] = MarkerDetector(DetectorConfig(
+                self.config.dictionary, self.config.corner_refinement, params))._detector
+        return det
+
+    def _detect_roi(self, gray: np.ndarray, center: np.ndarray, half: float, side: float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, corners) found in the square of half-side ``half`` px around ``center``
+        (``side``: the marker's side in px, for a tuned threshold window; 0: configured)."""
+        return self._detect_box(gray, (center[0] - half, center[1] - half,
+                                       center[0] + half, center[1] + half), side)
+
+    def _detect_box(self, gray: np.ndarray, box: tuple[float, float, float, float],
+                    side: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, corners) found in ``box`` (x0, y0, x1, y1) px; ``side`` as in
+        :meth:`_detect_roi`."""
+        h, w = gray.shape
+        x0, y0 = max(0, int(box[0])), max(0, int(box[1]))
+        x1, y1 = min(w, int(box[2]) + 1), min(h, int(box[3]) + 1)
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return np.zeros(0, np.int64), np.zeros((0, 4, 2))
+        corners, ids, _ = self._roi_detector(side).detectMarkers(gray[y0:y1, x0:x1])
+        if ids is None or not len(corners):
+            return np.zeros(0, np.int64), np.zeros((0, 4, 2))
+        c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + np.array([x0, y0], float)
+        return np.asarray(ids, np.int64).reshape(-1), c
+
+    def _region(self, pred: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """(centre (2,), half-side px of the search square, marker side px) around a
+        predicted quad (4, 2) px."""
+        side = float(np.linalg.norm(pred[0] - pred[2])) / np.sqrt(2.0)
+        ctr = pred.mean(axis=0)
+        span = float(np.max(np.abs(pred - ctr)))
+        return ctr, span + self.settings.margin * side + 4.0, side
+
+    def _groups(self, preds: dict[int, np.ndarray]
+                ) -> list[tuple[tuple[float, float, float, float], float, set[int]]]:
+        """Search boxes (x0, y0, x1, y1) px, mean marker side and member ids: the regions
+        of ``preds`` (id -> predicted quad), overlapping ones joined when their union is
+        not much larger than the two (one detection call instead of two)."""
+        out: list[list] = []
+        for m, q in preds.items():
+            ctr, half, side = self._region(q)
+            box = [ctr[0] - half, ctr[1] - half, ctr[0] + half, ctr[1] + half]
+            for g in out:
+                b = g[0]
+                u = [min(b[0], box[0]), min(b[1], box[1]), max(b[2], box[2]),
+                     max(b[3], box[3])]
+                area = (u[2] - u[0]) * (u[3] - u[1])
+                if area <= 1.2 * ((b[2] - b[0]) * (b[3] - b[1])
+                                  + (box[2] - box[0]) * (box[3] - box[1])):
+                    g[0] = u
+                    g[1].append(side)
+                    g[2].add(m)
+                    break
+            else:
+                out.append([box, [side], {m}])
+        return [(tuple(b), float(np.mean(sides)), ids) for b, sides, ids in out]
+
+    def _find_moving(self, gray: np.ndarray, mid: int, pred: np.ndarray,
+                     wide_only: bool = False
+                     ) -> tuple[np.ndarray | None, dict[int, np.ndarray]]:
+        """Corners (4, 2) of moving marker ``mid`` near its prediction (None if not there),
+        and any other marker seen in the region (id -> corners). ``wide_only``: skip the
+        first, tight look (done already)."""
+        side = float(np.linalg.norm(pred[0] - pred[2])) / np.sqrt(2.0)
+        ctr = pred.mean(axis=0)
+        span = float(np.max(np.abs(pred - ctr)))
+        others: dict[int, np.ndarray] = {}
+        tries = ((3.0, False),) if wide_only else ((1.0, True), (3.0, False))
+        for grow, tuned in tries:
+            half = span + self.settings.margin * side * grow + 4.0
+            ids, cs = self._detect_roi(gray, ctr, half, side if tuned else 0.0)
+            found = None
+            for i, c in zip(ids.tolist(), cs, strict=True):
+                if i == mid:
+                    found = c
+                else:
+                    others[i] = c
+            if found is not None:
+                return found, others
+        return None, others
+
+    # ------------------------------------------------------------------ per frame
+    def detect(self, image: np.ndarray) -> Detections:
+        """Markers in ``image`` (the next frame of the fixed camera); see the module
+        docstring."""
+        gray = as_gray(image)
+        self.frame += 1
+        self._since_full += 1
+        events: list[str] = []
+        if self._want_full or not self.tracks:
+            return self._full(gray, events)
+        s = self.settings
+        out_ids: list[int] = []
+        out_c: list[np.ndarray] = []
+        lost = False
+        # ---- static markers: code check and drift at the reference corners
+        st = [m for m, t in self.tracks.items() if t.static]
+        moved: list[int] = []
+        if st:
+            ref = np.stack([self.tracks[m].corners for m in st])
+            key = (tuple(st), tuple(self.tracks[m] for m in st), gray.shape)
+            if self._sampler is None or self._sampler[0] != key:
+                self._sampler = (key, CodeSampler(ref, np.stack([self._code(m) for m in st]),
+                                                  gray.shape))
+            seen = self._sampler[1].scores(gray) >= s.min_score
+            refined = self._subpix(gray, ref)
+            for m, r in zip(st, refined, strict=True):
+                if self.tracks[m].sub is None:  # first tracked frame since the reference
+                    self.tracks[m].sub = r
+            sub0 = np.stack([self.tracks[m].sub for m in st])
+            # Drift of the refinement from the refinement at the reference (same method on
+            # both sides: the detector's own refinement differs by up to ~1 px on oblique
+            # wall markers).
+            # Moved: at least 3 corners drifted (a robot's plate over one corner pulls only
+            # that corner; the reference stays right for a marker that did not move).
+            far = (np.linalg.norm(refined - sub0, axis=2) > s.move_px).sum(axis=1) >= 3
+            moved = [m for m, ok, f in zip(st, seen, far, strict=True) if ok and f]
+            bad = int((~seen).sum()) + len(moved)
+            if len(st) >= s.bump_min and bad >= max(s.bump_min, s.bump_fraction * len(st)):
+                self.bumps += 1
+                events.append(f"camera moved: {bad} of {len(st)} floor markers moved or "
+                              "missing at their place in the image; full detection and "
+                              "estimation restart")
+                return self._full(gray, events)
+            if moved:
+                events.append("floor marker(s) " + ", ".join(map(str, moved))
+                              + f" moved more than {s.move_px:g} px in the image")
+            for m, ok, f in zip(st, seen, far, strict=True):
+                t = self.tracks[m]
+                if ok and not f:
+                    out_ids.append(m)
+                    out_c.append(t.corners)
+                    t.seen = self.frame
+                elif t.seen == self.frame - 1:
+                    # Just hidden or moved: one background look (a hidden one keeps its
+                    # place; a moved one gets its new place from the full detection).
+                    lost = True
+        # ---- moving markers: near their prediction, one detection per group of nearby
+        # regions (a robot's two markers share one crop)
+        moving = [(m, t) for m, t in self.tracks.items() if not t.static]
+        found: dict[int, np.ndarray] = {}
+        others: dict[int, np.ndarray] = {}
+        preds = {m: t.corners + t.velocity * (self.frame - t.seen) for m, t in moving}
+        for box, side, members in self._groups(preds):
+            ids, cs = self._detect_box(gray, box, side)
+            for i, c in zip(ids.tolist(), cs, strict=True):
+                (found if i in members else others)[i] = c
+        for m, t in moving:
+            c = found.get(m)
+            if c is None:  # not where predicted: a wider look with the full parameters
+                c, more = self._find_moving(gray, m, preds[m], wide_only=True)
+                others.update(more)
+            if c is None:
+                if t.seen == self.frame - 1:
+                    # Just lost: it may have outrun the prediction; a robot visible in the
+                    # frame must keep its pose, so look at the whole frame once.
+                    return self._full(gray, events)
+                if self.frame - t.seen > 30:
+                    del self.tracks[m]
+                continue
+            t.velocity = (c - t.corners) / max(1, self.frame - t.seen)
+            t.corners, t.seen = c, self.frame
+            out_ids.append(m)
+            out_c.append(c)
+        for i, oc in others.items():
+            if i not in self.tracks:
+                self.tracks[i] = _Track(oc, np.zeros((4, 2)), self._is_static(i), self.frame)
+        # ---- discoveries of the background detection
+        got = self._take_result()
+        if got is not None:
+            self._merge(gray, got, out_ids, out_c)
+        if lost or self._since_full >= s.full_every:
+            self._since_full = 0
+            self._submit(gray, full_res=lost)
+        self.tracked += 1
+        return self._result_of(out_ids, out_c, "tracked", events)
+
+    def _subpix(self, gray: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """(N, 4, 2) ``cornerSubPix`` of the reference corners (N, 4, 2) px."""
+        side = np.linalg.norm(ref[:, 0] - ref[:, 2], axis=1) / np.sqrt(2.0)
+        module = float(np.median(side)) / 7.0
+        win = int(min(6, max(2, round(0.3 * module))))
+        pts = ref.reshape(-1, 1, 2).astype(np.float32)
+        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01)
+        refined = cv2.cornerSubPix(gray, pts, (win, win), (-1, -1), crit)
+        return refined.reshape(-1, 4, 2).astype(np.float64)
+
+    def _merge(self, gray: np.ndarray, got: tuple[int, Detections, bool],
+               out_ids: list[int], out_c: list[np.ndarray]) -> None:
+        """Add what the background detection found and is not tracked, detected again in
+        this frame around where it was found (full resolution)."""
+        frame_no, det, half = got
+        have = set(out_ids)
+        s = self.settings
+        same_px = 2.0 if half else 0.5
+        for mid, c0 in zip(det.ids.tolist(), det.corners, strict=True):
+            t = self.tracks.get(mid)
+            static = self._is_static(mid)
+            if (static and not half and mid in have and t is not None
+                    and np.abs(c0 - t.corners).max() < 1.5 * s.move_px):
+                # Another full-resolution look at a fixed marker in place: averaged in.
+                nt = self._averaged(t, c0)
+                if nt is not t:
+                    self.tracks[mid] = nt
+                    out_c[out_ids.index(mid)] = nt.corners
+                continue
+            if t is not None and (t.seen > frame_no or mid in have) and (
+                    not static or np.abs(c0 - t.corners).max() < same_px):
+                continue  # tracked since, or a fixed marker at its place: nothing new
+            c, _ = self._find_moving(gray, mid, c0)
+            if c is None:
+                continue  # not in this frame (any more)
+            if static:
+                if np.abs(c - c0).max() > same_px:
+                    # A fixed marker found at two different places in two frames: part of
+                    # it was covered in one of them (a robot passing): wait for a clean look.
+                    continue
+                new = float(code_scores(gray, c[None], self._code(mid)[None])[0])
+                if new < s.add_score:
+                    continue  # half hidden now: wait for a clean look
+                if mid in have:
+                    # Reported at its reference, found elsewhere (> 0.5 px) by a full
+                    # detection of the whole marker that reads at least as well: the
+                    # reference was taken while something covered part of the marker.
+                    if np.abs(c - t.corners).max() < 0.5:
+                        continue
+                    old = float(code_scores(gray, t.corners[None], self._code(mid)[None])[0])
+                    if new < old:
+                        continue
+                    out_c[out_ids.index(mid)] = c
+                    self.tracks[mid] = _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
+                    continue
+                self.tracks[mid] = _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
+            else:
+                if mid in have:
+                    continue
+                vel = (c - c0) / max(1, self.frame - frame_no)
+                self.tracks[mid] = _Track(c, vel, False, self.frame)
+            out_ids.append(mid)
+            out_c.append(c)
+            have.add(mid)
+
+    def _full(self, gray: np.ndarray, events: list[str]) -> Detections:
+        det = self.full_detector.detect(gray)
+        self.full += 1
+        bumped = any(e.startswith("camera moved") for e in events)
+        if bumped:
+            self._take_result()  # a background result of the old view is worthless
+            self.tracks = {}
+        self._reset_from(det)
+        return Detections(det.ids, det.corners, det.rejected, mode="full",
+                          events=tuple(events), restart=bumped)
+
+    @staticmethod
+    def _result_of(ids: list[int], corners: list[np.ndarray], mode: str, events: list[str]
+                   ) -> Detections:
+        if not ids:
+            return Detections(np.zeros(0, np.int64), np.zeros((0, 4, 2)), 0, mode=mode,
+                              events=tuple(events))
+        order = np.argsort(ids, kind="stable")
+        return Detections(np.asarray(ids, np.int64)[order], np.stack(corners)[order], 0,
+                          mode=mode, events=tuple(events))
