@@ -24,7 +24,8 @@ from kmea.jsonlimits import MAX_DEPTH, JsonLimitError, safe_loads
 from kmea.jsonsafe import to_jsonable
 
 # 2: markers[].moved/moved_offset/moved_frames/moved_threshold (the daemon's "moved" decision
-#    with its evidence), markers[].rejection (was "displacement"), status.algorithms.
+#    with its evidence), markers[].rejection (was "displacement"), status.algorithms;
+#    markers[].plane/plane_stat (issue 13; added fields, old clients ignore them).
 PROTOCOL_VERSION = 2
 
 # Telemetry topics. Subscribers filter by prefix (TOPIC_ROBOT_PREFIX gets every robot).
@@ -102,6 +103,8 @@ class MarkerRow(TypedDict):
     moved_offset: float | None  # median displacement figure over the window (m)
     moved_frames: int  # figures in the window
     moved_threshold: float | None  # the marker's threshold now (m)
+    plane: str | None  # unknown-plane markers: "floor", "plane N" or "free" (else None)
+    plane_stat: float | None  # ... the likelihood-ratio statistic of that plane
 
 
 class MarkersBody(TypedDict):

@@ -419,7 +419,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
                  "parameters": _detector_parameters, "workers": integer(0, 16),
                  "fast": _bool, "fast_window": _fast_window,
                  "full_every": integer(1, 100000)},
-    "estimator": {"algorithm": _algorithm},
+    "estimator": {"algorithm": _algorithm, "unknown_plane": choice("auto", "floor", "free")},
     "filter": {"alpha": number(0, 1, lo_open=True),
                "reset_after_s": number(0, 3600, lo_open=True, unit=" s"),
                "kind": choice("iir", "kalman"), "model": choice("cv", "ctrv"),
