@@ -187,7 +187,7 @@ class SceneResult:
 
 def _scene_objects(spec: HeldoutScene):
     """(true Scene, estimator map, believed camera, plane heights of the robot markers)."""
-    from kmea.experiments.run import miscalibrated
+    from kmea.experiments.setup import miscalibrated
     from kmea.geometry import rot_z
     from kmea.sim import Scene
     from kmea.sim.scene import Effects
