@@ -36,8 +36,10 @@ import numpy as np
 
 from kmea.geometry import (
     check_distortion,
+    intersect_rays_planes,
     marker_corners_local,
     project,
+    rot_z,
     rotvec_to_matrix,
     undistort,
     yaw_of,
@@ -154,24 +156,13 @@ def _square(length: float) -> np.ndarray:
     return marker_corners_local(length)  # (4, 3) marker frame, z = 0
 
 
-def _rz(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _plane_start(R, t, K, d, uv, plane: Plane, sq: np.ndarray):
     """(x, y, angle) in the plane frame from the corners' rays met with the plane, or None."""
     xy = undistort(uv, K, d)
     rays = np.concatenate([xy, np.ones((4, 1))], axis=1) @ R  # world directions
-    C = -R.T @ t
-    n = plane.frame[:, 2]
-    den = rays @ n
-    if np.any(np.abs(den) < 1e-12):
+    P = intersect_rays_planes(-R.T @ t, rays, plane.origin, plane.frame[:, 2])
+    if not np.all(np.isfinite(P)):
         return None
-    lam = (n @ (plane.origin - C)) / den
-    if np.any(lam <= 0):
-        return None
-    P = C + lam[:, None] * rays
     local = (P - plane.origin) @ plane.frame  # (4, 3) in the plane frame
     c = local[:, :2].mean(axis=0)
     a = local[:, :2] - c
@@ -182,7 +173,7 @@ def _plane_start(R, t, K, d, uv, plane: Plane, sq: np.ndarray):
 
 
 def _plane_world(q: np.ndarray, plane: Plane, sq: np.ndarray) -> np.ndarray:
-    Rl = _rz(q[2])
+    Rl = rot_z(q[2])
     return plane.origin + (sq @ Rl.T + np.array([q[0], q[1], 0.0])) @ plane.frame.T
 
 
@@ -332,7 +323,7 @@ def infer(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray, uv: np.nda
         return free
     pos = plane.origin + plane.frame @ np.array([q[0], q[1], 0.0])
     n = plane.frame[:, 2].copy()
-    return PlaneChoice(plane.label, stat, pos, plane.frame @ _rz(q[2]), (n, float(n @ pos)))
+    return PlaneChoice(plane.label, stat, pos, plane.frame @ rot_z(q[2]), (n, float(n @ pos)))
 
 
 def place_with_similarity(markers: dict, observations: Sequence, world_map: MarkerMap,
@@ -367,9 +358,10 @@ def place_with_similarity(markers: dict, observations: Sequence, world_map: Mark
         for o in todo:
             me = markers[o.id]
             if mode == "floor":
-                d = me.position - t
-                if abs(d[2]) > 1e-12 and (0.0 - t[2]) / d[2] > 0:
-                    me.position = t + (0.0 - t[2]) / d[2] * d
+                P = intersect_rays_planes(t, me.position - t, _FLOOR.origin,
+                                          _FLOOR.frame[:, 2])
+                if np.all(np.isfinite(P)):
+                    me.position = P
                     out[o.id] = PlaneChoice("floor", math.nan, me.position, me.rotation,
                                             (np.array([0.0, 0.0, 1.0]), 0.0))
                     continue
