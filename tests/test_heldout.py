@@ -15,6 +15,7 @@ from kmea.experiments.heldout import (
     default_floor_loo,
     evaluate_gridboard,
     evaluate_scene,
+    moved_markers,
 )
 
 GRIDBOARD = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv-gridboard"
@@ -76,14 +77,16 @@ def test_gridboard_photo_markers_off_the_map():
 
 
 def test_default_estimator_on_the_default_floor_at_820x616():
-    loo = default_floor_loo(frames=2, width=820, height=616)
+    from kmead.config import load_config
+
+    loo = default_floor_loo(frames=3, width=820, height=616)
     errs = np.array([e for v in loo.values() for e in v])
     assert len(loo) >= 30
     assert errs.mean() <= 0.5e-3 and errs.max() <= 3e-3, (errs.mean(), errs.max())
-    # Nothing looks moved: neither to the daemon (stats.displaced_threshold, 20 mm) nor to
-    # the terminal UI's relative rule.
-    from kmea_tui.widgets.markers import misplaced_ids
-
-    assert errs.max() < 0.02
-    rows = [{"id": i, "error": float(np.median(v)), "in_map": True} for i, v in loo.items()]
-    assert misplaced_ids(rows) == set()
+    # Nothing looks moved to the daemon's rule with the daemon's default thresholds.
+    stats = load_config(None, use_local=False)["stats"]
+    assert moved_markers(loo, stats["displaced_threshold"], stats["displaced_frames"]) == set()
+    # ... while the rule does see a marker whose errors are those of a moved one.
+    bad = dict(loo)
+    bad[7] = [0.03] * len(loo[7])
+    assert moved_markers(bad, stats["displaced_threshold"], stats["displaced_frames"]) == {7}
