@@ -79,8 +79,8 @@ class FrameBody(TypedDict):
     rejected: list[int]
 
 
-class MarkerRow(TypedDict):
-    """One marker of a ``markers`` body. World frame, metres, radians."""
+class _MarkerRowBase(TypedDict):
+    """The fields every ``markers`` row has."""
 
     id: int
     in_map: bool
@@ -103,6 +103,13 @@ class MarkerRow(TypedDict):
     moved_offset: float | None  # median displacement figure over the window (m)
     moved_frames: int  # figures in the window
     moved_threshold: float | None  # the marker's threshold now (m)
+
+
+class MarkerRow(_MarkerRowBase, total=False):
+    """One marker of a ``markers`` body. World frame, metres, radians. The daemon sends
+    every field; ``plane`` and ``plane_stat`` were added later (recordings before them
+    lack them)."""
+
     plane: str | None  # unknown-plane markers: "floor", "plane N" or "free" (else None)
     plane_stat: float | None  # ... the likelihood-ratio statistic of that plane
 
