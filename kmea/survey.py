@@ -19,9 +19,11 @@ between measured and surveyed position. Per-frame noise averages out but systema
 in metres per pixel: ``g`` = its side (m) / its shortest side in the image (px), large for
 a far or oblique marker (a wall seen from above). So the per-axis uncertainty is ``sigma =
 sqrt(se^2 + (s_px g)^2)``, with ``s_px`` the systematic level in pixels the map markers
-themselves show: ``median(d / g) / 1.1774`` over all measured map markers (the median of a
-2-D Gaussian's norm is 1.1774 sigma; robust to a few moved markers; 0 with fewer than 5 map
-markers measured). The disagreement is significant when ``(d / sigma)^2`` exceeds the
+themselves show: ``median(d / g) / 1.1774`` over the measured map markers of its group (the
+median of a 2-D Gaussian's norm is 1.1774 sigma; robust to a few moved markers): markers
+facing up (the floor) and the others (walls, seen edge-on, with larger corner biases) each
+have their own level, a group of fewer than 3 takes the larger one; 0 with fewer than 5 map
+markers measured. The disagreement is significant when ``(d / sigma)^2`` exceeds the
 chi-square (2 dof) quantile at ``level`` (default 0.9999, about 4.3 sigma: on a 40-marker
 floor the chance of one false alarm is 0.4 %). Thresholds thus scale with the noise, the
 marker's size in pixels and the systematic level the survey itself measures. A marker
@@ -88,6 +90,7 @@ class Survey:
     frames: int = 0
     frames_failed: int = 0
     systematic_px: float = 0.0
+    systematic_levels: dict = field(default_factory=dict)
     level: float = 0.9999
 
 
@@ -236,6 +239,11 @@ def _in_plane(world_map: MarkerMap, i: int, delta: np.ndarray) -> np.ndarray:
     return (F.T @ delta)[:2]
 
 
+def _group(world_map: MarkerMap, i: int) -> str:
+    """"floor" for markers facing up (normal within 25 degrees of +z), else "walls"."""
+    return "floor" if world_map[i].normal[2] > 0.9 else "walls"
+
+
 def _significance(res: Survey, world_map: MarkerMap, threshold: float) -> None:
     mapped = [m for m in res.markers.values() if m.in_map]
     ds = []
@@ -245,12 +253,23 @@ def _significance(res: Survey, world_map: MarkerMap, threshold: float) -> None:
         ds.append(m.disagreement)
     # Systematic level (px) from the bulk of the map markers (robust: a few moved markers do
     # not inflate it): median of a 2-D Gaussian's norm = sqrt(2 ln 2) sigma = 1.1774 sigma.
-    px = [m.disagreement / m.footprint for m in mapped if m.footprint > 0]
-    res.systematic_px = float(np.median(px) / 1.1774) if len(px) >= 5 else 0.0
+    # Markers facing the camera's way (the floor) and markers seen edge-on (walls) have
+    # different corner biases: one level per group, the larger one for a group too small.
+    groups: dict[str, list[float]] = {}
+    for m in mapped:
+        if m.footprint > 0:
+            groups.setdefault(_group(world_map, m.id), []).append(m.disagreement / m.footprint)
+    levels = {g: float(np.median(v) / 1.1774) for g, v in groups.items() if len(v) >= 3}
+    if sum(len(v) for v in groups.values()) < 5:
+        levels = {}
+    fallback = max(levels.values(), default=0.0)
+    res.systematic_px = levels.get("floor", fallback)
+    res.systematic_levels = dict(levels)
     for m in mapped:
         se = float(np.sqrt(np.mean(_in_plane(world_map, m.id, m.stderr) ** 2)))
         g = m.footprint if m.footprint > 0 else 0.0
-        m.sigma = math.sqrt(se ** 2 + (res.systematic_px * g) ** 2 + m.free_sigma ** 2)
+        level = levels.get(_group(world_map, m.id), fallback)
+        m.sigma = math.sqrt(se ** 2 + (level * g) ** 2 + m.free_sigma ** 2)
         m.z = m.disagreement / m.sigma if m.sigma > 0 else math.inf
         m.significant = m.z ** 2 > threshold
 
@@ -270,8 +289,10 @@ def write_csv(survey: Survey, path: str | Path) -> None:
 def format_report(survey: Survey) -> str:
     """For people: millimetres."""
     lines = [f"survey: {survey.frames} frames ({survey.frames_failed} without an estimate), "
-             f"{len(survey.markers)} markers seen, systematic level "
-             f"{survey.systematic_px:.3f} px per axis, significance level {survey.level}"]
+             f"{len(survey.markers)} markers seen, systematic level per axis "
+             + (", ".join(f"{g} {v:.3f} px" for g, v in sorted(survey.systematic_levels.items()))
+                or "0 (fewer than 5 map markers)")
+             + f", significance level {survey.level}"]
     bad = [m for m in survey.markers.values() if m.significant]
     if bad:
         lines.append("markers that disagree with the map:")

@@ -78,6 +78,9 @@ def test_cli_writes_a_map_csv_and_reports(tmp_path, capsys):
     text = capsys.readouterr()
     assert "frame 2/2" in text.err  # progress
     assert "7: moved 2" in text.out  # the scene moves marker 7 by +2 cm in x
+    flagged = [ln.split(":")[0].strip() for ln in text.out.splitlines()
+               if ln.startswith("  ") and "moved" in ln]
+    assert flagged == ["7"], text.out  # no false alarm (walls included)
     assert "map markers never seen" in text.out
     with open(out, newline="") as f:
         rows = list(csv.DictReader(f))
