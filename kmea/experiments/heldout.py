@@ -408,8 +408,13 @@ def main(argv: list[str] | None = None) -> int:
             if not (d / "tutorial_camera_params.yml").is_file():
                 print(f"heldout: {d}: GridBoard data absent, skipped", file=sys.stderr)
                 continue
+            from kmea.experiments.gridboard import IMAGES
+
             rows[name] = evaluate_gridboard(d)
             titles[name] = "OpenCV GridBoard photos, 4 folds off the map"
+            for image in IMAGES:
+                rows[f"{name} {image}"] = evaluate_gridboard(d, images=(image,))
+                titles[f"{name} {image}"] = "that photo alone"
         else:
             spec = HELDOUT.get(name) or TUNING.get(name)
             if spec is None:
