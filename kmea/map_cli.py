@@ -1,7 +1,10 @@
-"""``kmea map [show|check|convert] [FILE]``: look at, validate or convert a marker map.
+"""``kmea map [show|check|convert|survey] [FILE]``: look at, validate, convert or survey a map.
 
 Without FILE the built-in RobotAtFactory 4.0 map is used. A CSV map takes its dictionary
 and default marker length from ``--dictionary`` and ``--length``.
+
+``kmea map survey --source SPEC --camera FILE --map FILE --out FILE.csv [--frames N]``
+measures every marker the camera sees against the map (see :mod:`kmea.survey`).
 """
 
 from __future__ import annotations
@@ -24,8 +27,9 @@ from kmea.maps import (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.description = __doc__.splitlines()[0].replace("``", "")
-    p.add_argument("action", nargs="?", choices=("show", "check", "convert"), default="show",
-                   help="show the table (default), check the file, or convert CSV to TOML")
+    p.add_argument("action", nargs="?", choices=("show", "check", "convert", "survey"),
+                   default="show", help="show the table (default), check the file, convert "
+                   "CSV to TOML, or survey the markers a camera sees")
     p.add_argument("file", nargs="?", type=Path, metavar="FILE",
                    help="map file (.toml or .csv); default: the built-in RobotAtFactory 4.0 map")
     p.add_argument("-o", "--output", type=Path, help="convert: TOML file to write "
@@ -41,6 +45,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference-length", type=float,
                    help="convert: reference length of the MRE, m (default: floor diagonal)")
     p.add_argument("--name", help="convert: map name (default: the file's stem)")
+    g = p.add_argument_group("survey")
+    g.add_argument("--source", help="survey: frame source spec (images:DIR, video:PATH, "
+                   "camera:0, picamera, sim:SCENE, ...)")
+    g.add_argument("--camera", help="survey: camera calibration file (a simulated source "
+                   "brings its own)")
+    g.add_argument("--map", dest="map_file", help="survey: the map (default: FILE, else the "
+                   "built-in one)")
+    g.add_argument("--out", help="survey: CSV to write (map CSV format)")
+    g.add_argument("--frames", type=int, default=30, help="survey: frames to average "
+                   "(default 30)")
+    g.add_argument("--algorithm", default="corner-pnp", help="survey: estimator (default "
+                   "corner-pnp)")
+    g.add_argument("--level", type=float, default=0.9999,
+                   help="survey: significance level of a disagreement (default 0.9999)")
 
 
 def _load(args: argparse.Namespace) -> MarkerMap:
@@ -104,7 +122,29 @@ def _convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _survey(args: argparse.Namespace) -> int:
+    from kmea import estimators
+    from kmea.survey import run_cli
+
+    missing = [opt for opt, v in (("--source", args.source), ("--out", args.out)) if not v]
+    if missing:
+        print(f"kmea map survey: give {', '.join(missing)}", file=sys.stderr)
+        return 2
+    if args.algorithm not in estimators.available():
+        print(f"kmea map survey: --algorithm: unknown {args.algorithm!r}; choose among "
+              f"{', '.join(estimators.available())}", file=sys.stderr)
+        return 2
+    if not 0.5 < args.level < 1.0:
+        print("kmea map survey: --level must be between 0.5 and 1", file=sys.stderr)
+        return 2
+    map_file = args.map_file or (str(args.file) if args.file else None)
+    return run_cli(args.source, args.camera, map_file, args.out, args.frames, args.algorithm,
+                   args.level, dictionary=args.dictionary, length=args.length)
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.action == "survey":
+        return _survey(args)
     try:
         if args.action == "convert":
             return _convert(args)

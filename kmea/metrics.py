@@ -10,7 +10,15 @@ Euclidean floor-plane distance e_i = |(x_i, y_i) - (x*, y*)| in metres. Then
 - MRE   = MAE / reference_length * 100 (percent; the paper's reference length is the floor
   diagonal, 2.081 m)
 
-so RMSE^2 = MAE^2 + (N - 1) / N * STD^2.
+so RMSE^2 = MAE^2 + (N - 1) / N * STD^2. STD is the paper's figure, and it depends on a
+constant bias: for isotropic Gaussian noise of sigma per axis it is 0.66 sigma without bias
+(Rayleigh) and tends to sigma when the bias is much larger than sigma. Two figures separate
+precision from accuracy (from the estimates themselves, so only :func:`marker_metrics`
+has them):
+
+- Scatter = sqrt(var(x_i) + var(y_i)) (ddof = 1): the 2-D spread of the estimates about
+  their own mean; a constant bias does not change it;
+- Bias    = |(mean x_i, mean y_i) - (x*, y*)|: the constant part of the error.
 """
 
 from __future__ import annotations
@@ -18,7 +26,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Iterable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -38,7 +46,8 @@ class MarkerMetrics:
     """Error metrics of one marker (or their average over markers).
 
     n: number of samples (for an average: the total over markers); rmse, std, mae, maxae in
-    metres; mre in percent of the reference length.
+    metres; mre in percent of the reference length; scatter and bias in metres (NaN when
+    computed from error magnitudes only).
     """
 
     n: int
@@ -47,9 +56,13 @@ class MarkerMetrics:
     mae: float
     maxae: float
     mre: float
+    scatter: float = math.nan
+    bias: float = math.nan
 
     def as_dict(self) -> dict[str, float]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """Every field; scatter and bias only when known (not NaN)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if f.name not in ("scatter", "bias") or math.isfinite(getattr(self, f.name))}
 
 
 def _check_ref(reference_length: float) -> float:
@@ -98,8 +111,14 @@ def metrics_from_errors(errors: Iterable[float] | np.ndarray,
 
 def marker_metrics(estimates: np.ndarray, truth: np.ndarray,
                    reference_length: float) -> MarkerMetrics:
-    """Metrics of N estimates (N, 2) or (N, 3) of one marker against its truth (2,) or (3,)."""
-    return metrics_from_errors(planar_errors(estimates, truth), reference_length)
+    """Metrics of N estimates (N, 2) or (N, 3) of one marker against its truth (2,) or (3,),
+    scatter and bias included."""
+    m = metrics_from_errors(planar_errors(estimates, truth), reference_length)
+    xy = np.asarray(estimates, dtype=float).reshape(m.n, -1)[:, :2]
+    tru = np.asarray(truth, dtype=float).reshape(-1)[:2]
+    scatter = (float(np.sqrt(np.sum(xy.var(axis=0, ddof=1)))) if m.n > 1 else math.nan)
+    bias = float(np.hypot(*(xy.mean(axis=0) - tru)))
+    return replace(m, scatter=scatter, bias=bias)
 
 
 def mean_metrics(items: Iterable[MarkerMetrics]) -> MarkerMetrics:
@@ -118,7 +137,8 @@ def mean_metrics(items: Iterable[MarkerMetrics]) -> MarkerMetrics:
         return float(v.mean()) if v.size else math.nan
 
     return MarkerMetrics(n=sum(m.n for m in items), rmse=avg("rmse"), std=avg("std"),
-                         mae=avg("mae"), maxae=avg("maxae"), mre=avg("mre"))
+                         mae=avg("mae"), maxae=avg("maxae"), mre=avg("mre"),
+                         scatter=avg("scatter"), bias=avg("bias"))
 
 
 def percent_change(value: float, baseline: float) -> float:

@@ -120,6 +120,8 @@ class PipelineSettings:
     see :class:`kmea.vision.detection.DetectorConfig`; fast, fast_window, full_every: the
     fast detector (:mod:`kmea.vision.fastdetect`); marker_length: side of markers the map
     and the robots do not size; algorithm: an estimator name (:func:`kmea.estimators.get`);
+    unknown_plane: what the estimator does with markers of unknown plane ("auto", "floor",
+    "free"; :mod:`kmea.estimators.unknown_plane`);
     alpha, reset_after_s: the pose filter; filter_kind: the robots' filter, "iir" (the
     paper's, with alpha) or "kalman" (:mod:`kmea.tracking`, configured by ``tracker``);
     loo: compute leave-one-out errors; robots: the robots carrying markers.
@@ -137,7 +139,8 @@ class PipelineSettings:
     fast_window: int = 0
     full_every: int = 30
     marker_length: float = 0.06
-    algorithm: str = "kmea"
+    algorithm: str = "corner-pnp"
+    unknown_plane: str = "auto"
     alpha: float = 1.0
     reset_after_s: float = 1.0
     filter_kind: str = "iir"
@@ -159,7 +162,9 @@ class PipelineSettings:
                    detector_parameters=dict(d["parameters"]), fast=bool(d["fast"]),
                    fast_window=int(d["fast_window"]), full_every=int(d["full_every"]),
                    marker_length=float(d["marker_length"]),
-                   algorithm=data["estimator"]["algorithm"], alpha=f["alpha"],
+                   algorithm=data["estimator"]["algorithm"],
+                   unknown_plane=data["estimator"].get("unknown_plane", "auto"),
+                   alpha=f["alpha"],
                    reset_after_s=f["reset_after_s"], filter_kind=f.get("kind", "iir"),
                    tracker=tracker_config(f), loo=bool(data["stats"]["loo"]),
                    robots=tuple(RobotSpec(name=r["name"], markers=tuple(r["markers"]),
@@ -302,7 +307,8 @@ class Pipeline:
         return self.observer.detector
 
     def set_algorithm(self, name: str) -> None:
-        self.estimator = estimators.get(name)
+        """Build estimator ``name`` with the configured ``unknown_plane``."""
+        self.estimator = estimators.get(name, unknown_plane=self.settings.unknown_plane)
         self.algorithm = name
         if hasattr(self.estimator, "warm_start"):
             # Tracking (a fixed live camera): the camera fit starts from the previous one.

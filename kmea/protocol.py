@@ -24,7 +24,8 @@ from kmea.jsonlimits import MAX_DEPTH, JsonLimitError, safe_loads
 from kmea.jsonsafe import to_jsonable
 
 # 2: markers[].moved/moved_offset/moved_frames/moved_threshold (the daemon's "moved" decision
-#    with its evidence), markers[].rejection (was "displacement"), status.algorithms.
+#    with its evidence), markers[].rejection (was "displacement"), status.algorithms;
+#    markers[].plane/plane_stat (issue 13; added fields, old clients ignore them).
 PROTOCOL_VERSION = 2
 
 # Telemetry topics. Subscribers filter by prefix (TOPIC_ROBOT_PREFIX gets every robot).
@@ -78,8 +79,8 @@ class FrameBody(TypedDict):
     rejected: list[int]
 
 
-class MarkerRow(TypedDict):
-    """One marker of a ``markers`` body. World frame, metres, radians."""
+class _MarkerRowBase(TypedDict):
+    """The fields every ``markers`` row has."""
 
     id: int
     in_map: bool
@@ -102,6 +103,15 @@ class MarkerRow(TypedDict):
     moved_offset: float | None  # median displacement figure over the window (m)
     moved_frames: int  # figures in the window
     moved_threshold: float | None  # the marker's threshold now (m)
+
+
+class MarkerRow(_MarkerRowBase, total=False):
+    """One marker of a ``markers`` body. World frame, metres, radians. The daemon sends
+    every field; ``plane`` and ``plane_stat`` were added later (recordings before them
+    lack them)."""
+
+    plane: str | None  # unknown-plane markers: "floor", "plane N" or "free" (else None)
+    plane_stat: float | None  # ... the likelihood-ratio statistic of that plane
 
 
 class MarkersBody(TypedDict):

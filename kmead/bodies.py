@@ -8,6 +8,7 @@ numpy scalars or arrays; :func:`kmea.protocol.encode_body` turns them into JSON.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
@@ -53,6 +54,8 @@ def markers_body(res: FrameResult, world_map: MarkerMap,
     moved: id -> the moved-marker monitor's evidence (:meth:`kmea.moved.MovedMonitor.get`).
     """
     est = res.estimate
+    planes = est.info.get("unknown_planes", {})
+    stats = est.info.get("plane_statistics", {})
     obs = {o.id: o for o in res.observations}
     map_markers = world_map.markers
     ids = sorted(map_markers.keys() | {int(i) for i in res.ids})
@@ -79,6 +82,9 @@ def markers_body(res: FrameResult, world_map: MarkerMap,
             "moved_offset": ev.offset if ev else None,
             "moved_frames": ev.frames if ev else 0,
             "moved_threshold": ev.threshold if ev else None,
+            "plane": planes.get(mid),
+            "plane_stat": (float(stats[mid]) if mid in stats and math.isfinite(stats[mid])
+                           else None),
         })
     return {"t": res.timestamp, "frame": res.index, "algorithm": res.algorithm,
             "markers": out}

@@ -40,7 +40,8 @@ __all__ = [
 
 # Keys a live ``set`` request may change (the rest need a restart).
 LIVE_KEYS = {
-    "estimator.algorithm", "filter.alpha", "filter.reset_after_s", "robots",
+    "estimator.algorithm", "estimator.unknown_plane", "filter.alpha", "filter.reset_after_s",
+    "robots",
     "filter.kind", "filter.model", "filter.accel_noise", "filter.turn_noise",
     "filter.gate_probability", "filter.reacquire_n", "filter.predict",
     "relay.stale_after_s", "relay.stale_repeat_s", "relay.extra_fields", "stats.window",

@@ -3,8 +3,11 @@
 Header (exactly): ``frame,timestamp,algorithm,kind,id,x,y,z,yaw,error,refs``. Metres,
 radians, seconds. ``kind`` is ``marker`` (id = marker id), ``robot`` (id = robot name) or
 ``rejected`` (id = a reference marker a robust estimator rejected; ``error`` = how far it
-disagrees with the map, m). Each frame's rows go out in one ``write`` call and are flushed,
-so a killed daemon leaves only whole rows.
+disagrees with the map, m) or ``plane`` (id = a marker with no known plane, neither in the map
+nor on a configured robot: where ``estimator.unknown_plane`` put it; ``x,y,z`` = the unit
+normal of the chosen plane and ``error`` its offset d, m, of ``normal . p = d`` in the world
+frame; all four empty when the marker was estimated free). Each frame's rows go out in one
+``write`` call and are flushed, so a killed daemon leaves only whole rows.
 """
 
 from __future__ import annotations

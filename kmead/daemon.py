@@ -346,6 +346,8 @@ class Daemon:
             if key == "estimator.algorithm":
                 self.pipeline.set_algorithm(v)
                 self.stats.reset()
+            elif key == "estimator.unknown_plane":
+                self.pipeline.set_algorithm(self.pipeline.algorithm)
             elif key.startswith("filter."):
                 self.pipeline.configure_filter()
             elif section == "detector":

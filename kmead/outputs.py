@@ -64,6 +64,9 @@ def csv_lines(res: FrameResult, world_map: MarkerMap,
         p = me[0] if me is not None else (None, None, None)
         yaw = me[1] if me is not None else None
         lines.append(row(i, t, alg, "rejected", mid, p[0], p[1], p[2], yaw, d, nref))
+    for mid, plane in sorted(est.info.get("plane_geometry", {}).items()):
+        n, off = plane if plane is not None else ((None, None, None), None)
+        lines.append(row(i, t, alg, "plane", mid, n[0], n[1], n[2], None, off, nref))
     return lines
 
 

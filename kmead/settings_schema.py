@@ -420,7 +420,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
                  "fast": _bool, "fast_window": _fast_window,
                  "full_every": integer(1, 100000), "tracking": _bool,
                  "track_full_every": integer(1, 100000)},
-    "estimator": {"algorithm": _algorithm},
+    "estimator": {"algorithm": _algorithm, "unknown_plane": choice("auto", "floor", "free")},
     "filter": {"alpha": number(0, 1, lo_open=True),
                "reset_after_s": number(0, 3600, lo_open=True, unit=" s"),
                "kind": choice("iir", "kalman"), "model": choice("cv", "ctrv"),

@@ -187,8 +187,10 @@ def test_replay_scores_a_recording_against_the_map(tmp_path, capsys):
     assert ids == {i for i in detected if i in st["estimator_map"]} - {4, 13, 16}
     # The replayed estimates are those of the in-memory observations (floats round-trip).
     ests = {a: st["estimators"][a] for a in ("kmea", "lmea")}
-    direct = [estimate_frame(k, obs, ests, st["estimator_map"], sorted(ids),
-                             camera=st["believed"].intrinsics)
+    emap = st["estimator_map"]
+    planes = {i: float(emap[i].position[2]) for i in ids if emap[i].rotation[2, 2] > 1 - 1e-9}
+    direct = [estimate_frame(k, obs, ests, emap, sorted(ids),
+                             camera=st["believed"].intrinsics, planes=planes)
               for k, obs in enumerate(frames_obs)]
     for r in rows:
         a, m = r["algorithm"], int(r["marker"])

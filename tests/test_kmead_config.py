@@ -30,7 +30,7 @@ def test_default_has_the_documented_keys() -> None:
                 "network.telemetry", "network.control", "log.csv", "log.record"):
         cfg.get(key)  # KeyError if missing
     assert cfg.get("source.spec") == "sim"
-    assert cfg.get("estimator.algorithm") == "kmea"
+    assert cfg.get("estimator.algorithm") == "corner-pnp"
     assert cfg.get("filter.alpha") == 1.0
     robots = {r["name"]: r for r in cfg["robots"]}
     assert robots["amr1"]["markers"] == [40, 41] and robots["amr2"]["markers"] == [42]

@@ -60,7 +60,7 @@ def test_sim_run_logs_csv_close_to_truth_and_replays_exactly(tmp_path: Path,
 
     rows = read_csv(out)
     assert {r["frame"] for r in rows} == {str(i) for i in range(100)}
-    assert {r["algorithm"] for r in rows} == {"kmea"}
+    assert {r["algorithm"] for r in rows} == {"corner-pnp"}
     assert {r["kind"] for r in rows} <= {"marker", "robot"}
     world_map = default_map()
     for r in rows:
@@ -214,7 +214,7 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
 
         # ---- control: state, config, live algorithm switch visible in the CSV
         state = _cmd(ctx, ctrl, "get_state")
-        assert state["ok"] and state["status"]["algorithm"] == "kmea"
+        assert state["ok"] and state["status"]["algorithm"] == "corner-pnp"
         conf = _cmd(ctx, ctrl, "get_config")
         assert conf["config"]["filter"]["alpha"] == 1.0
         assert conf["overlay_file"] == str(tmp_path / "site.local.toml")
@@ -248,7 +248,7 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
     rows = read_csv(out)
     algos = [r["algorithm"] for r in rows]
     first_u = algos.index("umeyama")
-    assert set(algos[:first_u]) == {"kmea"} and set(algos[first_u:]) == {"umeyama"}
+    assert set(algos[:first_u]) == {"corner-pnp"} and set(algos[first_u:]) == {"umeyama"}
     # whole frames only: each frame's rows carry one algorithm
     per_frame: dict[str, set[str]] = {}
     for r in rows:

@@ -100,3 +100,23 @@ def test_window_stats_keep_the_last_samples_per_marker() -> None:
         w.add(1, math.nan)
     with pytest.raises(ValueError, match="pass truth"):
         w.add(1, (0.1, 0.2))
+
+
+def test_scatter_and_bias_separate_precision_from_accuracy():
+    from kmea.metrics import marker_metrics
+
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0.0, 0.001, (4000, 2))
+    truth = np.array([0.2, -0.1])
+    centred = marker_metrics(truth + noise, truth, 2.0)
+    biased = marker_metrics(truth + noise + [0.01, 0.0], truth, 2.0)
+    # The paper's STD moves with a constant bias (Rayleigh 0.66 sigma -> sigma) ...
+    assert centred.std == pytest.approx(0.655e-3, rel=0.05)
+    assert biased.std == pytest.approx(1.0e-3, rel=0.05)
+    # ... the scatter does not, and the bias is the constant part.
+    assert biased.scatter == pytest.approx(centred.scatter, rel=1e-12)
+    assert centred.scatter == pytest.approx(np.sqrt(2) * 1e-3, rel=0.05)
+    assert biased.bias == pytest.approx(0.01, abs=1e-4)
+    assert centred.bias < 1e-4
+    assert "scatter" in biased.as_dict()
+    assert "scatter" not in metrics_from_errors([0.1, 0.2], 2.0).as_dict()

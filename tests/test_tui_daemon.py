@@ -37,7 +37,10 @@ class Daemon:
         self.stderr_path = cwd / f"kmead-{time.monotonic_ns()}.err"
         # Its own config home: a plain start reads (and Save writes) the per-user overlay.
         self.env = {**os.environ, "XDG_CONFIG_HOME": str(cwd / "config-home")}
+        # The paper's KMEA (not the default corner-pnp): the algorithm test walks the list
+        # from it.
         cmd = [sys.executable, "-m", "kmead.cli", "--source", source, "--headless",
+               "--algorithm", "kmea",
                "--set", f'network.telemetry="{telemetry}"',
                "--set", f'network.control="{control}"',
                "--set", "source.width=640", "--set", "source.height=480",

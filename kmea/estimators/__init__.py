@@ -17,6 +17,7 @@ from kmea.estimators.base import (
 )
 
 __all__ = [
+    "DEFAULT_ALGORITHM",
     "CameraIntrinsics",
     "Estimate",
     "EstimateWithLoo",
@@ -31,10 +32,16 @@ __all__ = [
 _REGISTRY: dict[str, str] = {
     "kmea": "kmea.estimators.kmea:KMEA",
     "lmea": "kmea.estimators.lmea:LMEA",
+    "lmea-printed": "kmea.estimators.lmea:LMEAPrinted",
     "umeyama": "kmea.estimators.umeyama:Umeyama",
     "kmea-robust": "kmea.estimators.robust:KMEARobust",
     "corner-pnp": "kmea.estimators.corners:CornerPnP",
 }
+
+
+#: The estimator the daemon uses unless configured otherwise (see docs/estimators.md, "The
+#: default estimator": the most accurate within the frame budget, on data it was not tuned on).
+DEFAULT_ALGORITHM = "corner-pnp"
 
 
 def register(name: str, target: str) -> None:

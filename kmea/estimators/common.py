@@ -146,8 +146,15 @@ def apply_plane_heights(markers: dict[int, MarkerEstimate], camera_world: np.nda
 def finish_estimate(name: str, observations: Sequence[MarkerObservation], refs: References,
                     scale: float, R: np.ndarray, t: np.ndarray,
                     plane_heights: Mapping[int, float] | None = None,
-                    info: dict | None = None) -> Estimate:
-    """Build the Estimate of a camera-to-world similarity: every marker, residuals, cam2world."""
+                    info: dict | None = None, unknown: tuple | None = None) -> Estimate:
+    """Build the Estimate of a camera-to-world similarity: every marker, residuals, cam2world.
+
+    unknown: (world_map, camera intrinsics or None, mode, level) to place the markers with no
+    known plane (:func:`kmea.estimators.unknown_plane.place_with_similarity`); their choice
+    goes to ``info["unknown_planes"]`` (id -> plane label or "free"), the test statistic to
+    ``info["plane_statistics"]`` and the plane to ``info["plane_geometry"]`` (id -> (unit
+    normal (3,), offset m) or None when free).
+    """
     if not (np.isfinite(scale) and scale > 0.0 and np.all(np.isfinite(R))
             and np.all(np.isfinite(t))):
         return Estimate.failed(name, "alignment is not finite")
@@ -160,6 +167,17 @@ def finish_estimate(name: str, observations: Sequence[MarkerObservation], refs: 
     moved = apply_plane_heights(markers, np.asarray(t, dtype=float), plane_heights, refs.ids)
     if moved:
         info["plane_height_ids"] = moved
+    if unknown is not None:
+        from kmea.estimators.unknown_plane import place_with_similarity
+
+        world_map, camera, mode, level = unknown
+        placed = place_with_similarity(markers, observations, world_map, refs.ids, scale, R,
+                                       np.asarray(t, dtype=float), camera, mode, level,
+                                       known=list(plane_heights or ()))
+        if placed:
+            info["unknown_planes"] = {i: c.kind for i, c in placed.items()}
+            info["plane_statistics"] = {i: c.statistic for i, c in placed.items()}
+            info["plane_geometry"] = {i: c.plane for i, c in placed.items()}
     return Estimate(algorithm=name, ok=True, markers=markers, references=refs.ids,
                     cam2world=make_transform(R, t, scale), scale=float(scale),
                     residuals=residuals, info=info)

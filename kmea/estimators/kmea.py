@@ -11,6 +11,10 @@ Steps, on the references (observed markers that are in the map and not excluded)
    their centroids; if det(R) < 0, flip the last axis.
 4. t = map centroid - R @ scaled camera centroid; every detected marker is transformed.
 
+Option ``unknown_plane`` ("free" by default, the paper's: a marker not in the map and not
+given a height keeps its own PnP pose moved by the alignment; "floor" or "auto": see
+:mod:`kmea.estimators.unknown_plane`).
+
 Option ``z_noise``: the paper adds uniform noise in [-z_noise, +z_noise] m (1e-4 in the
 paper) to the map z of the references against coplanar degeneracy. Off by default: the
 determinant correction of step 3 already handles coplanar references.
@@ -38,6 +42,7 @@ from kmea.estimators.common import (
     reference_problem,
     select_references,
 )
+from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import kabsch
 from kmea.map_model import MarkerMap
 
@@ -73,7 +78,10 @@ class KMEA(EstimatorBase):
 
     name = "kmea"
 
-    def __init__(self, z_noise: float = 0.0, seed: int | None = None) -> None:
+    def __init__(self, z_noise: float = 0.0, seed: int | None = None,
+                 unknown_plane: str = "free", plane_level: float = 0.999) -> None:
+        self.unknown_plane = check_mode(self.name, unknown_plane)
+        self.plane_level = float(plane_level)
         if not (np.isfinite(z_noise) and z_noise >= 0.0):
             raise ValueError(f"z_noise must be a finite number >= 0 m, got {z_noise!r}")
         self.z_noise = float(z_noise)
@@ -105,7 +113,9 @@ class KMEA(EstimatorBase):
         scale, R, t = kmea_align(refs.cam, world, refs.ids, world_map.origin_id)
         scale_from = "origin" if world_map.origin_id in refs.ids else "centroid"
         return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights,
-                               info={"scale_from": scale_from})
+                               info={"scale_from": scale_from},
+                               unknown=(world_map, camera, self.unknown_plane,
+                                        self.plane_level))
 
     def _loo_positions(self, observations: Sequence[MarkerObservation], world_map: MarkerMap,
                        ids: list[int], exclude: Collection[int],

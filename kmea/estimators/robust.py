@@ -52,6 +52,7 @@ from kmea.estimators.common import (
 )
 from kmea.estimators.kmea import kmea_align
 from kmea.estimators.umeyama import umeyama_batch
+from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import ray_plane_parameter
 from kmea.map_model import MarkerMap
 
@@ -80,7 +81,10 @@ class KMEARobust(EstimatorBase):
 
     def __init__(self, threshold: float = 0.02, trials: int = 100, seed: int = 0,
                  irls_iterations: int = 20, min_references: int = 3,
-                 in_plane: bool = True) -> None:
+                 in_plane: bool = True, unknown_plane: str = "free",
+                 plane_level: float = 0.999) -> None:
+        self.unknown_plane = check_mode(self.name, unknown_plane)
+        self.plane_level = float(plane_level)
         if not threshold > 0:
             raise ValueError(f"kmea-robust: threshold must be > 0 m, got {threshold}")
         if min_references < 3:
@@ -203,7 +207,8 @@ class KMEARobust(EstimatorBase):
                           refs.cam[inl], refs.world[inl])
         est = finish_estimate(self.name, obs, used, s, R, t, plane_heights, info={
             "displaced": describe_rejected(rejected), "ransac_trials": trials,
-            "threshold": self.threshold, "origin_in_consensus": world_map.origin_id in used.ids})
+            "threshold": self.threshold, "origin_in_consensus": world_map.origin_id in used.ids},
+            unknown=(world_map, camera, self.unknown_plane, self.plane_level))
         est.rejected = rejected
         return est
 

@@ -20,6 +20,7 @@ from kmea.estimators.base import (
     check_observations,
 )
 from kmea.estimators.common import finish_estimate, reference_problem, select_references
+from kmea.estimators.unknown_plane import check_mode
 from kmea.map_model import MarkerMap
 
 __all__ = ["Umeyama", "umeyama", "umeyama_batch"]
@@ -65,6 +66,10 @@ class Umeyama(EstimatorBase):
 
     name = "umeyama"
 
+    def __init__(self, unknown_plane: str = "free", plane_level: float = 0.999) -> None:
+        self.unknown_plane = check_mode(self.name, unknown_plane)
+        self.plane_level = float(plane_level)
+
     def estimate(
         self,
         observations: Sequence[MarkerObservation],
@@ -80,4 +85,6 @@ class Umeyama(EstimatorBase):
         if problem:
             return Estimate.failed(self.name, problem)
         scale, R, t = umeyama(refs.cam, refs.world)
-        return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights)
+        return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights,
+                               unknown=(world_map, camera, self.unknown_plane,
+                                        self.plane_level))

@@ -22,7 +22,7 @@ from kmea.experiments.parts import PARTS, get_part
 if TYPE_CHECKING:
     from kmea.experiments.progress import Progress
 
-DEFAULT_ALGORITHMS = ("kmea", "lmea", "umeyama", "kmea-robust", "corner-pnp")
+DEFAULT_ALGORITHMS = ("kmea", "lmea", "lmea-printed", "umeyama", "kmea-robust", "corner-pnp")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,6 +60,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--markers", default=None,
                    help="comma-separated ids to evaluate (default: the Part's; with --replay "
                         "every detected map marker but the map's origin/x/y anchors)")
+    p.add_argument("--modes", default="plane-known,off-map",
+                   help="evaluation modes, comma-separated, the first one primary: "
+                        "plane-known (every estimator told the marker's plane), off-map "
+                        "(the marker removed from the map); default both")
+    p.add_argument("--iir", type=float, default=1.0, metavar="ALPHA",
+                   help="apply the paper's IIR filter y = ALPHA x + (1 - ALPHA) y_prev to "
+                        "every estimator's samples (default 1: off)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
@@ -100,8 +107,13 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def write_outputs(result, out: Path, plots: bool = True, quiet: bool = False) -> dict:
-    """Write the Part's Markdown, CSVs and figures; returns name -> path."""
+def write_outputs(result, out: Path, plots: bool = True, quiet: bool = False,
+                  others: dict | None = None) -> dict:
+    """Write the Part's Markdown, CSVs and figures; returns name -> path.
+
+    ``result`` is the primary mode's; ``others`` (mode -> result) the other modes', whose
+    CSVs go to ``part-X-MODE-*.csv`` and whose tables join the Markdown.
+    """
     from kmea.experiments import tables
 
     out.mkdir(parents=True, exist_ok=True)
@@ -112,7 +124,11 @@ def write_outputs(result, out: Path, plots: bool = True, quiet: bool = False) ->
         "csv": tables.write_csv(result, out / f"{stem}-markers.csv", scores),
         "samples": tables.write_samples_csv(result, out / f"{stem}-samples.csv"),
     }
-    paths["markdown"].write_text(tables.summary_markdown(result, scores) + "\n")
+    for mode, r in (others or {}).items():
+        paths[f"csv-{mode}"] = tables.write_csv(r, out / f"{stem}-{mode}-markers.csv")
+        paths[f"samples-{mode}"] = tables.write_samples_csv(r, out / f"{stem}-{mode}-samples.csv")
+    paths["markdown"].write_text(
+        tables.modes_markdown({result.mode: result, **(others or {})}) + "\n")
     if plots:
         from kmea.experiments import plots as plots_mod
 
@@ -126,7 +142,7 @@ def write_outputs(result, out: Path, plots: bool = True, quiet: bool = False) ->
 
 def run(args: argparse.Namespace) -> int:
     from kmea.experiments.progress import Progress
-    from kmea.experiments.run import ExperimentConfig, run_simulation
+    from kmea.experiments.run import ExperimentConfig, run_modes
 
     algorithms = _algorithms(args.algorithms)
     if args.baseline not in algorithms:
@@ -162,6 +178,15 @@ def run(args: argparse.Namespace) -> int:
     default_f, default_k1 = (2.0, 0.02) if args.miscalibrate else (0.0, 0.0)
     focal = args.focal_error if args.focal_error is not None else default_f
     k1 = args.k1_error if args.k1_error is not None else default_k1
+    modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
+    from kmea.experiments.run import MODES
+
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes:
+        raise SystemExit(f"kmea experiment: --modes: unknown {', '.join(bad) or '(none)'}; "
+                         f"choose among {', '.join(MODES)}")
+    if not 0.0 < args.iir <= 1.0:
+        raise SystemExit("kmea experiment: --iir: ALPHA must be in (0, 1]")
     for spec in parts:
         spec = spec.scaled(args.displacement_scale)
         if markers is not None:
@@ -172,9 +197,9 @@ def run(args: argparse.Namespace) -> int:
                                samples=args.samples, seed=args.seed, width=w, height=h,
                                focal_error=focal / 100.0, k1_error=k1,
                                known_heights=args.known_heights, floor_only=args.floor_only,
-                               jobs=max(1, args.jobs))
+                               jobs=max(1, args.jobs), modes=modes, iir_alpha=args.iir)
         bar = Progress(cfg.samples, f"Part {spec.name}", enabled=not args.quiet)
-        rc = _run_and_write(lambda progress, cfg=cfg: run_simulation(cfg, progress=progress),
+        rc = _run_and_write(lambda progress, cfg=cfg: run_modes(cfg, progress=progress),
                             bar, out, args)
         if rc:
             return rc
@@ -190,8 +215,13 @@ def _run_and_write(run, bar: Progress, out: Path, args: argparse.Namespace) -> i
         return 2
     finally:
         bar.close()
-    paths = write_outputs(result, out, plots=not args.no_plots, quiet=args.quiet)
-    _report(result, paths)
+    others = {}
+    if isinstance(result, dict):  # every mode of one Part: the first is the primary
+        results = list(result.values())
+        result, others = results[0], {r.mode: r for r in results[1:]}
+    paths = write_outputs(result, out, plots=not args.no_plots, quiet=args.quiet,
+                          others=others)
+    _report(result, paths, others)
     return 0
 
 
@@ -204,10 +234,12 @@ def _count_frames(path: str) -> int:
         return 0
 
 
-def _report(result, paths: dict) -> None:
+def _report(result, paths: dict, others: dict | None = None) -> None:
     from kmea.experiments import tables
 
-    print(tables.summary_markdown(result, per_marker=False))
-    written = [paths["markdown"], paths["csv"], paths["samples"], *paths.get("plots", [])]
+    print(tables.modes_markdown({result.mode: result, **(others or {})}, per_marker=False))
+    written = [paths["markdown"], paths["csv"], paths["samples"],
+               *(v for k, v in paths.items() if k.startswith(("csv-", "samples-"))),
+               *paths.get("plots", [])]
     print("Written: " + ", ".join(str(p) for p in written))
     print()

@@ -3,7 +3,9 @@
 The recording (``kmea/recording.py``: JSON lines, a header with the camera model and the map,
 then one line per frame with every per-marker pose) is re-estimated with each algorithm, each
 evaluated marker left out of the references. The truth is the map's position of each marker,
-so only markers in the map are scored: a real floor whose markers were surveyed.
+so only markers in the map are scored: a real floor whose markers were surveyed. The mode is
+"plane-known" (see :mod:`kmea.experiments.run`): each evaluated marker is left out of the
+references and every estimator is told its surveyed plane.
 """
 
 from __future__ import annotations
@@ -63,10 +65,13 @@ def replay(path: str | Path, algorithms: Sequence[str], baseline: str = "lmea",
     if not markers:
         raise ValueError(f"{path}: no map marker to evaluate in the recording")
     ests = {a: est_registry.get(a) for a in algorithms}
+    # "plane-known" mode: every estimator is told each evaluated marker's surveyed plane.
+    planes = {m: float(world_map[m].position[2]) for m in markers
+              if world_map[m].rotation[2, 2] > 1.0 - 1e-9}
     results: list[FrameResult] = []
     for k, (_, obs) in enumerate(frames_obs):
         results.append(estimate_frame(k, obs, ests, world_map, markers,
-                                      camera=camera.intrinsics))
+                                      camera=camera.intrinsics, planes=planes))
         if progress:
             progress(1)
     samples, heights, failures, rejected = collect(results, algorithms, markers)

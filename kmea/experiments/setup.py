@@ -8,7 +8,10 @@ from dataclasses import dataclass
 
 from kmea.experiments.parts import PartSpec
 
-__all__ = ["ExperimentConfig", "miscalibrated"]
+__all__ = ["MODES", "ExperimentConfig", "miscalibrated"]
+
+#: Evaluation modes (see :mod:`kmea.experiments.run`).
+MODES = ("plane-known", "off-map")
 
 
 @dataclass(frozen=True)
@@ -23,6 +26,9 @@ class ExperimentConfig:
         daemon does for a robot's top plate); off by default, as in the paper.
     floor_only: the estimators' map keeps the floor markers only (wall markers are still
         drawn and detected, but never references).
+    modes: evaluation modes (``MODES``) computed from the same frames; the first is the
+        primary one.
+    iir_alpha: the paper's IIR filter weight applied to every estimator's samples (1 = off).
     """
 
     part: PartSpec
@@ -38,6 +44,8 @@ class ExperimentConfig:
     floor_only: bool = False
     jobs: int = 1
     chunk: int = 8
+    modes: tuple[str, ...] = MODES
+    iir_alpha: float = 1.0
 
 
 def miscalibrated(camera, focal_error: float, k1_error: float):

@@ -79,8 +79,19 @@ def build(config: ExperimentConfig) -> dict[str, Any]:
         "estimator_map": emap,
         "plane_heights": ({int(i): float(h) for i, h in config.part.raised.items()}
                           if config.known_heights else {}),
+        "planes": evaluated_planes(config, nominal),
         "never_reference": (),
     }
+
+
+def evaluated_planes(config: ExperimentConfig, nominal: MarkerMap) -> dict[int, float]:
+    """Evaluated id -> height (m) of its true plane: its surveyed height, plus its support's
+    for Part II (what "plane-known" mode tells every estimator). Only horizontal markers."""
+    out = {}
+    for m in config.part.evaluated:
+        if m in nominal and nominal[m].rotation[2, 2] > 1.0 - 1e-9:
+            out[m] = float(nominal[m].position[2]) + float(config.part.raised.get(m, 0.0))
+    return out
 
 
 def observe(state: dict[str, Any], index: int) -> list:

@@ -18,7 +18,13 @@ import numpy as np
 from kmea.experiments.run import RunResult
 from kmea.metrics import MarkerMetrics, marker_metrics, mean_metrics, percent_change
 
-__all__ = ["METRICS", "Scores", "score", "summary_markdown", "write_csv", "write_samples_csv"]
+__all__ = ["METRICS", "Scores", "modes_markdown", "score", "summary_markdown", "write_csv",
+           "write_samples_csv"]
+
+STD_NOTE = ("STD is the paper's figure (sample SD of the error magnitudes); it depends on a "
+            "constant bias (for isotropic noise of sigma per axis: 0.66 sigma without bias, "
+            "-> sigma with a large one). Scatter (2-D SD of the estimates about their mean) "
+            "does not; Bias is |mean estimate - truth|.")
 
 # (column title, MarkerMetrics field, scale to display units, unit)
 METRICS: tuple[tuple[str, str, float, str], ...] = (
@@ -92,18 +98,20 @@ def mean_change(scores: Scores, algorithm: str) -> float:
 def summary_rows(result: RunResult, scores: Scores) -> tuple[list[str], list[list[str]]]:
     """The paper's table: averaged metrics per algorithm and their % change vs the baseline."""
     header = ["Algorithm", *[f"{t} ({u})" for t, _, _, u in METRICS],
-              *[f"Δ{t}" for t, _, _, _ in METRICS], "mean Δ", "samples"]
+              *[f"Δ{t}" for t, _, _, _ in METRICS], "mean Δ", "Scatter (mm)", "Bias (mm)",
+              "samples"]
     rows = []
     for a in result.algorithms:
         m = scores.average[a]
         vals = [_f(getattr(m, f) * k, 3 if f == "mre" else 2) if m else "n/a"
                 for _, f, k, _ in METRICS]
+        extra = [_f(m.scatter * 1e3) if m else "n/a", _f(m.bias * 1e3) if m else "n/a"]
         ch = ["—" if a == result.baseline else _pct(scores.change[a][f]) for _, f, _, _ in METRICS]
         ch.append("—" if a == result.baseline else _pct(mean_change(scores, a)))
         n = m.n if m else 0
         total = result.frames * len(result.markers)
         note = f"{n}/{total}" + ("" if scores.complete[a] else " (markers missing)")
-        rows.append([a, *vals, *ch, note])
+        rows.append([a, *vals, *ch, *extra, note])
     return header, rows
 
 
@@ -142,7 +150,8 @@ def summary_markdown(result: RunResult, scores: Scores | None = None,
               f"Settings: {sets}.", ""]
     h, r = summary_rows(result, scores)
     lines += ["Averages over the evaluated markers (Δ = % change against "
-              f"{result.baseline}; negative = smaller error):", "", _md_table(h, r), ""]
+              f"{result.baseline}; negative = smaller error):", "", _md_table(h, r), "",
+              STD_NOTE, ""]
     rej = rejected_summary(result)
     if rej:
         lines.append("References rejected by the robust estimators (median disagreement "
@@ -162,6 +171,35 @@ def summary_markdown(result: RunResult, scores: Scores | None = None,
     if per_marker:
         h, r = marker_rows(result, scores)
         lines += ["Per marker:", "", _md_table(h, r), ""]
+    return "\n".join(lines)
+
+
+_MODE_TEXT = {
+    "plane-known": "every estimator is told the evaluated marker's plane (its surveyed "
+                   "height; Part II: its support's), the marker left out of the references",
+    "off-map": "the evaluated marker is removed from the estimators' map (no reference, no "
+               "plane): what a newly laid marker or an unconfigured robot is",
+}
+
+
+def modes_markdown(results: dict[str, RunResult], per_marker: bool = True) -> str:
+    """One Part in every evaluation mode, then the paper's table beside the project's."""
+    from kmea.experiments.paper import PAPER_SETTINGS, comparison_markdown
+
+    lines = []
+    averages = {}
+    for mode, result in results.items():
+        sc = score(result)
+        averages[mode] = sc.average
+        lines += [f"Mode **{mode}**: {_MODE_TEXT.get(mode, mode)}.", "",
+                  summary_markdown(result, sc, per_marker=per_marker)]
+    first = next(iter(results.values()))
+    comp = comparison_markdown(first.part, averages)
+    if comp:
+        lines += [f"### Part {first.part}: the paper's table beside the project's", "",
+                  f"Paper: {PAPER_SETTINGS.get(first.part, '')}; real rig, IIR filter, 256 "
+                  "samples per marker. The paper gave its KMEA no plane for the evaluated "
+                  "marker: the off-map columns are the like-for-like ones.", "", comp, ""]
     return "\n".join(lines)
 
 
