@@ -64,6 +64,21 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % _TWO_PI - math.pi
 
 
+def _innovation(s: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """Innovation of measurement ``z`` (x, y, theta) with covariance ``R`` (3, 3) against
+    the predicted state ``s`` and covariance ``P``: (y, S, S^-1, Mahalanobis d^2), or None
+    when S is singular."""
+    y = z - s[:3]
+    y[2] = _wrap(y[2])
+    S = P[:3, :3] + R
+    try:
+        Si = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None
+    return y, S, Si, float(y @ Si @ y)
+
+
 def _chi2_cdf_3(x: float) -> float:
     """CDF of the chi-square distribution with 3 degrees of freedom."""
     if x <= 0.0:
@@ -361,16 +376,10 @@ class Track:
             return Outcome("rejected", f"too old ({-dt:.2f} s before the last measurement)",
                            math.nan, None)
         s, P = self._model.step(self.s, self.P, dt)
-        H = np.zeros((3, self._model.n))
-        H[0, 0] = H[1, 1] = H[2, 2] = 1.0
-        y_ = z - s[:3]
-        y_[2] = _wrap(y_[2])
-        S = P[:3, :3] + R
-        try:
-            Si = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
+        inn = _innovation(s, P, z, R)
+        if inn is None:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
-        d2 = float(y_ @ Si @ y_)
+        y_, S, Si, d2 = inn
         retracted = None
         if d2 > self.gate and dt >= 0 and cfg.look_back:
             back = self._look_back(t, z, R)
@@ -393,7 +402,7 @@ class Track:
             K = K * (cfg.robust_k / d)
         s = s + K @ y_
         s[2] = _wrap(s[2])
-        I_KH = np.eye(self._model.n) - K @ H
+        I_KH = np.eye(self._model.n) - K @ np.eye(3, self._model.n)
         P = I_KH @ P @ I_KH.T + K @ R @ K.T  # Joseph form: stays symmetric positive
         if dt >= 0:
             self._last = (self.t, self.s, self.P, t, z, R, d2) if retracted is None else None
@@ -420,14 +429,10 @@ class Track:
             return None
         t0, s0, P0, t1, z1, R1, _d2_1 = last
         s, P = self._model.step(s0, P0, t - t0)
-        y_ = z - s[:3]
-        y_[2] = _wrap(y_[2])
-        S = P[:3, :3] + R
-        try:
-            Si = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
+        inn = _innovation(s, P, z, R)
+        if inn is None:
             return None
-        d2 = float(y_ @ Si @ y_)
+        y_, S, Si, d2 = inn
         # Skipping a measurement widens the prediction, so the new one must fit it well (a
         # tighter gate than the main one), not just pass.
         if d2 > self.look_back_gate:
@@ -437,13 +442,10 @@ class Track:
         sn = s + K @ y_
         Pn = (np.eye(self._model.n) - K @ np.eye(3, self._model.n)) @ P
         s1, P1 = self._model.step(sn, Pn, t1 - t)
-        y1 = z1 - s1[:3]
-        y1[2] = _wrap(y1[2])
-        S1 = P1[:3, :3] + R1
-        try:
-            d2_1 = float(y1 @ np.linalg.inv(S1) @ y1)
-        except np.linalg.LinAlgError:
+        inn1 = _innovation(s1, P1, z1, R1)
+        if inn1 is None:
             return None
+        y1, S1, _, d2_1 = inn1
         if d2_1 <= self.gate:
             return None  # both agree with the track: a manoeuvre, not an outlier
         reason = self._reason(y1, S1, d2_1)

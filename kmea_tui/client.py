@@ -130,24 +130,10 @@ class DaemonClient:
             self._ctx = None
 
     async def recv(self, timeout: float) -> list[Message]:
-        """Every telemetry message waiting now; waits up to ``timeout`` s for the first."""
-        sub = self._sub
-        if sub is None:
-            raise RuntimeError("DaemonClient.recv before open()")
-        if not await sub.poll(timeout * 1000, zmq.POLLIN):
-            return []
-        out: list[Message] = []
-        while len(out) < MAX_BATCH:
-            try:
-                frames = await sub.recv_multipart(zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            try:
-                out.append(protocol.decode(frames))
-            except protocol.ProtocolError as e:
-                self.bad_messages += 1
-                self.last_error = str(e)
-        return out
+        """Every telemetry message waiting now, decoded and checked (bad ones counted);
+        waits up to ``timeout`` s for the first."""
+        msgs = (self.decode_raw(frames) for _, frames in await self.recv_raw(timeout))
+        return [m for m in msgs if m is not None]
 
     async def recv_raw(self, timeout: float) -> list[tuple[str, list[bytes]]]:
         """Like :meth:`recv`, bodies not decoded yet: ``(topic, frames)``; the caller
@@ -155,7 +141,7 @@ class DaemonClient:
         each topic per repaint: 4 of the daemon's 30 markers bodies a second)."""
         sub = self._sub
         if sub is None:
-            raise RuntimeError("DaemonClient.recv_raw before open()")
+            raise RuntimeError("DaemonClient.recv before open()")
         if not await sub.poll(timeout * 1000, zmq.POLLIN):
             return []
         out: list[tuple[str, list[bytes]]] = []
