@@ -249,7 +249,10 @@ class Daemon:
         """Map ids the detector's dictionary cannot hold: a warning naming them; a robot
         marker it cannot hold: an error."""
         name, size = self._dictionary_size()
-        big = [i for i in self.world_map.ids if size is not None and i >= size]
+        # The map's own dictionary was judged by check_map (_map_warnings); a detector
+        # dictionary set in the configuration is judged here.
+        own = name == self.world_map.dictionary
+        big = [i for i in self.world_map.ids if not own and size is not None and i >= size]
         if big:
             shown = ", ".join(map(str, big[:10])) + (" ..." if len(big) > 10 else "")
             log.warning("map %s: ids %s are outside %s (ids 0-%d) and can never be detected",
@@ -337,8 +340,8 @@ class Daemon:
     def _apply(self, key: str, value: Any, old: Any, remote: bool = False) -> Any:
         section = key.partition(".")[0]
         v = self.cfg.set(key, value, where="control", remote=remote)
-        if key == "robots" and self._robot_ids_problem(v):
-            problem = self._robot_ids_problem(v)
+        problem = self._robot_ids_problem(v) if key == "robots" else None
+        if problem:
             self.cfg.set(key, old, where="control")
             raise ConfigError(f"control: {problem}")
         try:
