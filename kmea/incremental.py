@@ -22,7 +22,7 @@ and independent of the frames before).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -55,11 +55,23 @@ class IncrementalPoses:
         if fixed is not None:
             self.fixed = frozenset(fixed)
 
-    def poses(self, pose: PoseFn, ids: np.ndarray, corners: np.ndarray
+    def fixed_changed(self, ids: np.ndarray, corners: np.ndarray) -> bool:
+        """Does a fixed marker of ``ids`` come with corners other than its cached pose's
+        (a new reference, one more averaged look, a marker back in view)?"""
+        for mid, c in zip(ids.tolist(), corners, strict=True):
+            if mid in self.fixed:
+                hit = self._cache.get(mid)
+                if hit is None or hit[0] != c.tobytes():
+                    return True
+        return False
+
+    def poses(self, pose: PoseFn, ids: np.ndarray, corners: np.ndarray,
+              known: Mapping[int, MarkerObservation] | None = None
               ) -> tuple[list[MarkerObservation], dict]:
         """Observations of ``ids`` (N,) with ``corners`` (N, 4, 2) px, in input order (minus
         markers without a pose), and the pose diagnostics; ``pose(ids, corners)`` is the
-        full computation (:meth:`kmea.pipeline.MarkerObserver.poses`)."""
+        full computation (:meth:`kmea.pipeline.MarkerObserver.poses`). ``known``: id ->
+        observation of this frame posed already (reused when its corners are these)."""
         id_list = [int(i) for i in ids]
         reuse: dict[int, MarkerObservation] = {}
         todo: list[int] = []
@@ -67,6 +79,9 @@ class IncrementalPoses:
             hit = self._cache.get(mid)
             if hit is not None and hit[0] == corners[k].tobytes():
                 reuse[mid] = hit[1]
+            elif (known is not None and mid in known and known[mid].corners is not None
+                  and np.array_equal(known[mid].corners, corners[k])):
+                reuse[mid] = known[mid]
             else:
                 todo.append(k)
         new: dict[int, MarkerObservation] = {}

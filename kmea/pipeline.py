@@ -252,6 +252,7 @@ class Pipeline:
         from kmea.incremental import IncrementalLoo, IncrementalPoses
 
         self.inc_poses = IncrementalPoses()
+        self._floor_obs: list[MarkerObservation] = []  # last frame's fixed markers (tracking)
         self.inc_loo = IncrementalLoo(self.settings.loo_every)
         self.configure(self.settings)
 
@@ -281,6 +282,7 @@ class Pipeline:
         """Forget reused poses and leave-one-out errors (new map, robots, camera, view)."""
         robot_ids = {m for r in self.settings.robots for m in r.markers}
         self.inc_poses.reset(set(self.world_map.markers) - robot_ids)
+        self._floor_obs = []
         self.inc_loo.reset()
         self.inc_loo.every = max(1, int(self.settings.loo_every))
         est = getattr(self, "estimator", None)
@@ -374,6 +376,8 @@ class Pipeline:
             loo = self.settings.loo
         tm: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         tm["capture"] = inp.capture_ms
+        rejections: dict[str, str] = {}
+        early: dict[str, RobotFix] | None = None
         t0 = time.perf_counter()
         events: tuple[str, ...] = ()
         restart = False
@@ -401,7 +405,16 @@ class Pipeline:
                 self.reset_incremental()
                 self.configure_filter()
             if incremental:
-                obs, diag = self.inc_poses.poses(self.poses, ids, corners)
+                known = None
+                if (on_robots is not None and self._floor_obs and self.robot_specs
+                        and self.inc_poses.fixed_changed(ids, corners)):
+                    # The floor's corners changed (one more averaged look, a marker back in
+                    # view): re-posing it and refitting the camera can take 10 ms or more.
+                    # The robots go first, placed with the camera fit of the floor as it
+                    # was; then the floor is updated for the statistics and the next frame.
+                    early, known = self._robots_first(inp.timestamp, ids, corners,
+                                                      on_robots, rejections)
+                obs, diag = self.inc_poses.poses(self.poses, ids, corners, known)
             else:
                 obs, diag = self.poses(ids, corners)
             t2 = time.perf_counter()
@@ -438,10 +451,15 @@ class Pipeline:
                 markers[mid] = (np.asarray(p, dtype=float), float(yaw))
         t4 = time.perf_counter()
         tm["filter"] = (t4 - t3) * 1e3
-        rejections: dict[str, str] = {}
-        robots = self.robot_fixes(est, inp.timestamp, rejections)
-        if on_robots is not None:
-            on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
+        if early is not None:
+            robots = early  # sent already, before the floor's update
+        else:
+            robots = self.robot_fixes(est, inp.timestamp, rejections)
+            if on_robots is not None:
+                on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
+        if incremental:
+            self._floor_obs = ([o for o in obs if o.id in self.inc_poses.fixed
+                                and o.corners is not None] if est.ok else [])
         t5 = time.perf_counter()
         tm["robots"] = (t5 - t4) * 1e3
         loo_err: dict[int, float] = {}
@@ -460,6 +478,34 @@ class Pipeline:
         return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
                            est, markers, loo_err, robots, tm, inp.t_capture, inp.meta,
                            rejections, events, restart, mode, fresh)
+
+    def _robots_first(self, t: float, ids: np.ndarray, corners: np.ndarray,
+                      on_robots: Callable[[float, dict[str, RobotFix]], None],
+                      rejections: dict[str, str]
+                      ) -> tuple[dict[str, RobotFix] | None, dict[int, MarkerObservation] | None]:
+        """Robot fixes of this frame from its moving markers and the previous frame's
+        floor observations (their camera fit is the estimator's warm start: the same fit,
+        not a new one), sent with ``on_robots``; (fixes, this frame's moving-marker
+        observations) or (None, None) when no moving marker is in the frame."""
+        fixed = self.inc_poses.fixed
+        sel = [k for k, m in enumerate(ids.tolist()) if m not in fixed]
+        if not sel:
+            return None, None
+        floor = self._floor_obs
+        r_ids = np.concatenate([ids[sel], np.array([o.id for o in floor], np.int64)])
+        r_c = np.concatenate([corners[sel], np.stack([np.asarray(o.corners, float)
+                                                      for o in floor])])
+        obs, _ = self.inc_poses.poses(self.poses, r_ids, r_c)
+        try:
+            est = self.estimator.estimate(obs, self.world_map, camera=self.camera.intrinsics,
+                                          plane_heights=self.plane_heights)
+        except ValueError:
+            return None, None
+        if not est.ok:
+            return None, None
+        fixes = self.robot_fixes(est, t, rejections)
+        on_robots(t, fixes)
+        return fixes, {o.id: o for o in obs if o.id not in fixed}
 
     def robot_fixes(self, est: Estimate, t: float,
                     rejections: dict[str, str] | None = None) -> dict[str, RobotFix]:

@@ -203,6 +203,38 @@ def test_incremental_poses_and_leave_one_out_match_recomputation(default_frames)
     assert inc.inc_poses.reused > inc.inc_poses.posed
 
 
+def test_robots_are_sent_before_the_floor_is_refitted(default_frames):
+    # Every background detection at full resolution: each one averages the floor's
+    # reference corners, so the floor's poses and the camera fit change in those frames.
+    frames, src = default_frames
+    specs = tuple(src.scene.robot_specs())
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs, tracking=True,
+                                                             algorithm="corner-pnp"))
+    p.observer.detector.close()
+    p.observer.detector = _tracker(src, full_res_every=1)
+    ref = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs,
+                                                               algorithm="corner-pnp"))
+    early = 0
+    for f in frames:
+        det = p.detector.detect(f.image)
+        sent: list[tuple[bool, dict]] = []
+        # When the relay runs: is the floor of this frame still waiting to be posed?
+        r = p.process(FrameInput(f.index, f.timestamp, f.image, detections=det),
+                      on_robots=lambda t, fx: sent.append(
+                          (p.inc_poses.fixed_changed(det.ids, det.corners), dict(fx))))
+        assert len(sent) == 1, f.index  # one relay call per frame
+        pending, fixes = sent[0]
+        assert fixes.keys() == r.robots.keys()
+        early += pending
+        s = ref.process(FrameInput(f.index, f.timestamp, f.image, ids=r.ids,
+                                   corners=r.corners,
+                                   observations=ref.poses(r.ids, r.corners)[0]))
+        for name, fix in fixes.items():
+            other = s.robots[name]
+            assert math.hypot(fix.x - other.x, fix.y - other.y) < 1e-3, (f.index, name)
+    assert early >= 2  # the floor changed in some frames, and the robots went first
+
+
 def test_corner_pnp_warm_start_gives_the_fresh_solve(default_frames):
     from kmea.estimators.corners import CornerPnP
 

@@ -185,11 +185,19 @@ class CornerPnP(EstimatorBase):
         self._start = KMEARobust(threshold=start_threshold, trials=50,
                                  min_references=self.min_references)
         self.warm_start = bool(warm_start)
-        self._warm: tuple | None = None  # (key, refs, uv_refs, fit, inliers, dis)
+        # (key, refs, uv_refs, fit, inliers, dis, reference observations, camera)
+        self._warm: tuple | None = None
+        # Placements of the last fit: (fit, world_map, id -> (observation, plane height,
+        # MarkerEstimate, PlaneChoice or None)). A marker's placement depends only on the
+        # fit, its own observation and its plane, so while the warm start returns the same
+        # fit object, a fixed marker reported with the same observation object is not
+        # placed again (only the robots are).
+        self._placed: tuple | None = None
 
     def reset_warm(self) -> None:
         """Forget the previous fit (the view changed: the next call solves afresh)."""
         self._warm = None
+        self._placed = None
 
     # ------------------------------------------------------------------ LM
     def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -347,6 +355,14 @@ class CornerPnP(EstimatorBase):
         if len(refs) < self.min_references:
             return Estimate.failed(self.name, f"{len(refs)} reference marker(s) with corners "
                                               f"visible, need {self.min_references}")
+        ref_obs = tuple(obs[i] for i in refs)
+        w = self._warm
+        if (self.warm_start and not excl and w is not None and w[7] is camera
+                and w[0][0] == id(world_map) and len(w[6]) == len(ref_obs)
+                and all(a is b for a, b in zip(w[6], ref_obs, strict=True))):
+            # The very observations of the last fit (a fixed camera's floor, reused by
+            # kmea.incremental): the same fit, nothing to check or stack again.
+            return w[3], refs, list(w[4]), w[5], obs
         for i in refs:
             c = np.asarray(obs[i].corners, dtype=float)
             if c.size != 8 or not np.all(np.isfinite(c)):
@@ -364,10 +380,16 @@ class CornerPnP(EstimatorBase):
             if self._warm is not None and self._warm[0] == key:
                 warm = self._warm
                 if warm[1] == refs and np.array_equal(warm[2], uv_refs):
+                    self._warm = (*warm[:6], ref_obs, camera)
                     return warm[3], refs, list(warm[4]), warm[5], obs  # the same fit
+                same = self._warm_subset(warm, refs, uv_refs)
+                if same is not None:
+                    return warm[3], refs, same, {i: warm[5][i] for i in refs}, obs
+        keep_model = False
         if warm is not None:
             # A few iterations from the previous fit; references new to the fit are tried.
             R, t = warm[3].R, warm[3].t
+            keep_model = warm[1] == refs
             inliers = [i for i in refs if i in warm[4] or i not in warm[1]]
             if len(inliers) < self.min_references:
                 warm = None
@@ -394,7 +416,15 @@ class CornerPnP(EstimatorBase):
             sel = np.concatenate([np.arange(4 * row[i], 4 * row[i] + 4) for i in inliers])
             prev = (fit.K, fit.d) if fit is not None else (
                 (warm[3].K, warm[3].d) if warm is not None and warm[3].refine else None)
-            if self.refine_intrinsics == "auto":
+            if self.refine_intrinsics == "auto" and keep_model:
+                # The same references, their corners moved a little (a reference's corners
+                # averaged over one more look): the previous model choice stands; a few LM
+                # iterations from the previous fit, no second model.
+                fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, warm[3].refine,
+                               prev)
+                if fit is not None:
+                    fit.refine_test = warm[3].refine_test
+            elif self.refine_intrinsics == "auto":
                 fit, test = self._select(X_refs[sel], uv_refs[sel], R, t, K0, d0)
                 if fit is not None:
                     fit.refine_test = test
@@ -420,8 +450,23 @@ class CornerPnP(EstimatorBase):
                                f"within {self.threshold * 1e3:.0f} mm")
             inliers = new
         if key is not None:
-            self._warm = (key, refs, uv_refs, fit, tuple(inliers), dis)
+            self._warm = (key, refs, uv_refs, fit, tuple(inliers), dis, ref_obs, camera)
         return fit, refs, inliers, dis, obs
+
+    def _warm_subset(self, warm: tuple, refs: list[int], uv_refs: np.ndarray
+                     ) -> list[int] | None:
+        """The previous fit's inliers among ``refs`` when ``refs`` are some of the previous
+        fit's references with bit-identical corners (markers hidden, e.g. by a passing
+        robot, and nothing else changed: the fit of the larger set stands; None otherwise."""
+        old = {i: k for k, i in enumerate(warm[1])}
+        if len(refs) >= len(old) or any(i not in old for i in refs):
+            return None
+        prev = warm[2].reshape(-1, 4, 2)
+        rows = [old[i] for i in refs]
+        if not np.array_equal(prev[rows], uv_refs.reshape(-1, 4, 2)):
+            return None
+        inl = [i for i in refs if i in warm[4]]
+        return inl if len(inl) >= self.min_references else None
 
     def estimate(
         self,
@@ -445,7 +490,8 @@ class CornerPnP(EstimatorBase):
             return res
         fit, refs, inliers, dis, obs = res
         planes: dict[int, unknown_plane_mod.PlaneChoice] = {}
-        markers = self._markers(fit, obs, world_map, dict(plane_heights or {}), inliers, planes)
+        heights = dict(plane_heights or {})
+        markers = self._placed_markers(fit, obs, world_map, heights, inliers, planes)
         Rc2w = fit.R.T
         # A rejected reference is reported by how far its centre moved in its map plane and
         # how much it turned there (it was rejected on its corners' RMS disagreement).
@@ -473,12 +519,44 @@ class CornerPnP(EstimatorBase):
             cam2world=make_transform(Rc2w, -Rc2w @ fit.t), scale=1.0,
             residuals={i: dis[i] for i in inliers}, rejected=rejected, info=info)
 
+    def _placed_markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation],
+                        world_map: MarkerMap, plane_heights: Mapping[int, float],
+                        inliers: Sequence[int],
+                        planes: dict[int, unknown_plane_mod.PlaneChoice]
+                        ) -> dict[int, MarkerEstimate]:
+        """:meth:`_markers`, reusing the placements of the same fit for markers whose
+        observation is the same object (warm start only; see ``_placed``)."""
+        if not self.warm_start or self._warm is None or self._warm[3] is not fit:
+            return self._markers(fit, obs, world_map, plane_heights, inliers, planes)
+        old = self._placed[2] if (self._placed is not None and self._placed[0] is fit
+                                  and self._placed[1] is world_map) else {}
+        out: dict[int, MarkerEstimate] = {}
+        todo: set[int] = set()
+        for i, o in obs.items():
+            hit = old.get(i)
+            if hit is not None and hit[0] is o and hit[1] == plane_heights.get(i):
+                out[i] = hit[2]
+                if hit[3] is not None:
+                    planes[i] = hit[3]
+            else:
+                todo.add(i)
+        if todo:
+            out.update(self._markers(fit, obs, world_map, plane_heights, inliers, planes,
+                                     only=todo))
+        self._placed = (fit, world_map, {i: (obs[i], plane_heights.get(i), out[i],
+                                             planes.get(i)) for i in out})
+        return {i: out[i] for i in obs if i in out}
+
     def _markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation], world_map: MarkerMap,
                  plane_heights: Mapping[int, float], inliers: Sequence[int] = (),
-                 planes: dict[int, unknown_plane_mod.PlaneChoice] | None = None
-                 ) -> dict[int, MarkerEstimate]:
-        """World pose and sigma of every observed marker; ``planes`` receives id -> the
-        choice made for each marker without a known plane."""
+                 planes: dict[int, unknown_plane_mod.PlaneChoice] | None = None,
+                 only: Collection[int] | None = None) -> dict[int, MarkerEstimate]:
+        """World pose and sigma of every observed marker (of ``only`` if given; the others
+        still inform the depth scale); ``planes`` receives id -> the choice made for each
+        marker without a known plane."""
+        all_obs = obs
+        if only is not None:
+            obs = {i: o for i, o in obs.items() if i in only}
         Rc2w = fit.R.T
         C = -Rc2w @ fit.t
 
@@ -492,7 +570,7 @@ class CornerPnP(EstimatorBase):
         out = {i: by_pnp(o) for i, o in obs.items() if i not in frames}
         unknown = [i for i in out if obs[i].corners is not None and i not in world_map]
         if unknown and inliers:
-            scale = self._depth_scale(fit, obs, world_map, inliers)
+            scale = self._depth_scale(fit, all_obs, world_map, inliers)
             cands = unknown_plane_mod.map_planes(world_map)
             for i in unknown:
                 o = obs[i]
@@ -571,12 +649,18 @@ class CornerPnP(EstimatorBase):
         xd, Jd, dk1 = distort(xy, fit.d, jac=True)
         Jd_inv = np.linalg.inv(Jd)
         Jc = np.empty((n, 3, p))
-        for k in range(6):  # pose: the rays stay, the camera moves
-            delta = np.zeros(p)
-            delta[k] = h
-            R2, t2 = self._update(fit.R, fit.t, fit.K, fit.d, delta, False, fit.K0)[:2]
-            Pk = self._intersect(R2, t2, xy, F, O)
-            Jc[:, :, k] = ((Pk - base) / h).reshape(n, 4, 3).mean(axis=1)
+        # Pose: the rays stay, the camera moves; the six perturbed poses of _update at once.
+        Rs = np.repeat(fit.R[None], 6, axis=0)
+        ts = np.repeat(fit.t[None], 6, axis=0)
+        for k in range(3):
+            Rs[k] = rotvec_to_matrix(h * np.eye(3)[k]) @ fit.R
+            ts[3 + k, k] += h
+        xy1 = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        rays = np.einsum("nj,kji->kni", xy1, Rs)                       # (6, 4n, 3) world
+        Pk = intersect_rays_planes(-np.einsum("kji,kj->ki", Rs, ts)[:, None, :], rays,
+                                   O[None], F[None, :, :, 2])
+        Jc[:, :, :6] = np.moveaxis(((Pk - base[None]) / h).reshape(6, n, 4, 3).mean(axis=2),
+                                   0, 2)
         if fit.refine:
             # Intrinsics move the rays: distort(xy) = (uv - c) / (K0 m) at fixed pixels, so
             # d xy / d m = -Jd^-1 xd / m and d xy / d k1 = -Jd^-1 d distort / d k1.
