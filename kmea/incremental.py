@@ -5,10 +5,10 @@ with the same corners, bit for bit, frame after frame. What depends only on thos
 is then the same too, and is reused instead of recomputed:
 
 - its camera-frame pose (:class:`IncrementalPoses`): only markers with new corners (the
-  robots, a marker that reappeared) are posed, together with a few unchanged floor markers
-  as anchors, so the IPPE choice of a robot marker still has the scene's consensus to lean
-  on (the consensus of a handful of floor markers instead of all of them; the choice
-  differs only for a marker whose two poses are nearly equally likely);
+  robots, a marker that reappeared) are posed. When only moving markers are new, the IPPE
+  choice of each leans on the scene's consensus rotation kept from the last frame whose
+  fixed markers were posed (the camera is fixed: it is still the scene's); when fixed
+  markers are new too, a few unchanged floor markers are posed with them as anchors;
 - the leave-one-out errors of the floor (:class:`IncrementalLoo`): they depend only on the
   map markers' observations (robots are never references), so while those are the same
   objects the last errors are exactly what a recomputation would give. They are
@@ -30,7 +30,8 @@ from kmea.estimators.base import MarkerObservation
 
 __all__ = ["IncrementalLoo", "IncrementalPoses"]
 
-PoseFn = Callable[[np.ndarray, np.ndarray], tuple[list[MarkerObservation], dict]]
+# pose(ids, corners, world2cam_R or None) -> (observations, diagnostics)
+PoseFn = Callable[..., tuple[list[MarkerObservation], dict]]
 
 
 class IncrementalPoses:
@@ -85,7 +86,16 @@ class IncrementalPoses:
             else:
                 todo.append(k)
         new: dict[int, MarkerObservation] = {}
-        if todo:
+        w2c = self._diag.get("world2cam_R") if self._diag.get("consensus") == "map" else None
+        if todo and reuse and w2c is not None and all(id_list[k] not in self.fixed
+                                                      for k in todo):
+            # Only moving markers are new: the fixed camera's consensus rotation (from the
+            # last frame whose fixed markers were posed) gives their expected normals; no
+            # anchors, no vote.
+            got, _ = pose(ids[todo], corners[todo], w2c)
+            for o in got:
+                new[o.id] = o
+        elif todo:
             sel = list(todo)
             if reuse:
                 # Anchors: the best-fitting unchanged fixed markers carry the consensus.

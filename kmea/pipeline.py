@@ -218,14 +218,15 @@ class MarkerObserver:
         det = self.detector.detect(image)
         return det.ids, det.corners
 
-    def poses(self, ids: np.ndarray, corners: np.ndarray
-              ) -> tuple[list[MarkerObservation], dict]:
-        """Camera-frame poses of detected markers and the pose diagnostics (as a dict)."""
+    def poses(self, ids: np.ndarray, corners: np.ndarray,
+              world2cam_R: np.ndarray | None = None) -> tuple[list[MarkerObservation], dict]:
+        """Camera-frame poses of detected markers and the pose diagnostics (as a dict);
+        ``world2cam_R``: the consensus rotation when known (see estimate_marker_poses)."""
         from kmea.vision.marker_pose import estimate_marker_poses
 
         extra = {} if self.default_length is None else {"default_length": self.default_length}
         obs, diag = estimate_marker_poses(ids, corners, self.camera, self.lengths,
-                                          self.world_map, **extra)
+                                          self.world_map, world2cam_R=world2cam_R, **extra)
         # Shallow: nothing mutates it, and dataclasses.asdict (deep) cost ~30 us a frame.
         return list(obs), dict(vars(diag))
 
@@ -358,9 +359,9 @@ class Pipeline:
     def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.observer.detect(image)
 
-    def poses(self, ids: np.ndarray, corners: np.ndarray
-              ) -> tuple[list[MarkerObservation], dict]:
-        return self.observer.poses(ids, corners)
+    def poses(self, ids: np.ndarray, corners: np.ndarray,
+              world2cam_R: np.ndarray | None = None) -> tuple[list[MarkerObservation], dict]:
+        return self.observer.poses(ids, corners, world2cam_R)
 
     def process(self, inp: FrameInput, loo: bool | None = None,
                 on_robots: Callable[[float, dict[str, RobotFix]], None] | None = None

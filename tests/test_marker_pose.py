@@ -383,3 +383,26 @@ def test_non_map_marker_normal_can_be_given() -> None:
     # No assumption at all: errors alone (decisive here), nothing flagged.
     obs, diag = estimate_marker_poses(ids, cs, CAM, None, REF_MAP, expected_normals={77: None})
     assert not obs[-1].ambiguous and diag.n_conflicts == 0
+
+
+def test_a_known_consensus_rotation_decides_like_the_scene() -> None:
+    """A fixed camera keeps the scene's consensus rotation (kmea.incremental): the same
+    ambiguous robot marker posed alone with that rotation gets the choice the whole scene
+    gives it, and its expected normal comes from the rotation, not from a vote."""
+    trials = 60
+    same = lowest_differs = 0
+    for seed in range(trials):
+        ids, cs, _ = scene_with(40, rot_z(seed * 0.37), np.array([0.1, 0.05, 0.2]),
+                                0.02, 0.4, seed)
+        obs, diag = estimate_marker_poses(ids, cs, CAM, {40: 0.02}, REF_MAP)
+        assert diag.consensus == "map" and diag.world2cam_R is not None
+        alone, d1 = estimate_marker_poses(ids[-1:], cs[-1:], CAM, {40: 0.02}, REF_MAP,
+                                          world2cam_R=diag.world2cam_R)
+        assert d1.consensus == "given"
+        a, b = obs[-1], alone[0]
+        same += bool(np.allclose(a.marker2cam_R, b.marker2cam_R)
+                     and a.ambiguous == b.ambiguous)
+        low = a.marker2cam_R if a.reproj_error <= a.alt_reproj_error else a.alt_R
+        lowest_differs += not np.allclose(low, a.marker2cam_R)
+    assert lowest_differs >= 5, "the scene never overrules the lowest error: nothing tested"
+    assert same >= trials - 2  # leave-one-out vs full consensus: equal up to rare ties

@@ -219,9 +219,11 @@ def test_robots_are_sent_before_the_floor_is_refitted(default_frames):
         det = p.detector.detect(f.image)
         sent: list[tuple[bool, dict]] = []
         # When the relay runs: is the floor of this frame still waiting to be posed?
+        def relay(t, fx, sent=sent, det=det):
+            sent.append((p.inc_poses.fixed_changed(det.ids, det.corners), dict(fx)))
+
         r = p.process(FrameInput(f.index, f.timestamp, f.image, detections=det),
-                      on_robots=lambda t, fx: sent.append(
-                          (p.inc_poses.fixed_changed(det.ids, det.corners), dict(fx))))
+                      on_robots=relay)
         assert len(sent) == 1, f.index  # one relay call per frame
         pending, fixes = sent[0]
         assert fixes.keys() == r.robots.keys()

@@ -154,6 +154,7 @@ def estimate_marker_poses(
     expected_normals: Mapping[int, np.ndarray | None] | None = None,
     settings: DisambiguationSettings | None = None,
     quality: QualitySettings | None = None,
+    world2cam_R: np.ndarray | None = None,
 ) -> tuple[list[MarkerObservation], PoseDiagnostics]:
     """Pose of every detected marker in the camera frame (OpenCV axes, metres).
 
@@ -164,6 +165,9 @@ def estimate_marker_poses(
     expected_normals: id -> (3,) world normal for markers not in the map (default world +z:
     robots' markers lie flat); a None value means "no assumption" for that id.
     quality: when a marker is flagged ``suspect`` (:class:`QualitySettings`).
+    world2cam_R: (3, 3) the scene's consensus rotation when known already (a fixed camera:
+    from an earlier frame, :mod:`kmea.incremental`); the markers' expected normals then
+    come from it instead of a vote among these markers.
     Returns the observations (in input order, minus ``failed_ids``) and the diagnostics.
     """
     s = settings or DisambiguationSettings()
@@ -247,7 +251,8 @@ def estimate_marker_poses(
 
     # ---- scene consensus, leave-one-out expected normals (N, 3) in the camera frame
     expected, diag_consensus = pose_consensus.expected_normals(
-        keep_ids, R, normals, facing, confident, world_map, expected_normals, s)
+        keep_ids, R, normals, facing, confident, world_map, expected_normals, s,
+        world2cam_R)
     diag.consensus, diag.n_support, diag.world2cam_R, diag.floor_normal = diag_consensus
 
     # ---- per-marker decision

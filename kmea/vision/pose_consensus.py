@@ -54,8 +54,12 @@ def expected_normals(
     ids: list[int], R: np.ndarray, normals: np.ndarray, facing: np.ndarray,
     confident: np.ndarray, world_map: MarkerMap | None,
     expected_normals: Mapping[int, np.ndarray | None] | None, s: DisambiguationSettings,
+    world2cam: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray | None], tuple[str, int, np.ndarray | None, np.ndarray | None]]:
-    """Per-marker expected normal in the camera frame (or None) and the consensus summary."""
+    """Per-marker expected normal in the camera frame (or None) and the consensus summary.
+
+    world2cam: (3, 3) a consensus rotation known already (a fixed camera's, from an earlier
+    frame): used as it is, no vote (consensus "given")."""
     N = len(ids)
     kernel = math.radians(s.kernel_deg)
     extra = expected_normals or {}
@@ -71,6 +75,10 @@ def expected_normals(
             return v / np.linalg.norm(v)
         return _Z
 
+    if world2cam is not None:
+        R0 = np.asarray(world2cam, dtype=float)
+        given = [None if (nw := world_normal(mid)) is None else R0 @ nw for mid in ids]
+        return given, ("given", 0, R0, R0[:, 2].copy())
     in_map = [i for i, mid in enumerate(ids) if world_map is not None and mid in world_map]
     if in_map:
         # Candidate world2cam rotations of the map markers: (M, 2, 3, 3).
