@@ -50,6 +50,11 @@ CAMERA_LEASE_S = 4.0
 # (30-70 ms of CPU here for a full markers table), and on the Pi the UI shares the CPU
 # (and, inside kmead, the GIL) with the pipeline: 4 Hz is plenty for a person.
 UI_PERIOD_S = 0.25
+# A live daemon's socket is drained once per repaint; while the UI is still busy with the
+# last batch, again after this long (s).
+DRAIN_RETRY_S = 0.02
+# Topics whose bodies are decoded only when a shown pane needs them (the largest ones).
+LAZY_TOPICS = (protocol.TOPIC_MARKERS, protocol.TOPIC_ROBOTS, protocol.TOPIC_STATS)
 # event/log messages are a history, not a state: kept (not coalesced), up to this many
 # per batch; older ones beyond it are dropped and counted.
 EVENT_BACKLOG = 500
@@ -115,12 +120,12 @@ class KmeaTui(App[None]):
         self.ping_period = ping_period
         self.frame: dict[str, Any] | None = None
         self.status: dict[str, Any] | None = None
-        self.markers_body: dict[str, Any] | None = None
-        self.robots_body: dict[str, Any] | None = None
-        self.stats_body: dict[str, Any] | None = None
+        # The last markers/robots/stats bodies (properties markers_body, ...), and those
+        # received but not decoded yet.
+        self._bodies: dict[str, dict[str, Any] | None] = {}
+        self._raw_bodies: dict[str, list[bytes]] = {}
         # Tabs whose pane has not shown the last bodies yet (hidden tabs are not repainted).
         self._dirty: set[str] = set()
-        self.moved: set[int] = set()
         self.received = 0
         self.coalesced = 0
         self.batches = 0
@@ -183,19 +188,25 @@ class KmeaTui(App[None]):
         received = coalesced = 0
         next_post = 0.0
         ended_sent = False
-        # A live daemon: bodies are decoded only for the messages kept (the last of each
-        # topic per repaint), not for the ~100 a second it publishes.
-        raw = getattr(self.client, "recv_raw", None)
+        # A live daemon: its socket is drained once per repaint (the messages wait in
+        # ZeroMQ's queue meanwhile) rather than waking the UI for each of the ~100 a second,
+        # and bodies are decoded only for the messages kept: the last of each topic, and
+        # for the tables' topics only when a pane shows them (see _body).
+        drain = getattr(self.client, "drain_raw", None)
         decode = getattr(self.client, "decode_raw", None)
         while True:
-            msgs = await (raw(0.05) if raw is not None else self.client.recv(0.05))
+            if drain is not None:
+                await asyncio.sleep(max(next_post - time.monotonic(), DRAIN_RETRY_S))
+                msgs = drain()
+            else:
+                msgs = await self.client.recv(0.05)
             now = time.monotonic()
             if msgs:
                 self.last_telemetry = now
             for topic, body in msgs:
                 received += 1
                 if topic in (protocol.TOPIC_EVENT, protocol.TOPIC_LOG):
-                    if raw is not None:
+                    if drain is not None:
                         got = decode(body)
                         if got is None:
                             continue
@@ -211,15 +222,37 @@ class KmeaTui(App[None]):
             ended = self.client.ended
             pending = bool(latest or events) or (ended and not ended_sent)
             if pending and now >= next_post and self._ui_ready.is_set():
-                if raw is not None:
+                raw: dict[str, list[bytes]] = {}
+                if drain is not None:
+                    raw = {t: latest.pop(t) for t in LAZY_TOPICS if t in latest}
                     latest = {t: m[1] for t, f in latest.items()
                               if (m := decode(f)) is not None and m[0] == t}
                 self._ui_ready.clear()
                 self.post_message(TelemetryBatch(latest, list(events), received, coalesced,
-                                                 ended=ended))
+                                                 ended=ended, raw=raw))
                 ended_sent = ended
                 latest, events = {}, deque()
                 next_post = now + self.ui_period
+
+    # The tables' bodies: kept as received (undecoded) until a pane needs them.
+    def _body(self, topic: str) -> dict[str, Any] | None:
+        frames = self._raw_bodies.pop(topic, None)
+        if frames is not None:
+            got = self.client.decode_raw(frames)  # type: ignore[union-attr]
+            if got is not None and got[0] == topic:
+                self._bodies[topic] = got[1]
+        return self._bodies.get(topic)
+
+    def _set_body(self, topic: str, body: dict[str, Any] | None) -> None:
+        self._raw_bodies.pop(topic, None)
+        self._bodies[topic] = body
+
+    markers_body = property(lambda self: self._body(protocol.TOPIC_MARKERS),
+                            lambda self, b: self._set_body(protocol.TOPIC_MARKERS, b))
+    robots_body = property(lambda self: self._body(protocol.TOPIC_ROBOTS),
+                           lambda self, b: self._set_body(protocol.TOPIC_ROBOTS, b))
+    stats_body = property(lambda self: self._body(protocol.TOPIC_STATS),
+                          lambda self, b: self._set_body(protocol.TOPIC_STATS, b))
 
     def on_telemetry_batch(self, msg: TelemetryBatch) -> None:
         try:
@@ -248,16 +281,16 @@ class KmeaTui(App[None]):
                     self.query_one(CameraPane).show_frame(CameraFrame.from_body(body))
                 except FrameError as e:
                     self.query_one(CameraPane).show_caption(str(e), error=True)
-            if (body := latest.get(protocol.TOPIC_MARKERS)) is not None:
-                self.markers_body = body
-                self.moved = moved_ids(body.get("markers", []))
-                self._dirty.update(("markers", "map"))
-            if (body := latest.get(protocol.TOPIC_ROBOTS)) is not None:
-                self.robots_body = body
-                self._dirty.update(("robots", "map"))
-            if (body := latest.get(protocol.TOPIC_STATS)) is not None:
-                self.stats_body = body
-                self._dirty.add("stats")
+            for topic, tabs in ((protocol.TOPIC_MARKERS, ("markers", "map")),
+                                (protocol.TOPIC_ROBOTS, ("robots", "map")),
+                                (protocol.TOPIC_STATS, ("stats",))):
+                if (body := latest.get(topic)) is not None:
+                    self._set_body(topic, body)
+                elif (frames := msg.raw.get(topic)) is not None:
+                    self._raw_bodies[topic] = frames
+                else:
+                    continue
+                self._dirty.update(tabs)
             if msg.events:
                 self.query_one(LogPane).add_events(msg.events)
             self.show_tab_data(self.query_one(TabbedContent).active)
@@ -277,10 +310,10 @@ class KmeaTui(App[None]):
         elif tab == "stats" and self.stats_body is not None:
             self.query_one(StatsPane).update_stats(self.stats_body)
         elif tab == "map":
+            markers = (self.markers_body or {}).get("markers", [])
             self.query_one(MapPane).set_data(MapData(
-                markers=(self.markers_body or {}).get("markers", []),
-                robots=(self.robots_body or {}).get("robots", []),
-                moved=self.moved))
+                markers=markers, robots=(self.robots_body or {}).get("robots", []),
+                moved=moved_ids(markers)))
 
     def show_status(self, body: dict[str, Any]) -> None:
         """The daemon's ``status``: logging/recording state and the algorithms it offers;

@@ -96,7 +96,10 @@ class DaemonClient:
         self.bad_messages = 0
         self.last_error = ""
         self._ctx: zmq.asyncio.Context | None = None
-        self._sub: zmq.asyncio.Socket | None = None
+        # The SUB socket is a plain (blocking-API) socket: the UI drains it a few times a
+        # second (drain_raw) instead of waking its event loop for every message; recv_raw
+        # polls it through asyncio (recordings, tools).
+        self._sub: zmq.Socket | None = None
         self._req: zmq.asyncio.Socket | None = None
         self._lock: asyncio.Lock | None = None
 
@@ -108,7 +111,7 @@ class DaemonClient:
         """Create the sockets (inside the event loop that will use them)."""
         self._ctx = zmq.asyncio.Context()
         self._lock = asyncio.Lock()
-        sub = self._ctx.socket(zmq.SUB)
+        sub = zmq.Context.shadow(self._ctx.underlying).socket(zmq.SUB)
         sub.setsockopt(zmq.LINGER, 0)
         # A UI that falls behind loses old telemetry at the socket, never memory.
         sub.setsockopt(zmq.RCVHWM, 1000)
@@ -139,15 +142,24 @@ class DaemonClient:
         """Like :meth:`recv`, bodies not decoded yet: ``(topic, frames)``; the caller
         decodes (:meth:`decode_raw`) only the messages it keeps (the UI keeps the last of
         each topic per repaint: 4 of the daemon's 30 markers bodies a second)."""
+        if self._sub is None:
+            raise RuntimeError("DaemonClient.recv before open()")
+        poller = zmq.asyncio.Poller()
+        poller.register(self._sub, zmq.POLLIN)
+        if not await poller.poll(timeout * 1000):
+            return []
+        return self.drain_raw()
+
+    def drain_raw(self) -> list[tuple[str, list[bytes]]]:
+        """Every telemetry message waiting now (at most ``MAX_BATCH``), without waiting
+        and without the event loop: ``(topic, frames)``, bodies not decoded."""
         sub = self._sub
         if sub is None:
-            raise RuntimeError("DaemonClient.recv before open()")
-        if not await sub.poll(timeout * 1000, zmq.POLLIN):
-            return []
+            raise RuntimeError("DaemonClient.drain_raw before open()")
         out: list[tuple[str, list[bytes]]] = []
         while len(out) < MAX_BATCH:
             try:
-                frames = await sub.recv_multipart(zmq.NOBLOCK)
+                frames = sub.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 break
             try:

@@ -19,6 +19,8 @@ class TelemetryBatch(Message):
         received: messages received so far in total.
         coalesced: messages dropped so far because a newer one of the same topic came.
         ended: the source has no more data (a finished recording).
+        raw: the newest message per topic not decoded yet, as received (``[topic, body]``
+            frames), for the topics the app decodes only when a pane shows them.
     """
 
     latest: dict[str, dict[str, Any]]
@@ -26,6 +28,7 @@ class TelemetryBatch(Message):
     received: int = 0
     coalesced: int = 0
     ended: bool = False
+    raw: dict[str, list[bytes]] = field(default_factory=dict)
 
 
 @dataclass

@@ -119,7 +119,7 @@ async def test_marker_and_robot_tables_fill(daemon: Daemon) -> None:
         assert all(isinstance(m.get("error"), (int, float)) for m in order[:len(errs)])
         robots = app.query_one(RobotsTable)
         await pilot.press("2")  # hidden tabs are not repainted; shown, they fill at once
-        await wait_for(pilot, lambda: {"amr1", "amr2"} <= {k.value for k in robots.rows},
+        await wait_for(pilot, lambda: {"amr1", "amr2"} <= set(robots.rows),
                        "robots amr1 and amr2")
         status = str(app.query_one("#status").render())
         assert "connected" in status and "fps" in status

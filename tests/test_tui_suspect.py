@@ -110,7 +110,7 @@ async def test_suspect_marker_flagged_in_table_summary_map_and_help() -> None:
     async with app.run_test(size=(80, 24)) as pilot:
         await _replayed(app, pilot)
         table = app.query_one(MarkersTable)
-        flags = {str(k.value): str(table.get_cell(k, "flags")) for k in table.rows}
+        flags = {k: str(table.get_cell(k, "flags")) for k in table.rows}
         assert "S" in flags["25"]
         assert [k for k, f in flags.items() if "S" in f] == ["25"]
         assert str(table.get_cell("25", "error")) == "-"  # no LOO error for a suspect marker

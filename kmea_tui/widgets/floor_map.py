@@ -9,6 +9,7 @@ from typing import Any
 from rich.segment import Segment
 from rich.style import Style
 from rich.text import Text
+from textual.geometry import Region
 from textual.strip import Strip
 from textual.widget import Widget
 
@@ -70,9 +71,22 @@ class FloorMap(Widget):
         self._strips: list[Strip] | None = None
 
     def set_data(self, data: MapData) -> None:
+        """Show ``data``, repainting only the lines that differ from what is shown (robots
+        move a few lines a frame; the floor stays put)."""
         self.data = data
         self._update_auto_magnification()
-        self.refresh()
+        old = self._strips
+        if old is None or len(old) != self.size.height or not self.is_mounted:
+            self.refresh()
+            return
+        new = self._strips = self._render_strips()
+        width = self.size.width
+        changed = [y for y, (a, b) in enumerate(zip(old, new, strict=True)) if a != b]
+        start = 0
+        for i, y in enumerate(changed):
+            if i + 1 == len(changed) or changed[i + 1] != y + 1:
+                super().refresh(Region(0, changed[start], width, y - changed[start] + 1))
+                start = i + 1
 
     @property
     def effective_magnification(self) -> float:

@@ -1,16 +1,35 @@
-"""A DataTable that is kept in sync with live data in place (rows keyed, never rebuilt)."""
+"""A live table on Textual's Line API: rows keyed, updated in place, only changed lines redrawn.
+
+Textual's ``DataTable`` redraws every visible line when any one cell changes (its caches are
+keyed on a table-wide update counter): at 4 repaints a second a 40-row markers table took a
+tenth of a core. :class:`LiveTable` keeps one rendered strip per row, rebuilt only when that
+row's cells (or the column widths, the cursor or the styles) change, and asks Textual to
+repaint only the screen lines whose row changed (``refresh(Region)``). A row that moves
+(sorting, rows coming or going) repaints the lines it left and the lines it reached.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
+from rich.cells import cell_len, set_cell_size
+from rich.segment import Segment
+from rich.style import Style
 from rich.text import Text
-from textual.binding import Binding
+from textual import events
+from textual.binding import Binding, BindingType
+from textual.geometry import Region, Size
 from textual.message import Message
-from textual.widgets import DataTable
+from textual.scroll_view import ScrollView
+from textual.strip import Strip
 
 DASH = "-"
+# Blank columns either side of a cell's text (DataTable's default ``cell_padding``).
+PAD = 1
+
+Cell = str | Text
 
 
 def fmt(value: Any, spec: str = ".3f", scale: float = 1.0) -> str:
@@ -45,180 +64,195 @@ def _value_key(value: Any) -> Any:
     if isinstance(value, Text):
         return ("T", value.plain, str(value.style), value.justify,
                 tuple((sp.start, sp.end, str(sp.style)) for sp in value.spans))
-    try:
-        hash(value)
-    except TypeError:
-        return ("R", repr(value))
     return value
 
 
-class LiveTable(DataTable):
-    """Rows keyed by a string; :meth:`sync` adds, updates (``update_cell``) and removes rows.
+@dataclass(eq=False)
+class LiveRow:
+    """One row: its key, raw values (for sorting) and cells in column order. The object
+    stays the same while the row is updated in place."""
+
+    key: str
+    raw: dict[str, Any]
+    cells: tuple[Cell, ...]
+    version: int = 0
+    # The row's rendered line and what it was rendered with (see LiveTable._row_strip).
+    strip: Strip | None = field(default=None, repr=False)
+    strip_key: tuple | None = field(default=None, repr=False)
+
+
+class LiveTable(ScrollView, can_focus=True):
+    """Rows keyed by a string; :meth:`sync` adds, updates and removes rows.
 
     Columns are ``(key, label)`` pairs. Sorting: ``s`` cycles the sort column, ``S`` reverses
-    it; the sort value of a row comes from ``sort_value(raw_row, column_key)``.
+    it, a click on a header sorts by that column (again: reverses); the sort value of a row
+    comes from ``sort_value(raw_row, column_key)``. A row cursor moves with the arrows,
+    page keys and clicks. Column widths fit the widest cell seen and never shrink (a
+    column that narrows and widens again would make the whole table jump).
     """
 
-    BINDINGS = [
+    DEFAULT_CSS = """
+    LiveTable {
+        background: $surface;
+        color: $foreground;
+        &:focus {
+            background-tint: $foreground 5%;
+            & > .live-table--cursor {
+                background: $block-cursor-background;
+                color: $block-cursor-foreground;
+                text-style: $block-cursor-text-style;
+            }
+            & > .live-table--header { background-tint: $foreground 5%; }
+        }
+        & > .live-table--header { text-style: bold; background: $panel; color: $foreground; }
+        &:ansi > .live-table--header { background: ansi_bright_blue; color: ansi_default; }
+        & > .live-table--cursor {
+            background: $block-cursor-blurred-background;
+            color: $block-cursor-blurred-foreground;
+            text-style: $block-cursor-blurred-text-style;
+        }
+    }
+    """
+    COMPONENT_CLASSES: ClassVar[set[str]] = {"live-table--header", "live-table--cursor"}
+
+    BINDINGS: ClassVar[list[BindingType]] = [
         Binding("s", "cycle_sort", "Sort col"),
         Binding("S", "reverse_sort", "Reverse", show=False),
+        Binding("up", "cursor_up", "Cursor up", show=False),
+        Binding("down", "cursor_down", "Cursor down", show=False),
+        Binding("pageup", "page_up", "Page up", show=False),
+        Binding("pagedown", "page_down", "Page down", show=False),
+        Binding("home,ctrl+home", "cursor_home", "Top", show=False),
+        Binding("end,ctrl+end", "cursor_end", "Bottom", show=False),
+        Binding("left", "scroll_left", "Scroll left", show=False),
+        Binding("right", "scroll_right", "Scroll right", show=False),
     ]
 
     def __init__(self, columns: Sequence[tuple[str, str]], *,
                  sort_value: Callable[[dict[str, Any], str], Any] | None = None,
                  sort_column: str | None = None, id: str | None = None) -> None:
-        super().__init__(id=id, cursor_type="row", zebra_stripes=False)
+        super().__init__(id=id)
         self._columns = list(columns)
         self._sort_value = sort_value
         self.sort_column = sort_column or self._columns[0][0]
         self.sort_reverse = False
+        self.rows: dict[str, LiveRow] = {}
         self.raw: dict[str, dict[str, Any]] = {}
-        self._cells: dict[str, tuple[str | Text, ...]] = {}  # cells last shown, per row
-        self._value_cache: dict[tuple, Any] = {}  # rendered cells by value (_render_cell)
-        self._line_cache_by_value: dict[tuple, Any] = {}  # row lines by value
-        # Counters the tests read to prove rows are updated in place, not rebuilt.
+        self._order: list[str] = []  # row keys in display order
+        self._widths = [cell_len(label) for _, label in self._columns]
+        self.cursor_row = 0
+        self._cell_cache: dict[tuple, list[Segment]] = {}
+        self._header: tuple[tuple, Strip] | None = None
+        # Counters the tests read to prove rows are updated in place, not rebuilt, and that
+        # only what changed is drawn again.
         self.rows_added = 0
         self.rows_removed = 0
         self.cells_updated = 0
+        self.lines_rendered = 0
 
-    def on_mount(self) -> None:
-        for key, label in self._columns:
-            self.add_column(label, key=key)
-
+    # -- the data --------------------------------------------------------------------------
     @property
     def column_keys(self) -> list[str]:
         return [k for k, _ in self._columns]
 
-    def sync(self, rows: dict[str, tuple[dict[str, Any], Sequence[str | Text]]]) -> None:
+    @property
+    def row_count(self) -> int:
+        return len(self._order)
+
+    def get_cell(self, row_key: str, column_key: str) -> Cell:
+        """The cell shown in row ``row_key``, column ``column_key`` (KeyError if none)."""
+        return self.rows[str(row_key)].cells[self.column_keys.index(column_key)]
+
+    def get_row_at(self, index: int) -> list[Cell]:
+        """The cells of the row shown at ``index`` (0 = the first row under the header)."""
+        return list(self.rows[self._order[index]].cells)
+
+    def row_key_at(self, index: int) -> str:
+        return self._order[index]
+
+    def sync(self, rows: dict[str, tuple[dict[str, Any], Sequence[Cell]]]) -> None:
         """Make the table show exactly ``rows``: {key: (raw values, cells in column order)}.
 
-        Only cells that changed are updated (``update_cell``), inside one batch update; the
-        rows are sorted again only when a row came or went or a sort value changed.
+        Only rows whose cells changed are rendered and repainted; the rows are sorted again
+        only when a row came or went or a sort value changed.
         """
-        keys = self.column_keys
+        before = self._line_signatures()
         resort = False
-        with self.app.batch_update():
-            for key, (raw, cells) in rows.items():
-                old = self.raw.get(key)
-                self.raw[key] = raw
-                cells = tuple(cells)
-                if key in self.rows:
-                    last = self._cells.get(key)
-                    if last == cells:
-                        continue  # nothing changed in this row: not even a cell lookup
-                    for col, value, before in zip(keys, cells, last or (None,) * len(keys),
-                                                  strict=True):
-                        if before != value:
-                            self.update_cell(key, col, value)
-                            self.cells_updated += 1
-                    if old is None or self._sort_of(old) != self._sort_of(raw):
-                        resort = True
-                else:
-                    self.add_row(*cells, key=key)
-                    self.rows_added += 1
+        widths = list(self._widths)
+        for key, (raw, cells) in rows.items():
+            cells = tuple(cells)
+            row = self.rows.get(key)
+            self.raw[key] = raw
+            if row is None:
+                row = self.rows[key] = LiveRow(key, raw, cells)
+                self._order.append(key)
+                self.rows_added += 1
+                resort = True
+            else:
+                old_raw, row.raw = row.raw, raw
+                if row.cells == cells:
+                    continue  # nothing to draw; its sort value cannot have changed either
+                self.cells_updated += sum(1 for a, b in zip(row.cells, cells, strict=True)
+                                          if a != b)
+                row.cells = cells
+                row.version += 1
+                if self._sort_of(old_raw) != self._sort_of(raw):
                     resort = True
-                self._cells[key] = cells
-            for row_key in list(self.rows):
-                if row_key.value not in rows:
-                    self.remove_row(row_key)
-                    self.raw.pop(row_key.value or "", None)
-                    self._cells.pop(row_key.value or "", None)
-                    self.rows_removed += 1
-            if resort:
-                self.apply_sort()
+            for i, cell in enumerate(cells):
+                if (n := cell.cell_len if isinstance(cell, Text) else cell_len(cell)) > widths[i]:
+                    widths[i] = n
+        gone = [k for k in self._order if k not in rows]
+        for key in gone:
+            del self.rows[key]
+            self.raw.pop(key, None)
+            self.rows_removed += 1
+        if gone:
+            self._order = [k for k in self._order if k in self.rows]
+        if resort:
+            self._sort_rows()
+        self._after_change(before, widths)
 
-    def _render_cell(self, row_index: int, column_index: int, base_style: Any, width: int,
-                     cursor: bool = False, hover: bool = False) -> Any:
-        """DataTable's cell rendering, cached by the cell's *value*.
+    def clear(self) -> None:
+        """Remove every row."""
+        before = self._line_signatures()
+        self.rows_removed += len(self._order)
+        self.rows.clear()
+        self.raw.clear()
+        self._order.clear()
+        self._after_change(before, self._widths)
 
-        DataTable keys its cell cache on a table-wide update counter: one ``update_cell``
-        makes it render every visible cell again through Rich (~1 ms each; a 40-row
-        markers table at 4 Hz was a quarter of a core). A cell whose value, place, width
-        and style did not change renders to the same segments, so they are reused.
-        """
-        if row_index < 0 or column_index < 0:  # header and labels: DataTable's own cache
-            return super()._render_cell(row_index, column_index, base_style, width, cursor,
-                                        hover)
-        row_key = self._row_locations.get_key(row_index)
-        column_key = self._column_locations.get_key(column_index)
-        value = self._data.get(row_key, {}).get(column_key)
-        key = (row_key, column_key, _value_key(value), row_index, column_index, base_style,
-               width, cursor, hover, self._show_hover_cursor, self.show_cursor,
-               self._pseudo_class_state)
-        lines = self._value_cache.get(key)
-        if lines is None:
-            if len(self._value_cache) > 20000:
-                self._value_cache.clear()
-            lines = self._value_cache[key] = super()._render_cell(
-                row_index, column_index, base_style, width, cursor, hover)
-        return lines
-
-    def _render_line_in_row(self, row_key: Any, line_no: int, base_style: Any,
-                            cursor_location: Any, hover_location: Any) -> Any:
-        """DataTable's row line, cached by the row's values (its own cache is keyed on the
-        table-wide update counter too: every visible line was joined again after any
-        update). The key holds everything the line depends on: the row's cells and place,
-        the column widths, the cursor and hover when they are on this row, the styles."""
-        if row_key not in self._row_locations or row_key.value not in self._cells:
-            return super()._render_line_in_row(row_key, line_no, base_style,
-                                               cursor_location, hover_location)
-        row_index = self._row_locations.get(row_key)
-        widths = tuple(c.get_render_width(self) for c in self.ordered_columns)
-        key = (row_key, line_no, base_style, row_index,
-               tuple(_value_key(v) for v in self._cells[row_key.value]), widths,
-               cursor_location if cursor_location.row == row_index else None,
-               hover_location if hover_location.row == row_index else None,
-               self.cursor_type, self.show_cursor, self._show_hover_cursor,
-               self._pseudo_class_state, self.fixed_columns, self.fixed_rows,
-               self.zebra_stripes, self.show_row_labels)
-        got = self._line_cache_by_value.get(key)
-        if got is None:
-            if len(self._line_cache_by_value) > 5000:
-                self._line_cache_by_value.clear()
-            got = self._line_cache_by_value[key] = super()._render_line_in_row(
-                row_key, line_no, base_style, cursor_location, hover_location)
-        return got
-
+    # -- sorting ---------------------------------------------------------------------------
     def _sort_of(self, raw: dict[str, Any]) -> Any:
         col = self.sort_column
         return self._sort_value(raw, col) if self._sort_value else raw.get(col)
 
-    def apply_sort(self) -> None:
-        if self.row_count < 2:
-            return
-        col = self.sort_column
-
-        def value(row_key_cell: Any) -> Any:
-            raw = self.raw.get(str(row_key_cell), {})
-            v = self._sort_value(raw, col) if self._sort_value else raw.get(col)
+    def _sort_rows(self) -> None:
+        def value(key: str) -> Any:
+            v = self._sort_of(self.rows[key].raw)
             # Missing values sort last whatever the direction.
             missing = v is None
             if self.sort_reverse:
                 missing = not missing
             return (missing, v if v is not None else 0)
 
-        # The first column holds the row key's text, which identifies the raw row.
-        self.sort(self.column_keys[0], key=value, reverse=self.sort_reverse)
+        self._order.sort(key=value, reverse=self.sort_reverse)
+
+    def apply_sort(self) -> None:
+        before = self._line_signatures()
+        self._sort_rows()
+        self._after_change(before, self._widths)
+
+    def _set_sort(self, column: str, reverse: bool) -> None:
+        self.sort_column, self.sort_reverse = column, reverse
+        self.apply_sort()
+        self.post_message(self.SortChanged(self))
 
     def action_cycle_sort(self) -> None:
         keys = self.column_keys
-        self.sort_column = keys[(keys.index(self.sort_column) + 1) % len(keys)]
-        self.apply_sort()
-        self.post_message(self.SortChanged(self))
+        self._set_sort(keys[(keys.index(self.sort_column) + 1) % len(keys)], self.sort_reverse)
 
     def action_reverse_sort(self) -> None:
-        self.sort_reverse = not self.sort_reverse
-        self.apply_sort()
-        self.post_message(self.SortChanged(self))
-
-    def on_data_table_header_selected(self, event: DataTable.HeaderSelected) -> None:
-        key = event.column_key.value or self.sort_column
-        if key == self.sort_column:
-            self.sort_reverse = not self.sort_reverse
-        else:
-            self.sort_column, self.sort_reverse = key, False
-        self.apply_sort()
-        self.post_message(self.SortChanged(self))
+        self._set_sort(self.sort_column, not self.sort_reverse)
 
     def sort_label(self) -> str:
         label = dict(self._columns).get(self.sort_column, self.sort_column)
@@ -230,3 +264,150 @@ class LiveTable(DataTable):
         def __init__(self, table: LiveTable) -> None:
             super().__init__()
             self.table = table
+
+    # -- cursor and mouse ------------------------------------------------------------------
+    def move_cursor(self, row: int) -> None:
+        """Put the row cursor on display row ``row`` (clamped) and scroll it into view."""
+        old = self.cursor_row
+        self.cursor_row = max(0, min(row, self.row_count - 1))
+        if self.cursor_row != old:
+            self._refresh_rows((old, self.cursor_row))
+        self._scroll_to_cursor()
+
+    def _scroll_to_cursor(self) -> None:
+        visible = max(1, self.size.height - 1)
+        top = int(self.scroll_y)
+        if self.cursor_row < top:
+            self.scroll_to(y=self.cursor_row, animate=False)
+        elif self.cursor_row >= top + visible:
+            self.scroll_to(y=self.cursor_row - visible + 1, animate=False)
+
+    def action_cursor_up(self) -> None:
+        self.move_cursor(self.cursor_row - 1)
+
+    def action_cursor_down(self) -> None:
+        self.move_cursor(self.cursor_row + 1)
+
+    def action_page_up(self) -> None:
+        self.move_cursor(self.cursor_row - max(1, self.size.height - 2))
+
+    def action_page_down(self) -> None:
+        self.move_cursor(self.cursor_row + max(1, self.size.height - 2))
+
+    def action_cursor_home(self) -> None:
+        self.move_cursor(0)
+
+    def action_cursor_end(self) -> None:
+        self.move_cursor(self.row_count - 1)
+
+    def _on_click(self, event: events.Click) -> None:
+        offset = event.get_content_offset(self)
+        if offset is None:
+            return
+        if offset.y == 0:  # the header: sort by that column (the same one: reverse)
+            x = offset.x + int(self.scroll_x)
+            for (key, _), width in zip(self._columns, self._widths, strict=True):
+                x -= width + 2 * PAD
+                if x < 0:
+                    self._set_sort(key, not self.sort_reverse if key == self.sort_column
+                                   else False)
+                    break
+        elif (row := offset.y - 1 + int(self.scroll_y)) < self.row_count:
+            self.move_cursor(row)
+
+    def watch_has_focus(self, focus: bool) -> None:
+        # The cursor row's style depends on the focus: that line only.
+        super().watch_has_focus(focus)
+        self._refresh_rows((self.cursor_row,))
+
+    # -- drawing ---------------------------------------------------------------------------
+    def _line_signatures(self) -> list[tuple[str, int]]:
+        return [(k, self.rows[k].version) for k in self._order]
+
+    def _after_change(self, before: list[tuple[str, int]], widths: list[int]) -> None:
+        """Repaint the screen lines whose row, or whose row's cells, changed."""
+        if self.cursor_row >= self.row_count:
+            self.cursor_row = max(0, self.row_count - 1)
+        size = Size(sum(widths) + 2 * PAD * len(widths), self.row_count + 1)
+        if widths != self._widths:
+            self._widths = widths
+            self.virtual_size = size
+            self.refresh()  # every line moves: all of it
+            return
+        if size != self.virtual_size:
+            self.virtual_size = size
+        after = self._line_signatures()
+        changed = [i for i in range(max(len(before), len(after)))
+                   if i >= len(before) or i >= len(after) or before[i] != after[i]]
+        self._refresh_rows(changed)
+
+    def _refresh_rows(self, rows: Iterable[int]) -> None:
+        """Repaint the screen lines of display rows ``rows`` that are in view, as few
+        regions as possible (runs of adjacent lines)."""
+        if not self.is_mounted:
+            return
+        top, height = int(self.scroll_y), self.size.height
+        width = max(self.size.width, self.virtual_size.width)
+        lines = sorted({r - top + 1 for r in rows if 1 <= r - top + 1 < height})
+        start = prev = None
+        for y in [*lines, None]:
+            if y is not None and prev is not None and y == prev + 1:
+                prev = y
+                continue
+            if start is not None and prev is not None:
+                self.refresh(Region(0, start, width, prev - start + 1))
+            start = prev = y
+
+    def _cell_segments(self, cell: Cell, width: int, style: Style) -> list[Segment]:
+        """One padded cell, ``width`` columns of text, in ``style`` (the cell's own styles
+        over it); cached by value."""
+        key = (_value_key(cell), width, style)
+        got = self._cell_cache.get(key)
+        if got is not None:
+            return got
+        pad = " " * PAD
+        if isinstance(cell, Text):
+            text = cell.copy()
+            text.truncate(width, overflow="ellipsis", pad=True)
+            text.end = ""
+            inner = list(Segment.apply_style(text.render(self.app.console), style))
+        else:
+            inner = [Segment(set_cell_size(cell, width), style)]
+        got = [Segment(pad, style), *inner, Segment(pad, style)]
+        if len(self._cell_cache) > 20000:
+            self._cell_cache.clear()
+        self._cell_cache[key] = got
+        return got
+
+    def _header_strip(self, style: Style) -> Strip:
+        key = (style, tuple(self._widths), tuple(self._columns))
+        if self._header is None or self._header[0] != key:
+            segs = [s for (_, label), w in zip(self._columns, self._widths, strict=True)
+                    for s in self._cell_segments(label, w, style)]
+            self._header = (key, Strip(segs))
+        return self._header[1]
+
+    def _row_strip(self, row: LiveRow, style: Style) -> Strip:
+        key = (row.version, style, tuple(self._widths))
+        if row.strip is None or row.strip_key != key:
+            segs = [s for cell, w in zip(row.cells, self._widths, strict=True)
+                    for s in self._cell_segments(cell, w, style)]
+            row.strip, row.strip_key = Strip(segs), key
+        return row.strip
+
+    def render_line(self, y: int) -> Strip:
+        self.lines_rendered += 1
+        width = self.size.width
+        scroll_x, scroll_y = self.scroll_offset
+        base = self.rich_style
+        if y == 0:
+            strip = self._header_strip(
+                base + self.get_component_rich_style("live-table--header"))
+        elif (index := scroll_y + y - 1) < len(self._order):
+            style = base
+            if index == self.cursor_row:
+                style = base + self.get_component_rich_style("live-table--cursor")
+            strip = self._row_strip(self.rows[self._order[index]], style)
+        else:
+            return Strip.blank(width, base)
+        return strip.crop_extend(scroll_x, scroll_x + width, base)

@@ -61,12 +61,16 @@ class StatusBar(Static):
         self.state = "connecting"
         self.detail = ""
         self.frame: dict[str, Any] | None = None
+        self._shown: Text | None = None
 
     def show(self, state: str, frame: dict[str, Any] | None = None, detail: str = "") -> None:
         self.state, self.detail = state, detail
         if frame is not None:
             self.frame = frame
-        self.update(status_text(state, self.frame, self.size.width or 80, detail), layout=False)
+        text = status_text(state, self.frame, self.size.width or 80, detail)
+        if text != self._shown:  # the state is checked twice a second: mostly unchanged
+            self._shown = text
+            self.update(text, layout=False)
 
     def on_resize(self) -> None:
         self.show(self.state, None, self.detail)
