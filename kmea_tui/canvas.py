@@ -16,6 +16,8 @@ from rich.text import Text
 # Bit of each dot in a braille cell, indexed [row][column] (Unicode braille patterns).
 _BRAILLE_BITS = ((0x01, 0x08), (0x02, 0x10), (0x04, 0x20), (0x40, 0x80))
 _BRAILLE_BASE = 0x2800
+# The character of each dot pattern (none set: a blank).
+_CHARS = [" "] + [chr(_BRAILLE_BASE + b) for b in range(1, 256)]
 
 
 class BrailleCanvas:
@@ -86,27 +88,40 @@ class BrailleCanvas:
 
     def runs(self) -> list[list[tuple[str, Style | str | None]]]:
         """Per row, the (text, style) runs of cells that share a style."""
-        rows = []
-        for cy in range(self.rows):
-            row: list[tuple[str, Style | str | None]] = []
-            run: list[str] = []
-            run_style: Style | str | None = None
-            for cx in range(self.cols):
-                if (cx, cy) in self._text:
-                    ch, style = self._text[(cx, cy)]
-                else:
-                    bits = self._bits[cy][cx]
-                    ch = chr(_BRAILLE_BASE + bits) if bits else " "
-                    style = self._style[cy][cx] if bits else None
-                if style != run_style and run:
-                    row.append(("".join(run), run_style))
-                    run = []
-                run_style = style
-                run.append(ch)
-            if run:
-                row.append(("".join(run), run_style))
-            rows.append(row)
+        texts = self._texts_by_row()
+        return [self.row_runs(cy, texts.get(cy, {})) for cy in range(self.rows)]
+
+    def _texts_by_row(self) -> dict[int, dict[int, tuple[str, Style | str | None]]]:
+        rows: dict[int, dict[int, tuple[str, Style | str | None]]] = {}
+        for (cx, cy), v in self._text.items():
+            rows.setdefault(cy, {})[cx] = v
         return rows
+
+    def row_keys(self) -> list[tuple]:
+        """Per row, a value equal for two canvases exactly when the row draws the same
+        (a redraw can keep the lines whose key did not change)."""
+        texts = self._texts_by_row()
+        return [(tuple(self._bits[cy]), tuple(self._style[cy]),
+                 tuple(sorted(texts[cy].items())) if cy in texts else ())
+                for cy in range(self.rows)]
+
+    def row_runs(self, cy: int, texts: dict[int, tuple[str, Style | str | None]] | None = None
+                 ) -> list[tuple[str, Style | str | None]]:
+        """Row ``cy``'s (text, style) runs; ``texts``: its text cells by column, if known."""
+        if texts is None:
+            texts = self._texts_by_row().get(cy, {})
+        bits_row, style_row = self._bits[cy], self._style[cy]
+        chars = [_CHARS[b] for b in bits_row]
+        styles = [st if b else None for b, st in zip(bits_row, style_row, strict=True)]
+        for cx, (ch, st) in texts.items():
+            chars[cx], styles[cx] = ch, st
+        row: list[tuple[str, Style | str | None]] = []
+        start = 0
+        for cx in range(1, self.cols + 1):
+            if cx == self.cols or styles[cx] != styles[start]:
+                row.append(("".join(chars[start:cx]), styles[start]))
+                start = cx
+        return row
 
     def render(self) -> Text:
         """The canvas as Rich text (rows joined by newlines)."""

@@ -69,6 +69,9 @@ class FloorMap(Widget):
         self.magnification: float | None = None
         self._auto_mag = 100.0
         self._strips: list[Strip] | None = None
+        # The last lines drawn by row key (BrailleCanvas.row_keys), with the (style, width)
+        # they were drawn for.
+        self._row_cache: tuple[tuple[Style, int], dict[tuple, Strip]] | None = None
 
     def set_data(self, data: MapData) -> None:
         """Show ``data``, repainting only the lines that differ from what is shown (robots
@@ -81,7 +84,7 @@ class FloorMap(Widget):
             return
         new = self._strips = self._render_strips()
         width = self.size.width
-        changed = [y for y, (a, b) in enumerate(zip(old, new, strict=True)) if a != b]
+        changed = [y for y, (a, b) in enumerate(zip(old, new, strict=True)) if a is not b]
         start = 0
         for i, y in enumerate(changed):
             if i + 1 == len(changed) or changed[i + 1] != y + 1:
@@ -136,6 +139,8 @@ class FloorMap(Widget):
         self._strips = None
 
     def _render_strips(self) -> list[Strip]:
+        """The map's lines; a line that draws as before is the same Strip object as before
+        (only rows whose dots, styles or text changed are built again)."""
         width, height = self.size.width, self.size.height
         canvas = BrailleCanvas(width, height)
         if canvas.cols >= 4 and canvas.rows >= 2:
@@ -148,8 +153,14 @@ class FloorMap(Widget):
                 cache[s] = base + (Style.parse(s) if isinstance(s, str) else (s or Style()))
             return cache[s]
 
-        strips = [Strip([Segment(text, style_of(st)) for text, st in row], width)
-                  for row in canvas.runs()]
+        keys = canvas.row_keys()
+        old: dict[tuple, Strip] = {}
+        if self._row_cache is not None and self._row_cache[0] == (base, width):
+            old = self._row_cache[1]
+        strips = [old.get(key) or Strip([Segment(text, style_of(st))
+                                         for text, st in canvas.row_runs(cy)], width)
+                  for cy, key in enumerate(keys)]
+        self._row_cache = ((base, width), dict(zip(keys, strips, strict=True)))
         return strips or [Strip.blank(width, base)]
 
     def render_line(self, y: int) -> Strip:
