@@ -370,7 +370,11 @@ class LiveTable(ScrollView, can_focus=True):
             text = cell.copy()
             text.truncate(width, overflow="ellipsis", pad=True)
             text.end = ""
-            inner = list(Segment.apply_style(text.render(self.app.console), style))
+            # Text.render gives the spans' styles only: the text's own style goes under them.
+            console = self.app.console
+            own = console.get_style(cell.style, default=Style.null()) if cell.style else None
+            inner = list(Segment.apply_style(text.render(console),
+                                             style + own if own else style))
         else:
             inner = [Segment(set_cell_size(cell, width), style)]
         got = [Segment(pad, style), *inner, Segment(pad, style)]
