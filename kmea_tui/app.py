@@ -51,7 +51,7 @@ CAMERA_LEASE_S = 4.0
 # (and, inside kmead, the GIL) with the pipeline: 4 Hz is plenty for a person.
 UI_PERIOD_S = 0.25
 # A live daemon's socket is drained once per repaint; while the UI is still busy with the
-# last batch, again after this long (s).
+# last batch, again after this long (s); with nothing at all, once per ui_period.
 DRAIN_RETRY_S = 0.02
 # Topics whose bodies are decoded only when a shown pane needs them (the largest ones).
 LAZY_TOPICS = (protocol.TOPIC_MARKERS, protocol.TOPIC_ROBOTS, protocol.TOPIC_STATS)
@@ -196,7 +196,10 @@ class KmeaTui(App[None]):
         decode = getattr(self.client, "decode_raw", None)
         while True:
             if drain is not None:
-                await asyncio.sleep(max(next_post - time.monotonic(), DRAIN_RETRY_S))
+                wait = next_post - time.monotonic()
+                if wait <= 0:  # the UI is still busy, or nothing came the last time
+                    wait = DRAIN_RETRY_S if (latest or events) else self.ui_period
+                await asyncio.sleep(wait)
                 msgs = drain()
             else:
                 msgs = await self.client.recv(0.05)
