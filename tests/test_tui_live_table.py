@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.style import Style
+from rich.text import Text
 
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import RecordingClient
@@ -136,6 +137,18 @@ async def test_rows_come_and_go_in_place() -> None:
         body["markers"].append(dict(gone, id=49, in_map=False))
         await _post_markers(app, pilot, body)
         assert table.row_count == n and str(table.get_cell("49", "map")) == "no"
+        # A cell that changes colour only (same text) is drawn again too (rich Texts with
+        # the same text compare equal whatever their style).
+        rows = {k: (r.raw, list(r.cells)) for k, r in table.rows.items()}
+        key = table.row_key_at(0)
+        for colour in ("magenta", "cyan"):
+            rows[key][1][0] = Text(key, style=f"bold {colour}")
+            rendered = table.lines_rendered
+            table.sync(rows)
+            await pilot.pause(0.1)
+            assert table.lines_rendered - rendered == 1
+            first = next(s for s in table.render_line(1) if s.text.strip() == key)
+            assert first.style.color == Style.parse(colour).color
 
 
 async def test_map_redraws_only_the_lines_a_robot_moved_on() -> None:

@@ -75,6 +75,9 @@ class LiveRow:
     key: str
     raw: dict[str, Any]
     cells: tuple[Cell, ...]
+    # The cells as compared (a rich Text equals another with the same text in another
+    # colour): the row is drawn again when this changes.
+    sig: tuple
     version: int = 0
     # The row's rendered line and what it was rendered with (see LiveTable._row_strip).
     strip: Strip | None = field(default=None, repr=False)
@@ -184,17 +187,18 @@ class LiveTable(ScrollView, can_focus=True):
             row = self.rows.get(key)
             self.raw[key] = raw
             if row is None:
-                row = self.rows[key] = LiveRow(key, raw, cells)
+                row = self.rows[key] = LiveRow(key, raw, cells, tuple(map(_value_key, cells)))
                 self._order.append(key)
                 self.rows_added += 1
                 resort = True
             else:
                 old_raw, row.raw = row.raw, raw
-                if row.cells == cells:
+                sig = tuple(map(_value_key, cells))
+                if sig == row.sig:
                     continue  # nothing to draw; its sort value cannot have changed either
-                self.cells_updated += sum(1 for a, b in zip(row.cells, cells, strict=True)
+                self.cells_updated += sum(1 for a, b in zip(row.sig, sig, strict=True)
                                           if a != b)
-                row.cells = cells
+                row.cells, row.sig = cells, sig
                 row.version += 1
                 if self._sort_of(old_raw) != self._sort_of(raw):
                     resort = True
