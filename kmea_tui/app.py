@@ -46,9 +46,9 @@ FROZEN_STATES = ("stale", "disconnected", "stopped", "connecting")
 # The Camera tab renews its thumbnail lease this often, for this long (docs/protocol.md).
 CAMERA_RENEW_S = 1.5
 CAMERA_LEASE_S = 4.0
-# Tables refresh at most this often. Each refresh re-renders every visible DataTable cell
-# (30-70 ms of CPU here for a full markers table), and on the Pi the UI shares the CPU
-# (and, inside kmead, the GIL) with the pipeline: 4 Hz is plenty for a person.
+# Tables refresh at most this often. A refresh draws only the lines that changed, but on
+# the Pi the UI shares the CPU (and, inside kmead, the GIL) with the pipeline: 4 Hz is
+# plenty for a person.
 UI_PERIOD_S = 0.25
 # A live daemon's socket is drained once per repaint; while the UI is still busy with the
 # last batch, again after this long (s); with nothing at all, once per ui_period.
