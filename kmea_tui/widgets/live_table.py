@@ -304,7 +304,7 @@ class LiveTable(ScrollView, can_focus=True):
     def action_cursor_end(self) -> None:
         self.move_cursor(self.row_count - 1)
 
-    def _on_click(self, event: events.Click) -> None:
+    def on_click(self, event: events.Click) -> None:
         offset = event.get_content_offset(self)
         if offset is None:
             return
