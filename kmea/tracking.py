@@ -121,6 +121,11 @@ class TrackerConfig:
     when that one, not the new one, is the outlier (module docstring); the new one must
     then fit the prediction without it inside the chi-square quantile at
     look_back_probability.
+    manoeuvre_scale: > 1 adds a second motion model whose process noise is this many times
+    accel_noise and turn_noise (a manoeuvre: braking, starting, entering a turn) and runs
+    both as an interacting-multiple-model filter (module docstring); 1 = one model.
+    manoeuvre_time_s, cruise_time_s: the mean time (s) spent in a manoeuvre and between
+    manoeuvres (the models' switching rates).
     """
 
     model: str = "ctrv"
@@ -139,6 +144,9 @@ class TrackerConfig:
     robust_k: float = 3.0
     look_back: bool = True
     look_back_probability: float = 0.99
+    manoeuvre_scale: float = 1.0
+    manoeuvre_time_s: float = 0.3
+    cruise_time_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -159,6 +167,9 @@ class TrackerConfig:
         if not self.look_back_probability < 1.0:
             raise ValueError(f"tracker look_back_probability must be in (0, 1), got "
                              f"{self.look_back_probability!r}")
+        if self.manoeuvre_scale < 1.0:
+            raise ValueError(f"tracker manoeuvre_scale must be >= 1, got "
+                             f"{self.manoeuvre_scale!r}")
         if not self.gate_probability < 1.0:
             raise ValueError(f"tracker gate_probability must be in (0, 1), got "
                              f"{self.gate_probability!r}")
@@ -328,23 +339,98 @@ def _model(cfg: TrackerConfig) -> _Model:
     return _CV(cfg) if cfg.model == "cv" else _CTRV(cfg)
 
 
+def _moments(ss: np.ndarray, Ps: np.ndarray, w: np.ndarray, ref: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of the mixture of states ``ss`` (M, n) with covariances ``Ps``
+    (M, n, n) and weights ``w`` (M,); headings unwrapped around ``ref`` rad first."""
+    if len(w) == 1:
+        return ss[0].copy(), Ps[0].copy()
+    X = ss.copy()
+    X[:, 2] = ref + (X[:, 2] - ref + math.pi) % _TWO_PI - math.pi
+    s = w @ X
+    D = X - s
+    P = np.einsum("i,ijk->jk", w, Ps) + (D.T * w) @ D
+    s[2] = _wrap(s[2])
+    return s, P
+
+
 class Track:
-    """The tracking filter of one robot (see the module docstring)."""
+    """The tracking filter of one robot (see the module docstring).
+
+    Its state is one (state, covariance) per motion model and the models' probabilities
+    (``_fs``: ss (M, n), Ps (M, n, n), mu (M,)); ``s`` (n,) and ``P`` (n, n) are their
+    combination (moment-matched), which is what is gated, reported and predicted."""
 
     def __init__(self, name: str = "", config: TrackerConfig | None = None) -> None:
         self.name = name
-        self.config = config or TrackerConfig()
-        self.gate = chi2_quantile_3(self.config.gate_probability)
-        self.look_back_gate = chi2_quantile_3(self.config.look_back_probability)
-        self._model = _model(self.config)
+        self.config = cfg = config or TrackerConfig()
+        self.gate = chi2_quantile_3(cfg.gate_probability)
+        self.look_back_gate = chi2_quantile_3(cfg.look_back_probability)
+        self._models = [_model(cfg)]
+        if cfg.manoeuvre_scale > 1.0:
+            self._models.append(_model(cfg.with_(
+                accel_noise=cfg.accel_noise * cfg.manoeuvre_scale,
+                turn_noise=cfg.turn_noise * cfg.manoeuvre_scale)))
+        self._n = self._models[0].n
+        self._fs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.s: np.ndarray | None = None
         self.P: np.ndarray | None = None
         self.t: float | None = None  # time of the newest measurement applied
         self._cand: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._cand_track: Track | None = None
-        # The last accepted measurement and the state before it (for the look-back):
-        # (t_before, s_before, P_before, t, z, R, d2).
+        # The last accepted measurement and the filter before it (for the look-back):
+        # (t_before, fs_before, t, z, R).
         self._last: tuple | None = None
+
+    # ------------------------------------------------------------------ the models
+    def _predict(self, fs: tuple, dt: float) -> tuple:
+        """``fs`` moved by ``dt`` s (negative: backwards): the models mixed by their
+        switching probabilities over |dt| (IMM), then each moved by its own model."""
+        ss, Ps, mu = fs
+        if len(self._models) == 1:
+            s, P = self._models[0].step(ss[0], Ps[0], dt)
+            return s[None], P[None], mu
+        cfg = self.config
+        p01 = 1.0 - math.exp(-abs(dt) / cfg.cruise_time_s)
+        p10 = 1.0 - math.exp(-abs(dt) / cfg.manoeuvre_time_s)
+        Pi = np.array([[1.0 - p01, p01], [p10, 1.0 - p10]])  # Pi[i, j]: from i to j
+        c = Pi.T @ mu
+        out_s, out_P = np.empty_like(ss), np.empty_like(Ps)
+        for j, m in enumerate(self._models):
+            s0, P0 = _moments(ss, Ps, Pi[:, j] * mu / c[j], ss[j][2])
+            out_s[j], out_P[j] = m.step(s0, P0, dt)
+        return out_s, out_P, c
+
+    def _combine(self, fs: tuple) -> tuple[np.ndarray, np.ndarray]:
+        ss, Ps, mu = fs
+        return _moments(ss, Ps, mu, ss[int(np.argmax(mu))][2])
+
+    def _correct(self, fs: tuple, z: np.ndarray, R: np.ndarray, scale: float) -> tuple:
+        """Each model corrected by measurement ``z`` with its Kalman gain times ``scale``
+        (the Huber weight); the models' probabilities by their likelihoods."""
+        ss, Ps, mu = fs
+        H = np.eye(3, self._n)
+        out_s, out_P = np.empty_like(ss), np.empty_like(Ps)
+        loglik = np.zeros(len(mu))
+        for j in range(len(mu)):
+            y_, S, Si, d2 = _innovation(ss[j], Ps[j], z, R)
+            K = Ps[j][:, :3] @ Si * scale
+            out_s[j] = ss[j] + K @ y_
+            out_s[j][2] = _wrap(out_s[j][2])
+            I_KH = np.eye(self._n) - K @ H
+            # Joseph form: the true covariance of any gain (so the Huber-weighted one's
+            # reported sigma stays honest), symmetric positive.
+            out_P[j] = I_KH @ Ps[j] @ I_KH.T + K @ R @ K.T
+            loglik[j] = -0.5 * d2 - 0.5 * math.log(max(np.linalg.det(S), 1e-300))
+        if len(mu) > 1:
+            w = mu * np.exp(loglik - loglik.max())
+            mu = w / w.sum()
+        return out_s, out_P, mu
+
+    def _set(self, fs: tuple, t: float) -> None:
+        self._fs = fs
+        self.s, self.P = self._combine(fs)
+        self.t = float(t)
 
     # ------------------------------------------------------------------ measurement
     def noise(self, sigma: float | None, sigma_theta: float | None = None) -> np.ndarray:
@@ -375,8 +461,8 @@ class Track:
         if dt < -cfg.reset_after_s:
             return Outcome("rejected", f"too old ({-dt:.2f} s before the last measurement)",
                            math.nan, None)
-        s, P = self._model.step(self.s, self.P, dt)
-        inn = _innovation(s, P, z, R)
+        fs = self._predict(self._fs, dt)
+        inn = _innovation(*self._combine(fs), z, R)
         if inn is None:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
         y_, S, Si, d2 = inn
@@ -384,7 +470,7 @@ class Track:
         if d2 > self.gate and dt >= 0 and cfg.look_back:
             back = self._look_back(t, z, R)
             if back is not None:
-                s, P, y_, Si, S, d2, retracted = back
+                fs, y_, S, d2, retracted = back
         if d2 > self.gate:
             reason = self._reason(y_, S, d2)
             if self._candidate(t, z, R):
@@ -393,25 +479,17 @@ class Track:
             return Outcome("rejected", reason, d2, self.predict(max(t, self.t)))
         self._cand.clear()
         self._cand_track = None
-        K = P[:, :3] @ Si
-        d = math.sqrt(d2)
-        if d > cfg.robust_k:
-            # Huber weight: the correction of a borderline measurement is bounded. The
-            # Joseph form below gives the true covariance of any gain, so the reported
-            # sigma stays honest.
-            K = K * (cfg.robust_k / d)
-        s = s + K @ y_
-        s[2] = _wrap(s[2])
-        I_KH = np.eye(self._model.n) - K @ np.eye(3, self._model.n)
-        P = I_KH @ P @ I_KH.T + K @ R @ K.T  # Joseph form: stays symmetric positive
+        # Huber weight: a borderline measurement (d > robust_k) moves the state by only
+        # robust_k / d of the Kalman correction.
+        fs = self._correct(fs, z, R, min(1.0, cfg.robust_k / max(math.sqrt(d2), 1e-12)))
         if dt >= 0:
-            self._last = (self.t, self.s, self.P, t, z, R, d2) if retracted is None else None
-            self.s, self.P, self.t = s, P, t
+            self._last = (self.t, self._fs, t, z, R) if retracted is None else None
+            self._set(fs, t)
         else:
             # Out of order: the correction is applied at the measurement's time, then the
             # track is brought back to its newest time.
             self._last = None
-            self.s, self.P = self._model.step(s, P, -dt)
+            self._set(self._predict(fs, -dt), self.t)
         if retracted is not None:
             return Outcome("update", f"the previous measurement was an outlier: "
                            f"{retracted[4]}", d2, self.state(), retracted)
@@ -425,31 +503,28 @@ class Track:
         in hard manoeuvres). Returns the prediction from before it, with the new
         measurement's innovation, and the retracted measurement; None otherwise."""
         last = self._last
-        if last is None or last[3] != self.t:
+        if last is None or last[2] != self.t:
             return None
-        t0, s0, P0, t1, z1, R1, _d2_1 = last
-        s, P = self._model.step(s0, P0, t - t0)
-        inn = _innovation(s, P, z, R)
+        t0, fs0, t1, z1, R1 = last
+        fs = self._predict(fs0, t - t0)
+        inn = _innovation(*self._combine(fs), z, R)
         if inn is None:
             return None
-        y_, S, Si, d2 = inn
+        y_, S, _, d2 = inn
         # Skipping a measurement widens the prediction, so the new one must fit it well (a
         # tighter gate than the main one), not just pass.
         if d2 > self.look_back_gate:
             return None
         # The accepted one against the track through the new measurement (smoothed at t1).
-        K = P[:, :3] @ Si
-        sn = s + K @ y_
-        Pn = (np.eye(self._model.n) - K @ np.eye(3, self._model.n)) @ P
-        s1, P1 = self._model.step(sn, Pn, t1 - t)
-        inn1 = _innovation(s1, P1, z1, R1)
+        back = self._combine(self._predict(self._correct(fs, z, R, 1.0), t1 - t))
+        inn1 = _innovation(*back, z1, R1)
         if inn1 is None:
             return None
         y1, S1, _, d2_1 = inn1
         if d2_1 <= self.gate:
             return None  # both agree with the track: a manoeuvre, not an outlier
         reason = self._reason(y1, S1, d2_1)
-        return s, P, y_, Si, S, d2, (t1, float(z1[0]), float(z1[1]), float(z1[2]), reason)
+        return fs, y_, S, d2, (t1, float(z1[0]), float(z1[1]), float(z1[2]), reason)
 
     def _reason(self, y_: np.ndarray, S: np.ndarray, d2: float) -> str:
         dpos = math.hypot(y_[0], y_[1])
@@ -481,7 +556,7 @@ class Track:
         self._cand.append((t, z, R))
         self._cand_track = c
         if len(self._cand) >= cfg.reacquire_n:
-            self.s, self.P, self.t = c.s.copy(), c.P.copy(), c.t
+            self._set(c._fs, c.t)
             self._last = None
             self._cand = []
             self._cand_track = None
@@ -489,8 +564,14 @@ class Track:
         return False
 
     def _start(self, t: float, z: np.ndarray, R: np.ndarray) -> None:
-        self.s, self.P = self._model.init(z, R, self.config)
-        self.t = float(t)
+        cfg = self.config
+        s, P = self._models[0].init(z, R, cfg)
+        M = len(self._models)
+        # The models' long-run probabilities (the fraction of time in each).
+        mu = np.array([1.0]) if M == 1 else np.array(
+            [cfg.cruise_time_s, cfg.manoeuvre_time_s]) / (cfg.cruise_time_s
+                                                          + cfg.manoeuvre_time_s)
+        self._set((np.repeat(s[None], M, 0), np.repeat(P[None], M, 0), mu), t)
         self._last = None
         self._cand = []
         self._cand_track = None
@@ -513,11 +594,11 @@ class Track:
             return None
         if t == self.t:
             return self.state()
-        s, P = self._model.step(self.s, self.P, t - self.t)
+        s, P = self._combine(self._predict(self._fs, t - self.t))
         return self._state(t, s, P)
 
     def _state(self, t: float, s: np.ndarray, P: np.ndarray) -> TrackState:
-        vx, vy, speed, omega = self._model.velocity(s)
+        vx, vy, speed, omega = self._models[0].velocity(s)
         cov = P[:3, :3].copy()
         sig = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
         return TrackState(float(t), float(s[0]), float(s[1]), _wrap(float(s[2])), vx, vy,
