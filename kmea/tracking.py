@@ -144,6 +144,7 @@ class TrackerConfig:
     robust_k: float = 3.0
     look_back: bool = True
     look_back_probability: float = 0.99
+    step_k: float = 1e9
     manoeuvre_scale: float = 1.0
     manoeuvre_time_s: float = 0.3
     cruise_time_s: float = 2.0
@@ -479,9 +480,7 @@ class Track:
             return Outcome("rejected", reason, d2, self.predict(max(t, self.t)))
         self._cand.clear()
         self._cand_track = None
-        # Huber weight: a borderline measurement (d > robust_k) moves the state by only
-        # robust_k / d of the Kalman correction.
-        fs = self._correct(fs, z, R, min(1.0, cfg.robust_k / max(math.sqrt(d2), 1e-12)))
+        fs = self._correct(fs, z, R, self._weight(fs, z, R, y_, Si, d2))
         if dt >= 0:
             self._last = (self.t, self._fs, t, z, R) if retracted is None else None
             self._set(fs, t)
@@ -494,6 +493,45 @@ class Track:
             return Outcome("update", f"the previous measurement was an outlier: "
                            f"{retracted[4]}", d2, self.state(), retracted)
         return Outcome("update", "", d2, self.state())
+
+    def _weight(self, fs: tuple, z: np.ndarray, R: np.ndarray, y_: np.ndarray,
+                Si: np.ndarray, d2: float) -> float:
+        """The weight of the Kalman correction of an accepted measurement at Mahalanobis
+        distance d = sqrt(d2) (innovation ``y_``, inverse innovation covariance ``Si``,
+        against the combined prediction of ``fs``). 1 up to d = robust_k; beyond, the
+        Huber weight robust_k / d, lowered further until the position moves by at most
+        ``step_k`` sigmas of the position covariance after the update: a borderline
+        measurement (possibly an outlier inside the gate) cannot move the output by more
+        than step_k of the filter's own sigma, and the covariance stays that of the gain
+        used, so it stays honest (the next measurements then correct more)."""
+        cfg = self.config
+        d = math.sqrt(d2)
+        if d <= cfg.robust_k:
+            return 1.0
+        w = cfg.robust_k / d
+        _, P = self._combine(fs)
+        K = P[:2, :3] @ Si  # the position rows of the Kalman gain
+        dp = K @ y_
+        KH = K @ np.eye(3, self._n)
+        KRK = K @ R @ K.T
+
+        def moved(w: float) -> float:
+            """Squared Mahalanobis length of the position step at weight w against the
+            position covariance after it (Joseph form)."""
+            A = np.eye(self._n)[:2] - w * KH
+            Pw = A @ P @ A.T + w * w * KRK
+            return float(w * w * dp @ np.linalg.solve(Pw, dp))
+
+        if moved(w) <= cfg.step_k ** 2:
+            return w
+        lo, hi = 0.0, w
+        for _ in range(20):
+            mid = (lo + hi) / 2.0
+            if moved(mid) <= cfg.step_k ** 2:
+                lo = mid
+            else:
+                hi = mid
+        return lo
 
     def _look_back(self, t: float, z: np.ndarray, R: np.ndarray) -> tuple | None:
         """A measurement fell outside the gate just after an accepted one: if, without that
