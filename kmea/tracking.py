@@ -466,7 +466,7 @@ class Track:
         inn = _innovation(*self._combine(fs), z, R)
         if inn is None:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
-        y_, S, Si, d2 = inn
+        y_, S, _, d2 = inn
         retracted = None
         if d2 > self.gate and dt >= 0 and cfg.look_back:
             back = self._look_back(t, z, R)
@@ -480,7 +480,7 @@ class Track:
             return Outcome("rejected", reason, d2, self.predict(max(t, self.t)))
         self._cand.clear()
         self._cand_track = None
-        fs = self._correct(fs, z, R, self._weight(fs, z, R, y_, Si, d2))
+        fs = self._bounded(fs, z, R, d2)
         if dt >= 0:
             self._last = (self.t, self._fs, t, z, R) if retracted is None else None
             self._set(fs, t)
@@ -494,44 +494,36 @@ class Track:
                            f"{retracted[4]}", d2, self.state(), retracted)
         return Outcome("update", "", d2, self.state())
 
-    def _weight(self, fs: tuple, z: np.ndarray, R: np.ndarray, y_: np.ndarray,
-                Si: np.ndarray, d2: float) -> float:
-        """The weight of the Kalman correction of an accepted measurement at Mahalanobis
-        distance d = sqrt(d2) (innovation ``y_``, inverse innovation covariance ``Si``,
-        against the combined prediction of ``fs``). 1 up to d = robust_k; beyond, the
-        Huber weight robust_k / d, lowered further until the position moves by at most
-        ``step_k`` sigmas of the position covariance after the update: a borderline
-        measurement (possibly an outlier inside the gate) cannot move the output by more
-        than step_k of the filter's own sigma, and the covariance stays that of the gain
-        used, so it stays honest (the next measurements then correct more)."""
+    def _bounded(self, fs: tuple, z: np.ndarray, R: np.ndarray, d2: float) -> tuple:
+        """``fs`` corrected by an accepted measurement at Mahalanobis distance d = sqrt(d2)
+        from the combined prediction, with a bounded step. The Kalman correction is
+        weighted by 1 up to d = robust_k, by robust_k / d beyond (Huber), then less until
+        the combined position moves by at most ``step_k`` sigmas of its own covariance
+        after the update (bisection on the weight): no measurement, an outlier inside the
+        gate included, moves the output by more than step_k of the filter's reported
+        sigma. The covariance is that of the weighted gain (Joseph form), so it stays
+        honest and the next measurements correct more."""
         cfg = self.config
-        d = math.sqrt(d2)
-        if d <= cfg.robust_k:
-            return 1.0
-        w = cfg.robust_k / d
-        _, P = self._combine(fs)
-        K = P[:2, :3] @ Si  # the position rows of the Kalman gain
-        dp = K @ y_
-        KH = K @ np.eye(3, self._n)
-        KRK = K @ R @ K.T
+        s0 = self._combine(fs)[0]
 
-        def moved(w: float) -> float:
-            """Squared Mahalanobis length of the position step at weight w against the
-            position covariance after it (Joseph form)."""
-            A = np.eye(self._n)[:2] - w * KH
-            Pw = A @ P @ A.T + w * w * KRK
-            return float(w * w * dp @ np.linalg.solve(Pw, dp))
+        def moved(w: float) -> tuple[tuple, float]:
+            out = self._correct(fs, z, R, w)
+            s1, P1 = self._combine(out)
+            dp = s1[:2] - s0[:2]
+            return out, float(dp @ np.linalg.solve(P1[:2, :2], dp))
 
-        if moved(w) <= cfg.step_k ** 2:
-            return w
+        w = min(1.0, cfg.robust_k / max(math.sqrt(d2), 1e-12))
+        out, m = moved(w)
+        if m <= cfg.step_k ** 2:
+            return out
         lo, hi = 0.0, w
-        for _ in range(20):
+        for _ in range(12):
             mid = (lo + hi) / 2.0
-            if moved(mid) <= cfg.step_k ** 2:
+            if moved(mid)[1] <= cfg.step_k ** 2:
                 lo = mid
             else:
                 hi = mid
-        return lo
+        return moved(lo)[0]
 
     def _look_back(self, t: float, z: np.ndarray, R: np.ndarray) -> tuple | None:
         """A measurement fell outside the gate just after an accepted one: if, without that

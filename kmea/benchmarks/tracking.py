@@ -36,9 +36,19 @@ import numpy as np
 from kmea.filters import PoseFilter
 from kmea.tracking import Tracker, TrackerConfig
 
-__all__ = ["HELD_OUT", "TUNE", "TUNE_HARD", "TUNED", "MotionSet", "Trajectory", "evaluate",
-           "make_measurements", "outlier_effect",
-           "table", "trajectory"]
+__all__ = [
+    "HELD_OUT",
+    "TUNE",
+    "TUNED",
+    "TUNE_HARD",
+    "MotionSet",
+    "Trajectory",
+    "evaluate",
+    "make_measurements",
+    "outlier_effect",
+    "table",
+    "trajectory",
+]
 
 _PAIR_LEVER = 0.10 / math.sqrt(2.0)  # heading sigma of a 10 cm pair = sigma / this
 
