@@ -178,9 +178,7 @@ class PipelineSettings:
 def tracker_config(f: Mapping[str, Any]) -> TrackerConfig:
     """The tracking filter's configuration from a ``[filter]`` table (missing keys: the
     defaults of :class:`TrackerConfig`)."""
-    keys = ("model", "accel_noise", "turn_noise", "gate_probability", "reacquire_n",
-            "reset_after_s")
-    return TrackerConfig(**{k: f[k] for k in keys if k in f})
+    return TrackerConfig.from_table(f)
 
 
 def new_detector(config: DetectorConfig, fast: bool = False, fast_window: int = 0,

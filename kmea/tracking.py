@@ -42,7 +42,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 import numpy as np
 
@@ -180,6 +182,14 @@ class TrackerConfig:
 
     def with_(self, **changes: object) -> TrackerConfig:
         return replace(self, **changes)
+
+    @classmethod
+    def from_table(cls, table: Mapping[str, Any]) -> TrackerConfig:
+        """From a ``[filter]`` configuration table: its keys named like this class's fields
+        (the others, e.g. ``alpha`` and ``kind``, are not the tracking filter's); missing
+        keys keep the defaults."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in table.items() if k in names})
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,8 @@ LIVE_KEYS = {
     "robots",
     "filter.kind", "filter.model", "filter.accel_noise", "filter.turn_noise",
     "filter.gate_probability", "filter.reacquire_n", "filter.predict",
+    "filter.manoeuvre_scale", "filter.manoeuvre_time_s", "filter.cruise_time_s",
+    "filter.robust_k", "filter.step_k", "filter.look_back", "filter.look_back_probability",
     "relay.stale_after_s", "relay.stale_repeat_s", "relay.extra_fields", "stats.window",
     "stats.loo", "stats.displaced_threshold", "stats.displaced_frames", "log.level",
 }

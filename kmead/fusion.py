@@ -46,10 +46,7 @@ __all__ = ["FusionNode", "Input", "tracker_config"]
 
 def tracker_config(cfg: Config) -> TrackerConfig:
     """The tracking filter's configuration from the ``[filter]`` section."""
-    f = cfg["filter"]
-    return TrackerConfig(model=f["model"], accel_noise=f["accel_noise"],
-                         turn_noise=f["turn_noise"], gate_probability=f["gate_probability"],
-                         reacquire_n=f["reacquire_n"], reset_after_s=f["reset_after_s"])
+    return TrackerConfig.from_table(cfg["filter"])
 
 
 def secure_subscriber(sock: zmq.Socket, endpoint: str, cfg: Config) -> None:

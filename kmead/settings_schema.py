@@ -427,6 +427,11 @@ SCHEMA: dict[str, dict[str, Check]] = {
                "accel_noise": number(0, 1000, lo_open=True, unit=" m/s^2"),
                "turn_noise": number(0, 1000, lo_open=True, unit=" rad/s^2"),
                "gate_probability": _probability, "reacquire_n": integer(1, 1000),
+               "manoeuvre_scale": number(1, 1e6), "manoeuvre_time_s": number(
+                   0, 3600, lo_open=True, unit=" s"),
+               "cruise_time_s": number(0, 3600, lo_open=True, unit=" s"),
+               "robust_k": number(0, 1e9, lo_open=True), "step_k": number(0, 1e9, lo_open=True),
+               "look_back": _bool, "look_back_probability": _probability,
                "predict": _bool},
     "stats": {"loo": _bool, "window": integer(1, 100000),
               "displaced_threshold": number(0, 10, lo_open=True, unit=" m"),

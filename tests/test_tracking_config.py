@@ -1,0 +1,87 @@
+"""The tracking filter's settings under ``[filter]``: the documented defaults are the
+library's, a bad value is a one-line error naming the key (kmead, the fusion node, a config
+file), and every value reaches the filter of the daemon's pipeline and of the fusion node."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from kmea.cli import main as kmea_main
+from kmea.pipeline import PipelineSettings
+from kmea.tracking import TrackerConfig
+from kmead import cli
+from kmead.config import load_config
+from kmead.fusion import tracker_config as fusion_tracker_config
+
+# The settings that were library-only before they became [filter] keys.
+KEYS = ("robust_k", "step_k", "look_back", "look_back_probability", "manoeuvre_scale",
+        "manoeuvre_time_s", "cruise_time_s")
+OFF = ["--set", 'network.telemetry=""', "--set", 'network.control=""']
+
+
+def test_documented_defaults_are_the_library_defaults() -> None:
+    f = load_config(None, use_local=False)["filter"]
+    assert all(k in f for k in KEYS)
+    assert TrackerConfig.from_table(f) == TrackerConfig()
+
+
+BAD = [("robust_k", "0", "must be in (0, 1e+09]"),
+       ("step_k", "-1.5", "must be in (0, 1e+09]"),
+       ("look_back", "1", "expected true or false"),
+       ("look_back_probability", "1.0", "must be in (0, 1)"),
+       ("manoeuvre_scale", "0.5", "must be in [1, 1e+06]"),
+       ("manoeuvre_time_s", "0", "must be in (0, 3600] s"),
+       ("cruise_time_s", '"long"', "expected a number")]
+
+
+@pytest.mark.parametrize(("key", "value", "expect"), BAD)
+def test_bad_value_on_the_command_line_names_the_key(capsys: pytest.CaptureFixture, key: str,
+                                                     value: str, expect: str) -> None:
+    assert cli.main(["--set", f"filter.{key}={value}", "--headless", "--frames", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    assert f"filter.{key}" in err and expect in err, err
+
+
+@pytest.mark.parametrize(("key", "value", "expect"), BAD)
+def test_bad_value_in_a_config_file_names_file_and_key(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture, key: str,
+                                                       value: str, expect: str) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text(f"[filter]\n{key} = {value}\n")
+    assert cli.main(["--config", str(f), "--headless", "--frames", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    assert str(f) in err and key in err and expect in err, err
+
+
+def test_bad_value_for_the_fusion_node_names_the_key(capsys: pytest.CaptureFixture) -> None:
+    assert kmea_main(["fuse", "--input", "tcp://127.0.0.1:1", "--set",
+                      "filter.step_k=0", "--headless", *OFF]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "filter.step_k" in err, err
+
+
+def test_values_reach_the_daemon_and_fusion_filters() -> None:
+    sets = ["filter.robust_k=2.5", "filter.step_k=1.25", "filter.look_back=false",
+            "filter.look_back_probability=0.95", "filter.manoeuvre_scale=1",
+            "filter.manoeuvre_time_s=0.5", "filter.cruise_time_s=4.0"]
+    cfg = load_config(None, sets=sets, use_local=False)
+    want = TrackerConfig().with_(robust_k=2.5, step_k=1.25, look_back=False,
+                                 look_back_probability=0.95, manoeuvre_scale=1.0,
+                                 manoeuvre_time_s=0.5, cruise_time_s=4.0)
+    assert fusion_tracker_config(cfg) == want
+    assert PipelineSettings.from_config(cfg.data).tracker == want
+
+
+@pytest.mark.parametrize("key, value", [("robust_k", 1e9), ("step_k", 1e-9),
+                                        ("look_back_probability", 1e-9),
+                                        ("manoeuvre_scale", 1.0), ("manoeuvre_scale", 1e6),
+                                        ("manoeuvre_time_s", 3600.0), ("cruise_time_s", 1e-9)])
+def test_every_value_the_schema_accepts_builds_a_filter(key: str, value: float) -> None:
+    # The schema's ranges lie inside the filter's own checks: a setting that passes the
+    # configuration check never fails later, when the daemon builds the filter.
+    cfg = load_config(None, sets=[f"filter.{key}={value!r}"], use_local=False)
+    assert getattr(TrackerConfig.from_table(cfg["filter"]), key) == value
