@@ -213,8 +213,11 @@ def test_look_back_retracts_an_accepted_outlier_and_reports_it() -> None:
 
     times = [k / 30 for k in range(30)] + [29 / 30 + 0.6 + k / 30 for k in range(4)]
     kinds, errs = {}, {}
+    # One model, no step bound: the look-back alone (the step bound would keep the outlier
+    # from pulling the track that far).
+    base = TrackerConfig(accel_noise=0.25, manoeuvre_scale=1.0, step_k=1e9)
     for look_back in (True, False):
-        trk = Tracker(TrackerConfig(look_back=look_back))
+        trk = Tracker(base.with_(look_back=look_back))
         rng = np.random.default_rng(0)
         kinds[look_back] = []
         for i, t in enumerate(times):
@@ -261,3 +264,54 @@ def test_outlier_effect_is_the_difference_to_the_clean_run() -> None:
     keep = np.ones(len(ms.t), bool)
     eff_m, eff_s = outlier_effect(ms, out, sigma, clean, keep)
     assert eff_m[0] == pytest.approx(0.012) and eff_s[0] == pytest.approx(4.0)
+
+
+def _brake(cfg: TrackerConfig, seed: int = 4) -> tuple[float, int, list[float]]:
+    """A robot cruising at 1.2 m/s along x brakes at 4 m/s^2 to a stop at t = 2 s (20
+    frames/s, 4 mm noise); returns the position RMSE during the brake, the measurements
+    rejected, and the manoeuvre model's probability at each frame."""
+    rng = np.random.default_rng(seed)
+    tr = Track("r", cfg)
+    errs, mu, rejected = [], [], 0
+    for k in range(80):
+        t = k / 20
+        tau = min(max(t - 2.0, 0.0), 0.3)
+        x = 1.2 * min(t, 2.0) + 1.2 * tau - 2.0 * tau * tau
+        out = tr.update(t, x + rng.normal(0, 0.004), rng.normal(0, 0.004), 0.0, 0.004)
+        rejected += not out.accepted
+        mu.append(float(tr._fs[2][-1]))
+        if 2.0 <= t <= 2.4:
+            errs.append(tr.predict(t).x - x)
+    return float(np.sqrt(np.mean(np.square(errs)))), rejected, mu
+
+
+def test_two_models_follow_a_hard_brake_that_one_cruise_model_lags() -> None:
+    cruise = TrackerConfig(accel_noise=0.06, manoeuvre_scale=1.0, step_k=1e9)
+    one, rej_one, _ = _brake(cruise)
+    two, rej_two, mu = _brake(cruise.with_(manoeuvre_scale=40.0))
+    assert rej_two == 0 and rej_one > 0  # the cruise model alone gates the brake out
+    assert two < 0.5 * one
+    # The manoeuvre model takes over during the brake (frames 40-46), and hands back after.
+    assert max(mu[41:47]) > 0.5 and max(mu[30:40]) < 0.1 and mu[-1] < 0.1
+
+
+def test_step_bound_keeps_an_outlier_inside_the_gate_within_k_sigma() -> None:
+    # After a 0.4 s gap the prediction is wide: a 4 cm outlier passes the gate. Its step is
+    # bounded to step_k of the reported sigma after it; without the bound it moves further.
+    def run(step_k: float) -> tuple[float, float]:
+        tr = Track("r", TrackerConfig(step_k=step_k, look_back=False))
+        rng = np.random.default_rng(1)
+        for k in range(30):
+            tr.update(k / 30, 0.5 * k / 30 + rng.normal(0, 0.003), rng.normal(0, 0.003),
+                      0.0, 0.003)
+        t = 29 / 30 + 0.4
+        before = tr.predict(t)
+        out = tr.update(t, 0.5 * t, 0.04, 0.0, 0.003)
+        assert out.kind == "update"
+        d = np.array([out.state.x - before.x, out.state.y - before.y])
+        return float(np.sqrt(d @ np.linalg.solve(out.state.cov[:2, :2], d))), out.state.y
+
+    bounded, y_bounded = run(1.5)
+    free, y_free = run(1e9)
+    assert bounded == pytest.approx(1.5, abs=0.05) and free > 3.0
+    assert 0.0 < y_bounded < y_free
