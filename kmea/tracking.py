@@ -15,6 +15,14 @@ Process noise is white acceleration of spectral density ``accel_noise`` (m^2/s^3
 angular acceleration of ``turn_noise`` (rad^2/s^3). Heading innovations are wrapped to
 [-pi, pi) and the heading state is kept wrapped.
 
+Two models (``manoeuvre_scale`` > 1): the motion model runs twice, once with that process
+noise ("cruise") and once with ``manoeuvre_scale`` times it ("manoeuvre": braking, starting,
+entering a turn), as an interacting-multiple-model (IMM) filter: before each prediction the
+two are mixed by their switching probabilities (mean times ``cruise_time_s`` and
+``manoeuvre_time_s``), after each measurement their probabilities follow their likelihoods.
+Gating, outputs and predictions use their combination (moment-matched mean and covariance),
+so the reported sigma is small when cruising and widens as soon as a manoeuvre shows.
+
 Gating: a measurement whose Mahalanobis distance d^2 to the prediction exceeds the
 chi-square quantile of 3 degrees of freedom at ``gate_probability`` is rejected (not
 followed) and reported with the reason (a position jump, a heading flip). Rejected
@@ -23,8 +31,10 @@ first) are candidates: after ``reacquire_n`` of them within ``reacquire_window_s
 restarts from them (the robot really was moved by hand); an accepted measurement clears them.
 
 Bounded update: an accepted measurement at Mahalanobis distance d > ``robust_k`` moves the
-state by ``robust_k / d`` of the Kalman correction (Huber weight; the covariance is that of
-the gain used). Look-back: an outlier inside the gate pulls the track so that the good
+state by ``robust_k / d`` of the Kalman correction (Huber weight), and no accepted
+measurement moves the position by more than ``step_k`` sigmas of the position covariance
+after it (the weight is lowered until it does not); the covariance is that of the gain used,
+so it stays honest. Look-back: an outlier inside the gate pulls the track so that the good
 measurements after it are rejected; when a measurement is rejected just after an accepted
 one, and predicted from before that one it fits well (inside the chi-square quantile at
 ``look_back_probability``) while that one does not fit the track through it, that one is
@@ -117,8 +127,9 @@ class TrackerConfig:
     max_speed, max_turn_rate: 1-sigma of the initial velocity and turn rate (m/s, rad/s).
     robust_k: Huber threshold on the Mahalanobis distance d = sqrt(d2): an accepted
     measurement with d > robust_k moves the state by only robust_k / d of the Kalman
-    correction (a borderline measurement, possibly an outlier inside the gate, cannot pull
-    the track further than robust_k innovation sigmas); a large value disables it.
+    correction; a large value disables it. step_k: no accepted measurement moves the
+    position by more than step_k sigmas of the position covariance after it (an outlier
+    inside the gate cannot move the output by more than that); 1e9 disables it.
     look_back: a measurement outside the gate may retract the accepted one just before it
     when that one, not the new one, is the outlier (module docstring); the new one must
     then fit the prediction without it inside the chi-square quantile at
