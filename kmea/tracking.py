@@ -142,7 +142,7 @@ class TrackerConfig:
     """
 
     model: str = "ctrv"
-    accel_noise: float = 0.25
+    accel_noise: float = 0.06
     turn_noise: float = 2.5
     gate_probability: float = 0.9999
     reacquire_n: int = 3
@@ -157,8 +157,8 @@ class TrackerConfig:
     robust_k: float = 3.0
     look_back: bool = True
     look_back_probability: float = 0.99
-    step_k: float = 1e9
-    manoeuvre_scale: float = 1.0
+    step_k: float = 1.5
+    manoeuvre_scale: float = 200.0
     manoeuvre_time_s: float = 0.3
     cruise_time_s: float = 2.0
 
