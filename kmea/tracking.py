@@ -427,26 +427,38 @@ class Track:
         ss, Ps, mu = fs
         return _moments(ss, Ps, mu, ss[int(np.argmax(mu))][2])
 
-    def _correct(self, fs: tuple, z: np.ndarray, R: np.ndarray, scale: float) -> tuple:
-        """Each model corrected by measurement ``z`` with its Kalman gain times ``scale``
-        (the Huber weight); the models' probabilities by their likelihoods."""
+    def _gains(self, fs: tuple, z: np.ndarray, R: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per model, the innovation of measurement ``z`` (M, 3) and the Kalman gain
+        (M, n, 3); the models' probabilities after it, by their likelihoods (M,)."""
         ss, Ps, mu = fs
-        H = np.eye(3, self._n)
-        out_s, out_P = np.empty_like(ss), np.empty_like(Ps)
+        ys, Ks = np.empty((len(mu), 3)), np.empty((len(mu), self._n, 3))
         loglik = np.zeros(len(mu))
         for j in range(len(mu)):
-            y_, S, Si, d2 = _innovation(ss[j], Ps[j], z, R)
-            K = Ps[j][:, :3] @ Si * scale
-            out_s[j] = ss[j] + K @ y_
-            out_s[j][2] = _wrap(out_s[j][2])
-            I_KH = np.eye(self._n) - K @ H
-            # Joseph form: the true covariance of any gain (so the Huber-weighted one's
-            # reported sigma stays honest), symmetric positive.
-            out_P[j] = I_KH @ Ps[j] @ I_KH.T + K @ R @ K.T
+            ys[j], S, Si, d2 = _innovation(ss[j], Ps[j], z, R)
+            Ks[j] = Ps[j][:, :3] @ Si
             loglik[j] = -0.5 * d2 - 0.5 * math.log(max(np.linalg.det(S), 1e-300))
         if len(mu) > 1:
             w = mu * np.exp(loglik - loglik.max())
             mu = w / w.sum()
+        return ys, Ks, mu
+
+    def _correct(self, fs: tuple, z: np.ndarray, R: np.ndarray, scale: float,
+                 gains: tuple | None = None) -> tuple:
+        """Each model corrected by measurement ``z`` with its Kalman gain times ``scale``;
+        the models' probabilities by their likelihoods (``gains``: :meth:`_gains`)."""
+        ss, Ps, _ = fs
+        ys, Ks, mu = gains if gains is not None else self._gains(fs, z, R)
+        H = np.eye(3, self._n)
+        out_s, out_P = np.empty_like(ss), np.empty_like(Ps)
+        for j in range(len(mu)):
+            K = Ks[j] * scale
+            out_s[j] = ss[j] + K @ ys[j]
+            out_s[j][2] = _wrap(out_s[j][2])
+            I_KH = np.eye(self._n) - K @ H
+            # Joseph form: the true covariance of any gain (so the weighted one's reported
+            # sigma stays honest), symmetric positive.
+            out_P[j] = I_KH @ Ps[j] @ I_KH.T + K @ R @ K.T
         return out_s, out_P, mu
 
     def _set(self, fs: tuple, t: float) -> None:
@@ -525,26 +537,39 @@ class Track:
         sigma. The covariance is that of the weighted gain (Joseph form), so it stays
         honest and the next measurements correct more."""
         cfg = self.config
-        s0 = self._combine(fs)[0]
+        gains = ys, Ks, mu = self._gains(fs, z, R)
+        ss, Ps, _ = fs
+        s0 = self._combine(fs)[0][:2]
+        # The combined position after the update at weight w, in closed form: model j's
+        # mean is ss[j, :2] + w g[j], its covariance (Joseph form) P0 - w (B + B^T) + w^2 C.
+        Kp = Ks[:, :2, :]
+        g = np.einsum("jik,jk->ji", Kp, ys)
+        P0 = Ps[:, :2, :2]
+        B = Kp @ Ps[:, :3, :2]
+        B = B + B.transpose(0, 2, 1)
+        C = Kp @ (Ps[:, :3, :3] + R) @ Kp.transpose(0, 2, 1)
 
-        def moved(w: float) -> tuple[tuple, float]:
-            out = self._correct(fs, z, R, w)
-            s1, P1 = self._combine(out)
-            dp = s1[:2] - s0[:2]
-            return out, float(dp @ np.linalg.solve(P1[:2, :2], dp))
+        def moved(w: float) -> float:
+            """Squared Mahalanobis length of the combined position step at weight w against
+            the combined position covariance after it."""
+            m = ss[:, :2] + w * g
+            mean = mu @ m
+            D = m - mean
+            cov = np.einsum("j,jik->ik", mu, P0 - w * B + w * w * C) + (D.T * mu) @ D
+            dp = mean - s0
+            return float(dp @ np.linalg.solve(cov, dp))
 
         w = min(1.0, cfg.robust_k / max(math.sqrt(d2), 1e-12))
-        out, m = moved(w)
-        if m <= cfg.step_k ** 2:
-            return out
-        lo, hi = 0.0, w
-        for _ in range(12):
-            mid = (lo + hi) / 2.0
-            if moved(mid)[1] <= cfg.step_k ** 2:
-                lo = mid
-            else:
-                hi = mid
-        return moved(lo)[0]
+        if moved(w) > cfg.step_k ** 2:
+            lo, hi = 0.0, w
+            for _ in range(12):
+                mid = (lo + hi) / 2.0
+                if moved(mid) <= cfg.step_k ** 2:
+                    lo = mid
+                else:
+                    hi = mid
+            w = lo
+        return self._correct(fs, z, R, w, gains)
 
     def _look_back(self, t: float, z: np.ndarray, R: np.ndarray) -> tuple | None:
         """A measurement fell outside the gate just after an accepted one: if, without that
