@@ -626,7 +626,9 @@ class Track:
             if out.kind != "update":
                 c = None
         if c is None:
-            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9))
+            # The candidates test whether the rejected measurements agree with each other:
+            # their own track takes every step (no step bound).
+            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9, step_k=1e9))
             c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
             self._cand = []
         self._cand.append((t, z, R))
