@@ -134,13 +134,17 @@ def test_degenerate_inputs_are_not_estimated():
     collinear = _similarity_obs(m, [13, 14, 15, 16], 1.0, R, t)  # all on y = 0
     est = kr.estimate(collinear, m)
     assert not est.ok and "collinear" in est.reason
-    # Every reference disagrees with every other: no three agree within the threshold.
+    # Every reference disagrees with every other: no three agree within a fixed threshold.
     rng = np.random.default_rng(0)
     ids = [0, 5, 13, 22, 30]
     scattered = _similarity_obs(m, ids, 1.0, R, t,
                                 {i: (*rng.uniform(-0.3, 0.3, 2), 0.0) for i in ids})
-    est = kr.estimate(scattered, m)
+    est = KMEARobust(threshold=0.02).estimate(scattered, m)
     assert not est.ok and "consensus" in est.reason
+    # The automatic threshold measures the noise level on the references themselves: when
+    # they all disagree by decimetres, that is the level, and the report says so.
+    est = kr.estimate(scattered, m)
+    assert est.ok and est.info["threshold"] > 0.05
     res = kr.estimate_with_loo(two, m)
     assert res.loo_positions == {} and set(res.loo_failures) == {13, 16}
     with pytest.raises(ValueError, match="threshold"):

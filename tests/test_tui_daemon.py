@@ -32,15 +32,15 @@ class Daemon:
     """One kmead subprocess; ``telemetry``/``control`` are its bound endpoints."""
 
     def __init__(self, cwd: Path, telemetry: str = "tcp://127.0.0.1:*",
-                 control: str = "tcp://127.0.0.1:*", source: str = "sim") -> None:
+                 control: str = "tcp://127.0.0.1:*", source: str = "sim",
+                 extra: tuple[str, ...] = ("--algorithm", "kmea")) -> None:
         self.cwd = cwd
         self.stderr_path = cwd / f"kmead-{time.monotonic_ns()}.err"
         # Its own config home: a plain start reads (and Save writes) the per-user overlay.
         self.env = {**os.environ, "XDG_CONFIG_HOME": str(cwd / "config-home")}
-        # The paper's KMEA (not the default corner-pnp): the algorithm test walks the list
-        # from it.
-        cmd = [sys.executable, "-m", "kmead.cli", "--source", source, "--headless",
-               "--algorithm", "kmea",
+        # The paper's KMEA by default (not the default corner-pnp): the algorithm test walks
+        # the list from it. ``extra``: more command-line arguments.
+        cmd = [sys.executable, "-m", "kmead.cli", "--source", source, "--headless", *extra,
                "--set", f'network.telemetry="{telemetry}"',
                "--set", f'network.control="{control}"',
                "--set", "source.width=640", "--set", "source.height=480",

@@ -9,17 +9,28 @@ noisiest coordinate and leaks sideways off the optical axis. Here instead:
 2. **Levenberg-Marquardt** on the reprojection error of every corner of every consensus
    reference (map corners projected with K and the OpenCV distortion model, numpy), with
    a Huber loss (``huber_px``) so one bad corner cannot dominate.
-3. **Rejection** of references whose corners, intersected with their map plane under the
-   fitted pose, lie more than ``threshold`` metres (RMS over the 4 corners) from their map
-   corners; then LM again, until the consensus is stable. Rejected references are reported
-   in ``Estimate.rejected`` (id -> that RMS distance, m; for a shifted marker it is the
-   shift) and ``info["displaced"]``.
+3. **Rejection**, scaled by the corner noise the frame shows (:mod:`kmea.estimators.
+   corner_noise`): ``sigma_px``, the median-based level of the consensus references'
+   reprojection residuals (floored at 0.01 px). A corner whose residual ``|e|^2 /
+   sigma_px^2`` exceeds the chi-square (2 dof) ``corner_level`` quantile is dropped (one of
+   a reference's 4 at most: an outline drawn across it, a glare); a reference is rejected
+   as displaced when two or more of its corners are, or when its kept corners' sum of
+   ``|e|^2 / sigma_px^2`` exceeds the chi-square (2 x corners) ``reference_level``
+   quantile; then LM again, until the consensus is stable. In metres the threshold is
+   ``sigma_px sqrt(q / corners)`` times the marker's footprint (its side in metres over its
+   side in pixels): a far, small marker gets a larger one than a near, big marker, in
+   proportion (``info["thresholds"]``, RMS corner distance). ``threshold`` (metres) gives
+   the former fixed rule instead (RMS corner distance on the map plane). Rejected
+   references are reported in ``Estimate.rejected`` (id -> how far their centre moved in
+   their map plane, m) and ``info["displaced"]``.
 4. **Every marker from its corners**: the rays of its 4 corners (pixel -> undistorted
    normalized ray) intersect its plane: ``z = plane_heights[id]`` when the caller gives a
    height (a robot's top plate), else its map plane for a map marker (what leave-one-out
    evaluates); centre = mean of the 4 points, in-plane rotation from a 2D Procrustes fit of
-   the square. A marker with no known plane (not in the map, no height given) is put on a
-   plane of the map when its corners are consistent with it, else estimated free with its
+   the square. A corner the marker's own square contradicts (leave-one-corner-out test at
+   ``corner_level`` against ``sigma_px``) is left out of that fit. A marker with no known
+   plane (not in the map, no height given) is put on a plane of the map when its corners
+   are consistent with it (the same corner test first), else estimated free with its
    depth corrected by the references (:mod:`kmea.estimators.unknown_plane`, option
    ``unknown_plane``); a marker without corners gets its own PnP pose moved by the fitted
    camera pose.
@@ -73,14 +84,19 @@ from kmea.estimators.base import (
     loo_candidates,
 )
 from kmea.estimators.common import reference_problem
-from kmea.estimators.robust import KMEARobust, describe_rejected
+from kmea.estimators.corner_noise import (
+    SIGMA_FLOOR_PX,
+    corner_outliers,
+    robust_sigma,
+    square_pose,
+)
+from kmea.estimators.robust import KMEARobust, describe_rejected, footprints
 from kmea.estimators.robust_lm import huber_cost, huber_weights, robust_lm
 from kmea.geometry import (
     check_distortion,
     distort,
     intersect_rays_planes,
     make_transform,
-    marker_corners_local,
     project,
     rotvec_to_matrix,
     rotvecs_to_matrices,
@@ -115,6 +131,10 @@ class _Fit:
     cost: float = math.nan  # Huber cost of the data (px^2), without the prior
     dof: int = 1  # residuals minus parameters
     refine_test: float = math.nan  # the model-selection statistic ("auto" only)
+    corner_sigma: float = math.nan  # robust corner noise (px) of the consensus (corner_noise)
+    ref_sigma: float = math.nan  # robust level (px) of the references' centre disagreements
+    keep: dict | None = None  # inlier id -> (4,) bool: its corners used by the fit
+    thresholds: dict | None = None  # reference id -> its rejection threshold, m (RMS corner)
 
 
 def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mapping[int, float]
@@ -138,9 +158,12 @@ class CornerPnP(EstimatorBase):
     """All-corner camera pose + ray-plane marker estimator (see the module docstring).
 
     Options:
-        threshold: RMS corner disagreement (m) on its map plane beyond which a reference is
-            rejected as displaced.
-        start_threshold: consensus threshold (m) of the robust KMEA start.
+        threshold: None (default): references are rejected by the chi-square test on the
+            measured corner noise (see the module docstring); a number (m): the RMS corner
+            disagreement on its map plane beyond which a reference is rejected instead.
+        start_threshold: consensus threshold (m) of the robust KMEA start; None (default):
+            scaled by the references' own residual level (:class:`KMEARobust`).
+        corner_level, reference_level: levels of the corner and reference tests.
         huber_px: Huber loss knee, pixels.
         refine_intrinsics: False, True or "auto".
         refine_level: "auto" refines when the likelihood-ratio test of the refined model
@@ -156,12 +179,13 @@ class CornerPnP(EstimatorBase):
 
     name = "corner-pnp"
 
-    def __init__(self, threshold: float = 0.01, start_threshold: float = 0.02,
+    def __init__(self, threshold: float | None = None, start_threshold: float | None = None,
                  huber_px: float = 1.0, refine_intrinsics: bool | str = "auto",
                  max_iterations: int = 50,
                  min_references: int = 3, prior_f: float = 0.05, prior_k1: float = 0.1,
                  prior_px: float = 0.5, unknown_plane: str = "auto",
                  plane_level: float = 0.999, refine_level: float = 0.999,
+                 corner_level: float = 0.99999, reference_level: float = 0.9999,
                  warm_start: bool = False) -> None:
         if unknown_plane not in unknown_plane_mod.MODES:
             raise ValueError(f"corner-pnp: unknown_plane must be one of "
@@ -173,9 +197,14 @@ class CornerPnP(EstimatorBase):
         if refine_intrinsics not in (True, False, "auto"):
             raise ValueError(f"corner-pnp: refine_intrinsics must be true, false or 'auto', "
                              f"got {refine_intrinsics!r}")
-        if not (threshold > 0 and start_threshold > 0 and huber_px > 0):
+        if not (all(v is None or v > 0 for v in (threshold, start_threshold))
+                and huber_px > 0):
             raise ValueError("corner-pnp: threshold, start_threshold and huber_px must be > 0")
-        self.threshold = float(threshold)
+        self.threshold = None if threshold is None else float(threshold)
+        self.corner_level = float(corner_level)
+        self.reference_level = float(reference_level)
+        self._corner_q = unknown_plane_mod.chi2_quantile(self.corner_level, 2)
+        self._ref_q = unknown_plane_mod.chi2_quantile(self.reference_level, 2)
         self.huber_px = float(huber_px)
         self.refine_intrinsics = refine_intrinsics
         self.max_iterations = int(max_iterations)
@@ -341,6 +370,73 @@ class CornerPnP(EstimatorBase):
         return {i: (float(v) if np.isfinite(v) else math.inf)
                 for i, v in zip(ref_ids, e, strict=True)}
 
+    def _consensus(self, fit: _Fit, refs, inliers, X_refs: np.ndarray, uv_refs: np.ndarray,
+                   xy: np.ndarray, dis: Mapping[int, float], world_map: MarkerMap,
+                   obs: Mapping[int, MarkerObservation]
+                   ) -> tuple[list[int], dict[int, np.ndarray]]:
+        """The references that agree with the fit, and each one's corners to use (see the
+        module docstring, step 3). Sets ``fit.corner_sigma`` and ``fit.thresholds``.
+
+        Two noise levels, both measured: the corners' own (each reference's square fitted
+        in its map plane, 3 parameters: what a corrupted corner stands out from) and the
+        fit's (the map corners reprojected: corner noise plus what the camera model and
+        the survey leave, what a displaced reference stands out from)."""
+        n = len(refs)
+        uv4 = uv_refs.reshape(n, 4, 2)
+        frames = np.array([world_map[i].rotation for i in refs])
+        origins = world_map.positions(list(refs))
+        P = self._intersect(fit.R, fit.t, xy, np.repeat(frames, 4, axis=0),
+                            np.repeat(origins, 4, axis=0)).reshape(n, 4, 3)
+        lengths = np.array([world_map[i].length for i in refs])
+        good = np.all(np.isfinite(P), axis=(1, 2))
+        pos = {i: k for k, i in enumerate(refs)}
+        inl = np.array([pos[i] for i in inliers])
+        drop = np.full(n, -1, dtype=int)
+        # The corner noise: the median level of the consensus's reprojection residuals (a
+        # fit of many references: one bad corner does not spread to the others).
+        r = self._residuals(X_refs, uv_refs, fit.R, fit.t, fit.K, fit.d, False, False)
+        e2 = (np.full(8 * n, np.inf) if r is None else r ** 2).reshape(n, 4, 2).sum(axis=2)
+        sigma_c = robust_sigma(e2[inl].reshape(-1), fit.H.shape[0])
+        if np.any(good):
+            g = np.flatnonzero(good)
+            centres, Rw = square_pose(P[g], frames[g], lengths[g])
+            drop[g], _, _ = corner_outliers(fit.R, fit.t, fit.K, fit.d, uv4[g], centres, Rw,
+                                            lengths[g], sigma_c, self._corner_q)
+            # The fit leaves a corner out only when the map says so too: a corrupted corner
+            # disagrees with its own square and with its map corner; one that a slight
+            # model error (a grazing view, the lens) moves stays consistent with one of them.
+            k = np.flatnonzero(drop >= 0)
+            far = e2[k, drop[k]] / sigma_c ** 2 > self._corner_q
+            drop[k[~far]] = -1
+        fit.corner_sigma = sigma_c
+        keep = {i: np.arange(4) != drop[k] for k, i in enumerate(refs)}
+        kept = np.array([keep[i] for i in refs])
+        # Each reference's corners against its map corners, in units of its own predicted
+        # (centre) uncertainty (the fit's pose covariance and its corner
+        # noise through its ray-plane intersection: larger for far, small or grazing
+        # markers), times the factor by which the references show more spread than
+        # predicted (the median; at least 1: the prediction is the floor).
+        # RMS over its kept corners: a shift moves all of them, a turn in place too.
+        M = X_refs.reshape(n, 4, 3)
+        with np.errstate(invalid="ignore"):
+            d = np.sqrt(np.sum(kept * np.sum((P - M) ** 2, axis=2), axis=1) / kept.sum(axis=1))
+        d = np.where(good, d, np.inf)
+        pred = self._sigmas(fit, xy, np.repeat(frames, 4, axis=0), np.repeat(origins, 4, axis=0))
+        pred = np.where(np.isfinite(pred) & (pred > 0), pred, np.inf) / math.sqrt(2.0)
+        u2 = (d / pred) ** 2  # chi-square (2 dof) for a reference in place
+        factor = max(robust_sigma(u2[inl], 0, 0.0), 1.0)
+        fit.ref_sigma = factor
+        q = self._ref_q
+        new, thr = [], {}
+        for k, i in enumerate(refs):
+            thr[i] = float(math.sqrt(q) * factor * pred[k])
+            ok = (dis[i] <= self.threshold if self.threshold is not None
+                  else bool(good[k]) and u2[k] <= q * factor ** 2)
+            if ok:
+                new.append(i)
+        fit.thresholds = thr
+        return new, keep
+
     # ------------------------------------------------------------------ estimate
     def _solve(self, observations, world_map, exclude, camera):
         """The camera fit: (fit, refs, inliers, disagreement, obs), or an ``Estimate.failed``."""
@@ -402,7 +498,8 @@ class CornerPnP(EstimatorBase):
             try:
                 start_inl, (_, Rc2w, C), _ = self._start.consensus(
                     P, Q, refs, world_map.origin_id,
-                    np.array([world_map[i].normal for i in refs]))
+                    np.array([world_map[i].normal for i in refs]),
+                    footprints(list(obs.values()), world_map, refs))
             except ValueError as e:
                 return Estimate.failed(self.name, f"robust start: {e}")
             # The similarity maps the camera origin to C; its rotation is the camera's.
@@ -412,8 +509,11 @@ class CornerPnP(EstimatorBase):
         X_refs = np.concatenate([world_map[i].corners_world() for i in refs])
         xy_refs = None
         fit = None
-        for _ in range(6):
-            sel = np.concatenate([np.arange(4 * row[i], 4 * row[i] + 4) for i in inliers])
+        keep = {i: np.ones(4, bool) for i in refs}
+        if warm is not None and warm[3].keep is not None:
+            keep.update({i: k.copy() for i, k in warm[3].keep.items() if i in keep})
+        for _ in range(8):
+            sel = np.concatenate([4 * row[i] + np.flatnonzero(keep[i]) for i in inliers])
             prev = (fit.K, fit.d) if fit is not None else (
                 (warm[3].K, warm[3].d) if warm is not None and warm[3].refine else None)
             if self.refine_intrinsics == "auto" and keep_model:
@@ -441,14 +541,19 @@ class CornerPnP(EstimatorBase):
             else:
                 xy = xy_refs = undistort(uv_refs, K0, d0) if xy_refs is None else xy_refs
             dis = self._disagreement(fit, refs, xy, world_map)
-            new = [i for i in refs if dis[i] <= self.threshold]
-            if new == inliers:
+            new, new_keep = self._consensus(fit, refs, inliers, X_refs, uv_refs, xy, dis,
+                                            world_map, obs)
+            if new == inliers and all(np.array_equal(new_keep[i], keep[i]) for i in refs):
                 break
+            keep = new_keep
             if len(new) < self.min_references:
+                rule = (f"within {self.threshold * 1e3:.0f} mm" if self.threshold is not None
+                        else f"within their corner noise ({fit.corner_sigma:.2f} px)")
                 return Estimate.failed(
                     self.name, f"no consensus: {len(new)} of {len(refs)} references agree "
-                               f"within {self.threshold * 1e3:.0f} mm")
+                               f"{rule}")
             inliers = new
+        fit.keep = {i: keep[i] for i in inliers}
         if key is not None:
             self._warm = (key, refs, uv_refs, fit, tuple(inliers), dis, ref_obs, camera)
         return fit, refs, inliers, dis, obs
@@ -491,7 +596,9 @@ class CornerPnP(EstimatorBase):
         fit, refs, inliers, dis, obs = res
         planes: dict[int, unknown_plane_mod.PlaneChoice] = {}
         heights = dict(plane_heights or {})
-        markers = self._placed_markers(fit, obs, world_map, heights, inliers, planes)
+        dropped: dict[int, int] = {}
+        markers = self._placed_markers(fit, obs, world_map, heights, inliers, planes, dropped,
+                                       refs)
         Rc2w = fit.R.T
         # A rejected reference is reported by how far its centre moved in its map plane and
         # how much it turned there (it was rejected on its corners' RMS disagreement).
@@ -504,8 +611,12 @@ class CornerPnP(EstimatorBase):
                 turned[i] = math.atan2(M[1, 0], M[0, 0])
         info = {"displaced": describe_rejected(rejected, turned), "turned": turned,
                 "reprojection_rms_px": fit.rms_px,
-                "sigma_px": fit.sigma_px, "iterations": fit.iterations,
-                "threshold": self.threshold, "intrinsics_refined": fit.refine}
+                "sigma_px": fit.sigma_px, "corner_sigma_px": fit.corner_sigma,
+                "iterations": fit.iterations, "threshold": (
+                    self.threshold if self.threshold is not None
+                    else float(np.median(list(fit.thresholds.values())))),
+                "thresholds": dict(fit.thresholds or {}), "corners_dropped": dropped,
+                "intrinsics_refined": fit.refine}
         if math.isfinite(fit.refine_test):
             info["intrinsics_test"] = fit.refine_test
         if planes:
@@ -522,12 +633,14 @@ class CornerPnP(EstimatorBase):
     def _placed_markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation],
                         world_map: MarkerMap, plane_heights: Mapping[int, float],
                         inliers: Sequence[int],
-                        planes: dict[int, unknown_plane_mod.PlaneChoice]
+                        planes: dict[int, unknown_plane_mod.PlaneChoice],
+                        dropped: dict[int, int], scale_refs: Sequence[int]
                         ) -> dict[int, MarkerEstimate]:
         """:meth:`_markers`, reusing the placements of the same fit for markers whose
         observation is the same object (warm start only; see ``_placed``)."""
         if not self.warm_start or self._warm is None or self._warm[3] is not fit:
-            return self._markers(fit, obs, world_map, plane_heights, inliers, planes)
+            return self._markers(fit, obs, world_map, plane_heights, inliers, planes,
+                                 dropped=dropped, scale_refs=scale_refs)
         old = self._placed[2] if (self._placed is not None and self._placed[0] is fit
                                   and self._placed[1] is world_map) else {}
         out: dict[int, MarkerEstimate] = {}
@@ -538,22 +651,28 @@ class CornerPnP(EstimatorBase):
                 out[i] = hit[2]
                 if hit[3] is not None:
                     planes[i] = hit[3]
+                if hit[4] >= 0:
+                    dropped[i] = hit[4]
             else:
                 todo.add(i)
         if todo:
             out.update(self._markers(fit, obs, world_map, plane_heights, inliers, planes,
-                                     only=todo))
+                                     only=todo, dropped=dropped, scale_refs=scale_refs))
         self._placed = (fit, world_map, {i: (obs[i], plane_heights.get(i), out[i],
-                                             planes.get(i)) for i in out})
+                                             planes.get(i), dropped.get(i, -1)) for i in out})
         return {i: out[i] for i in obs if i in out}
 
     def _markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation], world_map: MarkerMap,
                  plane_heights: Mapping[int, float], inliers: Sequence[int] = (),
                  planes: dict[int, unknown_plane_mod.PlaneChoice] | None = None,
-                 only: Collection[int] | None = None) -> dict[int, MarkerEstimate]:
+                 only: Collection[int] | None = None,
+                 dropped: dict[int, int] | None = None,
+                 scale_refs: Sequence[int] | None = None) -> dict[int, MarkerEstimate]:
         """World pose and sigma of every observed marker (of ``only`` if given; the others
         still inform the depth scale); ``planes`` receives id -> the choice made for each
-        marker without a known plane."""
+        marker without a known plane, ``dropped`` id -> the index of a corner its own square
+        contradicts (left out of its pose); ``scale_refs``: the references whose distance
+        ratios give the free markers' depth scale (default ``inliers``)."""
         all_obs = obs
         if only is not None:
             obs = {i: o for i, o in obs.items() if i in only}
@@ -570,14 +689,20 @@ class CornerPnP(EstimatorBase):
         out = {i: by_pnp(o) for i, o in obs.items() if i not in frames}
         unknown = [i for i in out if obs[i].corners is not None and i not in world_map]
         if unknown and inliers:
-            scale = self._depth_scale(fit, all_obs, world_map, inliers)
+            # Every reference in view: a displaced one barely changes its distance ratio
+            # (centimetres over metres), and the median takes care of the rest.
+            scale = self._depth_scale(fit, all_obs, world_map,
+                                      inliers if scale_refs is None else scale_refs)
             cands = unknown_plane_mod.map_planes(world_map)
             for i in unknown:
                 o = obs[i]
                 ch = unknown_plane_mod.infer(
                     fit.R, fit.t, fit.K, fit.d, np.asarray(o.corners, float), o.length, cands,
                     fit.sigma_px, o.marker2cam_R, o.marker2cam_t, scale, self.unknown_plane,
-                    self.plane_level)
+                    self.plane_level, corner_sigma=self._corner_sigma(fit),
+                    corner_threshold=self._corner_q)
+                if ch.dropped >= 0 and dropped is not None:
+                    dropped[i] = ch.dropped
                 out[i] = MarkerEstimate(i, ch.position, ch.rotation, yaw_of(ch.rotation))
                 if planes is not None:
                     planes[i] = ch
@@ -589,30 +714,48 @@ class CornerPnP(EstimatorBase):
         F = np.repeat(np.array([frames[i][0] for i in ids]), 4, axis=0)
         O = np.repeat(np.array([frames[i][1] for i in ids]), 4, axis=0)
         P = self._intersect(fit.R, fit.t, xy, F, O).reshape(-1, 4, 3)
-        centres = P.mean(axis=1)
         sig = self._sigmas(fit, xy, F, O)
-        # In-plane rotation of each square: 2D Procrustes of its local corners onto the
-        # intersected ones, all markers at once.
         Fm = F[::4]
-        a = np.einsum("nki,nij->nkj", P - centres[:, None, :], Fm[:, :, :2])
         lengths = np.array([world_map[i].length if i in world_map else obs[i].length
                             for i in ids])
-        c = marker_corners_local(1.0)[None, :, :2] * lengths[:, None, None]
-        ang = np.arctan2(np.sum(c[:, :, 0] * a[:, :, 1] - c[:, :, 1] * a[:, :, 0], axis=1),
-                         np.sum(c[:, :, 0] * a[:, :, 0] + c[:, :, 1] * a[:, :, 1], axis=1))
-        Rz = np.zeros((len(ids), 3, 3))
-        Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(ang)
-        Rz[:, 1, 0] = np.sin(ang)
-        Rz[:, 0, 1] = -Rz[:, 1, 0]
-        Rz[:, 2, 2] = 1.0
-        Rw = Fm @ Rz
         good = np.all(np.isfinite(P), axis=(1, 2))
+        centres, Rw, drop = self._square_poses(fit, P, Fm, lengths, uv.reshape(-1, 4, 2), good)
+        if dropped is not None:
+            dropped.update({i: int(drop[k]) for k, i in enumerate(ids) if drop[k] >= 0})
         for k, i in enumerate(ids):
             if not good[k]:  # plane behind the camera or parallel to the rays: PnP pose
                 out[i] = by_pnp(obs[i])
             else:
                 out[i] = MarkerEstimate(i, centres[k], Rw[k], yaw_of(Rw[k]), float(sig[k]))
         return out
+
+    def _corner_sigma(self, fit: _Fit) -> float:
+        """The corner noise (px) the per-marker corner tests use: the consensus's robust
+        level, or the fit's residual level for a fit that did not measure it."""
+        s = fit.corner_sigma
+        return s if math.isfinite(s) else max(fit.sigma_px, SIGMA_FLOOR_PX)
+
+    def _square_poses(self, fit: _Fit, P: np.ndarray, frames: np.ndarray, lengths: np.ndarray,
+                      uv: np.ndarray, good: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Centres (n, 3), rotations (n, 3, 3) and dropped corner (n,) (-1: none) of n squares
+        from their corners' ray-plane points P (n, 4, 3): the 4-corner fit, then the
+        leave-one-corner-out test (:func:`corner_outliers`) and the 3-corner fit where a
+        corner is dropped. Rows not ``good`` (non-finite P) are left as they come."""
+        centres, Rw = square_pose(P, frames, lengths)
+        drop = np.full(len(P), -1, dtype=int)
+        if not np.any(good):
+            return centres, Rw, drop
+        g = np.flatnonzero(good)
+        d_g, _, _ = corner_outliers(fit.R, fit.t, fit.K, fit.d, uv[g], centres[g], Rw[g],
+                                    lengths[g], self._corner_sigma(fit), self._corner_q)
+        drop[g] = d_g
+        sel = np.flatnonzero(drop >= 0)
+        if sel.size:
+            keep = np.ones((sel.size, 4), bool)
+            keep[np.arange(sel.size), drop[sel]] = False
+            centres[sel], Rw[sel] = square_pose(P[sel], frames[sel], lengths[sel], keep)
+        return centres, Rw, drop
 
     @staticmethod
     def _depth_scale(fit: _Fit, obs: Mapping[int, MarkerObservation], world_map: MarkerMap,
@@ -677,7 +820,7 @@ class CornerPnP(EstimatorBase):
 
     # ------------------------------------------------------------------ leave-one-out
     def _loo_steps(self, fit: _Fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full, frames,
-                   origins) -> dict[int, np.ndarray]:
+                   origins, lengths, drop) -> dict[int, np.ndarray]:
         """One Gauss-Newton step per left-out consensus reference, all at once."""
         n, p = len(inliers), J.shape[1]
         Jk, Jwk, rk = J.reshape(n, 8, p), Jw.reshape(n, 8, p), r.reshape(n, 8)
@@ -706,7 +849,12 @@ class CornerPnP(EstimatorBase):
                 xy = xy + dxy * deltas[:, col, None, None]
         P = _batched_plane_points(R, t, xy, frames[rows[:, 0]], origins[rows[:, 0]])
         ok = np.all(np.isfinite(P), axis=(1, 2))
-        centres = P.mean(axis=1)
+        k_ref = np.array([pos[i] for i in inliers])
+        keep = np.ones((n, 4), bool)
+        d = drop[k_ref]
+        keep[np.flatnonzero(d >= 0), d[d >= 0]] = False
+        centres, _ = square_pose(np.where(ok[:, None, None], P, 0.0), frames[rows[:, 0]],
+                                 lengths[k_ref], keep)
         return {i: centres[k] for k, i in enumerate(inliers) if ok[k]}
 
     def estimate_with_loo(
@@ -756,6 +904,8 @@ class CornerPnP(EstimatorBase):
         uv = self._stack_corners(inliers, obs)
         r, J = self._residuals(X, uv, fit.R, fit.t, fit.K, fit.d, fit.refine, True, fit.K0)
         w = huber_weights(r, self.huber_px)
+        if fit.keep is not None:  # the corners the fit left out weigh nothing
+            w = w * np.repeat(np.concatenate([fit.keep[i] for i in inliers]), 2)
         Jw = J * w[:, None]
         g = Jw.T @ r
         if fit.refine:
@@ -767,12 +917,18 @@ class CornerPnP(EstimatorBase):
         uv_refs = self._stack_corners(refs, obs)
         xy_full = undistort(uv_refs, fit.K, fit.d)
         full = self._intersect(fit.R, fit.t, xy_full, frames, origins).reshape(-1, 4, 3)
+        lengths = np.array([world_map[i].length for i in refs])
+        good = np.all(np.isfinite(full), axis=(1, 2))
+        # Each reference's own corner test, decided once at the full fit (a left-out
+        # reference is tested the same way by estimate(exclude={j})).
+        centres, _, drop = self._square_poses(fit, full, frames[::4], lengths,
+                                              uv_refs.reshape(-1, 4, 2), good)
         for k, i in enumerate(refs):
-            if i not in inliers and np.all(np.isfinite(full[k])):
-                out[i] = full[k].mean(axis=0)
+            if i not in inliers and good[k]:
+                out[i] = centres[k]
         if len(inliers) - 1 >= self.min_references:
             out.update(self._loo_steps(fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full,
-                                       frames, origins))
+                                       frames, origins, lengths, drop))
         return out
 
 

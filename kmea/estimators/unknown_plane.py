@@ -77,6 +77,7 @@ class PlaneChoice:
     position: np.ndarray
     rotation: np.ndarray
     plane: tuple[np.ndarray, float] | None = None
+    dropped: int = -1  # a corner the marker's own square contradicts (left out), or -1
 
 
 def check_mode(estimator: str, mode: str) -> str:
@@ -157,18 +158,21 @@ def _square(length: float) -> np.ndarray:
 
 
 def _plane_start(R, t, K, d, uv, plane: Plane, sq: np.ndarray):
-    """(x, y, angle) in the plane frame from the corners' rays met with the plane, or None."""
+    """(x, y, angle) in the plane frame from the corners' rays met with the plane, or None.
+    uv (m, 2) and sq (m, 3): the corners used (all 4, or 3 of them)."""
     xy = undistort(uv, K, d)
-    rays = np.concatenate([xy, np.ones((4, 1))], axis=1) @ R  # world directions
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R  # world directions
     P = intersect_rays_planes(-R.T @ t, rays, plane.origin, plane.frame[:, 2])
     if not np.all(np.isfinite(P)):
         return None
-    local = (P - plane.origin) @ plane.frame  # (4, 3) in the plane frame
-    c = local[:, :2].mean(axis=0)
-    a = local[:, :2] - c
-    s = sq[:, :2]
+    local = (P - plane.origin) @ plane.frame  # (m, 3) in the plane frame
+    m = local[:, :2].mean(axis=0)
+    a = local[:, :2] - m
+    ms = sq[:, :2].mean(axis=0)
+    s = sq[:, :2] - ms
     ang = math.atan2(float(np.sum(s[:, 0] * a[:, 1] - s[:, 1] * a[:, 0])),
                      float(np.sum(s[:, 0] * a[:, 0] + s[:, 1] * a[:, 1])))
+    c = m - rot_z(ang)[:2, :2] @ ms
     return np.array([c[0], c[1], ang])
 
 
@@ -195,7 +199,7 @@ def _fit_plane(R, t, K, d, uv, plane: Plane, sq: np.ndarray, iterations: int = 8
     ssr = float(r @ r)
     scale = np.array([1e-6, 1e-6, 1e-6])
     for _ in range(iterations):
-        J = np.empty((8, 3))
+        J = np.empty((r.size, 3))
         for k in range(3):
             dq = np.zeros(3)
             dq[k] = scale[k]
@@ -237,7 +241,7 @@ def _fit_free(K, d, uv, R0: np.ndarray, t0: np.ndarray, sq: np.ndarray,
         J_w[:, :, 0] = J_pc[:, :, 2] * v[:, None, 1] - J_pc[:, :, 1] * v[:, None, 2]
         J_w[:, :, 1] = J_pc[:, :, 0] * v[:, None, 2] - J_pc[:, :, 2] * v[:, None, 0]
         J_w[:, :, 2] = J_pc[:, :, 1] * v[:, None, 0] - J_pc[:, :, 0] * v[:, None, 1]
-        return (uvp - uv).reshape(-1), np.concatenate([J_w, J_pc], axis=2).reshape(8, 6)
+        return (uvp - uv).reshape(-1), np.concatenate([J_w, J_pc], axis=2).reshape(-1, 6)
 
     out = res(R, t, True)
     if out is None:
@@ -275,16 +279,33 @@ def plane_statistic(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     return ssr - min(free, ssr)
 
 
+def _drop_corner(R, t, K, d, uv, plane: Plane, sq: np.ndarray, q: np.ndarray, length: float,
+                 sigma_px: float, threshold: float) -> int:
+    """The corner of a square fitted in ``plane`` (in-plane pose q) that the other three
+    contradict (:func:`kmea.estimators.corner_noise.corner_outliers`), or -1."""
+    from kmea.estimators.corner_noise import corner_outliers
+
+    centre = plane.origin + plane.frame @ np.array([q[0], q[1], 0.0])
+    rot = plane.frame @ rot_z(q[2])
+    drop, _, _ = corner_outliers(R, t, K, d, uv[None], centre[None], rot[None],
+                              np.array([length]), sigma_px, threshold)
+    return int(drop[0])
+
+
 def infer(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray, uv: np.ndarray,
           length: float, planes: Sequence[Plane], sigma_px: float, marker2cam_R: np.ndarray,
           marker2cam_t: np.ndarray, depth_scale: float, mode: str = "auto",
-          level: float = 0.999) -> PlaneChoice:
+          level: float = 0.999, corner_sigma: float | None = None,
+          corner_threshold: float | None = None) -> PlaneChoice:
     """Plane or free pose of one marker without a known plane (see the module docstring).
 
     R, t: world2cam of the fitted camera; K (3, 3), d (14,): its intrinsics; uv (4, 2) the
     marker's corners, px; length m; sigma_px the corner noise (px, per coordinate);
     marker2cam_R/t its own PnP pose (camera frame, m); depth_scale the references' ratio of
-    fitted to PnP camera distance.
+    fitted to PnP camera distance. With ``corner_threshold`` (a chi-square 2 dof quantile)
+    each candidate plane's fit first drops a corner its own square contradicts at the noise
+    ``corner_sigma`` (default sigma_px); the plane and free fits then use the other 3 (the
+    test keeps its 3 degrees of freedom).
     """
     if mode not in MODES:
         raise ValueError(f"unknown_plane: mode must be one of {', '.join(MODES)}, got {mode!r}")
@@ -300,30 +321,43 @@ def infer(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray, uv: np.nda
     cands = [p for p in planes if p.label == "floor"] if mode == "floor" else list(planes)
     if mode == "floor" and not cands:
         cands = [_FLOOR]
-    best: tuple[float, Plane, np.ndarray] | None = None
-    ssr_free = None
+    # Every candidate with the 4 corners; the corner test on the best one only (a bad
+    # corner moves a marker's fit by pixels, the planes of a map are metres apart).
+    fits = []
     for plane in cands:
         ssr, q = _fit_plane(R, t, K, d, uv, plane, sq)
-        if q is None:
-            continue
-        if mode == "floor":
-            best = (math.nan, plane, q)
-            break
-        if ssr_free is None:
-            # Scale-free start: the PnP pose with its depth corrected as the references say.
-            ssr_free = _fit_free(K, d, uv, Rm, np.asarray(marker2cam_t, float), sq)
-        stat = (ssr - min(ssr_free, ssr)) / max(sigma_px, 1e-6) ** 2
-        if best is None or stat < best[0]:
-            best = (stat, plane, q)
-    if best is None:
+        if q is not None:
+            fits.append((ssr, plane, q))
+            if mode == "floor":
+                break
+    if not fits:
         return free
-    stat, plane, q = best
+    ssr, plane, q = min(fits, key=lambda f: f[0])
+    k = -1
+    if corner_threshold is not None:
+        k = _drop_corner(R, t, K, d, uv, plane, sq, q, length,
+                         sigma_px if corner_sigma is None else corner_sigma, corner_threshold)
+        if k >= 0:
+            use = np.arange(4) != k
+            ssr3, q3 = _fit_plane(R, t, K, d, uv[use], plane, sq[use])
+            if q3 is None:
+                k = -1
+            else:
+                ssr, q = ssr3, q3
+    if mode == "floor":
+        stat = math.nan
+    else:
+        use = np.arange(4) != k
+        # Scale-free start: the PnP pose with its depth corrected as the references say.
+        ssr_free = _fit_free(K, d, uv[use], Rm, np.asarray(marker2cam_t, float), sq[use])
+        stat = (ssr - min(ssr_free, ssr)) / max(sigma_px, 1e-6) ** 2
     if mode == "auto" and not stat <= chi2_quantile(level, 3):
         free.statistic = stat
         return free
     pos = plane.origin + plane.frame @ np.array([q[0], q[1], 0.0])
     n = plane.frame[:, 2].copy()
-    return PlaneChoice(plane.label, stat, pos, plane.frame @ rot_z(q[2]), (n, float(n @ pos)))
+    return PlaneChoice(plane.label, stat, pos, plane.frame @ rot_z(q[2]), (n, float(n @ pos)),
+                       k)
 
 
 def place_with_similarity(markers: dict, observations: Sequence, world_map: MarkerMap,

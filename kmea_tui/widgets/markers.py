@@ -21,7 +21,7 @@ from kmea_tui.widgets.live_table import DASH, LiveTable, fmt, show_line
 COLUMNS = [
     ("id", "id"), ("map", "map"), ("det", "det"), ("x", "x m"), ("y", "y m"),
     ("yaw", "yaw°"), ("map_x", "map x"), ("map_y", "map y"), ("error", "LOO mm"),
-    ("flags", "flags"),
+    ("flags", "flags"), ("plane", "plane"),
 ]
 
 
@@ -56,9 +56,18 @@ def flags_of(m: dict[str, Any]) -> str:
                    if on)
 
 
+def plane_of(m: dict[str, Any]) -> str:
+    """Where the estimator put a marker of unknown plane (not in the map, not on a configured
+    robot): the daemon's ``plane`` ("floor", "plane N" or "free"), a dash for the others."""
+    p = m.get("plane")
+    return p if isinstance(p, str) and p else DASH
+
+
 def _sort_value(raw: dict[str, Any], col: str) -> Any:
     if col == "id":
         return int(raw.get("id", 0))
+    if col == "plane":
+        return raw.get("plane") or None
     if col in ("map", "det"):
         return bool(raw.get("in_map" if col == "map" else "detected"))
     if col == "flags":
@@ -76,6 +85,7 @@ class MarkersTable(LiveTable):
         *(f"`{ch}` {text.split(':')[0]}  " for ch, text in FLAGS_HELP),
         "",
         "Rows: **red** moved, dim unseen, yellow suspect, cyan not in the map.",
+        "*plane*: where a marker of unknown plane was put (floor, plane N, free).",
         "`s`/`S` sort.",
     ])
 
@@ -94,6 +104,7 @@ def marker_cells(m: dict[str, Any]) -> list[str | Text]:
         fmt(m.get("map_x")), fmt(m.get("map_y")),
         fmt(m.get("error"), ".1f", 1000.0),
         flags_of(m),
+        plane_of(m),
     ]
     if m.get("moved"):
         return [Text(c, style="bold red") if isinstance(c, str) else c for c in cells]
