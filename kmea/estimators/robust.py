@@ -285,17 +285,14 @@ def footprints(observations: Sequence[MarkerObservation], world_map: MarkerMap,
     """(N,) metres per pixel of the markers ``ids`` (the map's side length over the mean side
     of their detected corners, px), or None unless every one has corners."""
     by_id = {o.id: o for o in observations}
-    out = []
-    for i in ids:
-        c = by_id[i].corners if i in by_id else None
-        if c is None:
-            return None
-        c = np.asarray(c, dtype=float).reshape(4, 2)
-        side = float(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1).mean())
-        if not side > 0:
-            return None
-        out.append(world_map[i].length / side)
-    return np.array(out)
+    cs = [by_id[i].corners if i in by_id else None for i in ids]
+    if not cs or any(c is None for c in cs):
+        return None
+    c = np.asarray(cs, dtype=float).reshape(-1, 4, 2)
+    side = np.sqrt(np.sum((c - c[:, [3, 0, 1, 2]]) ** 2, axis=2)).mean(axis=1)
+    if not np.all(side > 0):
+        return None
+    return np.array([world_map[i].length for i in ids]) / side
 
 
 def plane_residuals(pred: np.ndarray, C: np.ndarray, Q: np.ndarray,
