@@ -49,7 +49,12 @@ def test_part3_displaced_anchors_reported_and_corner_pnp_unharmed(part1):
     summary = rejected_summary(result)
     for alg in ("kmea-robust", "corner-pnp"):
         got = {i: (median, share) for i, median, share in summary[alg]}
-        assert set(got) == set(displaced), (alg, got)
+        assert set(got) >= set(displaced), (alg, got)
+        # Thresholds scale with the measured corner noise (issue 13): a reference whose
+        # corners disagree with the map by about a millimetre, many times that noise (a
+        # wall marker seen at a grazing angle), may be left out too; never by anything near
+        # a displacement (36-39 mm here).
+        assert all(got[i][0] < 0.003 for i in set(got) - set(displaced)), (alg, got)
         for i, d in displaced.items():
             median, share = got[i]
             assert share == 1.0
@@ -62,5 +67,9 @@ def test_part4_corner_pnp_at_most_half_of_kmea(miscalibrate):
     result, sc = _run("IV", **kw)
     # Measured with 8 frames: 0.26 mm against 20 mm (both calibrations).
     assert _mae(sc, "corner-pnp") <= _mae(sc, "kmea") / 2
-    summary = {i for i, _, _ in rejected_summary(result)["corner-pnp"]}
-    assert summary == set(get_part("IV").displaced)
+    summary = {i: median for i, median, _ in rejected_summary(result)["corner-pnp"]}
+    displaced = set(get_part("IV").displaced)
+    assert set(summary) >= displaced
+    # Besides the displaced anchors (92-106 mm), only references off by a millimetre or
+    # less than the corner noise allows (see Part III above).
+    assert all(summary[i] < 0.003 for i in set(summary) - displaced), summary
