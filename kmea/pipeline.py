@@ -406,7 +406,8 @@ class Pipeline:
             if incremental:
                 known = None
                 if (on_robots is not None and self._floor_obs and self.robot_specs
-                        and self.inc_poses.fixed_changed(ids, corners)):
+                        and (self.inc_poses.fixed_changed(ids, corners)
+                             or self._floor_grew(ids))):
                     # The floor's corners changed (one more averaged look, a marker back in
                     # view): re-posing it and refitting the camera can take 10 ms or more.
                     # The robots go first, placed with the camera fit of the floor as it
@@ -477,6 +478,13 @@ class Pipeline:
         return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
                            est, markers, loo_err, robots, tm, inp.t_capture, inp.meta,
                            rejections, events, restart, mode, fresh)
+
+    def _floor_grew(self, ids: np.ndarray) -> bool:
+        """Is a fixed marker in ``ids`` that the last frame's floor did not have (back in
+        view: the camera fit gains a reference and is solved again)?"""
+        had = {o.id for o in self._floor_obs}
+        fixed = self.inc_poses.fixed
+        return any(m in fixed and m not in had for m in ids.tolist())
 
     def _robots_first(self, t: float, ids: np.ndarray, corners: np.ndarray,
                       on_robots: Callable[[float, dict[str, RobotFix]], None],
