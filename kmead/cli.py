@@ -86,13 +86,27 @@ def _setup_logging(level: str, timestamps: bool | None = None) -> None:
     # process: tests, the UI's embedded daemon), with the time unless journald stamps it.
     for h in [h for h in root.handlers if getattr(h, "_kmead", False)]:
         root.removeHandler(h)
-    h = logging.StreamHandler(sys.stderr)
+    h = _StderrHandler()
     fmt = "kmead: %(levelname)s: %(message)s"
     h.setFormatter(logging.Formatter(f"%(asctime)s {fmt}" if timestamps else fmt,
                                      "%Y-%m-%d %H:%M:%S"))
     h._kmead = True  # type: ignore[attr-defined]
     root.addHandler(h)
     root.propagate = False
+
+
+class _StderrHandler(logging.StreamHandler):
+    """A stream handler on whatever ``sys.stderr`` is when a record is written: a handler
+    holding the stderr of an earlier call (a test's captured stream, closed since) would
+    fail on every later record of a daemon in the same process."""
+
+    @property  # type: ignore[override]
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
 
 
 def _port_hint(text: str) -> str:
