@@ -44,6 +44,16 @@ def _tracker(src: SimSource, **kw) -> TrackingDetector:
                             TrackingConfig(static_ids=_static_ids(src), **kw), background=False)
 
 
+def _tracked_pipeline(src: SimSource, algorithm: str | None = None, **tracker) -> Pipeline:
+    """A tracking pipeline of ``src``'s robots with a deterministic tracker (``_tracker``)."""
+    extra = {} if algorithm is None else {"algorithm": algorithm}
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(
+        robots=tuple(src.scene.robot_specs()), tracking=True, **extra))
+    p.observer.detector.close()
+    p.observer.detector = _tracker(src, **tracker)
+    return p
+
+
 @pytest.fixture(scope="module")
 def default_frames():
     return _frames("sim:default", 24)
@@ -181,9 +191,7 @@ def test_robots_at_speed_keep_their_pose_every_frame():
 def test_incremental_poses_and_leave_one_out_match_recomputation(default_frames):
     frames, src = default_frames
     specs = tuple(src.scene.robot_specs())
-    inc = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs, tracking=True))
-    inc.observer.detector.close()
-    inc.observer.detector = _tracker(src)
+    inc = _tracked_pipeline(src)
     ref = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs))
     reused = 0
     for f in frames[:12]:
@@ -208,10 +216,7 @@ def test_robots_are_sent_before_the_floor_is_refitted(default_frames):
     # reference corners, so the floor's poses and the camera fit change in those frames.
     frames, src = default_frames
     specs = tuple(src.scene.robot_specs())
-    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs, tracking=True,
-                                                             algorithm="corner-pnp"))
-    p.observer.detector.close()
-    p.observer.detector = _tracker(src, full_res_every=1)
+    p = _tracked_pipeline(src, "corner-pnp", full_res_every=1)
     ref = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs,
                                                                algorithm="corner-pnp"))
     early = 0
@@ -241,11 +246,7 @@ def test_corner_pnp_warm_start_gives_the_fresh_solve(default_frames):
     from kmea.estimators.corners import CornerPnP
 
     frames, src = default_frames
-    specs = tuple(src.scene.robot_specs())
-    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs, tracking=True,
-                                                             algorithm="corner-pnp"))
-    p.observer.detector.close()
-    p.observer.detector = _tracker(src)
+    p = _tracked_pipeline(src, "corner-pnp")
     assert p.estimator.warm_start
     fresh = CornerPnP()
     intr = p.camera.intrinsics

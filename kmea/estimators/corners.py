@@ -67,7 +67,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -98,6 +98,7 @@ from kmea.geometry import (
     intersect_rays_planes,
     make_transform,
     project,
+    rotation_increment_jacobian,
     rotvec_to_matrix,
     rotvecs_to_matrices,
     undistort,
@@ -135,6 +136,26 @@ class _Fit:
     ref_sigma: float = math.nan  # robust level (px) of the references' centre disagreements
     keep: dict | None = None  # inlier id -> (4,) bool: its corners used by the fit
     thresholds: dict | None = None  # reference id -> its rejection threshold, m (RMS corner)
+
+
+@dataclass(frozen=True)
+class _Warm:
+    """The last fit kept for the warm start (a fixed camera, :mod:`kmea.incremental`).
+
+    key: (id of the map, camera matrix bytes, distortion bytes) it was solved for; refs, uv:
+    its references and their stacked corners (4 rows each, px); inliers, dis: its consensus
+    and each reference's disagreement (m); ref_obs, camera: the observation objects and the
+    intrinsics object of the last call that returned it (same objects: nothing to check).
+    """
+
+    key: tuple
+    refs: list[int]
+    uv: np.ndarray
+    fit: _Fit
+    inliers: tuple[int, ...]
+    dis: dict[int, float]
+    ref_obs: tuple = ()
+    camera: object = None
 
 
 def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mapping[int, float]
@@ -214,8 +235,7 @@ class CornerPnP(EstimatorBase):
         self._start = KMEARobust(threshold=start_threshold, trials=50,
                                  min_references=self.min_references)
         self.warm_start = bool(warm_start)
-        # (key, refs, uv_refs, fit, inliers, dis, reference observations, camera)
-        self._warm: tuple | None = None
+        self._warm: _Warm | None = None
         # Placements of the last fit: (fit, world_map, id -> (observation, plane height,
         # MarkerEstimate, PlaneChoice or None)). A marker's placement depends only on the
         # fit, its own observation and its plane, so while the warm start returns the same
@@ -240,12 +260,7 @@ class CornerPnP(EstimatorBase):
         if not jac:
             return (project(Pc, K, d) - uv).reshape(-1)
         proj, J_pc, J_f, J_k1 = project(Pc, K, d, jac=True)
-        # d Pc / d w = -[R X]x for the left increment R <- exp(w) R: column k is e_k x (R X).
-        v = Pc - t
-        J_w = np.empty_like(J_pc)
-        J_w[:, :, 0] = J_pc[:, :, 2] * v[:, None, 1] - J_pc[:, :, 1] * v[:, None, 2]
-        J_w[:, :, 1] = J_pc[:, :, 0] * v[:, None, 2] - J_pc[:, :, 2] * v[:, None, 0]
-        J_w[:, :, 2] = J_pc[:, :, 1] * v[:, None, 0] - J_pc[:, :, 0] * v[:, None, 1]
+        J_w = rotation_increment_jacobian(J_pc, Pc - t)  # left increment exp(w) R
         cols = [J_w, J_pc]
         if refine:
             # project() differentiates a multiplier of the current K; the parameter multiplies K0.
@@ -453,12 +468,12 @@ class CornerPnP(EstimatorBase):
                                               f"visible, need {self.min_references}")
         ref_obs = tuple(obs[i] for i in refs)
         w = self._warm
-        if (self.warm_start and not excl and w is not None and w[7] is camera
-                and w[0][0] == id(world_map) and len(w[6]) == len(ref_obs)
-                and all(a is b for a, b in zip(w[6], ref_obs, strict=True))):
+        if (self.warm_start and not excl and w is not None and w.camera is camera
+                and w.key[0] == id(world_map) and len(w.ref_obs) == len(ref_obs)
+                and all(a is b for a, b in zip(w.ref_obs, ref_obs, strict=True))):
             # The very observations of the last fit (a fixed camera's floor, reused by
             # kmea.incremental): the same fit, nothing to check or stack again.
-            return w[3], refs, list(w[4]), w[5], obs
+            return w.fit, refs, list(w.inliers), w.dis, obs
         for i in refs:
             c = np.asarray(obs[i].corners, dtype=float)
             if c.size != 8 or not np.all(np.isfinite(c)):
@@ -473,20 +488,20 @@ class CornerPnP(EstimatorBase):
         key = None
         if self.warm_start and not excl:
             key = (id(world_map), K0.tobytes(), d0.tobytes())
-            if self._warm is not None and self._warm[0] == key:
+            if self._warm is not None and self._warm.key == key:
                 warm = self._warm
-                if warm[1] == refs and np.array_equal(warm[2], uv_refs):
-                    self._warm = (*warm[:6], ref_obs, camera)
-                    return warm[3], refs, list(warm[4]), warm[5], obs  # the same fit
+                if warm.refs == refs and np.array_equal(warm.uv, uv_refs):
+                    self._warm = replace(warm, ref_obs=ref_obs, camera=camera)
+                    return warm.fit, refs, list(warm.inliers), warm.dis, obs  # the same fit
                 same = self._warm_subset(warm, refs, uv_refs)
                 if same is not None:
-                    return warm[3], refs, same, {i: warm[5][i] for i in refs}, obs
+                    return warm.fit, refs, same, {i: warm.dis[i] for i in refs}, obs
         keep_model = False
         if warm is not None:
             # A few iterations from the previous fit; references new to the fit are tried.
-            R, t = warm[3].R, warm[3].t
-            keep_model = warm[1] == refs
-            inliers = [i for i in refs if i in warm[4] or i not in warm[1]]
+            R, t = warm.fit.R, warm.fit.t
+            keep_model = warm.refs == refs
+            inliers = [i for i in refs if i in warm.inliers or i not in warm.refs]
             if len(inliers) < self.min_references:
                 warm = None
         if warm is None:
@@ -510,20 +525,20 @@ class CornerPnP(EstimatorBase):
         xy_refs = None
         fit = None
         keep = {i: np.ones(4, bool) for i in refs}
-        if warm is not None and warm[3].keep is not None:
-            keep.update({i: k.copy() for i, k in warm[3].keep.items() if i in keep})
+        if warm is not None and warm.fit.keep is not None:
+            keep.update({i: k.copy() for i, k in warm.fit.keep.items() if i in keep})
         for _ in range(8):
             sel = np.concatenate([4 * row[i] + np.flatnonzero(keep[i]) for i in inliers])
             prev = (fit.K, fit.d) if fit is not None else (
-                (warm[3].K, warm[3].d) if warm is not None and warm[3].refine else None)
+                (warm.fit.K, warm.fit.d) if warm is not None and warm.fit.refine else None)
             if self.refine_intrinsics == "auto" and keep_model:
                 # The same references, their corners moved a little (a reference's corners
                 # averaged over one more look): the previous model choice stands; a few LM
                 # iterations from the previous fit, no second model.
-                fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, warm[3].refine,
+                fit = self._lm(X_refs[sel], uv_refs[sel], R, t, K0, d0, warm.fit.refine,
                                prev)
                 if fit is not None:
-                    fit.refine_test = warm[3].refine_test
+                    fit.refine_test = warm.fit.refine_test
             elif self.refine_intrinsics == "auto":
                 fit, test = self._select(X_refs[sel], uv_refs[sel], R, t, K0, d0)
                 if fit is not None:
@@ -555,22 +570,22 @@ class CornerPnP(EstimatorBase):
             inliers = new
         fit.keep = {i: keep[i] for i in inliers}
         if key is not None:
-            self._warm = (key, refs, uv_refs, fit, tuple(inliers), dis, ref_obs, camera)
+            self._warm = _Warm(key, refs, uv_refs, fit, tuple(inliers), dis, ref_obs, camera)
         return fit, refs, inliers, dis, obs
 
-    def _warm_subset(self, warm: tuple, refs: list[int], uv_refs: np.ndarray
+    def _warm_subset(self, warm: _Warm, refs: list[int], uv_refs: np.ndarray
                      ) -> list[int] | None:
         """The previous fit's inliers among ``refs`` when ``refs`` are some of the previous
         fit's references with bit-identical corners (markers hidden, e.g. by a passing
         robot, and nothing else changed: the fit of the larger set stands; None otherwise."""
-        old = {i: k for k, i in enumerate(warm[1])}
+        old = {i: k for k, i in enumerate(warm.refs)}
         if len(refs) >= len(old) or any(i not in old for i in refs):
             return None
-        prev = warm[2].reshape(-1, 4, 2)
+        prev = warm.uv.reshape(-1, 4, 2)
         rows = [old[i] for i in refs]
         if not np.array_equal(prev[rows], uv_refs.reshape(-1, 4, 2)):
             return None
-        inl = [i for i in refs if i in warm[4]]
+        inl = [i for i in refs if i in warm.inliers]
         return inl if len(inl) >= self.min_references else None
 
     def estimate(
@@ -638,7 +653,7 @@ class CornerPnP(EstimatorBase):
                         ) -> dict[int, MarkerEstimate]:
         """:meth:`_markers`, reusing the placements of the same fit for markers whose
         observation is the same object (warm start only; see ``_placed``)."""
-        if not self.warm_start or self._warm is None or self._warm[3] is not fit:
+        if not self.warm_start or self._warm is None or self._warm.fit is not fit:
             return self._markers(fit, obs, world_map, plane_heights, inliers, planes,
                                  dropped=dropped, scale_refs=scale_refs)
         old = self._placed[2] if (self._placed is not None and self._placed[0] is fit

@@ -40,6 +40,7 @@ from kmea.geometry import (
     marker_corners_local,
     project,
     rot_z,
+    rotation_increment_jacobian,
     rotvec_to_matrix,
     undistort,
     yaw_of,
@@ -236,11 +237,7 @@ def _fit_free(K, d, uv, R0: np.ndarray, t0: np.ndarray, sq: np.ndarray,
         if not jac:
             return (project(Pc, K, d) - uv).reshape(-1)
         uvp, J_pc, _, _ = project(Pc, K, d, jac=True)
-        v = Pc - t
-        J_w = np.empty_like(J_pc)
-        J_w[:, :, 0] = J_pc[:, :, 2] * v[:, None, 1] - J_pc[:, :, 1] * v[:, None, 2]
-        J_w[:, :, 1] = J_pc[:, :, 0] * v[:, None, 2] - J_pc[:, :, 2] * v[:, None, 0]
-        J_w[:, :, 2] = J_pc[:, :, 1] * v[:, None, 0] - J_pc[:, :, 0] * v[:, None, 1]
+        J_w = rotation_increment_jacobian(J_pc, Pc - t)  # left increment exp(w) R
         return (uvp - uv).reshape(-1), np.concatenate([J_w, J_pc], axis=2).reshape(-1, 6)
 
     out = res(R, t, True)

@@ -20,6 +20,7 @@ from kmea.geometry.camera import (
     distort_xy,
     project,
     project_world,
+    rotation_increment_jacobian,
     undistort,
 )
 from kmea.geometry.frames import (
@@ -68,6 +69,7 @@ __all__ = [
     "rot_x",
     "rot_y",
     "rot_z",
+    "rotation_increment_jacobian",
     "rotvec_to_matrix",
     "rotvecs_to_matrices",
     "skew",

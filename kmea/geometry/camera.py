@@ -22,6 +22,7 @@ __all__ = [
     "distort_xy",
     "project",
     "project_world",
+    "rotation_increment_jacobian",
     "undistort",
 ]
 
@@ -160,6 +161,20 @@ def project_world(points_world: np.ndarray, world2cam: np.ndarray, K: np.ndarray
         xd, yd = distort_xy(P[:, 0] / z, P[:, 1] / z, d)
     # K[0, 1] (skew) is ignored, as cv2.projectPoints and solvePnP do.
     return np.column_stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]]), z
+
+
+def rotation_increment_jacobian(J_pc: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) derivative of pixels in the left rotation increment w of ``R <- exp(w) R``.
+
+    J_pc: (N, 2, 3) pixels' derivative in their camera-frame points Pc (:func:`project`
+    with ``jac``); v: (N, 3) the rotated points R X (Pc minus the translation). Column k is
+    J_pc (e_k x v): d Pc / d w = -[v]x.
+    """
+    J_w = np.empty_like(J_pc)
+    J_w[:, :, 0] = J_pc[:, :, 2] * v[:, None, 1] - J_pc[:, :, 1] * v[:, None, 2]
+    J_w[:, :, 1] = J_pc[:, :, 0] * v[:, None, 2] - J_pc[:, :, 2] * v[:, None, 0]
+    J_w[:, :, 2] = J_pc[:, :, 1] * v[:, None, 0] - J_pc[:, :, 0] * v[:, None, 1]
+    return J_w
 
 
 def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20) -> np.ndarray:
