@@ -136,3 +136,39 @@ def test_tilted_sensor_model_is_not_batched() -> None:
     d = np.zeros(14)
     d[12] = 0.01
     assert ippe_square(np.zeros((1, 4, 2)), np.array([0.03]), DISTORTED.camera_matrix, d) is None
+
+
+def test_a_few_markers_take_opencv_per_marker_with_the_same_result(monkeypatch) -> None:
+    """Up to SMALL_N markers (a fixed camera's tracked robots) are posed by OpenCV marker by
+    marker, not by the batched replica: the same observations as in the whole frame."""
+    from kmea.sim.renderer import Renderer
+    from kmea.sim.scenes import get_scene
+    from kmea.vision import marker_pose
+    from kmea.vision.detection import DetectorConfig, MarkerDetector
+
+    scene = get_scene("default")
+    wmap = scene.effective_map()
+    det = MarkerDetector(DetectorConfig(wmap.dictionary)).detect(Renderer(scene).render(3).image)
+    corners = np.asarray(det.corners, float).reshape(-1, 4, 2)
+    assert len(det.ids) > marker_pose.SMALL_N
+    whole, diag = estimate_marker_poses(det.ids, corners, scene.camera, world_map=wmap)
+    by_id = {o.id: o for o in whole}
+    ids = det.ids.tolist()
+    pick = [k for k, m in enumerate(ids) if m in (40, 41, 42)]
+    pick += [k for k, m in enumerate(ids) if m in (13, 16)]  # two floor markers
+    assert 3 <= len(pick) <= marker_pose.SMALL_N
+
+    def no_batch(*a, **k):
+        raise AssertionError("the batched replica was used for a few markers")
+
+    monkeypatch.setattr(marker_pose, "ippe_square", no_batch)
+    few, _ = estimate_marker_poses(det.ids[pick], corners[pick], scene.camera, world_map=wmap,
+                                   world2cam_R=diag.world2cam_R)
+    assert [o.id for o in few] == det.ids[pick].tolist()
+    for o in few:
+        w = by_id[o.id]
+        np.testing.assert_allclose(o.marker2cam_R, w.marker2cam_R, rtol=0, atol=TOL)
+        np.testing.assert_allclose(o.marker2cam_t, w.marker2cam_t, rtol=0, atol=TOL)
+        np.testing.assert_allclose(o.alt_t, w.alt_t, rtol=0, atol=TOL)
+        assert abs(o.reproj_error - w.reproj_error) < TOL
+        assert (o.flipped, o.ambiguous, o.suspect) == (w.flipped, w.ambiguous, w.suspect)

@@ -18,7 +18,8 @@ import numpy as np
 from kmea.geometry import distort, matrices_to_rotvecs, project_to_so3, rotvecs_to_matrices
 from kmea.vision.cvcompat import undistort_points
 
-__all__ = ["FALLBACK_PX", "exact_corners", "ippe_square", "reprojection_rms", "solve_pnp_pair"]
+__all__ = ["FALLBACK_PX", "exact_corners", "ippe_pair", "ippe_square", "reprojection_rms",
+           "solve_pnp_pair"]
 
 # Above this RMS reprojection error (px) of the best IPPE solution, SQPnP is tried too.
 FALLBACK_PX = 1.0
@@ -57,20 +58,9 @@ def exact_corners(corners: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarr
     return err_px < 1e-3
 
 
-def solve_pnp_pair(obj: np.ndarray, c: np.ndarray, K: np.ndarray, D: np.ndarray, exact: bool
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Both poses of one marker with OpenCV (IPPE_SQUARE, then SQPnP if IPPE looks
-    degenerate): R (2, 3, 3), t (2, 3), errors (2,) px lowest first; None if no pose."""
-    try:
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    except cv2.error:
-        n = 0
-    if n:
-        best = float(np.min(errs))
-        if not best < (1e-3 if exact else FALLBACK_PX):  # also NaN
-            m, rv2, tv2, er2 = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_SQPNP)
-            if (m and float(np.min(er2)) < best) or not math.isfinite(best):
-                n, rvecs, tvecs, errs = m, rv2, tv2, er2
+def _packed(n: int, rvecs, tvecs, errs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``cv2.solvePnPGeneric``'s output as R (2, 3, 3), t (2, 3), errors (2,) px, lowest
+    error first (one solution is given twice); None without a solution."""
     if not n:
         return None
     rv = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)[:2]
@@ -84,6 +74,33 @@ def solve_pnp_pair(obj: np.ndarray, c: np.ndarray, K: np.ndarray, D: np.ndarray,
     if e2[1] < e2[0]:  # OpenCV sorts them; do not rely on it
         R2, t2, e2 = R2[::-1], t2[::-1], e2[::-1]
     return np.array(R2), np.array(t2), np.array(e2)
+
+
+def ippe_pair(obj: np.ndarray, c: np.ndarray, K: np.ndarray, D: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Both ``SOLVEPNP_IPPE_SQUARE`` poses of one marker (object corners obj (4, 3) m,
+    pixels c (4, 2)): R (2, 3, 3), t (2, 3), errors (2,) px lowest first; None if none."""
+    try:
+        return _packed(*cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE))
+    except cv2.error:
+        return None
+
+
+def solve_pnp_pair(obj: np.ndarray, c: np.ndarray, K: np.ndarray, D: np.ndarray, exact: bool
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Both poses of one marker with OpenCV (IPPE_SQUARE, then SQPnP if IPPE looks
+    degenerate): R (2, 3, 3), t (2, 3), errors (2,) px lowest first; None if no pose."""
+    try:
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    except cv2.error:
+        n = 0
+    if n:
+        best = float(np.min(errs))
+        if not best < (1e-3 if exact else FALLBACK_PX):  # also NaN
+            m, rv2, tv2, er2 = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_SQPNP)
+            if (m and float(np.min(er2)) < best) or not math.isfinite(best):
+                n, rvecs, tvecs, errs = m, rv2, tv2, er2
+    return _packed(n, rvecs, tvecs, errs) if n else None
 
 
 def ippe_square(corners: np.ndarray, half: np.ndarray, K: np.ndarray, D: np.ndarray
