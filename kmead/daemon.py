@@ -35,6 +35,7 @@ from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
 from kmead.csvlog import CsvLog
 from kmead.files import DataDir, FileRefused, same_file
+from kmead.gc_pacing import GcPacing
 from kmead.log_ring import LogRing
 from kmead.outputs import RunTotals, csv_lines, truth_record
 from kmead.relay import Relay
@@ -82,6 +83,7 @@ class Daemon:
         self.relay: Relay | None = None
         self.capture: Capture | None = None
         self.feed = None
+        self.gc_pacing: GcPacing | None = None
         self.last_frame_body: dict = {}
         self.last_result: FrameResult | None = None
         self.frame_times: collections.deque[float] = collections.deque(maxlen=31)
@@ -723,6 +725,8 @@ class Daemon:
                  self.pipeline.algorithm, self.world_map.name, len(self.world_map))
         self.feed = open_feed(self.capture, self.pipeline, self.cfg["detector"]["workers"],
                               self.live, self.replay)
+        # Live: the garbage collector runs between frames, not inside one (kmead.gc_pacing).
+        self.gc_pacing = GcPacing() if self.live else None
         try:
             while not self.stop_event.is_set():
                 if self.max_frames is not None and self.totals.frames >= self.max_frames:
@@ -734,12 +738,15 @@ class Daemon:
                     self._check_complete()
                     break
                 self.progress_t = time.monotonic()
-                if got is None:
-                    continue
-                (frame, cap_ms, t_cap), det, det_ms = got
-                with self.lock:
-                    self.process_frame(frame, cap_ms, t_cap, det, det_ms)
+                if got is not None:
+                    (frame, cap_ms, t_cap), det, det_ms = got
+                    with self.lock:
+                        self.process_frame(frame, cap_ms, t_cap, det, det_ms)
+                if self.gc_pacing is not None:
+                    self.gc_pacing.idle()
         finally:
+            if self.gc_pacing is not None:
+                self.gc_pacing.close()
             self.feed.close()
             self.totals.t_end = time.perf_counter()
         return self.exit_code
