@@ -8,6 +8,7 @@ the Pi's 1640x1232) to keep the suite fast; markers are then ~30 px wide.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 
@@ -304,6 +305,54 @@ def test_corner_pnp_warm_start_gives_the_fresh_solve(default_frames):
     assert warm_used >= 1  # some frames started from the previous fit
 
 
+def _refits(src, frames, **settings) -> tuple[list[int], list]:
+    """Frames at which a tracking pipeline (corner-pnp) refitted the floor's camera, and
+    its results."""
+    from dataclasses import replace
+
+    p = _tracked_pipeline(src, "corner-pnp")
+    p.settings = replace(p.settings, **settings)
+    refits, results, fit = [], [], None
+    for f in frames:
+        results.append(p.process(FrameInput(f.index, f.timestamp, f.image)))
+        if p.estimator._warm.fit is not fit:
+            fit = p.estimator._warm.fit
+            refits.append(f.index)
+    p.close()
+    return refits, results
+
+
+def test_floor_refits_are_paced_and_new_floor_markers_placed_meanwhile():
+    from kmea.estimators.corners import CornerPnP
+
+    frames, src = _frames("sim:default", 46)
+    every, paced = _refits(src, frames, refit_every=1)
+    refits, results = _refits(src, frames, refit_every=20)
+    assert len(refits) < len(every), (refits, every)
+    # after the first frame's fit, at most one refit per 20 frames
+    assert all(b - a >= 20 for a, b in itertools.pairwise(refits[1:])), refits
+    fresh = CornerPnP()
+    deferred = 0
+    for r in results:
+        for m in r.deferred:  # a fixed marker new to the floor: reported, not a reference
+            deferred += 1
+            assert m in r.estimate.markers and m not in r.estimate.references
+        if r.deferred:
+            # The same as a solve told to leave them out (the last fit, to micrometres).
+            s = fresh.estimate(r.observations, src.world_map, exclude=r.deferred,
+                               camera=src.camera.intrinsics, plane_heights={})
+            for m in r.deferred:
+                d = np.linalg.norm(r.estimate.markers[m].position - s.markers[m].position)
+                assert d < 2e-4, (r.index, m, d)
+    assert deferred >= 1
+    # Every frame's robots and markers agree with refitting at every change within 1 mm.
+    for a, b in zip(results, paced, strict=True):
+        for m, me in b.estimate.markers.items():
+            if m in a.estimate.markers:
+                d = np.linalg.norm(a.estimate.markers[m].position - me.position)
+                assert d < 1e-3, (a.index, m, d)
+
+
 def test_live_daemon_tracks_and_reports_a_bumped_camera():
     import logging
     import threading
@@ -416,3 +465,13 @@ def test_live_frame_time_is_the_sensor_timestamp():
     for r in results:
         assert abs(r.timestamp - expected[r.index]) < 0.005, (r.index, r.timestamp)
     assert min(d.totals.latency_ms) >= 40.0  # counted from the exposure, not the receipt
+
+
+def test_refit_pacing_is_a_detector_setting():
+    from kmead.config import ConfigError, load_config
+
+    cfg = load_config(None, sets=["detector.track_refit_every=7"], use_local=False)
+    assert PipelineSettings.from_config(cfg.data, live=True).refit_every == 7
+    assert PipelineSettings.from_config(load_config(None, use_local=False).data).refit_every == 30
+    with pytest.raises(ConfigError, match=r"detector\.track_refit_every"):
+        load_config(None, sets=["detector.track_refit_every=0"], use_local=False)

@@ -468,7 +468,11 @@ class CornerPnP(EstimatorBase):
                                               f"visible, need {self.min_references}")
         ref_obs = tuple(obs[i] for i in refs)
         w = self._warm
-        if (self.warm_start and not excl and w is not None and w.camera is camera
+        # Excluded markers new to the last fit (a floor marker waiting for the next paced
+        # refit, kmea.pipeline) do not change it; excluding one of its references does
+        # (leave-one-out), so that is solved afresh.
+        reuse = self.warm_start and w is not None and not (excl and excl & set(w.refs))
+        if (reuse and w.camera is camera
                 and w.key[0] == id(world_map) and len(w.ref_obs) == len(ref_obs)
                 and all(a is b for a, b in zip(w.ref_obs, ref_obs, strict=True))):
             # The very observations of the last fit (a fixed camera's floor, reused by
@@ -486,6 +490,13 @@ class CornerPnP(EstimatorBase):
         uv_refs = self._stack_corners(refs, obs)
         warm = None
         key = None
+        if reuse and excl and self._warm.key == (id(world_map), K0.tobytes(), d0.tobytes()):
+            w = self._warm
+            if w.refs == refs and np.array_equal(w.uv, uv_refs):
+                return w.fit, refs, list(w.inliers), w.dis, obs
+            same = self._warm_subset(w, refs, uv_refs)
+            if same is not None:
+                return w.fit, refs, same, {i: w.dis[i] for i in refs}, obs
         if self.warm_start and not excl:
             key = (id(world_map), K0.tobytes(), d0.tobytes())
             if self._warm is not None and self._warm.key == key:
