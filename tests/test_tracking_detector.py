@@ -475,3 +475,30 @@ def test_refit_pacing_is_a_detector_setting():
     assert PipelineSettings.from_config(load_config(None, use_local=False).data).refit_every == 30
     with pytest.raises(ConfigError, match=r"detector\.track_refit_every"):
         load_config(None, sets=["detector.track_refit_every=0"], use_local=False)
+
+
+def test_half_resolution_discovery_uses_one_window_sized_for_the_markers(pi_frames):
+    """Background discovery at half resolution thresholds with one window (a fifth of the
+    markers' side there) and still finds what the full parameters find there."""
+    frames, src = pi_frames
+    tracker = _tracker(src)
+    used: list[int] = []
+    orig = tracker._tuned_detector
+
+    def spy(cache, win):
+        used.append(win)
+        return orig(cache, win)
+
+    tracker._tuned_detector = spy
+    for f in frames:
+        tracker.detect(f.image)
+    assert used and all(3 <= w <= 15 and w % 2 == 1 for w in used), used
+    full = MarkerDetector(DetectorConfig(src.world_map.dictionary))
+    one = orig({}, used[0])
+    seen = lost = 0
+    for f in frames[::3]:
+        a = TrackingDetector._discover(full, f.image, True).ids.tolist()
+        b = TrackingDetector._discover(one, f.image, True).ids.tolist()
+        seen += len(a)
+        lost += len(set(a) - set(b))
+    assert seen >= 100 and lost <= 0.02 * seen, (seen, lost)

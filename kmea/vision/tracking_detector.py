@@ -237,6 +237,8 @@ class TrackingDetector:
         self._sampler: tuple[tuple, CodeSampler] | None = None
         self._tuned: dict[int, object] = {}
         self._half_ok = False
+        self._side = 0.0  # median marker side (px) of the last full detection
+        self._tuned_full: dict[int, MarkerDetector] = {}  # tuned discovery, no thread
         self.tracks: dict[int, _Track] = {}
         self.frame = -1
         self.tracked = 0
@@ -263,22 +265,35 @@ class TrackingDetector:
             # a third of the frame path's share; at nice 10 a loaded machine starved it).
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 5)
         det = MarkerDetector(self.config)
+        tuned: dict[int, MarkerDetector] = {}
         while True:
             with self._cond:
                 while self._job is None and not self._closed:
                     self._cond.wait()
                 if self._closed:
                     return
-                frame_no, image, half = self._job
+                frame_no, image, half, win = self._job
                 self._job = None
             try:
-                d = self._discover(det, image, half)
+                d = self._discover(self._tuned_detector(tuned, win) if half and win else det,
+                                   image, half)
             except Exception:  # a frame the detector cannot digest: no result
                 d = None
             with self._cond:
                 self._busy = False
                 if d is not None:
                     self._result = (frame_no, d, half)
+
+    def _tuned_detector(self, cache: dict[int, MarkerDetector], win: int) -> MarkerDetector:
+        """A detector with one adaptive-threshold window of ``win`` px (a fifth of the
+        markers' side at half resolution: a third of the full parameters' three passes)."""
+        det = cache.get(win)
+        if det is None:
+            params = {**self.config.parameters, "adaptiveThreshWinSizeMin": win,
+                      "adaptiveThreshWinSizeMax": win}
+            det = cache[win] = MarkerDetector(DetectorConfig(
+                self.config.dictionary, self.config.corner_refinement, params))
+        return det
 
     @staticmethod
     def _discover(det: MarkerDetector, image: np.ndarray, half: bool) -> Detections:
@@ -298,15 +313,20 @@ class TrackingDetector:
         self.background += 1
         half = (self._half_ok and not full_res
                 and self.background % max(1, self.settings.full_res_every) != 0)
+        # At half resolution one threshold window sized for the markers already seen (new
+        # ones are the same markers on the same floor; the full-resolution looks keep all
+        # three windows for anything else).
+        win = max(3, round(self._side / 10.0) | 1) if half and self._side > 0 else 0
         if not self._use_thread:
-            self._result = (self.frame, self._discover(self.full_detector, image, half), half)
+            det = self._tuned_detector(self._tuned_full, win) if win else self.full_detector
+            self._result = (self.frame, self._discover(det, image, half), half)
             return
         with self._cond:
             if self._thread is None:
                 self._thread = threading.Thread(target=self._worker, daemon=True,
                                                 name="kmea-discover")
                 self._thread.start()
-            self._job = (self.frame, image, half)
+            self._job = (self.frame, image, half, win)
             self._busy = True
             self._cond.notify()
 
@@ -356,7 +376,8 @@ class TrackingDetector:
                                       and self.frame - prev.seen == 1)
         if sides:
             # Half-resolution discovery only when markers stay >= 20 px wide there.
-            self._half_ok = float(np.median(sides)) >= 40.0
+            self._side = float(np.median(sides))
+            self._half_ok = self._side >= 40.0
         self._since_full = 0
         self._want_full = False
 
