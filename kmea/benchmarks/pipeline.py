@@ -64,8 +64,10 @@ def pipeline_rate(frames, scene, settings: PipelineSettings, out: dict | None = 
     results = []
     c0, m0 = time.process_time(), time.thread_time()
     t0 = time.perf_counter()
+    marks = [(t0, c0, m0)]  # per frame boundary: wall, CPU of all threads, main thread
     for f in frames:
         res = p.process(FrameInput(f.index, f.timestamp, f.image))
+        marks.append((time.perf_counter(), time.process_time(), time.thread_time()))
         results.append(res)
         for k, v in res.timings.items():
             sums[k] = sums.get(k, 0.0) + v
@@ -74,8 +76,13 @@ def pipeline_rate(frames, scene, settings: PipelineSettings, out: dict | None = 
     main = (time.thread_time() - m0) / len(frames) * 1e3
     p.close()
     if out is not None:
-        out.update(cpu_ms=cpu, main_cpu_ms=main, results=results, pipeline=p)
+        out.update(cpu_ms=cpu, main_cpu_ms=main, results=results, pipeline=p,
+                   marks=np.asarray(marks))
     return rate, {k: v / len(frames) for k, v in sums.items()}
+
+
+# Frames of start-up (1 s at 30 frames/s) left out of the steady-state figures.
+STEADY_FROM = 30
 
 
 def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms) -> None:
@@ -118,6 +125,17 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
                   f"{np.max(loo) * 1e3 if loo else float('nan'):.2f} mm; stage ms/frame: "
                   + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
                   + extra)
+            if tracking and len(res) > 2 * STEADY_FROM:
+                # A live camera runs for hours: the first second (the cold first frame, the
+                # floor's references averaged, markers uncovered for the first time) is
+                # start-up; the rest is what every later second costs.
+                m = out["marks"]
+                k = len(m) - 1 - STEADY_FROM
+                sw, sc, sm = ((m[-1, j] - m[STEADY_FROM, j]) / k * 1e3 for j in range(3))
+                print(f"{algo}, tracking, steady state (frames {STEADY_FROM}-{len(res) - 1})"
+                      f": {sw:6.2f} ms/frame wall = {sw / (1e3 / bare_fps) * 100:5.1f} % of "
+                      f"bare detection, {sc:6.2f} ms/frame CPU = {sc / bare_cpu * 100:5.1f} % "
+                      f"of bare detection's CPU (main thread {sm:.2f} ms)")
         (fw, fc), (tw, tc) = row["full detection"], row["tracking"]
         print(f"{algo}: tracking / full detection = {tw / fw:.2f} (wall), {tc / fc:.2f} (CPU)")
 
