@@ -35,6 +35,7 @@ as a figure. Whether the marker *moved* is decided here, and only here.
 
 from __future__ import annotations
 
+import bisect
 import collections
 import statistics
 from dataclasses import dataclass
@@ -61,6 +62,17 @@ class MovedEvidence:
 
 
 NO_EVIDENCE = MovedEvidence(False, None, 0, None)
+
+
+def _median_without(ranked: list[float], i: int) -> float:
+    """The median of sorted ``ranked`` without its element ``i`` (``statistics.median`` of
+    the others, without copying them: this runs for every marker every frame)."""
+    n = len(ranked) - 1
+
+    def at(j: int) -> float:
+        return ranked[j if j < i else j + 1]
+
+    return at(n // 2) if n % 2 else (at(n // 2 - 1) + at(n // 2)) / 2
 
 
 class MovedMonitor:
@@ -108,9 +120,8 @@ class MovedMonitor:
                 self.evidence[mid] = MovedEvidence(False, None, len(h), None)
                 continue
             offset = medians[mid]
-            others = list(ranked)
-            others.remove(offset)
-            typical = statistics.median(others) if len(others) >= MIN_OTHERS else 0.0
+            typical = (_median_without(ranked, bisect.bisect_left(ranked, offset))
+                       if len(ranked) - 1 >= MIN_OTHERS else 0.0)
             own = _MAD_TO_SIGMA * statistics.median(abs(x - offset) for x in h)
             threshold = max(self.min_offset, self.factor * max(typical, own))
             self.evidence[mid] = MovedEvidence(offset > threshold, offset, len(h), threshold)

@@ -137,3 +137,19 @@ def test_marker_moved_5_cm_is_reported_once_persistent(
                      *SMALL, *UNPACED, *NET]) == 0
     err = capsys.readouterr().err
     assert ("marker 16 looks displaced by" in err) == reported
+
+
+def test_median_of_the_others_equals_the_median_of_a_copy_without_the_marker():
+    import bisect
+    import random
+    import statistics
+
+    from kmea.moved import _median_without
+
+    rng = random.Random(5)
+    for _ in range(500):
+        ranked = sorted(rng.choice([rng.random(), 0.5, 0.25]) for _ in range(rng.randint(2, 40)))
+        v = rng.choice(ranked)
+        others = list(ranked)
+        others.remove(v)
+        assert _median_without(ranked, bisect.bisect_left(ranked, v)) == statistics.median(others)
