@@ -157,7 +157,9 @@ class CodeSampler:
         y = np.clip(uv[..., 1], 0, h - 1.001)
         x0, y0 = x.astype(np.intp), y.astype(np.intp)
         fx, fy = x - x0, y - y0
-        self.idx = (y0 * w + x0).ravel()
+        i = (y0 * w + x0).ravel()
+        # The four neighbours of every sample in one gather (one ``take`` of 4P indices).
+        self.idx = np.concatenate([i, i + 1, i + w, i + w + 1])
         self.w = w
         self.wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]
                             ).reshape(4, -1)
@@ -170,11 +172,9 @@ class CodeSampler:
         """(N,) correlation of each code with the frame ``gray`` (see :func:`code_scores`)."""
         if self.n == 0:
             return np.zeros(0)
-        flat = gray.reshape(-1)
-        i, w = self.idx, self.w
-        v = (flat[i] * self.wts[0] + flat[i + 1] * self.wts[1] + flat[i + w] * self.wts[2]
-             + flat[i + w + 1] * self.wts[3])
-        vals = v.reshape(self.n, self.m * self.m, 4).mean(axis=2)
+        v = gray.reshape(-1).take(self.idx).reshape(4, -1).astype(np.float64)
+        v *= self.wts
+        vals = v.sum(axis=0).reshape(self.n, self.m * self.m, 4).mean(axis=2)
         vals -= vals.mean(axis=1, keepdims=True)
         num = (vals * self.ref).sum(axis=1)
         den = np.sqrt((vals * vals).sum(axis=1)) * self.ref_norm
