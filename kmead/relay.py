@@ -164,7 +164,8 @@ class Relay:
         return t if t is not None else (tr.last_seen if tr.last_seen is not None else 0.0)
 
     def _send(self, tr: RobotTrack, t: float, valid: bool,
-              addrs: list[tuple[str, int] | None] | None = None) -> None:
+              addrs: list[tuple[str, int] | None] | None = None,
+              publish: bool = True) -> None:
         tr.seq += 1
         extra = None
         if self.extra_fields:
@@ -182,6 +183,10 @@ class Relay:
                 # Refused (an earlier datagram drew ICMP port unreachable), no route, full
                 # buffer: count it, never stall the loop.
                 tr.errors += 1
+        if publish:
+            self._publish(tr, t, valid)
+
+    def _publish(self, tr: RobotTrack, t: float, valid: bool) -> None:
         if self.publish is not None:
             body = {"name": tr.name, "seq": tr.seq, "t": t, "x": tr.x, "y": tr.y,
                     "theta": tr.theta, "valid": valid, "sigma": tr.sigma}
@@ -190,17 +195,24 @@ class Relay:
             self.publish(robot_topic(tr.name), body)
 
     def update(self, name: str, t: float, x: float, y: float, theta: float,
-               sigma: float | None = None, extra: dict[str, Any] | None = None) -> None:
+               sigma: float | None = None, extra: dict[str, Any] | None = None,
+               publish: bool = True) -> None:
         """A fix of robot ``name`` at time ``t`` (the time the pose refers to): send it
         everywhere. ``extra``: vx, vy, omega, age (datagram extra fields, telemetry) and
-        anything else for the telemetry body (e.g. the fusion's ``source``)."""
+        anything else for the telemetry body (e.g. the fusion's ``source``).
+        ``publish=False``: the telemetry body waits for :meth:`publish_fix` (a frame's
+        datagrams all go out before its telemetry wakes the telemetry thread)."""
         tr = self.tracks[name]
         tr.x, tr.y, tr.theta, tr.sigma = x, y, theta, sigma
         tr.extra = dict(extra) if extra else {}
         tr.last_seen = t
         tr.stale = False
         tr.last_stale_sent = None
-        self._send(tr, t, True)
+        self._send(tr, t, True, publish=publish)
+
+    def publish_fix(self, name: str, t: float) -> None:
+        """The telemetry body of robot ``name``'s last fix (sent at time ``t``)."""
+        self._publish(self.tracks[name], t, True)
 
     def tick(self, now: float) -> list[str]:
         """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.

@@ -121,3 +121,40 @@ def test_refused_destination_is_counted_as_errors() -> None:
         assert tr.errors >= 9, (tr.sent, tr.errors)  # at least every other send refused
     finally:
         relay.close()
+
+
+def test_a_frames_datagrams_all_go_out_before_its_robot_telemetry(udp: socket.socket) -> None:
+    """The daemon sends every robot's datagram of a frame first and publishes their telemetry
+    after (a published body wakes the telemetry thread, which would compete with the next
+    robot's datagram for the GIL)."""
+    from kmea.pipeline import RobotFix
+    from kmead.config import load_config
+    from kmead.daemon import Daemon
+
+    port = udp.getsockname()[1]
+    robots = (f'robots=[{{name="amr1", markers=[40, 41], destinations=["udp:127.0.0.1:{port}"]}},'
+              f' {{name="amr2", markers=[42], destinations=["udp:127.0.0.1:{port}"]}}]')
+    d = Daemon(load_config(None, ["source.spec=sim:default", robots, 'network.telemetry=""',
+                                  'network.control=""']))
+    arrived: list[int] = []
+    udp.setblocking(False)
+
+    def publish(topic: str, body: dict) -> None:
+        if topic.startswith("robot."):
+            n = 0
+            while True:  # loopback delivers at send: count what is already there
+                try:
+                    udp.recv(1024)
+                except BlockingIOError:
+                    break
+                n += 1
+            arrived.append(n)
+
+    try:
+        d.relay.publish = publish
+        fixes = {n: RobotFix(n, 0.1, 0.2, 0.3, 0.001, [40]) for n in ("amr1", "amr2")}
+        d._relay_robots(100.0, fixes)
+        got = list(arrived)
+    finally:
+        d.close()
+    assert got == [2, 0], got  # both datagrams were out at the first publish
