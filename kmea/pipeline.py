@@ -464,16 +464,7 @@ class Pipeline:
             est = Estimate.failed(self.algorithm, str(e))
         t3 = time.perf_counter()
         tm["estimate"] = (t3 - t2) * 1e3
-        markers: dict[int, tuple[np.ndarray, float]] = {}
-        if self.filter.alpha == 1.0:  # no filtering: skip the per-marker bookkeeping
-            for mid, me in sorted(est.markers.items()):
-                markers[mid] = (np.asarray(me.position, dtype=float), float(wrap_angle(me.yaw)))
-        else:
-            for mid, me in sorted(est.markers.items()):
-                p, yaw = self.filter.update(("marker", mid), inp.timestamp, me.position, me.yaw)
-                markers[mid] = (np.asarray(p, dtype=float), float(yaw))
-        t4 = time.perf_counter()
-        tm["filter"] = (t4 - t3) * 1e3
+        # The robots first: their datagrams must not wait for the markers' bookkeeping.
         if early is not None:
             robots = early  # sent already, before the floor's update
         else:
@@ -483,8 +474,18 @@ class Pipeline:
         if incremental and not deferred:
             self._floor_obs = ([o for o in obs if o.id in self.inc_poses.fixed
                                 and o.corners is not None] if est.ok else [])
+        t4 = time.perf_counter()
+        tm["robots"] = (t4 - t3) * 1e3
+        markers: dict[int, tuple[np.ndarray, float]] = {}
+        if self.filter.alpha == 1.0:  # no filtering: skip the per-marker bookkeeping
+            for mid, me in sorted(est.markers.items()):
+                markers[mid] = (np.asarray(me.position, dtype=float), float(wrap_angle(me.yaw)))
+        else:
+            for mid, me in sorted(est.markers.items()):
+                p, yaw = self.filter.update(("marker", mid), inp.timestamp, me.position, me.yaw)
+                markers[mid] = (np.asarray(p, dtype=float), float(yaw))
         t5 = time.perf_counter()
-        tm["robots"] = (t5 - t4) * 1e3
+        tm["filter"] = (t5 - t4) * 1e3
         loo_err: dict[int, float] = {}
         fresh = True
         if both is not None and est.ok:
