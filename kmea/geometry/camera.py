@@ -19,8 +19,10 @@ __all__ = [
     "check_camera_matrix",
     "check_distortion",
     "distort",
+    "distort_jacobian",
     "distort_xy",
     "project",
+    "project_jac_pc",
     "project_world",
     "rotation_increment_jacobian",
     "undistort",
@@ -177,6 +179,79 @@ def rotation_increment_jacobian(J_pc: np.ndarray, v: np.ndarray) -> np.ndarray:
     return J_w
 
 
+def _distort_jac_parts(x: np.ndarray, y: np.ndarray, d: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The entries (J00, J01, J10, J11) of d xd / d xy at x, y (any equal shapes): the
+    formulas of :func:`distort` with ``jac``, the terms of all-zero coefficient groups left
+    out (adding their exact zeros changes no bit), for the per-frame paths."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (float(v) for v in d[:12])
+    r2 = x * x + y * y
+    a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    if k4 or k5 or k6:
+        b = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        db = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        rad = a / b
+        drad = (da * b - a * db) / (b * b)
+    else:  # b = 1, db = 0 exactly
+        rad, drad = a, da
+    j00 = rad + 2.0 * x * x * drad
+    j01 = 2.0 * x * y * drad
+    j10 = j01
+    j11 = rad + 2.0 * y * y * drad
+    if p1 or p2:
+        j00 = j00 + 2.0 * p1 * y + 6.0 * p2 * x
+        j01 = j01 + 2.0 * p1 * x + 2.0 * p2 * y
+        j10 = j01
+        j11 = j11 + 6.0 * p1 * y + 2.0 * p2 * x
+    if s1 or s2 or s3 or s4:
+        tx = s1 + 2.0 * s2 * r2
+        ty = s3 + 2.0 * s4 * r2
+        j10 = j01 + 2.0 * ty * x
+        j00 = j00 + 2.0 * tx * x
+        j01 = j01 + 2.0 * tx * y
+        j11 = j11 + 2.0 * ty * y
+    return j00, j01, j10, j11
+
+
+def distort_jacobian(xy: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """d xd / d xy (N, 2, 2) of :func:`distort` at normalised points xy (N, 2) (what
+    ``distort(xy, d, jac=True)[1]`` gives, without the rest)."""
+    xy = np.asarray(xy, dtype=float)
+    j00, j01, j10, j11 = _distort_jac_parts(xy[:, 0], xy[:, 1], d)
+    J = np.empty((len(xy), 2, 2))
+    J[:, 0, 0] = j00
+    J[:, 0, 1] = j01
+    J[:, 1, 0] = j10
+    J[:, 1, 1] = j11
+    return J
+
+
+def project_jac_pc(Pc: np.ndarray, K: np.ndarray, d: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of camera-frame points Pc (N, 3) and their derivative d uv / d Pc
+    (N, 2, 3): ``project(Pc, K, d, jac=True)[:2]`` without the intrinsics' derivatives."""
+    Z = Pc[:, 2]
+    x = Pc[:, 0] / Z
+    y = Pc[:, 1] / Z
+    xd, yd = distort_xy(x, y, d)
+    fx, fy = K[0, 0], K[1, 1]
+    uv = np.empty((len(Z), 2))
+    uv[:, 0] = xd * fx + K[0, 2]
+    uv[:, 1] = yd * fy + K[1, 2]
+    j00, j01, j10, j11 = _distort_jac_parts(x, y, d)
+    iz = 1.0 / Z
+    m00, m01, m10, m11 = j00 * fx, j01 * fx, j10 * fy, j11 * fy
+    J = np.empty((len(Z), 2, 3))
+    J[:, 0, 0] = m00 * iz
+    J[:, 0, 1] = m01 * iz
+    J[:, 0, 2] = -(m00 * x + m01 * y) * iz
+    J[:, 1, 0] = m10 * iz
+    J[:, 1, 1] = m11 * iz
+    J[:, 1, 2] = -(m10 * x + m11 * y) * iz
+    return uv, J
+
+
 def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20) -> np.ndarray:
     """Normalised undistorted coordinates (N, 2) of pixels uv (N, 2).
 
@@ -188,23 +263,33 @@ def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20
     target = (uv - np.array([K[0, 2], K[1, 2]])) / np.array([K[0, 0], K[1, 1]])
     if not np.any(d[:12]):
         return target
-    xy = target.copy()
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d[:12]
+    # Coordinates apart, and the terms of all-zero coefficient groups left out (adding
+    # their exact zeros changes no bit): this runs on every frame's robot corners.
+    tx, ty = target[:, 0], target[:, 1]
+    x, y = tx, ty
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (float(v) for v in d[:12])
+    tangential, prism, rational = bool(p1 or p2), bool(s1 or s2 or s3 or s4), bool(k4 or k5 or k6)
     for _ in range(3):
-        x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
-        r4 = r2 * r2
-        icd = (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))) / (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
-        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4
-        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + s3 * r2 + s4 * r4
-        xy = np.stack([(target[:, 0] - dx) * icd, (target[:, 1] - dy) * icd], axis=1)
+        den = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        icd = ((1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))) / den) if rational else 1.0 / den
+        if tangential or prism:
+            r4 = r2 * r2
+            dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4
+            dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + s3 * r2 + s4 * r4
+            x, y = (tx - dx) * icd, (ty - dy) * icd
+        else:
+            x, y = tx * icd, ty * icd
     for _ in range(iterations):
-        f, J = distort(xy, d, jac=True)[:2]
-        F = f - target
-        if np.max(np.abs(F)) < 1e-15:
+        xd, yd = distort_xy(x, y, d)
+        fx_ = xd - tx
+        fy_ = yd - ty
+        if max(float(np.max(np.abs(fx_))), float(np.max(np.abs(fy_)))) < 1e-15:
             break
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        step_x = (J[:, 1, 1] * F[:, 0] - J[:, 0, 1] * F[:, 1]) / det
-        step_y = (-J[:, 1, 0] * F[:, 0] + J[:, 0, 0] * F[:, 1]) / det
-        xy = xy - np.stack([step_x, step_y], axis=1)
-    return xy
+        j00, j01, j10, j11 = _distort_jac_parts(x, y, d)
+        det = j00 * j11 - j01 * j10
+        step_x = (j11 * fx_ - j01 * fy_) / det
+        step_y = (-j10 * fx_ + j00 * fy_) / det
+        x = x - step_x
+        y = y - step_y
+    return np.stack([x, y], axis=1)
