@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from kmea.geometry import marker_corners_local, project
+from kmea.geometry import marker_corners_local, project_jac_pc
 
 __all__ = ["SIGMA_FLOOR_PX", "corner_outliers", "robust_sigma", "square_pose"]
 
@@ -101,39 +101,44 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     drop = np.full(n, -1, dtype=int)
     if n == 0:
         return drop, np.zeros(0), np.zeros((0, 4))
+    # Batched matrix products and closed-form 2x2 solves: this runs for every robot marker
+    # in every frame, where numpy's per-call overhead is the cost.
     sq = marker_corners_local(1.0)[None] * np.asarray(lengths, float)[:, None, None]
-    X = centres[:, None, :] + np.einsum("nij,nkj->nki", rotations, sq)  # (n, 4, 3) world
+    off = sq @ np.swapaxes(rotations, 1, 2)  # (n, 4, 3): the corners about the centre, world
+    X = centres[:, None, :] + off
     Pc = X.reshape(-1, 3) @ R.T + t
     if np.any(Pc[:, 2] <= 1e-9):
         return drop, np.full(n, np.nan), np.full((n, 4), np.nan)
-    proj, J_pc, _, _ = project(Pc, K, d, jac=True)
+    proj, J_pc = project_jac_pc(Pc, K, d)
     e0 = (proj - uv.reshape(-1, 2)).reshape(n, 8)
     # d X_k / d (x, y, angle) in world: e1, e2, normal x (X_k - centre); then camera.
     dX = np.empty((n, 4, 3, 3))
     dX[:, :, :, 0] = rotations[:, None, :, 0]
     dX[:, :, :, 1] = rotations[:, None, :, 1]
-    dX[:, :, :, 2] = np.cross(rotations[:, None, :, 2], X - centres[:, None, :])
-    J = np.einsum("nkab,bc,nkcp->nkap", J_pc.reshape(n, 4, 2, 3), R, dX).reshape(n, 8, 3)
-    JtJ = np.einsum("nap,naq->npq", J, J)
+    nx, ny, nz = (rotations[:, None, i, 2] for i in range(3))
+    vx, vy, vz = off[:, :, 0], off[:, :, 1], off[:, :, 2]
+    dX[:, :, 0, 2] = ny * vz - nz * vy
+    dX[:, :, 1, 2] = nz * vx - nx * vz
+    dX[:, :, 2, 2] = nx * vy - ny * vx
+    J = ((J_pc @ R).reshape(n, 4, 2, 3) @ dX).reshape(n, 8, 3)
+    Jt = np.swapaxes(J, 1, 2)
     try:
-        inv = np.linalg.inv(JtJ)
+        inv = np.linalg.inv(Jt @ J)
     except np.linalg.LinAlgError:
         return drop, np.full(n, np.nan), np.full((n, 4), np.nan)
-    H = np.einsum("nap,npq,nbq->nab", J, inv, J)
-    e = e0 - np.einsum("nab,nb->na", H, e0)
-    stats = np.empty((n, 4))
-    eye = np.eye(2)
-    for k in range(4):
-        s = slice(2 * k, 2 * k + 2)
-        A = eye[None] - H[:, s, s]
-        ek = e[:, s]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            try:
-                stats[:, k] = np.einsum("na,na->n", ek, np.linalg.solve(A, ek[:, :, None])[:, :, 0])
-            except np.linalg.LinAlgError:
-                stats[:, k] = np.nan
+    H = J @ inv @ Jt  # (n, 8, 8) hat matrices
+    e = e0 - (H @ e0[:, :, None])[:, :, 0]
+    # Corner k: e_k^T (I - H_kk)^-1 e_k, the 2x2 inverse in closed form.
+    Hd = H.reshape(n, 4, 2, 4, 2)[:, np.arange(4), :, np.arange(4), :]  # (4, n, 2, 2)
+    a00, a01 = 1.0 - Hd[:, :, 0, 0], -Hd[:, :, 0, 1]
+    a10, a11 = -Hd[:, :, 1, 0], 1.0 - Hd[:, :, 1, 1]
+    ex, ey = e[:, 0::2].T, e[:, 1::2].T  # (4, n)
+    det = a00 * a11 - a01 * a10
+    with np.errstate(invalid="ignore", divide="ignore"):
+        stats = ((ex * (a11 * ex - a01 * ey) + ey * (a00 * ey - a10 * ex)) / det).T
+    stats[(det == 0.0).T] = np.nan  # singular: no statistic (as a failed solve gave)
     stats /= np.maximum(np.broadcast_to(np.asarray(sigma_px, float), (n,)), 1e-12)[:, None] ** 2
-    worst = np.nanargmax(np.where(np.isfinite(stats), stats, -np.inf), axis=1)
+    worst = np.argmax(np.where(np.isfinite(stats), stats, -np.inf), axis=1)
     top = stats[np.arange(n), worst]
     drop = np.where(np.isfinite(top) & (top > threshold), worst, -1)
-    return drop, top, np.sum(e.reshape(n, 4, 2) ** 2, axis=2)
+    return drop, top, ex.T ** 2 + ey.T ** 2

@@ -67,7 +67,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -95,6 +95,7 @@ from kmea.estimators.robust_lm import huber_cost, huber_weights, robust_lm
 from kmea.geometry import (
     check_distortion,
     distort,
+    distort_jacobian,
     intersect_rays_planes,
     make_transform,
     project,
@@ -136,6 +137,31 @@ class _Fit:
     ref_sigma: float = math.nan  # robust level (px) of the references' centre disagreements
     keep: dict | None = None  # inlier id -> (4,) bool: its corners used by the fit
     thresholds: dict | None = None  # reference id -> its rejection threshold, m (RMS corner)
+    consts: _FitConsts | None = field(default=None, repr=False, compare=False)  # _consts()
+
+
+@dataclass(frozen=True)
+class _FitConsts:
+    """What placing markers with one fit needs and does not depend on the markers: computed
+    once per fit (:meth:`CornerPnP._consts`), not once per frame (a fixed camera keeps its
+    fit for many frames while the robots are placed again in each).
+
+    of: the fit's (R, t, H, sigma_px) it was computed from (the same objects: a fit whose
+    fields were replaced gets new constants); C (3,): the camera centre, world; cov (p, p):
+    ``sigma_px^2 H^-1`` (None: H singular); Rs (6, 3, 3), Cs (6, 3): the world2cam
+    rotations and camera centres of the six pose perturbations of :meth:`CornerPnP._sigmas`.
+    """
+
+    of: tuple
+    C: np.ndarray
+    cov: np.ndarray | None
+    Rs: np.ndarray
+    Cs: np.ndarray
+
+
+# The step of the numerical derivatives of the ray-plane points (normalized coordinates and
+# pose parameters).
+_H_STEP = 1e-7
 
 
 @dataclass(frozen=True)
@@ -173,6 +199,21 @@ def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mappi
             m = world_map[i]
             out[i] = (m.rotation, m.position)
     return out
+
+
+def _plane_hits(C: np.ndarray, rays: np.ndarray, normals: np.ndarray, num: np.ndarray
+                ) -> np.ndarray:
+    """:func:`kmea.geometry.intersect_rays_planes` from the camera centre C (3,) along rays
+    (N, 3) with the planes' part ``num = sum(normals * (points - C))`` (N,) given: the same
+    operations, so the same numbers (the numerical derivatives difference them)."""
+    den = np.sum(normals * rays, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        lam = num / den
+        P = C + lam[:, None] * rays
+    bad = ~((lam > 0) & (lam < np.inf))
+    if bad.any():
+        P[bad] = np.nan
+    return P
 
 
 class CornerPnP(EstimatorBase):
@@ -436,7 +477,8 @@ class CornerPnP(EstimatorBase):
         with np.errstate(invalid="ignore"):
             d = np.sqrt(np.sum(kept * np.sum((P - M) ** 2, axis=2), axis=1) / kept.sum(axis=1))
         d = np.where(good, d, np.inf)
-        pred = self._sigmas(fit, xy, np.repeat(frames, 4, axis=0), np.repeat(origins, 4, axis=0))
+        pred = self._sigmas(fit, xy, np.repeat(frames, 4, axis=0), np.repeat(origins, 4, axis=0),
+                            P.reshape(-1, 3))
         pred = np.where(np.isfinite(pred) & (pred > 0), pred, np.inf) / math.sqrt(2.0)
         u2 = (d / pred) ** 2  # chi-square (2 dof) for a reference in place
         factor = max(robust_sigma(u2[inl], 0, 0.0), 1.0)
@@ -740,7 +782,7 @@ class CornerPnP(EstimatorBase):
         F = np.repeat(np.array([frames[i][0] for i in ids]), 4, axis=0)
         O = np.repeat(np.array([frames[i][1] for i in ids]), 4, axis=0)
         P = self._intersect(fit.R, fit.t, xy, F, O).reshape(-1, 4, 3)
-        sig = self._sigmas(fit, xy, F, O)
+        sig = self._sigmas(fit, xy, F, O, P.reshape(-1, 3))
         Fm = F[::4]
         lengths = np.array([world_map[i].length if i in world_map else obs[i].length
                             for i in ids])
@@ -795,54 +837,95 @@ class CornerPnP(EstimatorBase):
             s = float(np.median(fitted / own))
         return s if math.isfinite(s) and s > 0 else 1.0
 
-    def _sigmas(self, fit: _Fit, xy: np.ndarray, F: np.ndarray, O: np.ndarray) -> np.ndarray:
-        """1-sigma (RMS) centre error (m) per marker; xy holds 4 normalized corners per marker.
-
-        First order: Cov = Jp Cov_params Jp^T + sigma_px^2 sum_k Ju_k Ju_k^T / 16 with Jp the
-        centre's derivative in the fitted parameters and Ju_k in corner k's pixel.
-        """
-        p = fit.H.shape[0]
-        n = len(xy) // 4
+    @staticmethod
+    def _consts(fit: _Fit) -> _FitConsts:
+        """The fit's per-fit constants (:class:`_FitConsts`), computed on first use."""
+        c = fit.consts
+        if (c is not None and c.of[0] is fit.R and c.of[1] is fit.t and c.of[2] is fit.H
+                and c.of[3] == fit.sigma_px):
+            return c
         try:
             cov = fit.sigma_px ** 2 * np.linalg.inv(fit.H)
         except np.linalg.LinAlgError:
-            return np.full(n, np.nan)
-        base = self._intersect(fit.R, fit.t, xy, F, O)
-        h = 1e-7
-        # d P / d xy per corner (numerical, the plane intersection is cheap).
-        dP_dxy = np.empty((len(xy), 3, 2))
-        for axis in range(2):
-            xy2 = xy.copy()
-            xy2[:, axis] += h
-            dP_dxy[:, :, axis] = (self._intersect(fit.R, fit.t, xy2, F, O) - base) / h
-        xd, Jd, dk1 = distort(xy, fit.d, jac=True)
-        Jd_inv = np.linalg.inv(Jd)
-        Jc = np.empty((n, 3, p))
-        # Pose: the rays stay, the camera moves; the six perturbed poses of _update at once.
+            cov = None
+        # The six perturbed poses of _update: three rotation increments, three translations.
+        h = _H_STEP
         Rs = np.repeat(fit.R[None], 6, axis=0)
         ts = np.repeat(fit.t[None], 6, axis=0)
         for k in range(3):
             Rs[k] = rotvec_to_matrix(h * np.eye(3)[k]) @ fit.R
             ts[3 + k, k] += h
-        xy1 = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-        rays = np.einsum("nj,kji->kni", xy1, Rs)                       # (6, 4n, 3) world
-        Pk = intersect_rays_planes(-np.einsum("kji,kj->ki", Rs, ts)[:, None, :], rays,
-                                   O[None], F[None, :, :, 2])
-        Jc[:, :, :6] = np.moveaxis(((Pk - base[None]) / h).reshape(6, n, 4, 3).mean(axis=2),
-                                   0, 2)
+        c = _FitConsts((fit.R, fit.t, fit.H, fit.sigma_px), -fit.R.T @ fit.t, cov, Rs,
+                       -np.einsum("kji,kj->ki", Rs, ts))
+        fit.consts = c
+        return c
+
+    def _sigmas(self, fit: _Fit, xy: np.ndarray, F: np.ndarray, O: np.ndarray,
+                base: np.ndarray | None = None) -> np.ndarray:
+        """1-sigma (RMS) centre error (m) per marker; xy holds 4 normalized corners per marker,
+        F (4n, 3, 3) and O (4n, 3) their planes; base: their ray-plane points
+        (:meth:`_intersect`, (4n, 3)) when the caller has them.
+
+        First order: Cov = Jp Cov_params Jp^T + sigma_px^2 sum_k Ju_k Ju_k^T / 16 with Jp the
+        centre's derivative in the fitted parameters and Ju_k in corner k's pixel; only its
+        trace is formed.
+        """
+        n = len(xy) // 4
+        c = self._consts(fit)
+        if c.cov is None:
+            return np.full(n, np.nan)
+        R = fit.R
+        xy1 = np.empty((len(xy), 3))
+        xy1[:, :2] = xy
+        xy1[:, 2] = 1.0
+        normals = F[:, :, 2]
+        # Ray-plane points as _intersect computes them (the same operations: the numerical
+        # derivatives below difference them), the planes' part computed once.
+        num = np.sum(normals * (O - c.C), axis=-1)
+        if base is None:
+            base = _plane_hits(c.C, xy1 @ R, normals, num)
+        h = _H_STEP
+        # d P / d xy per corner (numerical, the plane intersection is cheap).
+        dP_dxy = np.empty((len(xy), 3, 2))
+        for axis in range(2):
+            xy2 = xy1.copy()
+            xy2[:, axis] += h
+            dP_dxy[:, :, axis] = (_plane_hits(c.C, xy2 @ R, normals, num) - base) / h
+        # Pose: the rays stay, the camera moves; the six perturbed poses of _update at once.
+        rays = np.einsum("nj,kji->kni", xy1, c.Rs)                      # (6, 4n, 3) world
+        Pk = intersect_rays_planes(c.Cs[:, None, :], rays, O[None], normals[None])
+        Jc6 = ((Pk - base[None]) / h).reshape(6, n, 4, 3).mean(axis=2)  # (6, n, 3)
         if fit.refine:
+            p = fit.H.shape[0]
+            Jc = np.empty((n, 3, p))
+            Jc[:, :, :6] = np.moveaxis(Jc6, 0, 2)
             # Intrinsics move the rays: distort(xy) = (uv - c) / (K0 m) at fixed pixels, so
             # d xy / d m = -Jd^-1 xd / m and d xy / d k1 = -Jd^-1 d distort / d k1.
+            xd, Jd, dk1 = distort(xy, fit.d, jac=True)
+            Jd_inv = np.linalg.inv(Jd)
             m = fit.K[0, 0] / fit.K0[0, 0]
             for k, rhs in ((6, -xd / m), (7, -dk1)):
                 dxy = np.einsum("nij,nj->ni", Jd_inv, rhs)
                 Jc[:, :, k] = np.einsum("nij,nj->ni", dP_dxy, dxy).reshape(n, 4, 3).mean(axis=1)
-        cov_c = np.einsum("nik,kl,njl->nij", Jc, cov, Jc)
-        # Own corner noise: d P / d uv = d P / d xy @ (d uv / d xy)^-1, per corner.
-        A_inv = np.diag([1.0 / fit.K[0, 0], 1.0 / fit.K[1, 1]])
-        dP_duv = np.einsum("nij,njk,kl->nil", dP_dxy, Jd_inv, A_inv).reshape(n, 4, 3, 2)
-        cov_c += fit.sigma_px ** 2 / 16.0 * np.einsum("nkia,nkja->nij", dP_duv, dP_duv)
-        return np.sqrt(np.trace(cov_c, axis1=1, axis2=2))
+            Jd = Jd.reshape(-1, 4)
+        else:
+            p = 6
+            Jc = np.moveaxis(Jc6, 0, 2)
+            Jd = distort_jacobian(xy, fit.d).reshape(-1, 4)
+        Jc = Jc.reshape(3 * n, p)
+        var = np.sum((Jc @ c.cov) * Jc, axis=1).reshape(n, 3).sum(axis=1)
+        # Own corner noise: d P / d uv = d P / d xy (d uv / d xy)^-1, per corner, with
+        # d uv / d xy = diag(fx, fy) Jd and Jd^-1 in closed form.
+        j00, j01, j10, j11 = Jd[:, 0], Jd[:, 1], Jd[:, 2], Jd[:, 3]
+        det = j00 * j11 - j01 * j10
+        if not np.all(det != 0.0):
+            np.linalg.inv(Jd.reshape(-1, 2, 2))  # singular: the error inv() gives
+        sx, sy = det * fit.K[0, 0], det * fit.K[1, 1]
+        g0, g1 = dP_dxy[:, :, 0], dP_dxy[:, :, 1]
+        u0 = g0 * (j11 / sx)[:, None] - g1 * (j10 / sx)[:, None]
+        u1 = g1 * (j00 / sy)[:, None] - g0 * (j01 / sy)[:, None]
+        own = np.sum(u0 * u0 + u1 * u1, axis=1).reshape(n, 4).sum(axis=1)
+        return np.sqrt(var + fit.sigma_px ** 2 / 16.0 * own)
 
     # ------------------------------------------------------------------ leave-one-out
     def _loo_steps(self, fit: _Fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full, frames,
