@@ -29,6 +29,12 @@ from kmea.geometry import marker_corners_local, project_jac_pc
 __all__ = ["SIGMA_FLOOR_PX", "corner_outliers", "robust_sigma", "square_pose"]
 
 SIGMA_FLOOR_PX = 0.01
+_UNIT_SQUARE = marker_corners_local(1.0)  # (4, 3), z = 0
+# (8, 2): a square's plane coordinates (4 corners x (u, v), flat) -> the sums over its corners
+# of c x a and c . a with c the unit square's local corners (the angle's sine and cosine
+# parts; the side length scales both and drops out of the angle).
+_SQUARE_CROSS_DOT = np.stack([np.stack([-_UNIT_SQUARE[:, 1], _UNIT_SQUARE[:, 0]], axis=1).ravel(),
+                              _UNIT_SQUARE[:, :2].ravel()], axis=1)
 # Median of the chi-square with 2 degrees of freedom (2 ln 2): |e|^2 / sigma^2 of a 2-D
 # Gaussian residual with sigma per coordinate.
 _CHI2_2_MEDIAN = 2.0 * math.log(2.0)
@@ -56,7 +62,20 @@ def square_pose(P: np.ndarray, frames: np.ndarray, lengths: np.ndarray,
     2-D Procrustes of the local square onto the kept points in the plane; with all 4
     corners the centre is their mean (the square's local corners sum to zero)."""
     n = len(P)
-    w = np.ones((n, 4)) if keep is None else np.asarray(keep, dtype=float)
+    if keep is None:
+        # All 4 corners (the per-frame case): the centre is their mean, the rotation from
+        # one product of the plane coordinates with the local corners.
+        mP = P.sum(axis=1) / 4.0
+        a = ((P - mP[:, None, :]) @ frames[:, :, :2]).reshape(n, 8)  # plane coords, flat
+        cs = a @ _SQUARE_CROSS_DOT  # (n, 2): sum of c x a, sum of c . a (per unit length)
+        ang = np.arctan2(cs[:, 0], cs[:, 1])
+        cos, sin = np.cos(ang), np.sin(ang)
+        Rw = np.empty((n, 3, 3))
+        Rw[:, :, 0] = frames[:, :, 0] * cos[:, None] + frames[:, :, 1] * sin[:, None]
+        Rw[:, :, 1] = frames[:, :, 1] * cos[:, None] - frames[:, :, 0] * sin[:, None]
+        Rw[:, :, 2] = frames[:, :, 2]
+        return mP, Rw
+    w = np.asarray(keep, dtype=float)
     c = marker_corners_local(1.0)[None, :, :2] * np.asarray(lengths, float)[:, None, None]
     sw = w.sum(axis=1)
     mP = np.einsum("nk,nki->ni", w, P) / sw[:, None]
@@ -103,7 +122,7 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
         return drop, np.zeros(0), np.zeros((0, 4))
     # Batched matrix products and closed-form 2x2 solves: this runs for every robot marker
     # in every frame, where numpy's per-call overhead is the cost.
-    sq = marker_corners_local(1.0)[None] * np.asarray(lengths, float)[:, None, None]
+    sq = _UNIT_SQUARE[None] * np.asarray(lengths, float)[:, None, None]
     off = sq @ np.swapaxes(rotations, 1, 2)  # (n, 4, 3): the corners about the centre, world
     X = centres[:, None, :] + off
     Pc = X.reshape(-1, 3) @ R.T + t

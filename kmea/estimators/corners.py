@@ -514,9 +514,9 @@ class CornerPnP(EstimatorBase):
         # refit, kmea.pipeline) do not change it; excluding one of its references does
         # (leave-one-out), so that is solved afresh.
         reuse = self.warm_start and w is not None and not (excl and excl & set(w.refs))
-        if (reuse and w.camera is camera
-                and w.key[0] == id(world_map) and len(w.ref_obs) == len(ref_obs)
-                and all(a is b for a, b in zip(w.ref_obs, ref_obs, strict=True))):
+        if (reuse and w.key[0] == id(world_map) and len(w.ref_obs) == len(ref_obs)
+                and all(a is b for a, b in zip(w.ref_obs, ref_obs, strict=True))
+                and self._same_camera(w, camera)):
             # The very observations of the last fit (a fixed camera's floor, reused by
             # kmea.incremental): the same fit, nothing to check or stack again.
             return w.fit, refs, list(w.inliers), w.dis, obs
@@ -625,6 +625,19 @@ class CornerPnP(EstimatorBase):
         if key is not None:
             self._warm = _Warm(key, refs, uv_refs, fit, tuple(inliers), dis, ref_obs, camera)
         return fit, refs, inliers, dis, obs
+
+    @staticmethod
+    def _same_camera(w: _Warm, camera: CameraIntrinsics) -> bool:
+        """Is ``camera`` the one of the warm fit: the same object, or the same numbers (a
+        camera model hands out a new intrinsics object per call)?"""
+        if w.camera is camera:
+            return True
+        try:
+            K0 = np.asarray(camera.camera_matrix, dtype=float)
+            d0 = check_distortion(camera.dist_coeffs)
+        except (ValueError, TypeError):
+            return False
+        return K0.tobytes() == w.key[1] and d0.tobytes() == w.key[2]
 
     def _warm_subset(self, warm: _Warm, refs: list[int], uv_refs: np.ndarray
                      ) -> list[int] | None:
@@ -811,13 +824,17 @@ class CornerPnP(EstimatorBase):
         leave-one-corner-out test (:func:`corner_outliers`) and the 3-corner fit where a
         corner is dropped. Rows not ``good`` (non-finite P) are left as they come."""
         centres, Rw = square_pose(P, frames, lengths)
-        drop = np.full(len(P), -1, dtype=int)
-        if not np.any(good):
-            return centres, Rw, drop
-        g = np.flatnonzero(good)
-        d_g, _, _ = corner_outliers(fit.R, fit.t, fit.K, fit.d, uv[g], centres[g], Rw[g],
-                                    lengths[g], self._corner_sigma(fit), self._corner_q)
-        drop[g] = d_g
+        if good.all():
+            drop, _, _ = corner_outliers(fit.R, fit.t, fit.K, fit.d, uv, centres, Rw, lengths,
+                                         self._corner_sigma(fit), self._corner_q)
+        else:
+            drop = np.full(len(P), -1, dtype=int)
+            if not np.any(good):
+                return centres, Rw, drop
+            g = np.flatnonzero(good)
+            d_g, _, _ = corner_outliers(fit.R, fit.t, fit.K, fit.d, uv[g], centres[g], Rw[g],
+                                        lengths[g], self._corner_sigma(fit), self._corner_q)
+            drop[g] = d_g
         sel = np.flatnonzero(drop >= 0)
         if sel.size:
             keep = np.ones((sel.size, 4), bool)
