@@ -283,11 +283,15 @@ class CornerPnP(EstimatorBase):
         # fit object, a fixed marker reported with the same observation object is not
         # placed again (only the robots are).
         self._placed: tuple | None = None
+        self._last_report: tuple | None = None  # see _report
+        self._checked: dict[int, MarkerObservation] = {}  # see _check
 
     def reset_warm(self) -> None:
         """Forget the previous fit (the view changed: the next call solves afresh)."""
         self._warm = None
         self._placed = None
+        self._last_report = None
+        self._checked = {}
 
     # ------------------------------------------------------------------ LM
     def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -500,8 +504,9 @@ class CornerPnP(EstimatorBase):
         if camera is None:
             return Estimate.failed(self.name, "corner-pnp needs the camera intrinsics "
                                               "(camera matrix and distortion)")
-        obs = {o.id: o for o in check_observations(observations)}
         excl = set(exclude)
+        obs = {o.id: o for o in (self._check(observations) if self.warm_start and not excl
+                                 else check_observations(observations))}
         refs = sorted(i for i in obs
                       if i in world_map and i not in excl and obs[i].corners is not None
                       and not obs[i].suspect)
@@ -626,6 +631,25 @@ class CornerPnP(EstimatorBase):
             self._warm = _Warm(key, refs, uv_refs, fit, tuple(inliers), dis, ref_obs, camera)
         return fit, refs, inliers, dis, obs
 
+    def _check(self, observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:
+        """:func:`check_observations` for the warm start: an observation object the last
+        call checked (a fixed marker's, reused by :mod:`kmea.incremental`) is not checked
+        again; the duplicate-id test covers them all, and any failure is raised by the full
+        check (the same error)."""
+        obs = list(observations)
+        seen = self._checked
+        new = [o for o in obs if seen.get(id(o)) is not o]
+        if len({o.id for o in obs}) != len(obs):
+            check_observations(obs)  # raises on the duplicate
+        if new:
+            try:
+                check_observations(new)
+            except ValueError:
+                check_observations(obs)  # the error the full check gives
+                raise
+        self._checked = {id(o): o for o in obs}  # held: the ids stay theirs
+        return obs
+
     @staticmethod
     def _same_camera(w: _Warm, camera: CameraIntrinsics) -> bool:
         """Is ``camera`` the one of the warm fit: the same object, or the same numbers (a
@@ -680,22 +704,12 @@ class CornerPnP(EstimatorBase):
         dropped: dict[int, int] = {}
         markers = self._placed_markers(fit, obs, world_map, heights, inliers, planes, dropped,
                                        refs)
-        Rc2w = fit.R.T
-        # A rejected reference is reported by how far its centre moved in its map plane and
-        # how much it turned there (it was rejected on its corners' RMS disagreement).
-        rejected, turned = {}, {}
-        for i in refs:
-            if i not in inliers:
-                mk, me = world_map[i], markers[i]
-                rejected[i] = float(np.linalg.norm(me.position - mk.position))
-                M = mk.rotation.T @ me.rotation
-                turned[i] = math.atan2(M[1, 0], M[0, 0])
-        info = {"displaced": describe_rejected(rejected, turned), "turned": turned,
+        rejected, turned, displaced, threshold, cam2world = self._report(fit, refs, inliers,
+                                                                          markers, world_map)
+        info = {"displaced": displaced, "turned": turned,
                 "reprojection_rms_px": fit.rms_px,
                 "sigma_px": fit.sigma_px, "corner_sigma_px": fit.corner_sigma,
-                "iterations": fit.iterations, "threshold": (
-                    self.threshold if self.threshold is not None
-                    else float(np.median(list(fit.thresholds.values())))),
+                "iterations": fit.iterations, "threshold": threshold,
                 "thresholds": dict(fit.thresholds or {}), "corners_dropped": dropped,
                 "intrinsics_refined": fit.refine}
         if math.isfinite(fit.refine_test):
@@ -708,8 +722,41 @@ class CornerPnP(EstimatorBase):
             info.update(fx=float(fit.K[0, 0]), fy=float(fit.K[1, 1]), k1=float(fit.d[0]))
         return Estimate(
             algorithm=self.name, ok=True, markers=markers, references=tuple(inliers),
-            cam2world=make_transform(Rc2w, -Rc2w @ fit.t), scale=1.0,
+            cam2world=cam2world, scale=1.0,
             residuals={i: dis[i] for i in inliers}, rejected=rejected, info=info)
+
+    def _report(self, fit: _Fit, refs: Sequence[int], inliers: Sequence[int],
+                markers: Mapping[int, MarkerEstimate], world_map: MarkerMap) -> tuple:
+        """(rejected, turned, displaced, threshold, cam2world) of an Estimate: a rejected
+        reference is reported by how far its centre moved in its map plane and how much it
+        turned there (it was rejected on its corners' RMS disagreement). With the warm start
+        the last report is reused (copied) while the fit, the map and the rejected
+        references' placements are the same objects."""
+        inl = set(inliers)
+        out_ids = tuple(i for i in refs if i not in inl)
+        placed = tuple(markers[i] for i in out_ids)
+        last = self._last_report
+        if (self.warm_start and last is not None and last[0] is fit and last[1] is world_map
+                and last[2] == out_ids and all(a is b for a, b in zip(last[3], placed,
+                                                                     strict=True))):
+            rejected, turned, displaced, threshold, cam2world = last[4]
+            return dict(rejected), dict(turned), list(displaced), threshold, cam2world.copy()
+        rejected, turned = {}, {}
+        for i, me in zip(out_ids, placed, strict=True):
+            mk = world_map[i]
+            rejected[i] = float(np.linalg.norm(me.position - mk.position))
+            M = mk.rotation.T @ me.rotation
+            turned[i] = math.atan2(M[1, 0], M[0, 0])
+        threshold = (self.threshold if self.threshold is not None
+                     else float(np.median(list(fit.thresholds.values()))))
+        Rc2w = fit.R.T
+        report = (rejected, turned, describe_rejected(rejected, turned), threshold,
+                  make_transform(Rc2w, -Rc2w @ fit.t))
+        if self.warm_start:
+            self._last_report = (fit, world_map, out_ids, placed, report)
+            rejected, turned, displaced, threshold, cam2world = report
+            return dict(rejected), dict(turned), list(displaced), threshold, cam2world.copy()
+        return report
 
     def _placed_markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation],
                         world_map: MarkerMap, plane_heights: Mapping[int, float],
