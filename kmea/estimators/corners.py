@@ -203,13 +203,13 @@ def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mappi
 
 def _plane_hits(C: np.ndarray, rays: np.ndarray, normals: np.ndarray, num: np.ndarray
                 ) -> np.ndarray:
-    """:func:`kmea.geometry.intersect_rays_planes` from the camera centre C (3,) along rays
-    (N, 3) with the planes' part ``num = sum(normals * (points - C))`` (N,) given: the same
-    operations, so the same numbers (the numerical derivatives difference them)."""
-    den = np.sum(normals * rays, axis=-1)
+    """:func:`kmea.geometry.intersect_rays_planes` from camera centres C (..., 3) along rays
+    (..., N, 3) with the planes' part ``num = sum(normals * (points - C))`` (..., N) given:
+    the same operations, so the same numbers (the numerical derivatives difference them)."""
+    den = np.add.reduce(normals * rays, axis=-1)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         lam = num / den
-        P = C + lam[:, None] * rays
+        P = C + lam[..., None] * rays
     bad = ~((lam > 0) & (lam < np.inf))
     if bad.any():
         P[bad] = np.nan
@@ -786,8 +786,14 @@ class CornerPnP(EstimatorBase):
         if todo:
             out.update(self._markers(fit, obs, world_map, plane_heights, inliers, planes,
                                      only=todo, dropped=dropped, scale_refs=scale_refs))
-        self._placed = (fit, world_map, {i: (obs[i], plane_heights.get(i), out[i],
-                                             planes.get(i), dropped.get(i, -1)) for i in out})
+        # Only the new placements are entered (the others are there already); an entry of
+        # a marker out of view stays: it is reused only for the very same observation object.
+        if not old:
+            self._placed = (fit, world_map, old)
+        for i in todo:
+            if i in out:
+                old[i] = (obs[i], plane_heights.get(i), out[i], planes.get(i),
+                          dropped.get(i, -1))
         return {i: out[i] for i in obs if i in out}
 
     def _markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation], world_map: MarkerMap,
@@ -945,7 +951,7 @@ class CornerPnP(EstimatorBase):
         normals = F[:, :, 2]
         # Ray-plane points as _intersect computes them (the same operations: the numerical
         # derivatives below difference them), the planes' part computed once.
-        num = np.sum(normals * (O - c.C), axis=-1)
+        num = np.add.reduce(normals * (O - c.C), axis=-1)
         if base is None:
             base = _plane_hits(c.C, xy1 @ R, normals, num)
         h = _H_STEP
@@ -957,7 +963,8 @@ class CornerPnP(EstimatorBase):
             dP_dxy[:, :, axis] = (_plane_hits(c.C, xy2 @ R, normals, num) - base) / h
         # Pose: the rays stay, the camera moves; the six perturbed poses of _update at once.
         rays = np.einsum("nj,kji->kni", xy1, c.Rs)                      # (6, 4n, 3) world
-        Pk = intersect_rays_planes(c.Cs[:, None, :], rays, O[None], normals[None])
+        Cs = c.Cs[:, None, :]
+        Pk = _plane_hits(Cs, rays, normals, np.add.reduce(normals * (O - Cs), axis=-1))
         Jc6 = ((Pk - base[None]) / h).reshape(6, n, 4, 3).mean(axis=2)  # (6, n, 3)
         if fit.refine:
             p = fit.H.shape[0]
