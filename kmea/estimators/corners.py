@@ -481,8 +481,7 @@ class CornerPnP(EstimatorBase):
         with np.errstate(invalid="ignore"):
             d = np.sqrt(np.sum(kept * np.sum((P - M) ** 2, axis=2), axis=1) / kept.sum(axis=1))
         d = np.where(good, d, np.inf)
-        pred = self._sigmas(fit, xy, np.repeat(frames, 4, axis=0), np.repeat(origins, 4, axis=0),
-                            P.reshape(-1, 3))
+        pred = self._sigmas(fit, xy, np.repeat(frames, 4, axis=0), np.repeat(origins, 4, axis=0))[0]
         pred = np.where(np.isfinite(pred) & (pred > 0), pred, np.inf) / math.sqrt(2.0)
         u2 = (d / pred) ** 2  # chi-square (2 dof) for a reference in place
         factor = max(robust_sigma(u2[inl], 0, 0.0), 1.0)
@@ -847,8 +846,8 @@ class CornerPnP(EstimatorBase):
         xy = undistort(uv, fit.K, fit.d)
         F = np.repeat(np.array([frames[i][0] for i in ids]), 4, axis=0)
         O = np.repeat(np.array([frames[i][1] for i in ids]), 4, axis=0)
-        P = self._intersect(fit.R, fit.t, xy, F, O).reshape(-1, 4, 3)
-        sig = self._sigmas(fit, xy, F, O, P.reshape(-1, 3))
+        sig, P = self._sigmas(fit, xy, F, O)
+        P = P.reshape(-1, 4, 3)
         Fm = F[::4]
         lengths = np.array([world_map[i].length if i in world_map else obs[i].length
                             for i in ids])
@@ -930,73 +929,66 @@ class CornerPnP(EstimatorBase):
         fit.consts = c
         return c
 
-    def _sigmas(self, fit: _Fit, xy: np.ndarray, F: np.ndarray, O: np.ndarray,
-                base: np.ndarray | None = None) -> np.ndarray:
-        """1-sigma (RMS) centre error (m) per marker; xy holds 4 normalized corners per marker,
-        F (4n, 3, 3) and O (4n, 3) their planes; base: their ray-plane points
-        (:meth:`_intersect`, (4n, 3)) when the caller has them.
+    def _sigmas(self, fit: _Fit, xy: np.ndarray, F: np.ndarray, O: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """1-sigma (RMS) centre error (m) per marker (n,), and the ray-plane points (4n, 3)
+        (:meth:`_intersect`'s); xy (4n, 2) holds 4 normalized corners per marker, F (4n, 3,
+        3) and O (4n, 3) their planes.
 
         First order: Cov = Jp Cov_params Jp^T + sigma_px^2 sum_k Ju_k Ju_k^T / 16 with Jp the
         centre's derivative in the fitted parameters and Ju_k in corner k's pixel; only its
-        trace is formed.
+        trace is formed. The derivatives are numerical (the plane intersection is cheap)
+        with the step _H_STEP, the points and their xy steps in one product.
         """
-        n = len(xy) // 4
+        N = len(xy)
+        n = N // 4
         c = self._consts(fit)
-        if c.cov is None:
-            return np.full(n, np.nan)
-        R = fit.R
-        xy1 = np.empty((len(xy), 3))
-        xy1[:, :2] = xy
-        xy1[:, 2] = 1.0
-        normals = F[:, :, 2]
-        # Ray-plane points as _intersect computes them (the same operations: the numerical
-        # derivatives below difference them), the planes' part computed once.
-        num = np.add.reduce(normals * (O - c.C), axis=-1)
-        if base is None:
-            base = _plane_hits(c.C, xy1 @ R, normals, num)
         h = _H_STEP
-        # d P / d xy per corner (numerical, the plane intersection is cheap).
-        dP_dxy = np.empty((len(xy), 3, 2))
-        for axis in range(2):
-            xy2 = xy1.copy()
-            xy2[:, axis] += h
-            dP_dxy[:, :, axis] = (_plane_hits(c.C, xy2 @ R, normals, num) - base) / h
+        X = np.empty((3, N, 3))  # the rays (x, y, 1), then with x + h, then with y + h
+        X[:, :, :2] = xy
+        X[:, :, 2] = 1.0
+        X[1, :, 0] += h
+        X[2, :, 1] += h
+        normals = F[:, :, 2]
+        num = np.add.reduce(normals * (O - c.C), axis=-1)
+        hits = _plane_hits(c.C, (X.reshape(-1, 3) @ fit.R).reshape(3, N, 3), normals, num)
+        P = hits[0]
+        if c.cov is None:
+            return np.full(n, np.nan), P
+        dP = (hits[1:] - P) / h  # (2, N, 3): d P / d x, d P / d y per corner
         # Pose: the rays stay, the camera moves; the six perturbed poses of _update at once.
-        rays = np.einsum("nj,kji->kni", xy1, c.Rs)                      # (6, 4n, 3) world
+        rays = np.einsum("nj,kji->kni", X[0], c.Rs)                     # (6, N, 3) world
         Cs = c.Cs[:, None, :]
         Pk = _plane_hits(Cs, rays, normals, np.add.reduce(normals * (O - Cs), axis=-1))
-        Jc6 = ((Pk - base[None]) / h).reshape(6, n, 4, 3).mean(axis=2)  # (6, n, 3)
+        Jc = (np.add.reduce(((Pk - P) / h).reshape(6, n, 4, 3), axis=2) / 4.0).reshape(6, -1)
         if fit.refine:
-            p = fit.H.shape[0]
-            Jc = np.empty((n, 3, p))
-            Jc[:, :, :6] = np.moveaxis(Jc6, 0, 2)
             # Intrinsics move the rays: distort(xy) = (uv - c) / (K0 m) at fixed pixels, so
             # d xy / d m = -Jd^-1 xd / m and d xy / d k1 = -Jd^-1 d distort / d k1.
             xd, Jd, dk1 = distort(xy, fit.d, jac=True)
             Jd_inv = np.linalg.inv(Jd)
             m = fit.K[0, 0] / fit.K0[0, 0]
+            dP_dxy = dP.transpose(1, 2, 0)
+            Jc = np.concatenate([Jc, np.empty((2, Jc.shape[1]))])
             for k, rhs in ((6, -xd / m), (7, -dk1)):
                 dxy = np.einsum("nij,nj->ni", Jd_inv, rhs)
-                Jc[:, :, k] = np.einsum("nij,nj->ni", dP_dxy, dxy).reshape(n, 4, 3).mean(axis=1)
+                Jc[k] = np.einsum("nij,nj->ni", dP_dxy, dxy).reshape(n, 4, 3).mean(axis=1
+                                                                                 ).reshape(-1)
             Jd = Jd.reshape(-1, 4)
         else:
-            p = 6
-            Jc = np.moveaxis(Jc6, 0, 2)
             Jd = distort_jacobian(xy, fit.d).reshape(-1, 4)
-        Jc = Jc.reshape(3 * n, p)
-        var = np.sum((Jc @ c.cov) * Jc, axis=1).reshape(n, 3).sum(axis=1)
+        # Jc (p, 3n): column (marker, axis); the trace of Jc^T cov Jc per marker.
+        var = np.add.reduce((np.add.reduce((c.cov @ Jc) * Jc, axis=0)).reshape(n, 3), axis=1)
         # Own corner noise: d P / d uv = d P / d xy (d uv / d xy)^-1, per corner, with
         # d uv / d xy = diag(fx, fy) Jd and Jd^-1 in closed form.
         j00, j01, j10, j11 = Jd[:, 0], Jd[:, 1], Jd[:, 2], Jd[:, 3]
         det = j00 * j11 - j01 * j10
-        if not np.all(det != 0.0):
+        if not (det != 0.0).all():
             np.linalg.inv(Jd.reshape(-1, 2, 2))  # singular: the error inv() gives
         sx, sy = det * fit.K[0, 0], det * fit.K[1, 1]
-        g0, g1 = dP_dxy[:, :, 0], dP_dxy[:, :, 1]
-        u0 = g0 * (j11 / sx)[:, None] - g1 * (j10 / sx)[:, None]
-        u1 = g1 * (j00 / sy)[:, None] - g0 * (j01 / sy)[:, None]
-        own = np.sum(u0 * u0 + u1 * u1, axis=1).reshape(n, 4).sum(axis=1)
-        return np.sqrt(var + fit.sigma_px ** 2 / 16.0 * own)
+        u0 = dP[0] * (j11 / sx)[:, None] - dP[1] * (j10 / sx)[:, None]
+        u1 = dP[1] * (j00 / sy)[:, None] - dP[0] * (j01 / sy)[:, None]
+        own = np.add.reduce((u0 * u0 + u1 * u1).reshape(n, 12), axis=1)
+        return np.sqrt(var + fit.sigma_px ** 2 / 16.0 * own), P
 
     # ------------------------------------------------------------------ leave-one-out
     def _loo_steps(self, fit: _Fit, refs, inliers, J, Jw, r, g, uv_refs, xy_full, frames,
