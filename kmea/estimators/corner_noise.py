@@ -126,7 +126,7 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     off = sq @ np.swapaxes(rotations, 1, 2)  # (n, 4, 3): the corners about the centre, world
     X = centres[:, None, :] + off
     Pc = X.reshape(-1, 3) @ R.T + t
-    if np.any(Pc[:, 2] <= 1e-9):
+    if (Pc[:, 2] <= 1e-9).any():
         return drop, np.full(n, np.nan), np.full((n, 4), np.nan)
     proj, J_pc = project_jac_pc(Pc, K, d)
     e0 = (proj - uv.reshape(-1, 2)).reshape(n, 8)
@@ -156,7 +156,10 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     with np.errstate(invalid="ignore", divide="ignore"):
         stats = ((ex * (a11 * ex - a01 * ey) + ey * (a00 * ey - a10 * ex)) / det).T
     stats[(det == 0.0).T] = np.nan  # singular: no statistic (as a failed solve gave)
-    stats /= np.maximum(np.broadcast_to(np.asarray(sigma_px, float), (n,)), 1e-12)[:, None] ** 2
+    if np.ndim(sigma_px) == 0:
+        stats /= max(float(sigma_px), 1e-12) ** 2
+    else:
+        stats /= np.maximum(np.broadcast_to(np.asarray(sigma_px, float), (n,)), 1e-12)[:, None] ** 2
     worst = np.argmax(np.where(np.isfinite(stats), stats, -np.inf), axis=1)
     top = stats[np.arange(n), worst]
     drop = np.where(np.isfinite(top) & (top > threshold), worst, -1)

@@ -184,6 +184,10 @@ class _Warm:
     camera: object = None
 
 
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False  # shared: a horizontal plane's frame
+
+
 def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mapping[int, float]
                   ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """id -> (frame (3, 3) with columns e1, e2, normal; origin (3,)) for markers with a plane.
@@ -194,7 +198,7 @@ def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mappi
     out = {}
     for i in ids:
         if i in plane_heights:
-            out[i] = (np.eye(3), np.array([0.0, 0.0, float(plane_heights[i])]))
+            out[i] = (_EYE3, np.array([0.0, 0.0, float(plane_heights[i])]))
         elif i in world_map:
             m = world_map[i]
             out[i] = (m.rotation, m.position)
@@ -1053,10 +1057,11 @@ class CornerPnP(EstimatorBase):
         """
         res = self._solve(observations, world_map, exclude, camera)
         est = self._estimate_from(res, world_map, plane_heights)
-        ids = (loo_candidates(observations, world_map, exclude) if loo_ids is None
-               else sorted(set(loo_ids)))
 
         def loo() -> tuple[dict[int, np.ndarray], dict[int, str]]:
+            # Computed when asked for (a tracked frame whose floor did not change never is).
+            ids = (loo_candidates(observations, world_map, exclude) if loo_ids is None
+                   else sorted(set(loo_ids)))
             fast = {} if isinstance(res, Estimate) else self._fast_loo(res, world_map)
             heights = plane_heights or {}
             fast = {i: p for i, p in fast.items() if i in set(ids) and i not in heights}

@@ -63,7 +63,7 @@ def distort_xy(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray,
     Terms whose coefficients are all zero are skipped: the simulator calls this on whole
     images.
     """
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (float(v) for v in d[:12])
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = np.asarray(d[:12], dtype=float).tolist()
     r2 = x * x
     r2 += y * y
     # Horner: 1 + r2 (k1 + r2 (k2 + r2 k3)), in place.
@@ -184,7 +184,7 @@ def _distort_jac_parts(x: np.ndarray, y: np.ndarray, d: np.ndarray
     """The entries (J00, J01, J10, J11) of d xd / d xy at x, y (any equal shapes): the
     formulas of :func:`distort` with ``jac``, the terms of all-zero coefficient groups left
     out (adding their exact zeros changes no bit), for the per-frame paths."""
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (float(v) for v in d[:12])
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = np.asarray(d[:12], dtype=float).tolist()
     r2 = x * x + y * y
     a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
@@ -267,7 +267,7 @@ def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20
     # their exact zeros changes no bit): this runs on every frame's robot corners.
     tx, ty = target[:, 0], target[:, 1]
     x, y = tx, ty
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (float(v) for v in d[:12])
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = np.asarray(d[:12], dtype=float).tolist()
     tangential, prism, rational = bool(p1 or p2), bool(s1 or s2 or s3 or s4), bool(k4 or k5 or k6)
     for _ in range(3):
         r2 = x * x + y * y
@@ -284,7 +284,7 @@ def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20
         xd, yd = distort_xy(x, y, d)
         fx_ = xd - tx
         fy_ = yd - ty
-        if max(float(np.max(np.abs(fx_))), float(np.max(np.abs(fy_)))) < 1e-15:
+        if max(np.maximum.reduce(np.abs(fx_)), np.maximum.reduce(np.abs(fy_))) < 1e-15:
             break
         j00, j01, j10, j11 = _distort_jac_parts(x, y, d)
         det = j00 * j11 - j01 * j10
