@@ -30,6 +30,7 @@ __all__ = ["SIGMA_FLOOR_PX", "corner_outliers", "robust_sigma", "square_pose"]
 
 SIGMA_FLOOR_PX = 0.01
 _UNIT_SQUARE = marker_corners_local(1.0)  # (4, 3), z = 0
+_CORNERS = np.arange(4)
 # (8, 2): a square's plane coordinates (4 corners x (u, v), flat) -> the sums over its corners
 # of c x a and c . a with c the unit square's local corners (the angle's sine and cosine
 # parts; the side length scales both and drops out of the angle).
@@ -117,9 +118,8 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     corners' own noise). The worst corner is dropped when beyond threshold.
     """
     n = len(uv)
-    drop = np.full(n, -1, dtype=int)
     if n == 0:
-        return drop, np.zeros(0), np.zeros((0, 4))
+        return np.full(0, -1, dtype=int), np.zeros(0), np.zeros((0, 4))
     # Batched matrix products and closed-form 2x2 solves: this runs for every robot marker
     # in every frame, where numpy's per-call overhead is the cost.
     sq = _UNIT_SQUARE[None] * np.asarray(lengths, float)[:, None, None]
@@ -127,7 +127,7 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     X = centres[:, None, :] + off
     Pc = X.reshape(-1, 3) @ R.T + t
     if (Pc[:, 2] <= 1e-9).any():
-        return drop, np.full(n, np.nan), np.full((n, 4), np.nan)
+        return np.full(n, -1, dtype=int), np.full(n, np.nan), np.full((n, 4), np.nan)
     proj, J_pc = project_jac_pc(Pc, K, d)
     e0 = (proj - uv.reshape(-1, 2)).reshape(n, 8)
     # d X_k / d (x, y, angle) in world: e1, e2, normal x (X_k - centre); then camera.
@@ -144,11 +144,11 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     try:
         inv = np.linalg.inv(Jt @ J)
     except np.linalg.LinAlgError:
-        return drop, np.full(n, np.nan), np.full((n, 4), np.nan)
+        return np.full(n, -1, dtype=int), np.full(n, np.nan), np.full((n, 4), np.nan)
     H = J @ inv @ Jt  # (n, 8, 8) hat matrices
     e = e0 - (H @ e0[:, :, None])[:, :, 0]
     # Corner k: e_k^T (I - H_kk)^-1 e_k, the 2x2 inverse in closed form.
-    Hd = H.reshape(n, 4, 2, 4, 2)[:, np.arange(4), :, np.arange(4), :]  # (4, n, 2, 2)
+    Hd = H.reshape(n, 4, 2, 4, 2)[:, _CORNERS, :, _CORNERS, :]  # (4, n, 2, 2)
     a00, a01 = 1.0 - Hd[:, :, 0, 0], -Hd[:, :, 0, 1]
     a10, a11 = -Hd[:, :, 1, 0], 1.0 - Hd[:, :, 1, 1]
     ex, ey = e[:, 0::2].T, e[:, 1::2].T  # (4, n)
@@ -156,7 +156,7 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     with np.errstate(invalid="ignore", divide="ignore"):
         stats = ((ex * (a11 * ex - a01 * ey) + ey * (a00 * ey - a10 * ex)) / det).T
     stats[(det == 0.0).T] = np.nan  # singular: no statistic (as a failed solve gave)
-    if np.ndim(sigma_px) == 0:
+    if isinstance(sigma_px, float) or np.ndim(sigma_px) == 0:
         stats /= max(float(sigma_px), 1e-12) ** 2
     else:
         stats /= np.maximum(np.broadcast_to(np.asarray(sigma_px, float), (n,)), 1e-12)[:, None] ** 2

@@ -96,6 +96,7 @@ from kmea.geometry import (
     check_distortion,
     distort,
     distort_jacobian,
+    distort_jacobian_entries,
     intersect_rays_planes,
     make_transform,
     project,
@@ -211,9 +212,8 @@ def _plane_hits(C: np.ndarray, rays: np.ndarray, normals: np.ndarray, num: np.nd
     (..., N, 3) with the planes' part ``num = sum(normals * (points - C))`` (..., N) given:
     the same operations, so the same numbers (the numerical derivatives difference them)."""
     den = np.add.reduce(normals * rays, axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        lam = num / den
-        P = C + lam[..., None] * rays
+    lam = num / den  # the caller ignores division and overflow warnings (NaN marks misses)
+    P = C + lam[..., None] * rays
     bad = ~((lam > 0) & (lam < np.inf))
     if bad.any():
         P[bad] = np.nan
@@ -289,6 +289,7 @@ class CornerPnP(EstimatorBase):
         self._placed: tuple | None = None
         self._last_report: tuple | None = None  # see _report
         self._checked: dict[int, MarkerObservation] = {}  # see _check
+        self._camera_raw: tuple | None = None  # see _same_camera
 
     def reset_warm(self) -> None:
         """Forget the previous fit (the view changed: the next call solves afresh)."""
@@ -653,18 +654,23 @@ class CornerPnP(EstimatorBase):
         self._checked = {id(o): o for o in obs}  # held: the ids stay theirs
         return obs
 
-    @staticmethod
-    def _same_camera(w: _Warm, camera: CameraIntrinsics) -> bool:
+    def _same_camera(self, w: _Warm, camera: CameraIntrinsics) -> bool:
         """Is ``camera`` the one of the warm fit: the same object, or the same numbers (a
-        camera model hands out a new intrinsics object per call)?"""
+        camera model hands out a new intrinsics object per call)? The last camera's arrays
+        as given (bytes, dtype, shape) are kept with their checked form, so the usual call
+        only compares bytes."""
         if w.camera is camera:
             return True
-        try:
-            K0 = np.asarray(camera.camera_matrix, dtype=float)
-            d0 = check_distortion(camera.dist_coeffs)
-        except (ValueError, TypeError):
-            return False
-        return K0.tobytes() == w.key[1] and d0.tobytes() == w.key[2]
+        K, d = np.asarray(camera.camera_matrix), np.asarray(camera.dist_coeffs)
+        raw = (K.dtype.str, K.shape, K.tobytes(), d.dtype.str, d.shape, d.tobytes())
+        last = self._camera_raw
+        if last is None or last[0] != raw:
+            try:
+                key = (np.asarray(K, dtype=float).tobytes(), check_distortion(d).tobytes())
+            except (ValueError, TypeError):
+                return False
+            self._camera_raw = last = (raw, key)
+        return last[1] == w.key[1:]
 
     def _warm_subset(self, warm: _Warm, refs: list[int], uv_refs: np.ndarray
                      ) -> list[int] | None:
@@ -954,17 +960,19 @@ class CornerPnP(EstimatorBase):
         X[1, :, 0] += h
         X[2, :, 1] += h
         normals = F[:, :, 2]
-        num = np.add.reduce(normals * (O - c.C), axis=-1)
-        hits = _plane_hits(c.C, (X.reshape(-1, 3) @ fit.R).reshape(3, N, 3), normals, num)
-        P = hits[0]
-        if c.cov is None:
-            return np.full(n, np.nan), P
-        dP = (hits[1:] - P) / h  # (2, N, 3): d P / d x, d P / d y per corner
-        # Pose: the rays stay, the camera moves; the six perturbed poses of _update at once.
-        rays = np.einsum("nj,kji->kni", X[0], c.Rs)                     # (6, N, 3) world
-        Cs = c.Cs[:, None, :]
-        Pk = _plane_hits(Cs, rays, normals, np.add.reduce(normals * (O - Cs), axis=-1))
-        Jc = (np.add.reduce(((Pk - P) / h).reshape(6, n, 4, 3), axis=2) / 4.0).reshape(6, -1)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            num = np.add.reduce(normals * (O - c.C), axis=-1)
+            hits = _plane_hits(c.C, (X.reshape(-1, 3) @ fit.R).reshape(3, N, 3), normals, num)
+            P = hits[0]
+            if c.cov is None:
+                return np.full(n, np.nan), P
+            dP = (hits[1:] - P) / h  # (2, N, 3): d P / d x, d P / d y per corner
+            # Pose: the rays stay, the camera moves; the six perturbed poses of _update.
+            rays = np.einsum("nj,kji->kni", X[0], c.Rs)                 # (6, N, 3) world
+            Cs = c.Cs[:, None, :]
+            Pk = _plane_hits(Cs, rays, normals, np.add.reduce(normals * (O - Cs), axis=-1))
+            Jc = (np.add.reduce(((Pk - P) / h).reshape(6, n, 4, 3), axis=2) / 4.0
+                  ).reshape(6, -1)
         if fit.refine:
             # Intrinsics move the rays: distort(xy) = (uv - c) / (K0 m) at fixed pixels, so
             # d xy / d m = -Jd^-1 xd / m and d xy / d k1 = -Jd^-1 d distort / d k1.
@@ -977,17 +985,16 @@ class CornerPnP(EstimatorBase):
                 dxy = np.einsum("nij,nj->ni", Jd_inv, rhs)
                 Jc[k] = np.einsum("nij,nj->ni", dP_dxy, dxy).reshape(n, 4, 3).mean(axis=1
                                                                                  ).reshape(-1)
-            Jd = Jd.reshape(-1, 4)
+            j00, j01, j10, j11 = Jd[:, 0, 0], Jd[:, 0, 1], Jd[:, 1, 0], Jd[:, 1, 1]
         else:
-            Jd = distort_jacobian(xy, fit.d).reshape(-1, 4)
+            j00, j01, j10, j11 = distort_jacobian_entries(xy[:, 0], xy[:, 1], fit.d)
         # Jc (p, 3n): column (marker, axis); the trace of Jc^T cov Jc per marker.
         var = np.add.reduce((np.add.reduce((c.cov @ Jc) * Jc, axis=0)).reshape(n, 3), axis=1)
         # Own corner noise: d P / d uv = d P / d xy (d uv / d xy)^-1, per corner, with
         # d uv / d xy = diag(fx, fy) Jd and Jd^-1 in closed form.
-        j00, j01, j10, j11 = Jd[:, 0], Jd[:, 1], Jd[:, 2], Jd[:, 3]
         det = j00 * j11 - j01 * j10
         if not (det != 0.0).all():
-            np.linalg.inv(Jd.reshape(-1, 2, 2))  # singular: the error inv() gives
+            np.linalg.inv(distort_jacobian(xy, fit.d))  # singular: the error inv() gives
         sx, sy = det * fit.K[0, 0], det * fit.K[1, 1]
         u0 = dP[0] * (j11 / sx)[:, None] - dP[1] * (j10 / sx)[:, None]
         u1 = dP[1] * (j00 / sy)[:, None] - dP[0] * (j01 / sy)[:, None]

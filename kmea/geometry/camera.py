@@ -20,6 +20,7 @@ __all__ = [
     "check_distortion",
     "distort",
     "distort_jacobian",
+    "distort_jacobian_entries",
     "distort_xy",
     "project",
     "project_jac_pc",
@@ -179,8 +180,8 @@ def rotation_increment_jacobian(J_pc: np.ndarray, v: np.ndarray) -> np.ndarray:
     return J_w
 
 
-def _distort_jac_parts(x: np.ndarray, y: np.ndarray, d: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def distort_jacobian_entries(x: np.ndarray, y: np.ndarray, d: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The entries (J00, J01, J10, J11) of d xd / d xy at x, y (any equal shapes): the
     formulas of :func:`distort` with ``jac``, the terms of all-zero coefficient groups left
     out (adding their exact zeros changes no bit), for the per-frame paths."""
@@ -218,7 +219,7 @@ def distort_jacobian(xy: np.ndarray, d: np.ndarray) -> np.ndarray:
     """d xd / d xy (N, 2, 2) of :func:`distort` at normalised points xy (N, 2) (what
     ``distort(xy, d, jac=True)[1]`` gives, without the rest)."""
     xy = np.asarray(xy, dtype=float)
-    j00, j01, j10, j11 = _distort_jac_parts(xy[:, 0], xy[:, 1], d)
+    j00, j01, j10, j11 = distort_jacobian_entries(xy[:, 0], xy[:, 1], d)
     J = np.empty((len(xy), 2, 2))
     J[:, 0, 0] = j00
     J[:, 0, 1] = j01
@@ -239,7 +240,7 @@ def project_jac_pc(Pc: np.ndarray, K: np.ndarray, d: np.ndarray
     uv = np.empty((len(Z), 2))
     uv[:, 0] = xd * fx + K[0, 2]
     uv[:, 1] = yd * fy + K[1, 2]
-    j00, j01, j10, j11 = _distort_jac_parts(x, y, d)
+    j00, j01, j10, j11 = distort_jacobian_entries(x, y, d)
     iz = 1.0 / Z
     m00, m01, m10, m11 = j00 * fx, j01 * fx, j10 * fy, j11 * fy
     J = np.empty((len(Z), 2, 3))
@@ -260,14 +261,15 @@ def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20
     for any distortion the calibration can produce inside the image.
     """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    target = (uv - np.array([K[0, 2], K[1, 2]])) / np.array([K[0, 0], K[1, 1]])
-    if not np.any(d[:12]):
-        return target
     # Coordinates apart, and the terms of all-zero coefficient groups left out (adding
     # their exact zeros changes no bit): this runs on every frame's robot corners.
-    tx, ty = target[:, 0], target[:, 1]
+    tx = (uv[:, 0] - K[0, 2]) / K[0, 0]
+    ty = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    coef = np.asarray(d[:12], dtype=float).tolist()
+    if not any(coef):
+        return np.stack([tx, ty], axis=1)
     x, y = tx, ty
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = np.asarray(d[:12], dtype=float).tolist()
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = coef
     tangential, prism, rational = bool(p1 or p2), bool(s1 or s2 or s3 or s4), bool(k4 or k5 or k6)
     for _ in range(3):
         r2 = x * x + y * y
@@ -286,10 +288,13 @@ def undistort(uv: np.ndarray, K: np.ndarray, d: np.ndarray, iterations: int = 20
         fy_ = yd - ty
         if max(np.maximum.reduce(np.abs(fx_)), np.maximum.reduce(np.abs(fy_))) < 1e-15:
             break
-        j00, j01, j10, j11 = _distort_jac_parts(x, y, d)
+        j00, j01, j10, j11 = distort_jacobian_entries(x, y, d)
         det = j00 * j11 - j01 * j10
         step_x = (j11 * fx_ - j01 * fy_) / det
         step_y = (-j10 * fx_ + j00 * fy_) / det
         x = x - step_x
         y = y - step_y
-    return np.stack([x, y], axis=1)
+    out = np.empty((len(x), 2))
+    out[:, 0] = x
+    out[:, 1] = y
+    return out
