@@ -290,6 +290,7 @@ class CornerPnP(EstimatorBase):
         self._last_report: tuple | None = None  # see _report
         self._checked: dict[int, MarkerObservation] = {}  # see _check
         self._camera_raw: tuple | None = None  # see _same_camera
+        self._planes: tuple | None = None  # see _corner_planes
 
     def reset_warm(self) -> None:
         """Forget the previous fit (the view changed: the next call solves afresh)."""
@@ -854,8 +855,7 @@ class CornerPnP(EstimatorBase):
         ids = list(frames)
         uv = self._stack_corners(ids, obs)
         xy = undistort(uv, fit.K, fit.d)
-        F = np.repeat(np.array([frames[i][0] for i in ids]), 4, axis=0)
-        O = np.repeat(np.array([frames[i][1] for i in ids]), 4, axis=0)
+        F, O = self._corner_planes(ids, frames)
         sig, P = self._sigmas(fit, xy, F, O)
         P = P.reshape(-1, 4, 3)
         Fm = F[::4]
@@ -871,6 +871,22 @@ class CornerPnP(EstimatorBase):
             else:
                 out[i] = MarkerEstimate(i, centres[k], Rw[k], yaw_of(Rw[k]), float(sig[k]))
         return out
+
+    def _corner_planes(self, ids: Sequence[int], frames: Mapping[int, tuple]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """Each corner's plane frame (4n, 3, 3) and origin (4n, 3) of the markers ``ids``
+        (4 rows each); the last set is kept (read-only), as the robots' planes are the same
+        frame after frame."""
+        key = tuple((i, frames[i][0].tobytes(), frames[i][1].tobytes()) for i in ids)
+        last = self._planes
+        if last is not None and last[0] == key:
+            return last[1], last[2]
+        F = np.repeat(np.array([frames[i][0] for i in ids]), 4, axis=0)
+        O = np.repeat(np.array([frames[i][1] for i in ids]), 4, axis=0)
+        F.flags.writeable = False
+        O.flags.writeable = False
+        self._planes = (key, F, O)
+        return F, O
 
     def _corner_sigma(self, fit: _Fit) -> float:
         """The corner noise (px) the per-marker corner tests use: the consensus's robust
