@@ -123,7 +123,7 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     # Batched matrix products and closed-form 2x2 solves: this runs for every robot marker
     # in every frame, where numpy's per-call overhead is the cost.
     sq = _UNIT_SQUARE[None] * np.asarray(lengths, float)[:, None, None]
-    off = sq @ np.swapaxes(rotations, 1, 2)  # (n, 4, 3): the corners about the centre, world
+    off = sq @ rotations.transpose(0, 2, 1)  # (n, 4, 3): the corners about the centre, world
     X = centres[:, None, :] + off
     Pc = X.reshape(-1, 3) @ R.T + t
     if (Pc[:, 2] <= 1e-9).any():
@@ -140,7 +140,7 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
     dX[:, :, 1, 2] = nz * vx - nx * vz
     dX[:, :, 2, 2] = nx * vy - ny * vx
     J = ((J_pc @ R).reshape(n, 4, 2, 3) @ dX).reshape(n, 8, 3)
-    Jt = np.swapaxes(J, 1, 2)
+    Jt = J.transpose(0, 2, 1)
     try:
         inv = np.linalg.inv(Jt @ J)
     except np.linalg.LinAlgError:
@@ -160,7 +160,7 @@ def corner_outliers(R: np.ndarray, t: np.ndarray, K: np.ndarray, d: np.ndarray,
         stats /= max(float(sigma_px), 1e-12) ** 2
     else:
         stats /= np.maximum(np.broadcast_to(np.asarray(sigma_px, float), (n,)), 1e-12)[:, None] ** 2
-    worst = np.argmax(np.where(np.isfinite(stats), stats, -np.inf), axis=1)
+    worst = np.where(np.isfinite(stats), stats, -np.inf).argmax(axis=1)
     top = stats[np.arange(n), worst]
     drop = np.where(np.isfinite(top) & (top > threshold), worst, -1)
     return drop, top, ex.T ** 2 + ey.T ** 2

@@ -861,7 +861,7 @@ class CornerPnP(EstimatorBase):
         Fm = F[::4]
         lengths = np.array([world_map[i].length if i in world_map else obs[i].length
                             for i in ids])
-        good = np.all(np.isfinite(P), axis=(1, 2))
+        good = np.isfinite(P).all(axis=(1, 2))
         centres, Rw, drop = self._square_poses(fit, P, Fm, lengths, uv.reshape(-1, 4, 2), good)
         if dropped is not None:
             dropped.update({i: int(drop[k]) for k, i in enumerate(ids) if drop[k] >= 0})
@@ -913,8 +913,8 @@ class CornerPnP(EstimatorBase):
             d_g, _, _ = corner_outliers(fit.R, fit.t, fit.K, fit.d, uv[g], centres[g], Rw[g],
                                         lengths[g], self._corner_sigma(fit), self._corner_q)
             drop[g] = d_g
-        sel = np.flatnonzero(drop >= 0)
-        if sel.size:
+        sel = np.flatnonzero(drop >= 0) if (drop >= 0).any() else ()
+        if len(sel):
             keep = np.ones((sel.size, 4), bool)
             keep[np.arange(sel.size), drop[sel]] = False
             centres[sel], Rw[sel] = square_pose(P[sel], frames[sel], lengths[sel], keep)
