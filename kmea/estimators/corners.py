@@ -512,9 +512,10 @@ class CornerPnP(EstimatorBase):
         excl = set(exclude)
         obs = {o.id: o for o in (self._check(observations) if self.warm_start and not excl
                                  else check_observations(observations))}
-        refs = sorted(i for i in obs
-                      if i in world_map and i not in excl and obs[i].corners is not None
-                      and not obs[i].suspect)
+        in_map = world_map.markers  # (MarkerMap's membership, without a method call each)
+        refs = sorted(i for i, o in obs.items()
+                      if i in in_map and i not in excl and o.corners is not None
+                      and not o.suspect)
         if len(refs) < self.min_references:
             return Estimate.failed(self.name, f"{len(refs)} reference marker(s) with corners "
                                               f"visible, need {self.min_references}")
@@ -652,7 +653,7 @@ class CornerPnP(EstimatorBase):
             except ValueError:
                 check_observations(obs)  # the error the full check gives
                 raise
-        self._checked = {id(o): o for o in obs}  # held: the ids stay theirs
+        self._checked = dict(zip(map(id, obs), obs, strict=True))  # held: ids stay theirs
         return obs
 
     def _same_camera(self, w: _Warm, camera: CameraIntrinsics) -> bool:
