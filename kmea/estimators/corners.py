@@ -53,7 +53,11 @@ corners are the same (a tracked fixed floor), that fit is the answer (a fresh so
 compute the same numbers); when they changed (a marker hidden, one more found), the
 Levenberg-Marquardt starts from the previous pose and intrinsics with the previous
 consensus instead of a robust start: a few iterations, not a fresh solve. Calls with
-``exclude`` (leave-one-out by exclusion) never use nor change it.
+``exclude`` (leave-one-out by exclusion) never use nor change it. With the same fit only
+the markers with new observations (the robots) are placed again, and what their placement
+needs from the fit alone (its covariance, the perturbed poses of the uncertainty's
+derivatives, the camera centre: ``_FitConsts``) is computed once per fit; the numbers are
+those of a computation from scratch (``tests/test_corner_fast.py``).
 
 Uncertainty (``MarkerEstimate.sigma``, m): the RMS position error predicted by first-order
 propagation of (a) the pose (and intrinsics) covariance ``sigma_px^2 (J^T J)^-1`` of the LM
