@@ -514,7 +514,7 @@ class CornerPnP(EstimatorBase):
             return Estimate.failed(self.name, "corner-pnp needs the camera intrinsics "
                                               "(camera matrix and distortion)")
         excl = set(exclude)
-        obs = {o.id: o for o in (self._check(observations) if self.warm_start and not excl
+        obs = {o.id: o for o in (self._check(observations) if self.warm_start
                                  else check_observations(observations))}
         in_map = world_map.markers  # (MarkerMap's membership, without a method call each)
         refs = sorted(i for i, o in obs.items()
