@@ -568,7 +568,11 @@ class CornerPnP(EstimatorBase):
         if warm is not None:
             # A few iterations from the previous fit; references new to the fit are tried.
             R, t = warm.fit.R, warm.fit.t
-            keep_model = warm.refs == refs
+            # The intrinsics model (refined or not) is the camera's: a reference set that
+            # differs by a few markers (found, uncovered, hidden) keeps the previous choice
+            # (its likelihood-ratio test costs a second fit); a larger change tests again.
+            changed = len(set(warm.refs) ^ set(refs))
+            keep_model = changed <= max(2, len(warm.refs) // 10)
             inliers = [i for i in refs if i in warm.inliers or i not in warm.refs]
             if len(inliers) < self.min_references:
                 warm = None
