@@ -505,3 +505,33 @@ def test_half_resolution_discovery_uses_one_window_sized_for_the_markers(pi_fram
         seen += len(a)
         lost += len(set(a) - set(b))
     assert seen >= 100 and lost <= 0.02 * seen, (seen, lost)
+
+
+def test_a_refit_keeps_the_intrinsics_model_unless_the_references_changed_much(pi_frames):
+    from dataclasses import replace
+
+    from kmea.estimators.corners import CornerPnP
+
+    frames, src = pi_frames
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=(), tracking=False))
+    r = p.process(FrameInput(0, 0.0, frames[0].image))
+    p.close()
+    floor = [o for o in r.observations if o.id in src.world_map]
+    assert len(floor) >= 20
+    est = CornerPnP()
+    est.warm_start = True
+    tested = []
+    orig = est._select
+    est._select = lambda *a, **k: (tested.append(1), orig(*a, **k))[1]
+    intr = src.camera.intrinsics
+
+    def nudged(obs):  # one more averaged look: every reference's corners move a little
+        return [replace(o, corners=np.asarray(o.corners) + 0.02) for o in obs]
+
+    assert est.estimate(floor, src.world_map, camera=intr).ok and tested  # cold: tested
+    tested.clear()
+    assert est.estimate(nudged(floor[1:]), src.world_map, camera=intr).ok
+    assert not tested  # one reference fewer, corners moved: the model choice stands
+    keep = floor[: len(floor) // 2]
+    assert est.estimate(nudged(keep), src.world_map, camera=intr).ok
+    assert tested  # half the references gone: tested again
