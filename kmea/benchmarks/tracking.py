@@ -73,8 +73,10 @@ class Trajectory:
 
 
 def trajectory(seed: int, duration: float = 40.0, max_speed: float = 1.5,
-               max_turn: float = 3.0, max_accel: float = 2.0) -> Trajectory:
-    """A random drive of ``duration`` s (module docstring)."""
+               max_turn: float = 3.0, max_accel: float = 2.0,
+               stops: float = 0.2) -> Trajectory:
+    """A random drive of ``duration`` s (module docstring); ``stops``: the probability that
+    a segment is a stop (straight runs and turns share the rest equally)."""
     rng = np.random.default_rng(seed)
     dt = 1e-3
     n = round(duration / dt) + 1
@@ -82,7 +84,8 @@ def trajectory(seed: int, duration: float = 40.0, max_speed: float = 1.5,
     w_tgt = np.zeros(n)
     i = int(0.5 / dt)  # half a second standing still first
     while i < n:
-        kind = rng.choice(["straight", "turn", "stop"], p=[0.4, 0.4, 0.2])
+        kind = rng.choice(["straight", "turn", "stop"],
+                          p=[(1.0 - stops) / 2.0, (1.0 - stops) / 2.0, stops])
         length = int(rng.uniform(0.5, 3.0) / dt)
         if kind == "straight":
             v, w = rng.uniform(0.3, 1.0) * max_speed, 0.0
@@ -129,13 +132,16 @@ class Measurements:
 
 def make_measurements(tr: Trajectory, seed: int, fps: float = 30.0, sigma: float = 0.003,
                       outliers: float = 0.05, missing: float = 0.02, burst: float = 0.0,
-                      manoeuvre_outliers: float = 0.0) -> Measurements:
+                      manoeuvre_outliers: float = 0.0, stop_outliers: float = 0.0
+                      ) -> Measurements:
     """Noisy measurements of ``tr`` at ``fps`` (module docstring). Harsher outliers (for
     tuning sets; both 0 leaves the measurements of a seed unchanged): ``burst``, the
     probability that the measurement after an outlier is one too; ``manoeuvre_outliers``,
     the probability of an extra outlier at a measurement during a hard manoeuvre (braking
     at more than half the drive's acceleration limit, or an angular acceleration of more
-    than half its limit)."""
+    than half its limit); ``stop_outliers``, the probability of an extra outlier at a
+    measurement near a stop (braking below 0.5 m/s, or standing within 0.5 s after
+    stopping)."""
     rng = np.random.default_rng(seed + 7919)
     t = np.arange(0.0, tr.t[-1], 1.0 / fps)
     t = t[rng.random(len(t)) >= missing]
@@ -148,7 +154,7 @@ def make_measurements(tr: Trajectory, seed: int, fps: float = 30.0, sigma: float
     out[t < 1.0] = False  # the first second builds the track
     ang = rng.uniform(0.0, 2 * math.pi, len(t))
     dist = rng.uniform(0.05, 0.20, len(t))
-    if outliers > 0 and (burst > 0 or manoeuvre_outliers > 0):
+    if outliers > 0 and (burst > 0 or manoeuvre_outliers > 0 or stop_outliers > 0):
         # Drawn from a second generator so that the draws above stay those of the seed.
         rng2 = np.random.default_rng(seed + 104729)
         i = np.clip(np.rint(t * 1000.0).astype(int), 1, len(tr.t) - 1)
@@ -158,6 +164,13 @@ def make_measurements(tr: Trajectory, seed: int, fps: float = 30.0, sigma: float
         al_lim = np.max(np.abs(np.diff(tr.omega))) * 1000.0
         hard = (acc < -0.5 * a_lim) | (alpha > 0.5 * al_lim)
         out |= hard & (rng2.random(len(t)) < manoeuvre_outliers) & (t >= 1.0)
+        if stop_outliers > 0:
+            # Near a stop: the last part of a brake, and the first 0.5 s of standing still.
+            moving = np.abs(tr.v) > 1e-3
+            last_moving = np.maximum.accumulate(np.where(moving, np.arange(len(tr.t)), 0))
+            standing = ~moving[i] & (i - last_moving[i] < 500)
+            near = ((acc < 0) & (np.abs(tr.v[i]) < 0.5)) | standing
+            out |= near & (rng2.random(len(t)) < stop_outliers) & (t >= 1.0)
         follow = rng2.random(len(t)) < burst
         for k in np.flatnonzero(out[:-1]):
             if follow[k]:
@@ -172,7 +185,8 @@ def make_measurements(tr: Trajectory, seed: int, fps: float = 30.0, sigma: float
 class MotionSet:
     """A set of drives: seeds, max speed m/s, max turn rate rad/s, median sigma m, fps,
     duration s, max acceleration m/s^2 (angular: 7.5 times that, rad/s^2); burst,
-    manoeuvre_outliers: harsher outliers (:func:`make_measurements`)."""
+    manoeuvre_outliers, stop_outliers: harsher outliers (:func:`make_measurements`); stops:
+    the probability of a stop segment (:func:`trajectory`)."""
 
     name: str
     seeds: tuple[int, ...]
@@ -184,6 +198,8 @@ class MotionSet:
     max_accel: float = 2.0
     burst: float = 0.0
     manoeuvre_outliers: float = 0.0
+    stops: float = 0.2
+    stop_outliers: float = 0.0
 
 
 TUNE = MotionSet("tune", (0, 1, 2, 3), 1.2, 2.5, 0.003, 30.0, 30.0)
@@ -216,6 +232,11 @@ TUNE_HARD = (
               max_accel=4.0),
     MotionSet("tune harsh", (611, 612, 613, 614, 615, 616), 1.5, 3.0, 0.006, 20.0,
               max_accel=4.0, burst=0.3, manoeuvre_outliers=0.1),
+    # Added in the third round to reproduce held-out C's remaining failures on tuning data:
+    # frequent brakes to a standstill (45 % of the segments are stops), extra outliers near
+    # the stops (the end of a brake, the first 0.5 s standing) and bursts of two in a row.
+    MotionSet("tune stops", (621, 622, 623, 624, 625, 626), 1.5, 3.0, 0.006, 20.0,
+              max_accel=4.0, burst=0.3, stops=0.45, stop_outliers=0.15),
 )
 
 
@@ -249,9 +270,8 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
         out[k] = (st.x, st.y, st.theta)
         sig[k] = st.sigma
         rejected[k] = o.kind == "rejected"
-        if o.retracted is not None:  # the previous measurement, found to be an outlier
-            j = int(np.searchsorted(ms.t, o.retracted[0]))
-            rejected[j] = True
+        for r in o.retracted_all:  # earlier measurements, found to be outliers
+            rejected[int(np.searchsorted(ms.t, r[0]))] = True
         if o.kind == "reacquired":
             reacq.append(t)
     reported_t = {r.t for r in trk.rejections}
@@ -344,9 +364,11 @@ def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
     rows = []
     run_f = (lambda m: run_iir(m, param)) if filt == "iir" else (lambda m: run_kalman(m, param))
     for seed in mset.seeds:
-        tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel)
+        tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel,
+                        mset.stops)
         ms = make_measurements(tr, seed, mset.fps, mset.sigma, outliers, burst=mset.burst,
-                               manoeuvre_outliers=mset.manoeuvre_outliers)
+                               manoeuvre_outliers=mset.manoeuvre_outliers,
+                               stop_outliers=mset.stop_outliers)
         out, info = run_f(ms)
         clean = None
         if outliers > 0:
@@ -474,3 +496,31 @@ def run(quick: bool = False) -> None:
               f"{caused:3d} {score:6.1f}", flush=True)
     table(HELD_OUT if not quick else quick_sets(), alpha, cfg)
     print(f"({time.perf_counter() - t0:.0f} s)")
+
+
+def update_cost(cfg: TrackerConfig = TUNED, tracker: type = Tracker,
+                sets: tuple[MotionSet, ...] | None = None) -> float:
+    """The mean time of one :meth:`Tracker.update` (s) over the drives of ``sets`` (by
+    default the C-like and stops tuning sets, with their outliers), printed per set: the
+    filter's cost per robot per frame. ``tracker``: another Tracker class (to compare
+    versions)."""
+    total, n = 0.0, 0
+    for mset in sets if sets is not None else TUNE_HARD[::2]:
+        spent, count = 0.0, 0
+        for seed in mset.seeds:
+            tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn,
+                            mset.max_accel, mset.stops)
+            ms = make_measurements(tr, seed, mset.fps, mset.sigma, 0.05, burst=mset.burst,
+                                   manoeuvre_outliers=mset.manoeuvre_outliers,
+                                   stop_outliers=mset.stop_outliers)
+            trk = tracker(cfg)
+            rows = [(float(ms.t[k]), *map(float, ms.z[k]), float(ms.sigma[k]))
+                    for k in range(len(ms.t))]
+            t0 = time.perf_counter()
+            for t, x, y, th, s in rows:
+                trk.update("r", t, x, y, th, s)
+            spent += time.perf_counter() - t0
+            count += len(rows)
+        print(f"  {mset.name}: {spent / count * 1e6:.0f} us per update ({count} updates)")
+        total, n = total + spent, n + count
+    return total / n
