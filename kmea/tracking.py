@@ -168,7 +168,7 @@ class TrackerConfig:
     robust_k: float = 3.0
     look_back: bool = True
     look_back_probability: float = 0.99
-    look_back_n: int = 2
+    look_back_n: int = 1
     step_cumulative: bool = True
     confirm_probability: float = 0.95
     reacquire_follow: bool = True
