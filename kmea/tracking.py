@@ -145,6 +145,8 @@ class TrackerConfig:
     reacquire_follow: once 2 rejected measurements agree (candidates), a measurement inside
     the gate that fits the track poorly (outside the look-back quantile) but the
     candidates' track well (inside it, and better) is taken as the next candidate.
+    reacquire_skip_outlier: a measurement that breaks the candidates' chain is dropped (an
+    outlier among them) when the next one continues the chain.
     manoeuvre_scale: > 1 adds a second motion model whose process noise is this many times
     accel_noise and turn_noise (a manoeuvre: braking, starting, entering a turn) and runs
     both as an interacting-multiple-model filter (module docstring); 1 = one model.
@@ -172,6 +174,7 @@ class TrackerConfig:
     step_cumulative: bool = True
     confirm_probability: float = 0.95
     reacquire_follow: bool = True
+    reacquire_skip_outlier: bool = True
     step_k: float = 1.5
     manoeuvre_scale: float = 200.0
     manoeuvre_time_s: float = 0.3
@@ -184,7 +187,8 @@ class TrackerConfig:
         for f in fields(self):
             if f.name == "model":
                 continue
-            if f.name in ("look_back", "step_cumulative", "reacquire_follow"):
+            if f.name in ("look_back", "step_cumulative", "reacquire_follow",
+                          "reacquire_skip_outlier"):
                 v = getattr(self, f.name)
                 if not isinstance(v, bool):
                     raise ValueError(f"tracker {f.name} must be true or false, got {v!r}")
@@ -421,6 +425,8 @@ class Track:
         self.t: float | None = None  # time of the newest measurement applied
         self._cand: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._cand_track: Track | None = None
+        # The chain a measurement broke (candidates, their track): kept one measurement.
+        self._cand_prev: tuple[list, Track | None] = ([], None)
         # The last accepted measurements (up to look_back_n, consecutive, in order) and the
         # filter before each (for the look-back): (t_before, fs_before, t, z, R); and the
         # measurements rejected since the newest of them: (t, z, R).
@@ -544,8 +550,7 @@ class Track:
             if dt >= 0:
                 self._rej_run.append((t, z, R))
             return Outcome("rejected", reason, d2, self.predict(max(t, self.t)))
-        self._cand.clear()
-        self._cand_track = None
+        self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
         self._rej_run = []
         if retracted or dt < 0:
             self._alt = None
@@ -741,37 +746,53 @@ class Track:
         return inn is not None and inn[3] <= self.look_back_gate and inn[3] < d2
 
     def _candidate(self, t: float, z: np.ndarray, R: np.ndarray) -> bool:
-        """Keep a rejected measurement; True when the track restarted from the candidates."""
+        """Keep a rejected measurement; True when the track restarted from the candidates.
+
+        The candidates form a chain whose own track tests whether they agree with each
+        other. A measurement that does not fit the chain starts a new one, and the chain it
+        broke is kept: when the next measurement fits that one, the breaking measurement was
+        an outlier among the candidates and the chain goes on without it."""
         cfg = self.config
-        c = self._cand_track
-        if c is not None and self._cand and t - self._cand[0][0] > cfg.reacquire_window_s:
-            c = None
-        if c is not None and self._cand:
-            # Consecutive candidates further apart than the robot can drive (max_speed, plus
-            # 3 sigma of the two measurements) are not one robot: random outliers in a row.
-            tp, zp, Rp = self._cand[-1]
-            reach = cfg.max_speed * abs(t - tp) + 3.0 * math.sqrt(R[0, 0] + Rp[0, 0])
-            if math.hypot(z[0] - zp[0], z[1] - zp[1]) > reach:
-                c = None
-        if c is not None:
-            out = c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
-            if out.kind != "update":
-                c = None
-        if c is None:
-            # The candidates test whether the rejected measurements agree with each other:
-            # their own track takes every step (no step bound).
-            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9, step_k=1e9))
+        if self._joins(self._cand, self._cand_track, t, z, R):
+            self._cand.append((t, z, R))
+        elif cfg.reacquire_skip_outlier and self._joins(*self._cand_prev, t, z, R):
+            # The measurement that broke the chain was an outlier: dropped.
+            self._cand, self._cand_track = self._cand_prev
+            self._cand.append((t, z, R))
+            self._cand_prev = ([], None)
+        else:
+            if self._cand and t - self._cand[0][0] <= cfg.reacquire_window_s:
+                self._cand_prev = (self._cand, self._cand_track)
+            else:
+                self._cand_prev = ([], None)
+            # Their own track takes every step (no step bound) and does not re-acquire.
+            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9, step_k=1e9,
+                                           reacquire_follow=False))
             c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
-            self._cand = []
-        self._cand.append((t, z, R))
-        self._cand_track = c
+            self._cand, self._cand_track = [(t, z, R)], c
         if len(self._cand) >= cfg.reacquire_n:
+            c = self._cand_track
             self._set(c._fs, c.t)
             self._hist, self._rej_run, self._alt = [], [], None
-            self._cand = []
-            self._cand_track = None
+            self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
             return True
         return False
+
+    def _joins(self, cand: list, c: Track | None, t: float, z: np.ndarray,
+               R: np.ndarray) -> bool:
+        """Whether measurement ``z`` at ``t`` continues the candidate chain ``cand`` with its
+        track ``c`` (updated with it when it does)."""
+        cfg = self.config
+        if c is None or not cand or t - cand[0][0] > cfg.reacquire_window_s:
+            return False
+        # Consecutive candidates further apart than the robot can drive (max_speed, plus 3
+        # sigma of the two measurements) are not one robot: random outliers in a row.
+        tp, zp, Rp = cand[-1]
+        reach = cfg.max_speed * abs(t - tp) + 3.0 * math.sqrt(R[0, 0] + Rp[0, 0])
+        if math.hypot(z[0] - zp[0], z[1] - zp[1]) > reach:
+            return False
+        out = c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
+        return out.kind == "update"
 
     def _start(self, t: float, z: np.ndarray, R: np.ndarray) -> None:
         cfg = self.config
@@ -783,8 +804,7 @@ class Track:
                                                           + cfg.manoeuvre_time_s)
         self._set((np.repeat(s[None], M, 0), np.repeat(P[None], M, 0), mu), t)
         self._hist, self._rej_run, self._alt = [], [], None
-        self._cand = []
-        self._cand_track = None
+        self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
 
     # ------------------------------------------------------------------ output
     @property
