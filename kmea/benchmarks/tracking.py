@@ -461,7 +461,9 @@ def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig) -> None
               f"<= {s.max_turn} rad/s, <= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, "
               f"{s.fps:g} fps, 5 % outliers of 5-20 cm" + (
                   f" ({s.burst:g} of them followed by another, {s.manoeuvre_outliers:g} more "
-                  f"in hard manoeuvres)" if s.burst or s.manoeuvre_outliers else ""))
+                  f"in hard manoeuvres, {s.stop_outliers:g} more near stops)"
+                  if s.burst or s.manoeuvre_outliers or s.stop_outliers else "")
+              + (f"; {s.stops:g} of the segments stops" if s.stops != 0.2 else ""))
         print(f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}")
         print(f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
               f"{'lag':>4} {'caused':>9} {'max s':>6} {'max mm':>6} {'steps':>4} {'max mm':>6} "
