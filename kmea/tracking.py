@@ -34,12 +34,24 @@ Bounded update: an accepted measurement at Mahalanobis distance d > ``robust_k``
 state by ``robust_k / d`` of the Kalman correction (Huber weight), and no accepted
 measurement moves the position by more than ``step_k`` sigmas of the position covariance
 after it (the weight is lowered until it does not); the covariance is that of the gain used,
-so it stays honest. Look-back: an outlier inside the gate pulls the track so that the good
-measurements after it are rejected; when a measurement is rejected just after an accepted
-one, and predicted from before that one it fits well (inside the chi-square quantile at
-``look_back_probability``) while that one does not fit the track through it, that one is
-retracted (the track rebuilt without it) and reported as rejected, one measurement late
-(:attr:`Outcome.retracted`, :attr:`Tracker.rejections`).
+so it stays honest. Cumulative bound (``step_cumulative``): the measurement right after a
+suspicious one (d > robust_k) may not move the position further than ``step_k`` sigmas from
+the track that skipped the suspicious one either, unless it confirms it (fits the track that
+took it in full inside the chi-square quantile at ``confirm_probability``): two outliers in
+a row cannot add their bounded steps up.
+
+Look-back: an outlier inside the gate pulls the track so that the good measurements after it
+are rejected. When a measurement is rejected, the track is rebuilt without the last accepted
+one (up to ``look_back_n`` of them) through the measurements rejected since and the new one;
+if each fits it well (inside the chi-square quantile at ``look_back_probability``), and the
+retracted one misses the rebuilt track (by that quantile when that implies fewer outliers, by
+the gate when as many), the accepted one is retracted and reported as rejected, late
+(:attr:`Outcome.retracted`, :attr:`Outcome.retracted_all`, :attr:`Tracker.rejections`).
+
+Re-acquisition candidates must also be reachable from each other at ``max_speed``; once 2
+agree, a measurement inside the gate that fits them well and the track poorly is the next
+candidate (``reacquire_follow``); a measurement that breaks their chain is dropped when the
+next one continues it (``reacquire_skip_outlier``).
 
 Time: ``t`` is in seconds on any clock shared by the measurements of one robot.
 :meth:`Track.predict` gives the state at another time (latency compensation: predict to the
@@ -659,10 +671,11 @@ class Track:
         measurement without it and the ones after it, through the measurements rejected
         since and the new one; each must fit it well (inside the chi-square quantile at
         ``look_back_probability``, tighter than the gate: skipping measurements widens the
-        prediction). The rebuilt track is taken when it implies fewer outliers (j retracted
-        against the rejected run and the new one), or as many when every retracted one also
-        falls outside the gate of the track through the new measurements (smoothed back to
-        its time). The smallest such j is taken.
+        prediction). The rebuilt track is taken when every retracted one falls outside it
+        (the track through the new measurements with full corrections, smoothed back to its
+        time) and it implies fewer outliers (j retracted against the rejected run and the
+        new one) with the retracted ones outside the look-back quantile, or as many with them
+        outside the gate. The smallest such j is taken.
 
         Returns (the rebuilt prediction at ``t``, the new measurement's innovation y, S, d2,
         the retracted measurements as (t, x, y, theta, reason) oldest first, the look-back
