@@ -34,12 +34,24 @@ Bounded update: an accepted measurement at Mahalanobis distance d > ``robust_k``
 state by ``robust_k / d`` of the Kalman correction (Huber weight), and no accepted
 measurement moves the position by more than ``step_k`` sigmas of the position covariance
 after it (the weight is lowered until it does not); the covariance is that of the gain used,
-so it stays honest. Look-back: an outlier inside the gate pulls the track so that the good
-measurements after it are rejected; when a measurement is rejected just after an accepted
-one, and predicted from before that one it fits well (inside the chi-square quantile at
-``look_back_probability``) while that one does not fit the track through it, that one is
-retracted (the track rebuilt without it) and reported as rejected, one measurement late
-(:attr:`Outcome.retracted`, :attr:`Tracker.rejections`).
+so it stays honest. Cumulative bound (``step_cumulative``): the measurement right after a
+suspicious one (d > robust_k) may not move the position further than ``step_k`` sigmas from
+the track that skipped the suspicious one either, unless it confirms it (fits the track that
+took it in full inside the chi-square quantile at ``confirm_probability``): two outliers in
+a row cannot add their bounded steps up.
+
+Look-back: an outlier inside the gate pulls the track so that the good measurements after it
+are rejected. When a measurement is rejected, the track is rebuilt without the last accepted
+one (up to ``look_back_n`` of them) through the measurements rejected since and the new one;
+if each fits it well (inside the chi-square quantile at ``look_back_probability``), and the
+retracted one misses the rebuilt track (by that quantile when that implies fewer outliers, by
+the gate when as many), the accepted one is retracted and reported as rejected, late
+(:attr:`Outcome.retracted`, :attr:`Outcome.retracted_all`, :attr:`Tracker.rejections`).
+
+Re-acquisition candidates must also be reachable from each other at ``max_speed``; once 2
+agree, a measurement inside the gate that fits them well and the track poorly is the next
+candidate (``reacquire_follow``); a measurement that breaks their chain is dropped when the
+next one continues it (``reacquire_skip_outlier``).
 
 Time: ``t`` is in seconds on any clock shared by the measurements of one robot.
 :meth:`Track.predict` gives the state at another time (latency compensation: predict to the
@@ -124,7 +136,8 @@ class TrackerConfig:
     default_sigma: position sigma when a measurement has none; min_sigma: floor on any
     position sigma (estimators can be over-confident); heading_lever: m (heading sigma =
     sigma / heading_lever); min_sigma_theta: floor on heading sigma, rad.
-    max_speed, max_turn_rate: 1-sigma of the initial velocity and turn rate (m/s, rad/s).
+    max_speed, max_turn_rate: 1-sigma of the initial velocity and turn rate (m/s, rad/s);
+    max_speed is also the fastest a robot moves between two re-acquisition candidates.
     robust_k: Huber threshold on the Mahalanobis distance d = sqrt(d2): an accepted
     measurement with d > robust_k moves the state by only robust_k / d of the Kalman
     correction; a large value disables it. step_k: no accepted measurement moves the
@@ -133,7 +146,19 @@ class TrackerConfig:
     look_back: a measurement outside the gate may retract the accepted one just before it
     when that one, not the new one, is the outlier (module docstring); the new one must
     then fit the prediction without it inside the chi-square quantile at
-    look_back_probability.
+    look_back_probability. look_back_n: how many of the last accepted measurements a
+    look-back may retract at once (1: only the one just before).
+    step_cumulative: the measurement right after a suspicious one (beyond robust_k) may not
+    move the position further than step_k sigmas from the track that skipped the suspicious
+    one either, unless it confirms it: it fits the track that took it in full inside the
+    chi-square quantile at confirm_probability (a manoeuvre, not two outliers in a row).
+    max_speed also bounds re-acquisition: consecutive candidates further apart than
+    max_speed allows (plus 3 sigma of the two measurements) are not the same robot.
+    reacquire_follow: once 2 rejected measurements agree (candidates), a measurement inside
+    the gate that fits the track poorly (outside the look-back quantile) but the
+    candidates' track well (inside it, and better) is taken as the next candidate.
+    reacquire_skip_outlier: a measurement that breaks the candidates' chain is dropped (an
+    outlier among them) when the next one continues the chain.
     manoeuvre_scale: > 1 adds a second motion model whose process noise is this many times
     accel_noise and turn_noise (a manoeuvre: braking, starting, entering a turn) and runs
     both as an interacting-multiple-model filter (module docstring); 1 = one model.
@@ -157,6 +182,11 @@ class TrackerConfig:
     robust_k: float = 3.0
     look_back: bool = True
     look_back_probability: float = 0.99
+    look_back_n: int = 1
+    step_cumulative: bool = True
+    confirm_probability: float = 0.95
+    reacquire_follow: bool = True
+    reacquire_skip_outlier: bool = True
     step_k: float = 1.5
     manoeuvre_scale: float = 200.0
     manoeuvre_time_s: float = 0.3
@@ -169,27 +199,30 @@ class TrackerConfig:
         for f in fields(self):
             if f.name == "model":
                 continue
-            if f.name == "look_back":
-                if not isinstance(self.look_back, bool):
-                    raise ValueError(f"tracker look_back must be true or false, got "
-                                     f"{self.look_back!r}")
+            if f.name in ("look_back", "step_cumulative", "reacquire_follow",
+                          "reacquire_skip_outlier"):
+                v = getattr(self, f.name)
+                if not isinstance(v, bool):
+                    raise ValueError(f"tracker {f.name} must be true or false, got {v!r}")
                 continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or v <= 0:
                 raise ValueError(f"tracker {f.name} must be a finite number > 0, got {v!r}")
-        if not self.look_back_probability < 1.0:
-            raise ValueError(f"tracker look_back_probability must be in (0, 1), got "
-                             f"{self.look_back_probability!r}")
+        for name in ("look_back_probability", "confirm_probability"):
+            if not getattr(self, name) < 1.0:
+                raise ValueError(f"tracker {name} must be in (0, 1), got "
+                                 f"{getattr(self, name)!r}")
         if self.manoeuvre_scale < 1.0:
             raise ValueError(f"tracker manoeuvre_scale must be >= 1, got "
                              f"{self.manoeuvre_scale!r}")
         if not self.gate_probability < 1.0:
             raise ValueError(f"tracker gate_probability must be in (0, 1), got "
                              f"{self.gate_probability!r}")
-        if int(self.reacquire_n) != self.reacquire_n:
-            raise ValueError(f"tracker reacquire_n must be an integer >= 1, got "
-                             f"{self.reacquire_n!r}")
+        for name in ("reacquire_n", "look_back_n"):
+            v = getattr(self, name)
+            if int(v) != v:
+                raise ValueError(f"tracker {name} must be an integer >= 1, got {v!r}")
 
     def with_(self, **changes: object) -> TrackerConfig:
         return replace(self, **changes)
@@ -236,7 +269,9 @@ class Outcome:
     d2: Mahalanobis distance squared to the prediction (nan when not computed).
     retracted: when this measurement showed that the previous accepted one was an outlier
     (module docstring, "look-back"), that one: (t, x, y, theta, reason); it is reported as
-    a rejection, late by one measurement.
+    a rejection, late. retracted_all: every measurement retracted (the look-back may
+    retract up to ``look_back_n`` accepted ones at once), oldest first; ``retracted`` is
+    the newest of them.
     state: the track's state after the measurement, at the measurement's time (a rejected
     one: the prediction; an out-of-order one: at the track's newest time; None when a too-old
     measurement was dropped).
@@ -247,6 +282,7 @@ class Outcome:
     d2: float
     state: TrackState | None
     retracted: tuple[float, float, float, float, str] | None = None
+    retracted_all: tuple[tuple[float, float, float, float, str], ...] = ()
 
     @property
     def accepted(self) -> bool:
@@ -388,6 +424,7 @@ class Track:
         self.config = cfg = config or TrackerConfig()
         self.gate = chi2_quantile_3(cfg.gate_probability)
         self.look_back_gate = chi2_quantile_3(cfg.look_back_probability)
+        self.confirm_gate = chi2_quantile_3(cfg.confirm_probability)
         self._models = [_model(cfg)]
         if cfg.manoeuvre_scale > 1.0:
             self._models.append(_model(cfg.with_(
@@ -400,9 +437,16 @@ class Track:
         self.t: float | None = None  # time of the newest measurement applied
         self._cand: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._cand_track: Track | None = None
-        # The last accepted measurement and the filter before it (for the look-back):
-        # (t_before, fs_before, t, z, R).
-        self._last: tuple | None = None
+        # The chain a measurement broke (candidates, their track): kept one measurement.
+        self._cand_prev: tuple[list, Track | None] = ([], None)
+        # The last accepted measurements (up to look_back_n, consecutive, in order) and the
+        # filter before each (for the look-back): (t_before, fs_before, t, z, R); and the
+        # measurements rejected since the newest of them: (t, z, R).
+        self._hist: list[tuple] = []
+        self._rej_run: list[tuple[float, np.ndarray, np.ndarray]] = []
+        # While accepted measurements in a row are down-weighted: (t, the track that skipped
+        # them, the track that took them in full), for the cumulative step bound.
+        self._alt: tuple | None = None
 
     # ------------------------------------------------------------------ the models
     def _predict(self, fs: tuple, dt: float) -> tuple:
@@ -501,33 +545,45 @@ class Track:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
         y_, S, _, d2 = inn
         retracted = None
+        retracted: list = []
+        t_before, fs_before = self.t, self._fs
         if d2 > self.gate and dt >= 0 and cfg.look_back:
             back = self._look_back(t, z, R)
             if back is not None:
-                fs, y_, S, d2, retracted = back
-        if d2 > self.gate:
+                fs, y_, S, d2, retracted, hist, t_before, fs_before = back
+                self._hist = hist
+        follows = d2 > self.gate or (dt >= 0 and not retracted and cfg.reacquire_follow
+                                     and self._follows_candidates(t, z, R, d2))
+        if follows:
             reason = self._reason(y_, S, d2)
             if self._candidate(t, z, R):
                 return Outcome("reacquired", f"{cfg.reacquire_n} consistent measurements away "
                                f"from the track ({reason})", d2, self.state())
+            if dt >= 0:
+                self._rej_run.append((t, z, R))
             return Outcome("rejected", reason, d2, self.predict(max(t, self.t)))
-        self._cand.clear()
-        self._cand_track = None
-        fs = self._bounded(fs, z, R, d2)
+        self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
+        self._rej_run = []
+        if retracted or dt < 0:
+            self._alt = None
+        fs = self._bounded(fs, z, R, d2, t if dt >= 0 and not retracted else None)
         if dt >= 0:
-            self._last = (self.t, self._fs, t, z, R) if retracted is None else None
+            self._hist = [*self._hist, (t_before, fs_before, t, z, R)][-int(cfg.look_back_n):]
             self._set(fs, t)
         else:
             # Out of order: the correction is applied at the measurement's time, then the
             # track is brought back to its newest time.
-            self._last = None
+            self._hist = []
             self._set(self._predict(fs, -dt), self.t)
-        if retracted is not None:
-            return Outcome("update", f"the previous measurement was an outlier: "
-                           f"{retracted[4]}", d2, self.state(), retracted)
+        if retracted:
+            which = ("the previous measurement was an outlier" if len(retracted) == 1 else
+                     f"the previous {len(retracted)} accepted measurements were outliers")
+            return Outcome("update", f"{which}: {retracted[-1][4]}", d2, self.state(),
+                           retracted[-1], tuple(retracted))
         return Outcome("update", "", d2, self.state())
 
-    def _bounded(self, fs: tuple, z: np.ndarray, R: np.ndarray, d2: float) -> tuple:
+    def _bounded(self, fs: tuple, z: np.ndarray, R: np.ndarray, d2: float,
+                 t: float | None = None) -> tuple:
         """``fs`` corrected by an accepted measurement at Mahalanobis distance d = sqrt(d2)
         from the combined prediction, with a bounded step. The Kalman correction is
         weighted by 1 up to d = robust_k, by robust_k / d beyond (Huber), then less until
@@ -535,7 +591,14 @@ class Track:
         after the update (bisection on the weight): no measurement, an outlier inside the
         gate included, moves the output by more than step_k of the filter's reported
         sigma. The covariance is that of the weighted gain (Joseph form), so it stays
-        honest and the next measurements correct more."""
+        honest and the next measurements correct more.
+
+        Cumulative bound (``step_cumulative``, with the measurement's time ``t``): while
+        measurements in a row are down-weighted, the track that skipped them all is kept;
+        a down-weighted measurement that does not confirm the ones before it (it does not
+        fit the track that took them in full, inside the look-back quantile) may not move
+        the position further than ``step_k`` sigmas from that skipping track either: two
+        outliers in a row cannot add their bounded steps up."""
         cfg = self.config
         gains = ys, Ks, mu = self._gains(fs, z, R)
         ss, Ps, _ = fs
@@ -549,58 +612,119 @@ class Track:
         B = B + B.transpose(0, 2, 1)
         C = Kp @ (Ps[:, :3, :3] + R) @ Kp.transpose(0, 2, 1)
 
-        def moved(w: float) -> float:
-            """Squared Mahalanobis length of the combined position step at weight w against
-            the combined position covariance after it."""
+        def moved(w: float, ref: np.ndarray = s0) -> float:
+            """Squared Mahalanobis length of the combined position at weight w from ``ref``
+            (by default the prediction: the step) against the combined position covariance
+            after the update."""
             m = ss[:, :2] + w * g
             mean = mu @ m
             D = m - mean
             cov = np.einsum("j,jik->ik", mu, P0 - w * B + w * w * C) + (D.T * mu) @ D
-            dp = mean - s0
+            dp = mean - ref
             return float(dp @ np.linalg.solve(cov, dp))
 
-        w = min(1.0, cfg.robust_k / max(math.sqrt(d2), 1e-12))
-        if moved(w) > cfg.step_k ** 2:
+        def largest(w: float, ok) -> float:
+            """The largest weight in [0, w] with ok(weight), by bisection (0 if none)."""
+            if ok(w):
+                return w
             lo, hi = 0.0, w
             for _ in range(12):
                 mid = (lo + hi) / 2.0
-                if moved(mid) <= cfg.step_k ** 2:
+                if ok(mid):
                     lo = mid
                 else:
                     hi = mid
-            w = lo
+            return lo
+
+        k2 = cfg.step_k ** 2
+        w0 = min(1.0, cfg.robust_k / max(math.sqrt(d2), 1e-12))
+        w = largest(w0, lambda v: moved(v) <= k2)
+        if t is not None and cfg.step_cumulative:
+            alt, self._alt = self._alt, None
+            if alt is not None:
+                # The measurement right after a suspicious one.
+                t_alt, skip, full = alt
+                skip = self._predict(skip, t - t_alt)
+                full = self._predict(full, t - t_alt)
+                inn = _innovation(*self._combine(full), z, R)
+                # Unless it confirms the one before (a manoeuvre), it may not move the
+                # position further than step_k sigmas from the track that skipped that one.
+                if inn is None or inn[3] > self.confirm_gate:
+                    ref = self._combine(skip)[0][:2]
+                    if moved(0.0, ref) > k2:
+                        # Already that far: take the weight that stays closest.
+                        cand = np.linspace(0.0, w, 9)
+                        w = float(cand[int(np.argmin([moved(v, ref) for v in cand]))])
+                    else:
+                        w = largest(w, lambda v: moved(v, ref) <= k2)
+            if w0 < 1.0:
+                # Suspicious (beyond robust_k): the next measurement is bounded against the
+                # track that skipped this one.
+                self._alt = (t, fs, self._correct(fs, z, R, 1.0))
         return self._correct(fs, z, R, w, gains)
 
     def _look_back(self, t: float, z: np.ndarray, R: np.ndarray) -> tuple | None:
-        """A measurement fell outside the gate just after an accepted one: if, without that
-        accepted one, it passes the gate and the accepted one does not (against the track
-        through the new one), the accepted one was the outlier (an outlier inside the gate
-        that pulled the track, so that the good measurements after it are rejected; typical
-        in hard manoeuvres). Returns the prediction from before it, with the new
-        measurement's innovation, and the retracted measurement; None otherwise."""
-        last = self._last
-        if last is None or last[2] != self.t:
+        """A measurement fell outside the gate: were the last accepted measurements the
+        outliers instead? (An outlier inside the gate pulls the track, so that the good
+        measurements after it are rejected; typical in hard manoeuvres.) For j = 1 ..
+        ``look_back_n``: the track is rebuilt from before the j-th last accepted
+        measurement without it and the ones after it, through the measurements rejected
+        since and the new one; each must fit it well (inside the chi-square quantile at
+        ``look_back_probability``, tighter than the gate: skipping measurements widens the
+        prediction). The rebuilt track is taken when every retracted one falls outside it
+        (the track through the new measurements with full corrections, smoothed back to its
+        time) and it implies fewer outliers (j retracted against the rejected run and the
+        new one) with the retracted ones outside the look-back quantile, or as many with them
+        outside the gate. The smallest such j is taken.
+
+        Returns (the rebuilt prediction at ``t``, the new measurement's innovation y, S, d2,
+        the retracted measurements as (t, x, y, theta, reason) oldest first, the look-back
+        history of the rebuilt track, the time and filter before the new measurement), or
+        None."""
+        hist = self._hist
+        if not hist or hist[-1][2] != self.t:
             return None
-        t0, fs0, t1, z1, R1 = last
-        fs = self._predict(fs0, t - t0)
-        inn = _innovation(*self._combine(fs), z, R)
-        if inn is None:
-            return None
-        y_, S, _, d2 = inn
-        # Skipping a measurement widens the prediction, so the new one must fit it well (a
-        # tighter gate than the main one), not just pass.
-        if d2 > self.look_back_gate:
-            return None
-        # The accepted one against the track through the new measurement (smoothed at t1).
-        back = self._combine(self._predict(self._correct(fs, z, R, 1.0), t1 - t))
-        inn1 = _innovation(*back, z1, R1)
-        if inn1 is None:
-            return None
-        y1, S1, _, d2_1 = inn1
-        if d2_1 <= self.gate:
-            return None  # both agree with the track: a manoeuvre, not an outlier
-        reason = self._reason(y1, S1, d2_1)
-        return fs, y_, S, d2, (t1, float(z1[0]), float(z1[1]), float(z1[2]), reason)
+        seq = [m for m in self._rej_run if m[0] > hist[-1][2]] + [(t, z, R)]
+        for j in range(1, min(int(self.config.look_back_n), len(hist)) + 1):
+            if j > len(seq):
+                break
+            tc, fs = hist[-j][0], hist[-j][1]
+            full = fs  # the same track with full Kalman corrections (for the check below)
+            new_hist, ok = [], True
+            for k, (tk, zk, Rk) in enumerate(seq):
+                fsp = self._predict(fs, tk - tc)
+                inn = _innovation(*self._combine(fsp), zk, Rk)
+                if inn is None or inn[3] > self.look_back_gate:
+                    ok = False
+                    break
+                full = self._correct(self._predict(full, tk - tc), zk, Rk, 1.0)
+                if k == len(seq) - 1:
+                    break
+                new_hist.append((tc, fs, tk, zk, Rk))
+                fs, tc = self._bounded(fsp, zk, Rk, inn[3]), tk
+            if not ok:
+                continue
+            y_, S, _, d2 = inn
+            dropped = hist[-j:]
+            out = []
+            for _, _, tj, zj, Rj in dropped:
+                inn1 = _innovation(*self._combine(self._predict(full, tj - t)), zj, Rj)
+                if inn1 is None:
+                    out = None
+                    break
+                y1, S1, _, d2_1 = inn1
+                # It must disagree with the track (else: a manoeuvre, not an outlier), by the
+                # gate when as many are retracted as the rejected run, by the tighter look-back
+                # gate when fewer.
+                if d2_1 <= (self.gate if j == len(seq) else self.look_back_gate):
+                    out = None
+                    break
+                out.append((tj, float(zj[0]), float(zj[1]), float(zj[2]),
+                            self._reason(y1, S1, d2_1)))
+            if out is None:
+                continue
+            return fsp, y_, S, d2, out, new_hist, tc, fs
+        return None
 
     def _reason(self, y_: np.ndarray, S: np.ndarray, d2: float) -> str:
         dpos = math.hypot(y_[0], y_[1])
@@ -615,31 +739,73 @@ class Track:
             what = f"heading jump {math.degrees(dth):.1f} deg"
         return f"{what} (d2 {d2:.1f} > gate {self.gate:.1f})"
 
-    def _candidate(self, t: float, z: np.ndarray, R: np.ndarray) -> bool:
-        """Keep a rejected measurement; True when the track restarted from the candidates."""
-        cfg = self.config
+    def _follows_candidates(self, t: float, z: np.ndarray, R: np.ndarray, d2: float) -> bool:
+        """A measurement inside the gate but a poor fit (outside the look-back quantile)
+        that fits the candidates' track well (inside it) and better: it is taken as the
+        next candidate, not by the track. (After a hand move the track's prediction widens
+        while it rejects the measurements at the new place, until one passes its gate; the
+        track would then walk over by bounded steps instead of re-acquiring.)"""
         c = self._cand_track
-        if c is not None and self._cand and t - self._cand[0][0] > cfg.reacquire_window_s:
-            c = None
-        if c is not None:
-            out = c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
-            if out.kind != "update":
-                c = None
-        if c is None:
-            # The candidates test whether the rejected measurements agree with each other:
-            # their own track takes every step (no step bound).
-            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9, step_k=1e9))
+        if c is None or len(self._cand) < 2 or d2 <= self.look_back_gate:
+            return False
+        if t - self._cand[0][0] > self.config.reacquire_window_s or t < c.t:
+            return False
+        tp, zp, Rp = self._cand[-1]
+        reach = self.config.max_speed * abs(t - tp) + 3.0 * math.sqrt(
+            R[0, 0] + Rp[0, 0])
+        if math.hypot(z[0] - zp[0], z[1] - zp[1]) > reach:
+            return False
+        inn = _innovation(*c._combine(c._predict(c._fs, t - c.t)), z, R)
+        return inn is not None and inn[3] <= self.look_back_gate and inn[3] < d2
+
+    def _candidate(self, t: float, z: np.ndarray, R: np.ndarray) -> bool:
+        """Keep a rejected measurement; True when the track restarted from the candidates.
+
+        The candidates form a chain whose own track tests whether they agree with each
+        other. A measurement that does not fit the chain starts a new one, and the chain it
+        broke is kept: when the next measurement fits that one, the breaking measurement was
+        an outlier among the candidates and the chain goes on without it."""
+        cfg = self.config
+        if self._joins(self._cand, self._cand_track, t, z, R):
+            self._cand.append((t, z, R))
+        elif cfg.reacquire_skip_outlier and self._joins(*self._cand_prev, t, z, R):
+            # The measurement that broke the chain was an outlier: dropped.
+            self._cand, self._cand_track = self._cand_prev
+            self._cand.append((t, z, R))
+            self._cand_prev = ([], None)
+        else:
+            if self._cand and t - self._cand[0][0] <= cfg.reacquire_window_s:
+                self._cand_prev = (self._cand, self._cand_track)
+            else:
+                self._cand_prev = ([], None)
+            # Their own track takes every step (no step bound) and does not re-acquire.
+            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9, step_k=1e9,
+                                           reacquire_follow=False))
             c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
-            self._cand = []
-        self._cand.append((t, z, R))
-        self._cand_track = c
+            self._cand, self._cand_track = [(t, z, R)], c
         if len(self._cand) >= cfg.reacquire_n:
+            c = self._cand_track
             self._set(c._fs, c.t)
-            self._last = None
-            self._cand = []
-            self._cand_track = None
+            self._hist, self._rej_run, self._alt = [], [], None
+            self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
             return True
         return False
+
+    def _joins(self, cand: list, c: Track | None, t: float, z: np.ndarray,
+               R: np.ndarray) -> bool:
+        """Whether measurement ``z`` at ``t`` continues the candidate chain ``cand`` with its
+        track ``c`` (updated with it when it does)."""
+        cfg = self.config
+        if c is None or not cand or t - cand[0][0] > cfg.reacquire_window_s:
+            return False
+        # Consecutive candidates further apart than the robot can drive (max_speed, plus 3
+        # sigma of the two measurements) are not one robot: random outliers in a row.
+        tp, zp, Rp = cand[-1]
+        reach = cfg.max_speed * abs(t - tp) + 3.0 * math.sqrt(R[0, 0] + Rp[0, 0])
+        if math.hypot(z[0] - zp[0], z[1] - zp[1]) > reach:
+            return False
+        out = c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
+        return out.kind == "update"
 
     def _start(self, t: float, z: np.ndarray, R: np.ndarray) -> None:
         cfg = self.config
@@ -650,9 +816,8 @@ class Track:
             [cfg.cruise_time_s, cfg.manoeuvre_time_s]) / (cfg.cruise_time_s
                                                           + cfg.manoeuvre_time_s)
         self._set((np.repeat(s[None], M, 0), np.repeat(P[None], M, 0), mu), t)
-        self._last = None
-        self._cand = []
-        self._cand_track = None
+        self._hist, self._rej_run, self._alt = [], [], None
+        self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
 
     # ------------------------------------------------------------------ output
     @property
@@ -720,11 +885,10 @@ class Tracker:
         self.counts[out.kind] += 1
         if out.kind == "rejected":
             self.rejections.append(Rejection(name, t, x, y, theta, out.reason, source))
-        if out.retracted is not None:
-            rt, rx, ry, rth, reason = out.retracted
+        for rt, rx, ry, rth, reason in out.retracted_all:
             self.counts["rejected"] += 1
             self.rejections.append(Rejection(name, rt, rx, ry, rth,
-                                             f"{reason}, found by the next measurement",
+                                             f"{reason}, found by a later measurement",
                                              self._sources.get(name, "")))
         self._sources[name] = source
         return out

@@ -231,7 +231,7 @@ def test_look_back_retracts_an_accepted_outlier_and_reports_it() -> None:
         if look_back:
             assert [r.t for r in trk.rejections] == [times[30]]
             rej = trk.rejections[0]
-            assert "position jump 5." in rej.reason and "found by the next" in rej.reason
+            assert "position jump 5." in rej.reason and "found by a later" in rej.reason
             assert rej.source == "cam30" and trk.counts["rejected"] == 1
     assert kinds[True] == ["update", "update", "update", "update"]
     # Without the look-back the pulled track rejects good measurements until re-acquired.

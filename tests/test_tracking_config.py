@@ -17,7 +17,8 @@ from kmead.fusion import tracker_config as fusion_tracker_config
 
 # The settings that were library-only before they became [filter] keys.
 KEYS = ("robust_k", "step_k", "look_back", "look_back_probability", "manoeuvre_scale",
-        "manoeuvre_time_s", "cruise_time_s")
+        "manoeuvre_time_s", "cruise_time_s", "look_back_n", "step_cumulative",
+        "confirm_probability", "reacquire_follow", "max_speed", "reacquire_skip_outlier")
 OFF = ["--set", 'network.telemetry=""', "--set", 'network.control=""']
 
 
@@ -33,7 +34,14 @@ BAD = [("robust_k", "0", "must be in (0, 1e+09]"),
        ("look_back_probability", "1.0", "must be in (0, 1)"),
        ("manoeuvre_scale", "0.5", "must be in [1, 1e+06]"),
        ("manoeuvre_time_s", "0", "must be in (0, 3600] s"),
-       ("cruise_time_s", '"long"', "expected a number")]
+       ("cruise_time_s", '"long"', "expected a number"),
+       ("look_back_n", "0", "must be an integer in [1, 10]"),
+       ("look_back_n", "1.5", "expected an integer"),
+       ("step_cumulative", '"yes"', "expected true or false"),
+       ("confirm_probability", "0", "must be in (0, 1)"),
+       ("reacquire_follow", "0", "expected true or false"),
+       ("max_speed", "-1", "must be in (0, 100] m/s"),
+       ("reacquire_skip_outlier", "1", "expected true or false")]
 
 
 @pytest.mark.parametrize(("key", "value", "expect"), BAD)
@@ -67,11 +75,17 @@ def test_bad_value_for_the_fusion_node_names_the_key(capsys: pytest.CaptureFixtu
 def test_values_reach_the_daemon_and_fusion_filters() -> None:
     sets = ["filter.robust_k=2.5", "filter.step_k=1.25", "filter.look_back=false",
             "filter.look_back_probability=0.95", "filter.manoeuvre_scale=1",
-            "filter.manoeuvre_time_s=0.5", "filter.cruise_time_s=4.0"]
+            "filter.manoeuvre_time_s=0.5", "filter.cruise_time_s=4.0", "filter.look_back_n=3",
+            "filter.step_cumulative=false", "filter.confirm_probability=0.9",
+            "filter.reacquire_follow=false", "filter.max_speed=2.5",
+            "filter.reacquire_skip_outlier=false"]
     cfg = load_config(None, sets=sets, use_local=False)
     want = TrackerConfig().with_(robust_k=2.5, step_k=1.25, look_back=False,
                                  look_back_probability=0.95, manoeuvre_scale=1.0,
-                                 manoeuvre_time_s=0.5, cruise_time_s=4.0)
+                                 manoeuvre_time_s=0.5, cruise_time_s=4.0, look_back_n=3,
+                                 step_cumulative=False, confirm_probability=0.9,
+                                 reacquire_follow=False, max_speed=2.5,
+                                 reacquire_skip_outlier=False)
     assert fusion_tracker_config(cfg) == want
     assert PipelineSettings.from_config(cfg.data).tracker == want
 
@@ -79,7 +93,10 @@ def test_values_reach_the_daemon_and_fusion_filters() -> None:
 @pytest.mark.parametrize("key, value", [("robust_k", 1e9), ("step_k", 1e-9),
                                         ("look_back_probability", 1e-9),
                                         ("manoeuvre_scale", 1.0), ("manoeuvre_scale", 1e6),
-                                        ("manoeuvre_time_s", 3600.0), ("cruise_time_s", 1e-9)])
+                                        ("manoeuvre_time_s", 3600.0), ("cruise_time_s", 1e-9),
+                                        ("look_back_n", 1), ("look_back_n", 10),
+                                        ("confirm_probability", 1e-9),
+                                        ("max_speed", 1e-9), ("max_speed", 100.0)])
 def test_every_value_the_schema_accepts_builds_a_filter(key: str, value: float) -> None:
     # The schema's ranges lie inside the filter's own checks: a setting that passes the
     # configuration check never fails later, when the daemon builds the filter.
