@@ -13,6 +13,7 @@ into CSV rows, telemetry and datagrams. Every stage is timed in milliseconds.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -253,6 +254,9 @@ class Pipeline:
         self.world_map = world_map
         self.settings = settings or PipelineSettings()
         self.detector_generation = 0
+        # Set once a frame's robots are known (sent): a tracking detector's background
+        # detection waits for it, so it runs in the gap between frames.
+        self.robots_sent = threading.Event()
         self.observer = MarkerObserver(None, camera, world_map)
         from kmea.incremental import IncrementalLoo, IncrementalPoses
 
@@ -308,7 +312,7 @@ class Pipeline:
             robot_ids = {m for r in s.robots for m in r.markers}
             static = frozenset(set(self.world_map.markers) - robot_ids)
             return TrackingDetector(self.detector_config, TrackingConfig(
-                full_every=s.track_full_every, static_ids=static))
+                full_every=s.track_full_every, static_ids=static), gate=self.robots_sent)
         return new_detector(self.detector_config, s.fast, s.fast_window, s.full_every)
 
     @property
@@ -474,6 +478,7 @@ class Pipeline:
         if incremental and not deferred:
             self._floor_obs = ([o for o in obs if o.id in self.inc_poses.fixed
                                 and o.corners is not None] if est.ok else [])
+        self.robots_sent.set()
         t4 = time.perf_counter()
         tm["robots"] = (t4 - t3) * 1e3
         markers: dict[int, tuple[np.ndarray, float]] = {}
@@ -555,6 +560,7 @@ class Pipeline:
             return None, None
         fixes = self.robot_fixes(est, t, rejections)
         on_robots(t, fixes)
+        self.robots_sent.set()  # the floor's update may share the cores with discovery
         return fixes, {o.id: o for o in obs if o.id not in fixed}
 
     def robot_fixes(self, est: Estimate, t: float,

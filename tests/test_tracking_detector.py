@@ -535,3 +535,50 @@ def test_a_refit_keeps_the_intrinsics_model_unless_the_references_changed_much(p
     keep = floor[: len(floor) // 2]
     assert est.estimate(nudged(keep), src.world_map, camera=intr).ok
     assert tested  # half the references gone: tested again
+
+
+def test_background_detection_waits_for_the_frames_robots(default_frames, monkeypatch):
+    """The background detection of a frame starts once the pipeline says the frame's robots
+    were sent (its gate), so it does not share the cores with the frame path."""
+    import threading
+
+    from kmea.vision import tracking_detector
+
+    monkeypatch.setattr(tracking_detector, "GATE_WAIT_S", 60.0)  # a slow machine: no timeout
+    frames, src = default_frames
+    gate = threading.Event()
+    tracker = TrackingDetector(DetectorConfig(src.world_map.dictionary),
+                               TrackingConfig(static_ids=_static_ids(src)), gate=gate)
+    try:
+        for f in frames:
+            tracker.detect(f.image)  # clears the gate: this frame's path is running
+            if tracker._busy:
+                break
+        assert tracker._busy and not gate.is_set()
+        time.sleep(0.1)
+        assert tracker._busy and tracker._result is None  # held back by the gate
+        gate.set()
+        t0 = time.monotonic()
+        while tracker._busy and time.monotonic() - t0 < 5.0:
+            time.sleep(0.01)
+        assert not tracker._busy and tracker._result is not None
+    finally:
+        tracker.close()
+
+
+def test_the_pipeline_opens_the_gate_once_the_robots_are_known(default_frames):
+    frames, src = default_frames
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(
+        robots=tuple(src.scene.robot_specs()), tracking=True))
+    seen = []
+    try:
+        assert p.detector.gate is p.robots_sent
+        for f in frames[:3]:
+            det = p.detector.detect(f.image)
+            seen.append(p.robots_sent.is_set())  # cleared by the detection
+            p.process(FrameInput(f.index, f.timestamp, f.image, detections=det),
+                      on_robots=lambda t, fixes: seen.append(p.robots_sent.is_set()))
+            seen.append(p.robots_sent.is_set())
+    finally:
+        p.close()
+    assert seen == [False, False, True] * 3, seen

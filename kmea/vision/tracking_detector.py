@@ -201,6 +201,9 @@ def verify_codes(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray,
     return code_scores(gray, quads, codes) >= min_score
 
 
+# Longest wait (s) of a background detection for the frame path's gate.
+GATE_WAIT_S = 0.25
+
 # A followed marker's corners may leave the similarity image of its last corners by this much
 # (px); see TrackingDetector._follow.
 SHAPE_PX = 0.5
@@ -227,8 +230,11 @@ class TrackingDetector:
     """
 
     def __init__(self, config: DetectorConfig, tracking: TrackingConfig | None = None,
-                 background: bool = True) -> None:
+                 background: bool = True, gate: threading.Event | None = None) -> None:
         self.config = config
+        # Set by the pipeline once a frame's robots are sent, cleared when the next frame's
+        # detection starts: the background detection waits for it (see _worker).
+        self.gate = gate
         self.settings = tracking or TrackingConfig()
         self.full_detector = MarkerDetector(config)
         self.roi_detector = MarkerDetector(config)._detector
@@ -274,6 +280,11 @@ class TrackingDetector:
                     return
                 frame_no, image, half, win = self._job
                 self._job = None
+            if self.gate is not None:
+                # Run in the gap after the frame's robots were sent, not beside the frame
+                # path: OpenCV's worker threads (not niced) would share the cores with it.
+                # Never starve: after GATE_WAIT_S it runs anyway.
+                self.gate.wait(GATE_WAIT_S)
             try:
                 d = self._discover(self._tuned_detector(tuned, win) if half and win else det,
                                    image, half)
@@ -492,6 +503,8 @@ class TrackingDetector:
         """Markers in ``image`` (the next frame of the fixed camera); see the module
         docstring."""
         gray = as_gray(image)
+        if self.gate is not None:
+            self.gate.clear()  # this frame's path runs until the pipeline sets it again
         self.frame += 1
         self._since_full += 1
         events: list[str] = []
