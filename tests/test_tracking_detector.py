@@ -582,3 +582,31 @@ def test_the_pipeline_opens_the_gate_once_the_robots_are_known(default_frames):
     finally:
         p.close()
     assert seen == [False, False, True] * 3, seen
+
+
+def test_kmea_warm_start_gives_the_cold_estimate(default_frames, monkeypatch):
+    """KMEA on a fixed camera: while the references are the very observations of the last
+    frame their alignment is reused (fewer alignments than frames), with the estimate of a
+    cold KMEA, bit for bit."""
+    from kmea.estimators import kmea as kmea_mod
+
+    frames, src = default_frames
+    p = _tracked_pipeline(src, "kmea")
+    assert p.estimator.warm_start
+    aligned = []
+    orig = kmea_mod.kmea_align
+    monkeypatch.setattr(kmea_mod, "kmea_align", lambda *a: (aligned.append(1), orig(*a))[1])
+    cold = kmea_mod.KMEA(unknown_plane=p.settings.unknown_plane)
+    n = 0
+    for f in frames[:12]:
+        before = len(aligned)
+        r = p.process(FrameInput(f.index, f.timestamp, f.image))
+        n += len(aligned) > before
+        s = cold.estimate(r.observations, src.world_map, camera=p.camera.intrinsics,
+                          plane_heights=p.plane_heights)
+        assert r.estimate.ok and s.ok and r.estimate.references == s.references
+        assert np.array_equal(r.estimate.cam2world, s.cam2world)
+        for mid, me in s.markers.items():
+            assert np.array_equal(r.estimate.markers[mid].position, me.position), (f.index, mid)
+    p.close()
+    assert n < 12  # some frames reused the alignment

@@ -38,6 +38,7 @@ from kmea.map_model import MarkerMap
 
 __all__ = [
     "CameraIntrinsics",
+    "CheckedObservations",
     "Estimate",
     "EstimateWithLoo",
     "Estimator",
@@ -311,6 +312,34 @@ class EstimatorBase:
                else sorted(set(loo_ids)))
         return EstimateWithLoo(est, world_map, lambda: self._loo_positions(
             observations, world_map, ids, exclude, camera, plane_heights))
+
+
+class CheckedObservations:
+    """:func:`check_observations` for a fixed camera's consecutive frames (an estimator's
+    warm start): an observation object the last call checked (a fixed marker's, reused by
+    :mod:`kmea.incremental`) is not checked again; the duplicate-id test covers them all,
+    and any failure is raised by the full check (the same error). ``reset()`` forgets."""
+
+    def __init__(self) -> None:
+        self._checked: dict[int, MarkerObservation] = {}
+
+    def reset(self) -> None:
+        self._checked = {}
+
+    def __call__(self, observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:
+        obs = list(observations)
+        seen = self._checked
+        new = [o for o in obs if seen.get(id(o)) is not o]
+        if len({o.id for o in obs}) != len(obs):
+            check_observations(obs)  # raises on the duplicate
+        if new:
+            try:
+                check_observations(new)
+            except ValueError:
+                check_observations(obs)  # the error the full check gives
+                raise
+        self._checked = dict(zip(map(id, obs), obs, strict=True))  # held: ids stay theirs
+        return obs
 
 
 def check_observations(observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:

@@ -78,6 +78,7 @@ import numpy as np
 from kmea.estimators import unknown_plane as unknown_plane_mod
 from kmea.estimators.base import (
     CameraIntrinsics,
+    CheckedObservations,
     Estimate,
     EstimateWithLoo,
     EstimatorBase,
@@ -292,7 +293,7 @@ class CornerPnP(EstimatorBase):
         # placed again (only the robots are).
         self._placed: tuple | None = None
         self._last_report: tuple | None = None  # see _report
-        self._checked: dict[int, MarkerObservation] = {}  # see _check
+        self._check = CheckedObservations()
         self._camera_raw: tuple | None = None  # see _same_camera
         self._planes: tuple | None = None  # see _corner_planes
 
@@ -301,7 +302,7 @@ class CornerPnP(EstimatorBase):
         self._warm = None
         self._placed = None
         self._last_report = None
-        self._checked = {}
+        self._check.reset()
 
     # ------------------------------------------------------------------ LM
     def _residuals(self, X: np.ndarray, uv: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -644,25 +645,6 @@ class CornerPnP(EstimatorBase):
         if key is not None:
             self._warm = _Warm(key, refs, uv_refs, fit, tuple(inliers), dis, ref_obs, camera)
         return fit, refs, inliers, dis, obs
-
-    def _check(self, observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:
-        """:func:`check_observations` for the warm start: an observation object the last
-        call checked (a fixed marker's, reused by :mod:`kmea.incremental`) is not checked
-        again; the duplicate-id test covers them all, and any failure is raised by the full
-        check (the same error)."""
-        obs = list(observations)
-        seen = self._checked
-        new = [o for o in obs if seen.get(id(o)) is not o]
-        if len({o.id for o in obs}) != len(obs):
-            check_observations(obs)  # raises on the duplicate
-        if new:
-            try:
-                check_observations(new)
-            except ValueError:
-                check_observations(obs)  # the error the full check gives
-                raise
-        self._checked = dict(zip(map(id, obs), obs, strict=True))  # held: ids stay theirs
-        return obs
 
     def _same_camera(self, w: _Warm, camera: CameraIntrinsics) -> bool:
         """Is ``camera`` the one of the warm fit: the same object, or the same numbers (a

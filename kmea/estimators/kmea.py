@@ -28,6 +28,7 @@ import numpy as np
 
 from kmea.estimators.base import (
     CameraIntrinsics,
+    CheckedObservations,
     Estimate,
     EstimatorBase,
     MarkerObservation,
@@ -87,6 +88,17 @@ class KMEA(EstimatorBase):
         self.z_noise = float(z_noise)
         self.seed = seed
         self._rng = np.random.default_rng(seed)
+        # Warm start (a fixed live camera, set by kmea.pipeline): while the references'
+        # observations are the very objects of the last call (kmea.incremental reuses a
+        # floor marker's), their alignment is the last one; only the markers are mapped.
+        self.warm_start = False
+        self._check = CheckedObservations()
+        self._warm: tuple | None = None  # (map, exclude, reference observations, alignment)
+
+    def reset_warm(self) -> None:
+        """Forget the last alignment (the view changed)."""
+        self._warm = None
+        self._check.reset()
 
     def _world(self, refs: References) -> np.ndarray:
         if self.z_noise == 0.0 or len(refs) == 0:
@@ -104,13 +116,32 @@ class KMEA(EstimatorBase):
         plane_heights: Mapping[int, float] | None = None,
     ) -> Estimate:
         """World pose of every observed marker; see :class:`kmea.estimators.base.Estimator`."""
-        observations = check_observations(observations)
+        warm = self.warm_start and self.z_noise == 0.0
+        observations = self._check(observations) if warm else check_observations(observations)
+        excl = frozenset(exclude)
+        key = None
+        if warm:
+            key = tuple(sorted((o for o in observations if o.id in world_map
+                                and o.id not in excl and not o.suspect), key=lambda o: o.id))
+            w = self._warm
+            if (w is not None and w[0] is world_map and w[1] == excl and len(w[2]) == len(key)
+                    and all(a is b for a, b in zip(w[2], key, strict=True))):
+                refs, scale, R, t = w[3]
+                return self._finish(observations, world_map, refs, scale, R, t, camera,
+                                    plane_heights)
         refs = select_references(observations, world_map, exclude)
         world = self._world(refs)
         problem = reference_problem(world, refs.cam)
         if problem:
             return Estimate.failed(self.name, problem)
         scale, R, t = kmea_align(refs.cam, world, refs.ids, world_map.origin_id)
+        if key is not None:
+            self._warm = (world_map, excl, key, (refs, scale, R, t))
+        return self._finish(observations, world_map, refs, scale, R, t, camera, plane_heights)
+
+    def _finish(self, observations, world_map: MarkerMap, refs, scale: float, R: np.ndarray,
+                t: np.ndarray, camera: CameraIntrinsics | None,
+                plane_heights: Mapping[int, float] | None) -> Estimate:
         scale_from = "origin" if world_map.origin_id in refs.ids else "centroid"
         return finish_estimate(self.name, observations, refs, scale, R, t, plane_heights,
                                info={"scale_from": scale_from},
