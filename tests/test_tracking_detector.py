@@ -610,3 +610,42 @@ def test_kmea_warm_start_gives_the_cold_estimate(default_frames, monkeypatch):
             assert np.array_equal(r.estimate.markers[mid].position, me.position), (f.index, mid)
     p.close()
     assert n < 12  # some frames reused the alignment
+
+
+def test_robots_are_placed_from_their_corners_before_any_pose(default_frames, monkeypatch):
+    """With the floor of the last camera fit, corner-pnp places the robots from their corners
+    and the relay runs before the frame's markers are posed; the fixes equal those of the
+    full path (placements from the same fit) to 1e-9."""
+    from kmea.estimators.corners import CornerPnP
+
+    frames, src = default_frames
+
+    def run(early: bool):
+        p = _tracked_pipeline(src, "corner-pnp")
+        if not early:
+            monkeypatch.setattr(p.estimator, "place_on_planes", lambda *a, **k: None)
+        out, before_pose = [], 0
+        for f in frames[:16]:
+            posed = p.inc_poses.posed
+            got = []
+
+            def relay(t, fixes, got=got, posed=posed):
+                got.append(({n: (x.x, x.y, x.theta, x.sigma) for n, x in fixes.items()},
+                            p.inc_poses.posed == posed))
+
+            p.process(FrameInput(f.index, f.timestamp, f.image), on_robots=relay)
+            assert len(got) == 1
+            out.append(got[0][0])
+            before_pose += got[0][1]
+        p.close()
+        return out, before_pose
+
+    fast, n_fast = run(True)
+    slow, n_slow = run(False)
+    assert n_fast >= 10 and n_slow == 0, (n_fast, n_slow)
+    assert isinstance(CornerPnP().place_on_planes([40], np.zeros((1, 4, 2)), [0.06],
+                                                  src.world_map, {40: 0.1}), type(None))
+    for a, b in zip(fast, slow, strict=True):
+        assert a.keys() == b.keys()
+        for name in a:
+            np.testing.assert_allclose(a[name], b[name], rtol=0, atol=1e-9)

@@ -194,6 +194,12 @@ _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False  # shared: a horizontal plane's frame
 
 
+# Placeholders of place_on_planes' observations: markers of known plane are placed from
+# their corners; their PnP pose is never read.
+_NO_POSE_R = np.eye(3)
+_NO_POSE_T = np.array([0.0, 0.0, 1.0])
+
+
 def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mapping[int, float]
                   ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """id -> (frame (3, 3) with columns e1, e2, normal; origin (3,)) for markers with a plane.
@@ -758,6 +764,23 @@ class CornerPnP(EstimatorBase):
             rejected, turned, displaced, threshold, cam2world = report
             return dict(rejected), dict(turned), list(displaced), threshold, cam2world.copy()
         return report
+
+    def place_on_planes(self, ids: Sequence[int], corners: np.ndarray,
+                        lengths: Sequence[float], world_map: MarkerMap,
+                        plane_heights: Mapping[int, float]) -> dict[int, MarkerEstimate] | None:
+        """With the warm start's last camera fit: world poses and sigmas of markers of known
+        plane height (``plane_heights``; a fixed camera's robots) from their corners alone,
+        as :meth:`estimate` places them with that fit (ray-plane points, corner test, square
+        fit; no IPPE pose needed). ids (n,); corners (n, 4, 2) px; lengths (n,) m. None
+        without a last fit, or when a marker is in the map or has no known height."""
+        w = self._warm
+        if (not self.warm_start or w is None or not len(ids)
+                or any(i in world_map or i not in plane_heights for i in ids)):
+            return None
+        obs = {i: MarkerObservation(i, _NO_POSE_R, _NO_POSE_T,
+                                    np.asarray(c, dtype=float).reshape(4, 2), float(L))
+               for i, c, L in zip(ids, corners, lengths, strict=True)}
+        return self._markers(w.fit, obs, world_map, plane_heights)
 
     def _placed_markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation],
                         world_map: MarkerMap, plane_heights: Mapping[int, float],
