@@ -649,3 +649,28 @@ def test_robots_are_placed_from_their_corners_before_any_pose(default_frames, mo
         assert a.keys() == b.keys()
         for name in a:
             np.testing.assert_allclose(a[name], b[name], rtol=0, atol=1e-9)
+
+
+def test_the_robots_placed_early_are_not_placed_again(default_frames, monkeypatch):
+    """The frame's estimate takes the placements made from the robots' corners before the
+    relay (same fit, same corners): one placement of the robots per frame, not two."""
+    from kmea.estimators.corners import CornerPnP
+
+    frames, src = default_frames
+    p = _tracked_pipeline(src, "corner-pnp")
+    calls: list[set] = []
+    orig = CornerPnP._markers
+
+    def spy(self, fit, obs, *a, only=None, **k):
+        calls.append(set(obs if only is None else only))
+        return orig(self, fit, obs, *a, only=only, **k)
+
+    monkeypatch.setattr(CornerPnP, "_markers", spy)
+    once = 0
+    for f in frames[:16]:
+        calls.clear()
+        p.process(FrameInput(f.index, f.timestamp, f.image), on_robots=lambda t, fixes: None)
+        robots = [c for c in calls if c & {40, 41, 42}]
+        once += len(robots) == 1
+    p.close()
+    assert once >= 10, once

@@ -200,6 +200,13 @@ _NO_POSE_R = np.eye(3)
 _NO_POSE_T = np.array([0.0, 0.0, 1.0])
 
 
+def _same_square(a: MarkerObservation, b: MarkerObservation) -> bool:
+    """The same corners and side: a marker of given plane height is placed from these alone
+    (its PnP pose is not read), so either observation gives the same placement."""
+    return (a.length == b.length and a.corners is not None and b.corners is not None
+            and np.array_equal(a.corners, b.corners))
+
+
 def _plane_frames(ids: Sequence[int], world_map: MarkerMap, plane_heights: Mapping[int, float]
                   ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """id -> (frame (3, 3) with columns e1, e2, normal; origin (3,)) for markers with a plane.
@@ -553,24 +560,19 @@ class CornerPnP(EstimatorBase):
             return Estimate.failed(self.name, f"camera: {e}")
         uv_refs = self._stack_corners(refs, obs)
         warm = None
-        key = None
-        if reuse and excl and self._warm.key == (id(world_map), K0.tobytes(), d0.tobytes()):
-            w = self._warm
+        # A fit is kept for the next call only when nothing was excluded.
+        here = (id(world_map), K0.tobytes(), d0.tobytes())
+        key = here if self.warm_start and not excl else None
+        if reuse and w.key == here:
             if w.refs == refs and np.array_equal(w.uv, uv_refs):
-                return w.fit, refs, list(w.inliers), w.dis, obs
+                if key is not None:
+                    self._warm = replace(w, ref_obs=ref_obs, camera=camera)
+                return w.fit, refs, list(w.inliers), w.dis, obs  # the same fit
             same = self._warm_subset(w, refs, uv_refs)
             if same is not None:
                 return w.fit, refs, same, {i: w.dis[i] for i in refs}, obs
-        if self.warm_start and not excl:
-            key = (id(world_map), K0.tobytes(), d0.tobytes())
-            if self._warm is not None and self._warm.key == key:
-                warm = self._warm
-                if warm.refs == refs and np.array_equal(warm.uv, uv_refs):
-                    self._warm = replace(warm, ref_obs=ref_obs, camera=camera)
-                    return warm.fit, refs, list(warm.inliers), warm.dis, obs  # the same fit
-                same = self._warm_subset(warm, refs, uv_refs)
-                if same is not None:
-                    return warm.fit, refs, same, {i: warm.dis[i] for i in refs}, obs
+            if key is not None:
+                warm = w  # a few iterations from it
         keep_model = False
         if warm is not None:
             # A few iterations from the previous fit; references new to the fit are tried.
@@ -780,7 +782,21 @@ class CornerPnP(EstimatorBase):
         obs = {i: MarkerObservation(i, _NO_POSE_R, _NO_POSE_T,
                                     np.asarray(c, dtype=float).reshape(4, 2), float(L))
                for i, c, L in zip(ids, corners, lengths, strict=True)}
-        return self._markers(w.fit, obs, world_map, plane_heights)
+        dropped: dict[int, int] = {}
+        out = self._markers(w.fit, obs, world_map, plane_heights, dropped=dropped)
+        # Entered as placements of this fit: the frame's estimate, placing the same markers
+        # with the same corners from the same fit, takes them (see _placed_markers).
+        old = self._placements(w.fit, world_map)
+        for i, me in out.items():
+            old[i] = (obs[i], plane_heights.get(i), me, None, dropped.get(i, -1))
+        return out
+
+    def _placements(self, fit: _Fit, world_map: MarkerMap) -> dict:
+        """The placements entered for ``fit`` and ``world_map`` (a new, empty table when the
+        fit or the map changed)."""
+        if self._placed is None or self._placed[0] is not fit or self._placed[1] is not world_map:
+            self._placed = (fit, world_map, {})
+        return self._placed[2]
 
     def _placed_markers(self, fit: _Fit, obs: Mapping[int, MarkerObservation],
                         world_map: MarkerMap, plane_heights: Mapping[int, float],
@@ -793,13 +809,13 @@ class CornerPnP(EstimatorBase):
         if not self.warm_start or self._warm is None or self._warm.fit is not fit:
             return self._markers(fit, obs, world_map, plane_heights, inliers, planes,
                                  dropped=dropped, scale_refs=scale_refs)
-        old = self._placed[2] if (self._placed is not None and self._placed[0] is fit
-                                  and self._placed[1] is world_map) else {}
+        old = self._placements(fit, world_map)
         out: dict[int, MarkerEstimate] = {}
         todo: set[int] = set()
         for i, o in obs.items():
             hit = old.get(i)
-            if hit is not None and hit[0] is o and hit[1] == plane_heights.get(i):
+            if hit is not None and hit[1] == plane_heights.get(i) and (
+                    hit[0] is o or (hit[1] is not None and _same_square(hit[0], o))):
                 out[i] = hit[2]
                 if hit[3] is not None:
                     planes[i] = hit[3]
@@ -811,9 +827,8 @@ class CornerPnP(EstimatorBase):
             out.update(self._markers(fit, obs, world_map, plane_heights, inliers, planes,
                                      only=todo, dropped=dropped, scale_refs=scale_refs))
         # Only the new placements are entered (the others are there already); an entry of
-        # a marker out of view stays: it is reused only for the very same observation object.
-        if not old:
-            self._placed = (fit, world_map, old)
+        # a marker out of view stays: it is reused only for the very same observation object
+        # (or, of a marker of given height, the same corners and side).
         for i in todo:
             if i in out:
                 old[i] = (obs[i], plane_heights.get(i), out[i], planes.get(i),
