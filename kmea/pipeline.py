@@ -402,6 +402,12 @@ class Pipeline:
         mode = "full"
         incremental = self.settings.tracking
         deferred: tuple[int, ...] = ()
+        if on_robots is not None:
+            relay = on_robots
+
+            def on_robots(t: float, fixes: dict[str, RobotFix]) -> None:
+                relay(t, fixes)
+                self.robots_sent.set()  # the background detection may run now
         if inp.observations is None:
             if inp.image is None:
                 raise ValueError(f"frame {inp.index}: no image")
@@ -429,7 +435,7 @@ class Pipeline:
                 changed = bool(self._floor_obs) and (self.inc_poses.fixed_changed(ids, corners)
                                                      or self._floor_grew(ids))
                 if changed and self._refit_age < self.settings.refit_every:
-                    ids, corners, deferred = self._last_floor(ids, corners)
+                    corners, deferred = self._last_floor(ids, corners)
                     changed = False
                 elif changed:
                     self._refit_age = 0
@@ -484,7 +490,7 @@ class Pipeline:
         if incremental and not deferred:
             self._floor_obs = ([o for o in obs if o.id in self.inc_poses.fixed
                                 and o.corners is not None] if est.ok else [])
-        self.robots_sent.set()
+        self.robots_sent.set()  # also without a relay (no background detection waits long)
         t4 = time.perf_counter()
         tm["robots"] = (t4 - t3) * 1e3
         markers: dict[int, tuple[np.ndarray, float]] = {}
@@ -533,15 +539,14 @@ class Pipeline:
             return None
         fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections)
         on_robots(t, fixes)
-        self.robots_sent.set()
         return fixes
 
     def _last_floor(self, ids: np.ndarray, corners: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
-        """This frame's detections with the floor of the last camera fit: a fixed marker
-        of that fit keeps its corners there (its observation is reused); a fixed marker not
-        in it keeps its new corners and is returned in the third item (placed, not a
-        reference: ``exclude``)."""
+                    ) -> tuple[np.ndarray, tuple[int, ...]]:
+        """This frame's corners with the floor of the last camera fit: a fixed marker of
+        that fit keeps its corners there (its observation is reused); the fixed markers not
+        in it keep their new corners and are returned second (placed, not references:
+        ``exclude``)."""
         last = {o.id: o for o in self._floor_obs}
         fixed = self.inc_poses.fixed
         c = corners.copy()
@@ -552,7 +557,7 @@ class Pipeline:
                 c[k] = np.asarray(o.corners, float).reshape(4, 2)
             elif m in fixed:
                 new.append(m)
-        return ids, c, tuple(new)
+        return c, tuple(new)
 
     def _floor_grew(self, ids: np.ndarray) -> bool:
         """Is a fixed marker in ``ids`` that the last frame's floor did not have (back in
@@ -587,7 +592,6 @@ class Pipeline:
             return None, None
         fixes = self.robot_fixes(est, t, rejections)
         on_robots(t, fixes)
-        self.robots_sent.set()  # the floor's update may share the cores with discovery
         return fixes, {o.id: o for o in obs if o.id not in fixed}
 
     def robot_fixes(self, est: Estimate, t: float,
