@@ -241,10 +241,9 @@ class TrackingDetector:
         self.dictionary = self.full_detector.dictionary
         self._codes: dict[int, np.ndarray] = {}
         self._sampler: tuple[tuple, CodeSampler] | None = None
-        self._tuned: dict[int, object] = {}
+        self._tuned: dict[int, MarkerDetector] = {}  # the detection thread's (see _worker)
         self._half_ok = False
         self._side = 0.0  # median marker side (px) of the last full detection
-        self._tuned_full: dict[int, MarkerDetector] = {}  # tuned discovery, no thread
         self.tracks: dict[int, _Track] = {}
         self.frame = -1
         self.tracked = 0
@@ -296,8 +295,9 @@ class TrackingDetector:
                     self._result = (frame_no, d, half)
 
     def _tuned_detector(self, cache: dict[int, MarkerDetector], win: int) -> MarkerDetector:
-        """A detector with one adaptive-threshold window of ``win`` px (a fifth of the
-        markers' side at half resolution: a third of the full parameters' three passes)."""
+        """A detector with one adaptive-threshold window of ``win`` px, a fifth of the
+        markers' side (a third of the full parameters' three passes), from ``cache`` (one
+        per thread: the calling thread's)."""
         det = cache.get(win)
         if det is None:
             params = {**self.config.parameters, "adaptiveThreshWinSizeMin": win,
@@ -329,7 +329,7 @@ class TrackingDetector:
         # three windows for anything else).
         win = max(3, round(self._side / 10.0) | 1) if half and self._side > 0 else 0
         if not self._use_thread:
-            det = self._tuned_detector(self._tuned_full, win) if win else self.full_detector
+            det = self._tuned_detector(self._tuned, win) if win else self.full_detector
             self._result = (self.frame, self._discover(det, image, half), half)
             return
         with self._cond:
@@ -411,14 +411,7 @@ class TrackingDetector:
         ``side`` > 0 px, else the configured parameters."""
         if side <= 0:
             return self.roi_detector
-        win = max(3, round(side / 5.0) | 1)
-        det = self._tuned.get(win)
-        if det is None:
-            params = {**self.config.parameters, "adaptiveThreshWinSizeMin": win,
-                      "adaptiveThreshWinSizeMax": win}
-            det = self._tuned[win] = MarkerDetector(DetectorConfig(
-                self.config.dictionary, self.config.corner_refinement, params))._detector
-        return det
+        return self._tuned_detector(self._tuned, max(3, round(side / 5.0) | 1))._detector
 
     def _detect_roi(self, gray: np.ndarray, center: np.ndarray, half: float, side: float = 0.0
                     ) -> tuple[np.ndarray, np.ndarray]:
