@@ -90,17 +90,15 @@ def solve_pnp_pair(obj: np.ndarray, c: np.ndarray, K: np.ndarray, D: np.ndarray,
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Both poses of one marker with OpenCV (IPPE_SQUARE, then SQPnP if IPPE looks
     degenerate): R (2, 3, 3), t (2, 3), errors (2,) px lowest first; None if no pose."""
-    try:
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    except cv2.error:
-        n = 0
-    if n:
-        best = float(np.min(errs))
-        if not best < (1e-3 if exact else FALLBACK_PX):  # also NaN
-            m, rv2, tv2, er2 = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_SQPNP)
-            if (m and float(np.min(er2)) < best) or not math.isfinite(best):
-                n, rvecs, tvecs, errs = m, rv2, tv2, er2
-    return _packed(n, rvecs, tvecs, errs) if n else None
+    got = ippe_pair(obj, c, K, D)
+    if got is None:
+        return None
+    best = float(np.min(got[2]))
+    if not best < (1e-3 if exact else FALLBACK_PX):  # also NaN
+        m, rv2, tv2, er2 = cv2.solvePnPGeneric(obj, c, K, D, flags=cv2.SOLVEPNP_SQPNP)
+        if (m and float(np.min(er2)) < best) or not math.isfinite(best):
+            return _packed(m, rv2, tv2, er2)
+    return got
 
 
 def ippe_square(corners: np.ndarray, half: np.ndarray, K: np.ndarray, D: np.ndarray
