@@ -210,9 +210,10 @@ class Relay:
         tr.last_stale_sent = None
         self._send(tr, t, True, publish=publish)
 
-    def publish_fix(self, name: str, t: float) -> None:
-        """The telemetry body of robot ``name``'s last fix (sent at time ``t``)."""
-        self._publish(self.tracks[name], t, True)
+    def publish_fix(self, name: str) -> None:
+        """The telemetry body of robot ``name``'s last fix."""
+        tr = self.tracks[name]
+        self._publish(tr, tr.last_seen, True)
 
     def tick(self, now: float) -> list[str]:
         """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.
