@@ -439,12 +439,13 @@ class Pipeline:
                     changed = False
                 elif changed:
                     self._refit_age = 0
-                if (not changed and on_robots is not None and self.robot_specs
-                        and self._floor_obs and hasattr(self.estimator, "place_on_planes")):
+                if (not changed and self.robot_specs and self._floor_obs
+                        and hasattr(self.estimator, "place_on_planes")):
                     # The floor of the last camera fit: the robots are placed from their
-                    # corners with that fit and sent before any pose is computed.
-                    early = self._robots_from_corners(inp.timestamp, ids, corners, on_robots,
-                                                      rejections)
+                    # corners with that fit and sent before any pose is computed; their
+                    # observations come from those placements (no IPPE pose for them).
+                    early, known = self._robots_from_corners(inp.timestamp, ids, corners,
+                                                             on_robots, rejections)
                 if changed and on_robots is not None and self.robot_specs:
                     # The floor's corners changed (one more averaged look, a marker back in
                     # view): re-posing it and refitting the camera can take 10 ms or more.
@@ -522,24 +523,29 @@ class Pipeline:
                            rejections, events, restart, mode, fresh, deferred)
 
     def _robots_from_corners(self, t: float, ids: np.ndarray, corners: np.ndarray,
-                             on_robots: Callable[[float, dict[str, RobotFix]], None],
-                             rejections: dict[str, str]) -> dict[str, RobotFix] | None:
+                             on_robots: Callable[[float, dict[str, RobotFix]], None] | None,
+                             rejections: dict[str, str]
+                             ) -> tuple[dict[str, RobotFix] | None,
+                                        dict[int, MarkerObservation] | None]:
         """Robot fixes of this frame from the moving markers' corners and the estimator's
-        last camera fit (``place_on_planes``), sent with ``on_robots``; None (the usual path
-        then) when a moving marker has no known plane or there is no fit."""
+        last camera fit (``place_on_planes``), sent with ``on_robots``, and the moving
+        markers' observations from those placements (``placed_observations``: the pose
+        stage then has nothing to pose for them); (None, None) (the usual path then) when a
+        moving marker has no known plane or there is no fit."""
         fixed = self.inc_poses.fixed
         sel = [k for k, m in enumerate(ids.tolist()) if m not in fixed]
         if not sel:
-            return None
+            return None, None
         mids = [int(ids[k]) for k in sel]
         lengths = [self.robot_lengths.get(m, self.settings.marker_length) for m in mids]
         placed = self.estimator.place_on_planes(mids, corners[sel], lengths, self.world_map,
                                                 self.plane_heights)
         if placed is None:
-            return None
+            return None, None
         fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections)
-        on_robots(t, fixes)
-        return fixes
+        if on_robots is not None:
+            on_robots(t, fixes)
+        return fixes, self.estimator.placed_observations(placed, mids, corners[sel], lengths)
 
     def _last_floor(self, ids: np.ndarray, corners: np.ndarray
                     ) -> tuple[np.ndarray, tuple[int, ...]]:

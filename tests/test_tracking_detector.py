@@ -674,3 +674,83 @@ def test_the_robots_placed_early_are_not_placed_again(default_frames, monkeypatc
         once += len(robots) == 1
     p.close()
     assert once >= 10, once
+
+
+def test_robot_observations_come_from_their_placements_not_a_pose(default_frames, monkeypatch):
+    """With the floor of the last camera fit, the robots' markers are not posed (no IPPE):
+    their observations are their placements seen from the fit's camera, within a few mm and
+    degrees of IPPE's pose of the same corners (whose depth scatters by ~1 % at 30 px), with a
+    sub-pixel reprojection error; and the
+    frame's result is the same with and without a relay."""
+    frames, src = default_frames
+    robot_ids = {m for r in src.scene.robot_specs() for m in r.markers}
+
+    def run(relay: bool):
+        p = _tracked_pipeline(src, "corner-pnp")
+        posed_robots, placed, results = 0, [], []
+        orig = p.observer.poses
+
+        def spy(ids, corners, *a, **k):
+            nonlocal posed_robots
+            posed_robots += len(robot_ids & set(np.asarray(ids).tolist()))
+            return orig(ids, corners, *a, **k)
+
+        monkeypatch.setattr(p.observer, "poses", spy)
+        for f in frames[:16]:
+            before = posed_robots
+            res = p.process(FrameInput(f.index, f.timestamp, f.image),
+                            on_robots=(lambda t, fixes: None) if relay else None)
+            results.append(res)
+            if f.index >= 4 and posed_robots == before:
+                placed += [o for o in res.observations if o.id in robot_ids]
+        ref = {}
+        for o in placed:  # IPPE of the very corners, for comparison
+            got, _ = orig(np.array([o.id]), o.corners[None])
+            ref[id(o)] = got[0]
+        p.close()
+        return placed, ref, results
+
+    placed, ref, with_relay = run(True)
+    assert len(placed) >= 20, len(placed)
+    for o in placed:
+        r = ref[id(o)]
+        assert np.linalg.norm(o.marker2cam_t - r.marker2cam_t) < 0.02 * np.linalg.norm(
+            r.marker2cam_t)
+        cos = (np.trace(o.marker2cam_R.T @ r.marker2cam_R) - 1.0) / 2.0
+        assert math.degrees(math.acos(min(1.0, cos))) < 5.0
+        assert 0.0 <= o.reproj_error < 0.5 and not o.ambiguous and o.alt_R is None
+    _, _, without = run(False)
+    for a, b in zip(with_relay, without, strict=True):
+        assert a.robots.keys() == b.robots.keys()
+        for name in a.robots:
+            assert (a.robots[name].x, a.robots[name].y) == (b.robots[name].x, b.robots[name].y)
+
+
+def test_code_sampler_homographies_are_opencvs_and_a_degenerate_quad_spoils_only_itself():
+    """The closed-form square-to-quad homographies equal ``cv2.getPerspectiveTransform``;
+    a degenerate quad (corners on a line) scores 0 without zeroing the other quads' scores
+    (a batched linear solve used to fail for all of them)."""
+    import cv2
+
+    from kmea.vision.tracking_detector import CodeSampler, _homographies
+
+    rng = np.random.default_rng(7)
+    quads = (np.array([[0, 0], [40, 2], [42, 41], [-1, 39]], float)[None]
+             + rng.uniform(0, 500, (20, 1, 2)) + rng.normal(0, 3, (20, 4, 2)))
+    H = _homographies(quads, 7)
+    src = np.float32([[0, 0], [7, 0], [7, 7], [0, 7]])
+    for q, h in zip(quads, H, strict=True):
+        ref = cv2.getPerspectiveTransform(src, q.astype(np.float32))
+        np.testing.assert_allclose(h / h[2, 2], ref / ref[2, 2], rtol=1e-4, atol=1e-4)
+    gray = np.zeros((200, 200), np.uint8)
+    code = marker_codes(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_5X5_50), [3])[3]
+    side, x0, y0 = 70, 100, 60
+    small = cv2.resize(code.astype(np.uint8) * 255, (side, side),
+                       interpolation=cv2.INTER_NEAREST)
+    gray[y0:y0 + side, x0:x0 + side] = small
+    good = np.array([[x0, y0], [x0 + side, y0], [x0 + side, y0 + side], [x0, y0 + side]],
+                    float) - 0.5
+    flat = np.array([[5.0, 5.0], [10.0, 5.0], [15.0, 5.0], [20.0, 5.0]])
+    s = CodeSampler(np.stack([flat, good]), np.stack([code, code]), gray.shape)
+    scores = s.scores(gray)
+    assert scores[0] == 0.0 and scores[1] > 0.95, scores

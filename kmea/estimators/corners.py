@@ -104,6 +104,7 @@ from kmea.geometry import (
     distort_jacobian_entries,
     intersect_rays_planes,
     make_transform,
+    marker_corners_local,
     project,
     rotation_increment_jacobian,
     rotvec_to_matrix,
@@ -790,6 +791,31 @@ class CornerPnP(EstimatorBase):
         for i, me in out.items():
             old[i] = (obs[i], plane_heights.get(i), me, None, dropped.get(i, -1))
         return out
+
+    def placed_observations(self, placed: Mapping[int, MarkerEstimate], ids: Sequence[int],
+                            corners: np.ndarray, lengths: Sequence[float]
+                            ) -> dict[int, MarkerObservation]:
+        """Camera-frame observations of markers :meth:`place_on_planes` placed (``placed``,
+        for its ``ids`` (n,), ``corners`` (n, 4, 2) px, ``lengths`` (n,) m), from those
+        placements and the last camera fit instead of an IPPE pose per marker: marker2cam =
+        world2cam of the fit after the placement's marker2world, the reprojection error of the
+        placed square against the corners (px, RMS), one solution, not ambiguous (the plane
+        is known). Markers not placed are left out; {} without a last fit."""
+        w = self._warm
+        sel = [k for k, i in enumerate(ids) if i in placed]
+        if w is None or not sel:
+            return {}
+        fit = w.fit
+        R = np.stack([fit.R @ placed[ids[k]].rotation for k in sel])            # (m, 3, 3)
+        t = np.stack([fit.R @ placed[ids[k]].position + fit.t for k in sel])    # (m, 3)
+        local = np.stack([marker_corners_local(float(lengths[k])) for k in sel])  # (m, 4, 3)
+        cam = np.einsum("mij,mkj->mki", R, local) + t[:, None, :]
+        uv = project(cam.reshape(-1, 3), fit.K, fit.d).reshape(-1, 4, 2)
+        c = np.asarray(corners, dtype=float)[sel].reshape(-1, 4, 2)
+        err = np.sqrt(((uv - c) ** 2).sum(axis=2).mean(axis=1))
+        return {ids[k]: MarkerObservation(ids[k], R[j], t[j], c[j], float(lengths[k]),
+                                          float(err[j]))
+                for j, k in enumerate(sel)}
 
     def _placements(self, fit: _Fit, world_map: MarkerMap) -> dict:
         """The placements entered for ``fit`` and ``world_map`` (a new, empty table when the

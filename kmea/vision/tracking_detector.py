@@ -101,22 +101,24 @@ def marker_codes(dictionary: cv2.aruco.Dictionary, ids: Collection[int]) -> dict
 
 def _homographies(quads: np.ndarray, size: int) -> np.ndarray:
     """(N, 3, 3) homographies mapping module coordinates [0, size]^2 (x right, y down) to the
-    image quads (N, 4, 2) TL, TR, BR, BL (batched direct linear solve)."""
-    src = np.array([[0, 0], [size, 0], [size, size], [0, size]], dtype=float)
-    n = len(quads)
-    A = np.zeros((n, 8, 8))
-    b = quads.reshape(n, 8)
-    for k in range(4):
-        x, y = src[k]
-        u, v = quads[:, k, 0], quads[:, k, 1]
-        A[:, 2 * k, 0:3] = (x, y, 1.0)
-        A[:, 2 * k, 6] = -x * u
-        A[:, 2 * k, 7] = -y * u
-        A[:, 2 * k + 1, 3:6] = (x, y, 1.0)
-        A[:, 2 * k + 1, 6] = -x * v
-        A[:, 2 * k + 1, 7] = -y * v
-    h = np.linalg.solve(A, b[..., None])[..., 0]
-    return np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
+    image quads (N, 4, 2) TL, TR, BR, BL: the closed-form square-to-quadrilateral mapping
+    (Heckbert, "Fundamentals of texture mapping", 1989), batched; the exact homography of
+    the four corners, as a direct linear solve gives it, without the solve. A degenerate quad
+    (three corners on a line) gives non-finite entries."""
+    x0, x1, x2, x3 = (quads[:, k, 0] for k in range(4))
+    y0, y1, y2, y3 = (quads[:, k, 1] for k in range(4))
+    sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
+    dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = dx1 * dy2 - dx2 * dy1
+        g = (sx * dy2 - dx2 * sy) / den
+        h = (dx1 * sy - sx * dy1) / den
+    H = np.empty((len(quads), 3, 3))
+    H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = x1 - x0 + g * x1, x3 - x0 + h * x3, x0
+    H[:, 1, 0], H[:, 1, 1], H[:, 1, 2] = y1 - y0 + g * y1, y3 - y0 + h * y3, y0
+    H[:, 2, 0], H[:, 2, 1], H[:, 2, 2] = g, h, 1.0
+    H[:, :, :2] /= size
+    return H
 
 
 class CodeSampler:
@@ -143,18 +145,18 @@ class CodeSampler:
             pts = np.stack([gx, gy], -1)[:, :, None, :] + off           # (m, m, 4, 2)
             grid = np.concatenate([pts.reshape(-1, 2), np.ones((m * m * 4, 1))], 1)
             self._grids[m] = grid
-        try:
-            H = _homographies(np.asarray(quads, float), m)
-            proj = np.einsum("nij,pj->npi", H, grid)                    # (N, P, 3)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                uv = proj[..., :2] / proj[..., 2:3]
-        except np.linalg.LinAlgError:
-            uv = np.full((n, grid.shape[0], 2), np.nan)
+        H = _homographies(np.asarray(quads, float), m)
+        proj = H @ grid.T                                               # (N, 3, P)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            x = proj[:, 0] / proj[:, 2]                                 # (N, P)
+            y = proj[:, 1] / proj[:, 2]
         h, w = shape
-        self.finite = np.isfinite(uv).all(axis=(1, 2))
-        uv = np.nan_to_num(uv)
-        x = np.clip(uv[..., 0], 0, w - 1.001)
-        y = np.clip(uv[..., 1], 0, h - 1.001)
+        self.finite = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+        if not self.finite.all():
+            x = np.where(np.isfinite(x), x, 0.0)
+            y = np.where(np.isfinite(y), y, 0.0)
+        x = np.clip(x, 0, w - 1.001)
+        y = np.clip(y, 0, h - 1.001)
         x0, y0 = x.astype(np.intp), y.astype(np.intp)
         fx, fy = x - x0, y - y0
         i = (y0 * w + x0).ravel()
