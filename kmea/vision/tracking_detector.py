@@ -124,8 +124,8 @@ def _homographies(quads: np.ndarray, size: int) -> np.ndarray:
 class CodeSampler:
     """Where to sample the modules of fixed quads (N, 4, 2) px with codes (N, M, M) bool.
 
-    Built once for the static markers' reference corners (the homographies and bilinear
-    weights do not change while the references do not); :meth:`scores` then reads a frame.
+    Built once for the static markers' reference corners (the homographies and sample
+    points do not change while the references do not); :meth:`scores` then reads a frame.
     """
 
     _grids: dict[int, np.ndarray] = {}
@@ -155,16 +155,10 @@ class CodeSampler:
         if not self.finite.all():
             x = np.where(np.isfinite(x), x, 0.0)
             y = np.where(np.isfinite(y), y, 0.0)
-        x = np.clip(x, 0, w - 1.001)
-        y = np.clip(y, 0, h - 1.001)
-        x0, y0 = x.astype(np.intp), y.astype(np.intp)
-        fx, fy = x - x0, y - y0
-        i = (y0 * w + x0).ravel()
-        # The four neighbours of every sample in one gather (one ``take`` of 4P indices).
-        self.idx = np.concatenate([i, i + 1, i + w, i + w + 1])
-        self.w = w
-        self.wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]
-                            ).reshape(4, -1)
+        # Bilinear samples through cv2.remap (one C call; its weights are in 1/32 px steps,
+        # and a point outside the image takes the nearest border pixel's value).
+        self.map_x = np.clip(x, -1.0, w).astype(np.float32)              # (N, P)
+        self.map_y = np.clip(y, -1.0, h).astype(np.float32)
         ref = codes.reshape(n, m * m).astype(np.float64)
         ref = ref - ref.mean(axis=1, keepdims=True)
         self.ref = ref
@@ -174,9 +168,9 @@ class CodeSampler:
         """(N,) correlation of each code with the frame ``gray`` (see :func:`code_scores`)."""
         if self.n == 0:
             return np.zeros(0)
-        v = gray.reshape(-1).take(self.idx).reshape(4, -1).astype(np.float64)
-        v *= self.wts
-        vals = v.sum(axis=0).reshape(self.n, self.m * self.m, 4).mean(axis=2)
+        v = cv2.remap(gray, self.map_x, self.map_y, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE)
+        vals = v.reshape(self.n, self.m * self.m, 4).mean(axis=2)
         vals -= vals.mean(axis=1, keepdims=True)
         num = (vals * self.ref).sum(axis=1)
         den = np.sqrt((vals * vals).sum(axis=1)) * self.ref_norm
@@ -189,10 +183,10 @@ def code_scores(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray) -> np.nd
     """(N,) correlation (-1..1) between the image at each quad (N, 4, 2) px and its code
     (N, M, M) bool modules (border included).
 
-    Each module is sampled (bilinear) at 4 points around its centre and averaged; the score
-    is the normalised correlation of the M*M module values with the code: 1 for a sharp
-    marker, ~0.85 for a 10 px high wall marker seen edge-on, lower for a hidden one and 0
-    for a flat patch. Numpy, vectorised over the markers.
+    Each module is sampled (bilinear, ``cv2.remap``) at 4 points around its centre and
+    averaged; the score is the normalised correlation of the M*M module values with the
+    code: 1 for a sharp marker, ~0.85 for a 10 px high wall marker seen edge-on, lower for a
+    hidden one and 0 for a flat patch. Vectorised over the markers.
     """
     return CodeSampler(np.asarray(quads, float), codes, gray.shape[:2]).scores(gray)
 
