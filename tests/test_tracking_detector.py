@@ -153,6 +153,28 @@ def test_code_scores_tell_a_marker_from_its_absence(default_frames):
     blank = code_scores(np.full_like(frames[0].image, 128), d.corners,
                         np.stack([codes[m] for m in d.ids.tolist()]))
     assert np.all(blank == 0.0)
+    # The samples are bilinear: the same scores as a plain numpy bilinear interpolation at
+    # the same points (OpenCV's remap weighs in 1/32 px steps and rounds to gray levels).
+    from kmea.vision.tracking_detector import CodeSampler, _homographies
+
+    gray = frames[0].image if frames[0].image.ndim == 2 else frames[0].image[..., 1]
+    gray = np.ascontiguousarray(gray)
+    m = codes[d.ids[0]].shape[0]
+    grid = CodeSampler._grids[m]
+    proj = _homographies(d.corners, m) @ grid.T
+    x, y = proj[:, 0] / proj[:, 2], proj[:, 1] / proj[:, 2]
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    g = gray.astype(float)
+    v = (g[y0, x0] * (1 - fx) * (1 - fy) + g[y0, x0 + 1] * fx * (1 - fy)
+         + g[y0 + 1, x0] * (1 - fx) * fy + g[y0 + 1, x0 + 1] * fx * fy)
+    vals = v.reshape(len(x), m * m, 4).mean(axis=2)
+    vals -= vals.mean(axis=1, keepdims=True)
+    ref = np.stack([codes[i] for i in d.ids.tolist()]).reshape(len(x), -1).astype(float)
+    ref -= ref.mean(axis=1, keepdims=True)
+    plain = (vals * ref).sum(1) / np.sqrt((vals ** 2).sum(1) * (ref ** 2).sum(1))
+    np.testing.assert_allclose(code_scores(gray, d.corners, np.stack(
+        [codes[i] for i in d.ids.tolist()])), plain, rtol=0, atol=3e-3)
 
 
 def test_marker_entering_the_view_is_reported_within_0_3_s():
