@@ -223,6 +223,11 @@ HELD_OUT = (
     # tuning of that round, and not run until the final table: C's dynamics, fresh seeds.
     MotionSet("held-out F", (1001, 1002, 1003, 1004, 1005, 1006), 1.5, 3.0, 0.006, 20.0,
               max_accel=4.0),
+    # Added for issue 16's fourth round (the remaining in-gate and braking outliers of C and
+    # F) before any change of that round, and not run until the final table: C's dynamics,
+    # fresh seeds.
+    MotionSet("held-out G", (1101, 1102, 1103, 1104, 1105, 1106), 1.5, 3.0, 0.006, 20.0,
+              max_accel=4.0),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
