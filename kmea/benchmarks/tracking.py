@@ -256,8 +256,10 @@ def run_iir(ms: Measurements, alpha: float) -> tuple[np.ndarray, dict]:
         out[k] = (p[0], p[1], th)
     # The IIR filter reports no uncertainty: its outputs are measured against the
     # measurement's own sigma.
+    cov = np.zeros((len(ms.t), 2, 2))
+    cov[:, 0, 0] = cov[:, 1, 1] = ms.sigma ** 2
     return out, {"rejected": np.zeros(len(ms.t), bool), "reported": np.zeros(len(ms.t), bool),
-                 "reacquired": [], "sigma": ms.sigma.copy()}
+                 "reacquired": [], "sigma": ms.sigma.copy(), "cov": cov}
 
 
 def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
@@ -267,6 +269,7 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
     trk = Tracker(cfg, keep=len(ms.t) + 1)
     out = np.zeros_like(ms.z)
     sig = np.zeros(len(ms.t))
+    cov = np.zeros((len(ms.t), 2, 2))
     rejected = np.zeros(len(ms.t), bool)
     reacq = []
     for k in range(len(ms.t)):
@@ -275,6 +278,7 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
         st = trk.predict("r", t)
         out[k] = (st.x, st.y, st.theta)
         sig[k] = st.sigma
+        cov[k] = st.cov[:2, :2]
         rejected[k] = o.kind == "rejected"
         for r in o.retracted_all:  # earlier measurements, found to be outliers
             rejected[int(np.searchsorted(ms.t, r[0]))] = True
@@ -283,7 +287,7 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
     reported_t = {r.t for r in trk.rejections}
     reported = np.array([float(t) in reported_t for t in ms.t]) & rejected
     return out, {"rejected": rejected, "reported": reported, "reacquired": reacq,
-                 "sigma": sig}
+                 "sigma": sig, "cov": cov}
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -329,6 +333,15 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
     ex, ey = out[:, 0] - gx, out[:, 1] - gy
     eth = _wrap(out[:, 2] - gth)
     pos = float(np.sqrt(np.mean((ex ** 2 + ey ** 2)[keep])))
+    # Calibration of the reported uncertainty: the position NEES e^T P^-1 e (2 dof, mean 2
+    # when P is honest) and the fraction of outputs whose error exceeds 3 reported sigmas
+    # (the larger axis; at most exp(-4.5) = 1.1 % for an honest Gaussian).
+    C = info["cov"][keep]
+    e = np.column_stack([ex[keep], ey[keep]])
+    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    nees = (C[:, 1, 1] * e[:, 0] ** 2 - 2.0 * C[:, 0, 1] * e[:, 0] * e[:, 1]
+            + C[:, 0, 0] * e[:, 1] ** 2) / np.maximum(det, 1e-30)
+    over3 = np.hypot(e[:, 0], e[:, 1]) > 3.0 * info["sigma"][keep]
     head = float(np.sqrt(np.mean(eth[keep] ** 2)))
     # Lag: the shift tau of the truth (truth at t - tau) that best fits the outputs.
     best = (math.inf, 0.0)
@@ -345,7 +358,8 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
     outl = ms.outlier & keep
     rej = info["rejected"]
     after = [r - tr.kidnap_t for r in info["reacquired"] if r >= tr.kidnap_t]
-    res = {"pos": pos, "head": head, "lag": best[1],
+    res = {"pos": pos, "head": head, "lag": best[1], "nees_sum": float(np.sum(nees)),
+           "over3": int(np.sum(over3)),
            "jumps_outlier": int(np.sum(big & ms.outlier[1:])), "jumps_all": int(np.sum(big)),
            "max_jump_outlier": float(np.max(step[kj & ms.outlier[1:]], initial=0.0)),
            "outliers": int(np.sum(outl)), "caught": int(np.sum(rej & outl)),
@@ -384,7 +398,7 @@ def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
            "head": math.sqrt(np.mean([r["head"] ** 2 for r in rows])),
            "lag": float(np.mean([r["lag"] for r in rows]))}
     for k in ("jumps_outlier", "jumps_all", "outliers", "caught", "reported", "false_rej",
-              "n", "caused_big"):
+              "n", "caused_big", "over3", "nees_sum"):
         agg[k] = sum(r[k] for r in rows)
     for k in ("max_jump_outlier", "caused_max_sig", "caused_max_m"):
         agg[k] = max(r[k] for r in rows)
@@ -452,7 +466,8 @@ def _row(name: str, c: dict, a: dict) -> str:
             f"{a['caused_max_sig']:6.1f} {a['caused_max_m'] * 1000:6.1f} "
             f"{a['jumps_outlier']:4d} {a['max_jump_outlier'] * 1000:6.1f} "
             f"{a['caught']:4d}/{a['outliers']:<4d} {a['reported']:4d} {a['false_rej']:5d} "
-            f"{re:>9}")
+            f"{re:>9} {c['nees_sum'] / c['n']:6.2f} {100.0 * c['over3'] / c['n']:5.2f} "
+            f"{a['nees_sum'] / a['n']:6.2f} {100.0 * a['over3'] / a['n']:5.2f}")
 
 
 def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig) -> None:
@@ -464,7 +479,10 @@ def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig) -> None
           "  same one). steps: outputs at an outlier whose error changed by more than 3\n"
           "  measurement sigmas (raw, includes the prediction through manoeuvres), max mm.\n"
           "  caught: outliers rejected; rep: of them reported in Tracker.rejections; false:\n"
-          "  good measurements rejected; reacquire: slowest re-acquisition after the hand move")
+          "  good measurements rejected; reacquire: slowest re-acquisition after the hand move\n"
+          "  calibration of the reported sigma (IIR: the measurement's), without / with the\n"
+          "  outliers: NEES, the mean position e^T P^-1 e (2 when honest); >3s %: outputs whose\n"
+          "  error exceeds 3 reported sigmas (honest: <= 1.1 %)")
     for s in sets:
         print(f"{s.name}: seeds {s.seeds}, {s.duration:g} s, <= {s.max_speed} m/s, "
               f"<= {s.max_turn} rad/s, <= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, "
@@ -476,7 +494,8 @@ def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig) -> None
         print(f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}")
         print(f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
               f"{'lag':>4} {'caused':>9} {'max s':>6} {'max mm':>6} {'steps':>4} {'max mm':>6} "
-              f"{'caught':>9} {'rep':>4} {'false':>5} {'reacquire':>9}")
+              f"{'caught':>9} {'rep':>4} {'false':>5} {'reacquire':>9} {'NEES':>6} "
+              f"{'>3s %':>5} {'NEES':>6} {'>3s %':>5}")
         for a_ in sorted({1.0, alpha}, reverse=True):
             print(_row(f"IIR alpha={a_:g}", evaluate(s, "iir", a_, 0.0),
                        evaluate(s, "iir", a_)), flush=True)
