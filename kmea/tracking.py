@@ -166,6 +166,13 @@ class TrackerConfig:
     both as an interacting-multiple-model filter (module docstring); 1 = one model.
     manoeuvre_time_s, cruise_time_s: the mean time (s) spent in a manoeuvre and between
     manoeuvres (the models' switching rates).
+    outlier_mixture: the covariance after each measurement (accepted or rejected) includes
+    the chance that the decision was wrong, as probabilistic data association does: with
+    the posterior probability q that the measurement is an outlier (prior
+    outlier_probability, an outlier's position uniform within outlier_radius m of the robot,
+    a good one Gaussian with the innovation covariance), the covariance about the output is
+    (1 - q) (the covariance if it was good) + q (the covariance if it was an outlier), each
+    with the squared distance of its mean from the output.
     """
 
     model: str = "ctrv"
@@ -190,6 +197,9 @@ class TrackerConfig:
     reacquire_follow: bool = True
     reacquire_skip_outlier: bool = True
     step_k: float = 1.5
+    outlier_mixture: bool = True
+    outlier_probability: float = 0.05
+    outlier_radius: float = 0.2
     manoeuvre_scale: float = 200.0
     manoeuvre_time_s: float = 0.3
     cruise_time_s: float = 2.0
@@ -202,7 +212,7 @@ class TrackerConfig:
             if f.name == "model":
                 continue
             if f.name in ("look_back", "step_cumulative", "reacquire_follow",
-                          "reacquire_skip_outlier"):
+                          "reacquire_skip_outlier", "outlier_mixture"):
                 v = getattr(self, f.name)
                 if not isinstance(v, bool):
                     raise ValueError(f"tracker {f.name} must be true or false, got {v!r}")
@@ -211,7 +221,7 @@ class TrackerConfig:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or v <= 0:
                 raise ValueError(f"tracker {f.name} must be a finite number > 0, got {v!r}")
-        for name in ("look_back_probability", "confirm_probability"):
+        for name in ("look_back_probability", "confirm_probability", "outlier_probability"):
             if not getattr(self, name) < 1.0:
                 raise ValueError(f"tracker {name} must be in (0, 1), got "
                                  f"{getattr(self, name)!r}")
@@ -452,6 +462,8 @@ class Track:
         # While accepted measurements in a row are down-weighted: (t, the track that skipped
         # them, the track that took them in full), for the cumulative step bound.
         self._alt: tuple | None = None
+        self._q_prior = cfg.outlier_probability / (1.0 - cfg.outlier_probability) / (
+            math.pi * cfg.outlier_radius ** 2)
 
     # ------------------------------------------------------------------ the models
     def _predict(self, fs: tuple, dt: float) -> tuple:
@@ -509,6 +521,22 @@ class Track:
             # sigma stays honest), symmetric positive.
             out_P[j] = I_KH @ Ps[j] @ I_KH.T + K @ R @ K.T
         return out_s, out_P, mu
+
+    def _outlier_q(self, s: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray) -> float:
+        """The posterior probability that measurement ``z`` is an outlier, against the
+        combined prediction ``s``, ``P``: its position innovation's Gaussian density against
+        the outliers' (uniform within ``outlier_radius``), weighted by the prior."""
+        a = P[0, 0] + R[0, 0]
+        b = 0.5 * (P[0, 1] + P[1, 0]) + R[0, 1]
+        d = P[1, 1] + R[1, 1]
+        det = a * d - b * b
+        if not det > 0.0:
+            return 0.0
+        x, y = z[0] - s[0], z[1] - s[1]
+        d2 = (d * x * x - 2.0 * b * x * y + a * y * y) / det
+        good = math.exp(-0.5 * d2) / (2.0 * math.pi * math.sqrt(det))
+        r = self._q_prior
+        return r / (r + good)
 
     def _set(self, fs: tuple, t: float) -> None:
         self._fs = fs
@@ -607,7 +635,8 @@ class Track:
         cfg = self.config
         gains = ys, Ks, mu = self._gains(fs, z, R)
         ss, Ps, _ = fs
-        s0 = self._combine(fs)[0][:2]
+        sc, Pc = self._combine(fs)
+        s0 = sc[:2]
         # The combined position after the update at weight w, in closed form: model j's
         # mean is ss[j, :2] + w g[j], its covariance (Joseph form) P0 - w (B + B^T) + w^2 C.
         Kp = Ks[:, :2, :]
@@ -673,7 +702,18 @@ class Track:
                 # Suspicious (beyond robust_k): the next measurement is bounded against the
                 # track that skipped this one.
                 self._alt = (t, fs, self._correct(fs, z, R, 1.0))
-        return self._correct(fs, z, R, w, gains)
+        out = self._correct(fs, z, R, w, gains)
+        if cfg.outlier_mixture:
+            q = self._outlier_q(sc, Pc, z, R)
+            if q > 1e-9:
+                # The covariance about the output: (1 - q) that of the weighted update (the
+                # measurement was good) + q that of the prediction plus the step taken.
+                out_P = (1.0 - q) * out[1]
+                for j in range(len(out[2])):
+                    D = w * (Ks[j] @ ys[j])
+                    out_P[j] += q * (Ps[j] + np.outer(D, D))
+                out = (out[0], out_P, out[2])
+        return out
 
     def _look_back(self, t: float, z: np.ndarray, R: np.ndarray) -> tuple | None:
         """A measurement fell outside the gate: were the last accepted measurements the
@@ -792,7 +832,7 @@ class Track:
                 self._cand_prev = ([], None)
             # Their own track takes every step (no step bound) and does not re-acquire.
             c = Track(self.name, cfg.with_(reacquire_n=10 ** 9, step_k=1e9,
-                                           reacquire_follow=False))
+                                           reacquire_follow=False, outlier_mixture=False))
             c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
             self._cand, self._cand_track = [(t, z, R)], c
         if len(self._cand) >= cfg.reacquire_n:

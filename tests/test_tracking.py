@@ -213,9 +213,12 @@ def test_look_back_retracts_an_accepted_outlier_and_reports_it() -> None:
 
     times = [k / 30 for k in range(30)] + [29 / 30 + 0.6 + k / 30 for k in range(4)]
     kinds, errs = {}, {}
-    # One model, no step bound: the look-back alone (the step bound would keep the outlier
-    # from pulling the track that far).
-    base = TrackerConfig(accel_noise=0.25, manoeuvre_scale=1.0, step_k=1e9)
+    # One model, no step bound, no outlier mixture: the look-back alone (the step bound
+    # would keep the outlier from pulling the track that far; with the mixture the outlier's
+    # chance of being one widens the covariance, and the next good measurement is accepted
+    # and pulls the track back without a look-back).
+    base = TrackerConfig(accel_noise=0.25, manoeuvre_scale=1.0, step_k=1e9,
+                         outlier_mixture=False)
     for look_back in (True, False):
         trk = Tracker(base.with_(look_back=look_back))
         rng = np.random.default_rng(0)
@@ -286,7 +289,10 @@ def _brake(cfg: TrackerConfig, seed: int = 4) -> tuple[float, int, list[float]]:
 
 
 def test_two_models_follow_a_hard_brake_that_one_cruise_model_lags() -> None:
-    cruise = TrackerConfig(accel_noise=0.06, manoeuvre_scale=1.0, step_k=1e9)
+    # Without the outlier mixture (which widens the covariance after a poorly fitting
+    # measurement, so that one model alone also takes this brake in): the models alone.
+    cruise = TrackerConfig(accel_noise=0.06, manoeuvre_scale=1.0, step_k=1e9,
+                           outlier_mixture=False)
     one, rej_one, _ = _brake(cruise)
     two, rej_two, mu = _brake(cruise.with_(manoeuvre_scale=40.0))
     assert rej_two == 0 and rej_one > 0  # the cruise model alone gates the brake out
@@ -299,7 +305,10 @@ def test_step_bound_keeps_an_outlier_inside_the_gate_within_k_sigma() -> None:
     # After a 0.4 s gap the prediction is wide: a 4 cm outlier passes the gate. Its step is
     # bounded to step_k of the reported sigma after it; without the bound it moves further.
     def run(step_k: float) -> tuple[float, float]:
-        tr = Track("r", TrackerConfig(step_k=step_k, look_back=False))
+        # Without the outlier mixture: the bound is on the covariance of the update it
+        # bounds (the mixture then widens the reported one further, the step in its sigmas
+        # is smaller still: test_tracking_outliers.py).
+        tr = Track("r", TrackerConfig(step_k=step_k, look_back=False, outlier_mixture=False))
         rng = np.random.default_rng(1)
         for k in range(30):
             tr.update(k / 30, 0.5 * k / 30 + rng.normal(0, 0.003), rng.normal(0, 0.003),
