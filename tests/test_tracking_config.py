@@ -18,7 +18,8 @@ from kmead.fusion import tracker_config as fusion_tracker_config
 # The settings that were library-only before they became [filter] keys.
 KEYS = ("robust_k", "step_k", "look_back", "look_back_probability", "manoeuvre_scale",
         "manoeuvre_time_s", "cruise_time_s", "look_back_n", "step_cumulative",
-        "confirm_probability", "reacquire_follow", "max_speed", "reacquire_skip_outlier")
+        "confirm_probability", "reacquire_follow", "max_speed", "reacquire_skip_outlier",
+        "outlier_mixture", "outlier_probability", "outlier_radius")
 OFF = ["--set", 'network.telemetry=""', "--set", 'network.control=""']
 
 
@@ -41,7 +42,10 @@ BAD = [("robust_k", "0", "must be in (0, 1e+09]"),
        ("confirm_probability", "0", "must be in (0, 1)"),
        ("reacquire_follow", "0", "expected true or false"),
        ("max_speed", "-1", "must be in (0, 100] m/s"),
-       ("reacquire_skip_outlier", "1", "expected true or false")]
+       ("reacquire_skip_outlier", "1", "expected true or false"),
+       ("outlier_mixture", '"on"', "expected true or false"),
+       ("outlier_probability", "1.5", "must be in (0, 1)"),
+       ("outlier_radius", "0", "must be in (0, 100] m")]
 
 
 @pytest.mark.parametrize(("key", "value", "expect"), BAD)
@@ -78,14 +82,16 @@ def test_values_reach_the_daemon_and_fusion_filters() -> None:
             "filter.manoeuvre_time_s=0.5", "filter.cruise_time_s=4.0", "filter.look_back_n=3",
             "filter.step_cumulative=false", "filter.confirm_probability=0.9",
             "filter.reacquire_follow=false", "filter.max_speed=2.5",
-            "filter.reacquire_skip_outlier=false"]
+            "filter.reacquire_skip_outlier=false", "filter.outlier_mixture=false",
+            "filter.outlier_probability=0.1", "filter.outlier_radius=0.3"]
     cfg = load_config(None, sets=sets, use_local=False)
     want = TrackerConfig().with_(robust_k=2.5, step_k=1.25, look_back=False,
                                  look_back_probability=0.95, manoeuvre_scale=1.0,
                                  manoeuvre_time_s=0.5, cruise_time_s=4.0, look_back_n=3,
                                  step_cumulative=False, confirm_probability=0.9,
                                  reacquire_follow=False, max_speed=2.5,
-                                 reacquire_skip_outlier=False)
+                                 reacquire_skip_outlier=False, outlier_mixture=False,
+                                 outlier_probability=0.1, outlier_radius=0.3)
     assert fusion_tracker_config(cfg) == want
     assert PipelineSettings.from_config(cfg.data).tracker == want
 
@@ -96,7 +102,9 @@ def test_values_reach_the_daemon_and_fusion_filters() -> None:
                                         ("manoeuvre_time_s", 3600.0), ("cruise_time_s", 1e-9),
                                         ("look_back_n", 1), ("look_back_n", 10),
                                         ("confirm_probability", 1e-9),
-                                        ("max_speed", 1e-9), ("max_speed", 100.0)])
+                                        ("max_speed", 1e-9), ("max_speed", 100.0),
+                                        ("outlier_probability", 1e-9),
+                                        ("outlier_radius", 1e-9), ("outlier_radius", 100.0)])
 def test_every_value_the_schema_accepts_builds_a_filter(key: str, value: float) -> None:
     # The schema's ranges lie inside the filter's own checks: a setting that passes the
     # configuration check never fails later, when the daemon builds the filter.
