@@ -458,6 +458,7 @@ class Track:
         # filter before each (for the look-back): (t_before, fs_before, t, z, R); and the
         # measurements rejected since the newest of them: (t, z, R).
         self._hist: list[tuple] = []
+        self._last_combined: tuple | None = None  # (fs, _combine(fs))
         self._rej_run: list[tuple[float, np.ndarray, np.ndarray]] = []
         # While accepted measurements in a row are down-weighted: (t, the track that skipped
         # them, the track that took them in full), for the cumulative step bound.
@@ -485,8 +486,17 @@ class Track:
         return out_s, out_P, c
 
     def _combine(self, fs: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """The models' combined state (n,) and covariance (n, n). The same filter tuple is
+        often combined twice in a row (gated, then bounded); nothing changes a filter
+        tuple's arrays in place, so the last result is reused for the very same tuple
+        (callers do not modify the returned arrays)."""
+        last = self._last_combined
+        if last is not None and last[0] is fs:
+            return last[1]
         ss, Ps, mu = fs
-        return _moments(ss, Ps, mu, ss[int(np.argmax(mu))][2])
+        out = _moments(ss, Ps, mu, ss[int(np.argmax(mu))][2])
+        self._last_combined = (fs, out)
+        return out
 
     def _gains(self, fs: tuple, z: np.ndarray, R: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -646,23 +656,39 @@ class Track:
         B = B + B.transpose(0, 2, 1)
         C = Kp @ (Ps[:, :3, :3] + R) @ Kp.transpose(0, 2, 1)
 
+        # The combined mean and covariance are polynomials in w: mean = a0 + w a1, each
+        # model's spread D_j = d_j + w e_j, so cov = K0 + w K1 + w^2 K2 (2x2); their
+        # coefficients once, then each weight of the bisection costs a few float operations
+        # (it runs ~10 times a measurement; numpy's per-call overhead was most of it).
+        a0 = mu @ ss[:, :2]
+        a1 = mu @ g
+        dd = ss[:, :2] - a0
+        ee = g - a1
+        K0 = np.einsum("j,jik->ik", mu, P0) + (dd.T * mu) @ dd
+        K1 = (-np.einsum("j,jik->ik", mu, B) + (dd.T * mu) @ ee + (ee.T * mu) @ dd)
+        K2 = np.einsum("j,jik->ik", mu, C) + (ee.T * mu) @ ee
+        (p0, q0), (p1, q1) = a0.tolist(), a1.tolist()
+        ka = (float(K0[0, 0]), float(K1[0, 0]), float(K2[0, 0]))
+        kb = (0.5 * float(K0[0, 1] + K0[1, 0]), 0.5 * float(K1[0, 1] + K1[1, 0]),
+              0.5 * float(K2[0, 1] + K2[1, 0]))
+        kd = (float(K0[1, 1]), float(K1[1, 1]), float(K2[1, 1]))
+
         def moved(w: float, ref: np.ndarray = s0) -> float:
             """Squared Mahalanobis length of the combined position at weight w from ``ref``
             (by default the prediction: the step) against the combined position covariance
             after the update."""
-            m = ss[:, :2] + w * g
-            mean = mu @ m
-            D = m - mean
-            cov = np.einsum("j,jik->ik", mu, P0 - w * B + w * w * C) + (D.T * mu) @ D
-            dp = mean - ref
-            # dp^T cov^-1 dp of the symmetric 2x2 in closed form (runs ~10 times a
-            # measurement; LAPACK's call overhead was most of it).
-            a, b, d = cov[0, 0], 0.5 * (cov[0, 1] + cov[1, 0]), cov[1, 1]
+            rx, ry = float(ref[0]), float(ref[1])
+            x, y = p0 + w * p1 - rx, q0 + w * q1 - ry
+            ww = w * w
+            a = ka[0] + w * ka[1] + ww * ka[2]
+            b = kb[0] + w * kb[1] + ww * kb[2]
+            d = kd[0] + w * kd[1] + ww * kd[2]
             det = a * d - b * b
             if not det > 0.0:
+                cov = np.array([[a, b], [b, d]])
+                dp = np.array([x, y])
                 return float(dp @ np.linalg.solve(cov, dp))
-            x, y = dp[0], dp[1]
-            return float((d * x * x - 2.0 * b * x * y + a * y * y) / det)
+            return (d * x * x - 2.0 * b * x * y + a * y * y) / det
 
         def largest(w: float, ok) -> float:
             """The largest weight in [0, w] with ok(weight), by bisection (0 if none)."""
