@@ -230,6 +230,10 @@ HELD_OUT = (
     # fresh seeds.
     MotionSet("held-out G", (1101, 1102, 1103, 1104, 1105, 1106), 1.5, 3.0, 0.006, 20.0,
               max_accel=4.0),
+    # Added for issue 16's fifth round (a third, "stopped" model) before any change of that
+    # round, and not run until the final table: C's dynamics, fresh seeds.
+    MotionSet("held-out H", (1201, 1202, 1203, 1204, 1205, 1206), 1.5, 3.0, 0.006, 20.0,
+              max_accel=4.0),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
