@@ -147,22 +147,26 @@ class CodeSampler:
             self._grids[m] = grid
         H = _homographies(np.asarray(quads, float), m)
         proj = H @ grid.T                                               # (N, 3, P)
+        # numpy's ufuncs directly: this runs per followed marker per frame, where the
+        # method wrappers' (mean, clip) call overhead is most of the cost.
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            x = proj[:, 0] / proj[:, 2]                                 # (N, P)
-            y = proj[:, 1] / proj[:, 2]
+            x = np.divide(proj[:, 0], proj[:, 2])                       # (N, P)
+            y = np.divide(proj[:, 1], proj[:, 2])
         h, w = shape
-        self.finite = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+        finite = np.isfinite(x)
+        finite &= np.isfinite(y)
+        self.finite = np.logical_and.reduce(finite, axis=1)
         if not self.finite.all():
-            x = np.where(np.isfinite(x), x, 0.0)
-            y = np.where(np.isfinite(y), y, 0.0)
+            x = np.where(finite, x, 0.0)
+            y = np.where(finite, y, 0.0)
         # Bilinear samples through cv2.remap (one C call; its weights are in 1/32 px steps,
         # and a point outside the image takes the nearest border pixel's value).
-        self.map_x = np.clip(x, -1.0, w).astype(np.float32)              # (N, P)
-        self.map_y = np.clip(y, -1.0, h).astype(np.float32)
+        self.map_x = np.minimum(np.maximum(x, -1.0), w).astype(np.float32)   # (N, P)
+        self.map_y = np.minimum(np.maximum(y, -1.0), h).astype(np.float32)
         ref = codes.reshape(n, m * m).astype(np.float64)
-        ref = ref - ref.mean(axis=1, keepdims=True)
+        ref -= np.add.reduce(ref, axis=1, keepdims=True) / (m * m)
         self.ref = ref
-        self.ref_norm = np.sqrt((ref * ref).sum(axis=1))
+        self.ref_norm = np.sqrt(np.add.reduce(ref * ref, axis=1))
 
     def scores(self, gray: np.ndarray) -> np.ndarray:
         """(N,) correlation of each code with the frame ``gray`` (see :func:`code_scores`)."""
@@ -170,10 +174,12 @@ class CodeSampler:
             return np.zeros(0)
         v = cv2.remap(gray, self.map_x, self.map_y, cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_REPLICATE)
-        vals = v.reshape(self.n, self.m * self.m, 4).mean(axis=2)
-        vals -= vals.mean(axis=1, keepdims=True)
-        num = (vals * self.ref).sum(axis=1)
-        den = np.sqrt((vals * vals).sum(axis=1)) * self.ref_norm
+        mm = self.m * self.m
+        # Module sums of the 4 samples (the correlation does not see the scale of a mean).
+        vals = np.add.reduce(v.reshape(self.n, mm, 4), axis=2, dtype=np.float64)
+        vals -= np.add.reduce(vals, axis=1, keepdims=True) / mm
+        num = np.add.reduce(vals * self.ref, axis=1)
+        den = np.sqrt(np.add.reduce(vals * vals, axis=1)) * self.ref_norm
         with np.errstate(divide="ignore", invalid="ignore"):
             score = np.where(den > 0, num / den, 0.0)
         return np.where(self.finite, score, 0.0)
