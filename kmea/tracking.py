@@ -92,16 +92,26 @@ def _wrap(a: float) -> float:
 def _innovation(s: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Innovation of measurement ``z`` (x, y, theta) with covariance ``R`` (3, 3) against
-    the predicted state ``s`` and covariance ``P``: (y, S, S^-1, Mahalanobis d^2), or None
-    when S is singular."""
-    y = z - s[:3]
-    y[2] = _wrap(y[2])
+    the predicted state ``s`` and covariance ``P``: (y (3 floats), S, S^-1, Mahalanobis
+    d^2), or None when S is singular."""
+    s0, s1, s2 = s[:3].tolist()
+    z0, z1, z2 = z.tolist()
+    y = [z0 - s0, z1 - s1, _wrap(z2 - s2)]
     S = P[:3, :3] + R
     try:
         Si = np.linalg.inv(S)
     except np.linalg.LinAlgError:
         return None
-    return y, S, Si, float(y @ Si @ y)
+    return y, S, Si, _mahalanobis(y, Si.tolist())
+
+
+def _mahalanobis(y: list, Si: list) -> float:
+    """y^T Si y of 3 floats and a 3x3 nested list: (y Si) y, summed in order (as numpy's
+    y @ Si @ y does, bit for bit)."""
+    y0, y1, y2 = y
+    (a, b, c), (d, e, f), (g, h, i) = Si
+    return (y0 * a + y1 * d + y2 * g) * y0 + (y0 * b + y1 * e + y2 * h) * y1 \
+        + (y0 * c + y1 * f + y2 * i) * y2
 
 
 def _chi2_cdf_3(x: float) -> float:
@@ -352,6 +362,27 @@ class _CV(_Model):
         # Backwards (dt < 0, retrodiction) the uncertainty still grows.
         return s, F @ P @ F.T + Q
 
+    def steps(self, ss, Ps, dt, qs):
+        """:meth:`step` of M states at once (``ss`` (M, n), ``Ps`` (M, n, n)), model j
+        with the process noise densities ``qs[j]`` = (accel_noise, turn_noise)."""
+        F = self._F(dt)
+        out_s = np.array([F @ s for s in ss])  # F @ s each: the same rounding as step
+        out_s[:, 2] = (out_s[:, 2] + math.pi) % _TWO_PI - math.pi
+        a = abs(dt)
+        sg = float(np.sign(dt))
+        c3, c2 = a ** 3 / 3.0, a * a / 2.0 * sg
+        Q = np.zeros((len(qs), 6, 6))
+        for j, (qa, qw) in enumerate(qs):
+            for i, k, q in ((0, 3, qa), (1, 4, qa), (2, 5, qw)):
+                Q[j, i, i], Q[j, i, k], Q[j, k, i], Q[j, k, k] = q * c3, q * c2, q * c2, q * a
+        return out_s, F @ Ps @ F.T + Q
+
+    @staticmethod
+    def _F(dt: float) -> np.ndarray:
+        F = np.eye(6)
+        F[0, 3] = F[1, 4] = F[2, 5] = dt
+        return F
+
     def velocity(self, s):
         return float(s[3]), float(s[4]), float(math.hypot(s[3], s[4])), float(s[5])
 
@@ -400,6 +431,55 @@ class _CTRV(_Model):
         Q = G @ np.diag([self.qa, self.qw]) @ G.T / a if a > 0 else np.zeros((5, 5))
         return s2v, F @ P @ F.T + Q
 
+    def steps(self, ss, Ps, dt, qs):
+        """:meth:`step` of M states at once (``ss`` (M, n), ``Ps`` (M, n, n)), model j
+        with the process noise densities ``qs[j]`` = (accel_noise, turn_noise); the same
+        arithmetic as :meth:`step`, in floats (numpy's per-call cost dominated it)."""
+        a = abs(dt)
+        h = a * a / 2.0
+        out_s, Fs, Qs = [], [], []
+        for (x, y, th, v, w), (qa, qw) in zip(ss.tolist(), qs, strict=True):
+            c, sn = math.cos(th), math.sin(th)
+            if abs(w * dt) > 1e-6:
+                th2 = th + w * dt
+                c2, s2 = math.cos(th2), math.sin(th2)
+                nx = x + v / w * (s2 - sn)
+                ny = y + v / w * (c - c2)
+                f02 = v / w * (c2 - c)
+                f03 = (s2 - sn) / w
+                f04 = v * dt * c2 / w - v / (w * w) * (s2 - sn)
+                f12 = v / w * (s2 - sn)
+                f13 = (c - c2) / w
+                f14 = v * dt * s2 / w - v / (w * w) * (c - c2)
+            else:
+                nx = x + v * dt * c
+                ny = y + v * dt * sn
+                f02 = -v * dt * sn
+                f03 = dt * c
+                f04 = -v * dt * dt * sn / 2.0
+                f12 = v * dt * c
+                f13 = dt * sn
+                f14 = v * dt * dt * c / 2.0
+            out_s.append([nx, ny, _wrap(th + w * dt), v, w])
+            Fs.append([[1.0, 0.0, f02, f03, f04], [0.0, 1.0, f12, f13, f14],
+                       [0.0, 0.0, 1.0, 0.0, dt], [0.0, 0.0, 0.0, 1.0, 0.0],
+                       [0.0, 0.0, 0.0, 0.0, 1.0]])
+            if a > 0:
+                # G (5, 2) = [[h c, 0], [h sn, 0], [0, h], [a, 0], [0, a]]: G diag(q) G^T / a,
+                # each entry a single product (the two columns do not overlap).
+                g0, g1 = h * c, h * sn
+                u0, u1, u3 = g0 * qa, g1 * qa, a * qa
+                w2, w4 = h * qw, a * qw
+                Qs.append([[u0 * g0 / a, u0 * g1 / a, 0.0, u0 * a / a, 0.0],
+                           [u1 * g0 / a, u1 * g1 / a, 0.0, u1 * a / a, 0.0],
+                           [0.0, 0.0, w2 * h / a, 0.0, w2 * a / a],
+                           [u3 * g0 / a, u3 * g1 / a, 0.0, u3 * a / a, 0.0],
+                           [0.0, 0.0, w4 * h / a, 0.0, w4 * a / a]])
+            else:
+                Qs.append([[0.0] * 5] * 5)
+        F = np.array(Fs)
+        return np.array(out_s), F @ Ps @ F.transpose(0, 2, 1) + np.array(Qs)
+
     def velocity(self, s):
         v, th = float(s[3]), float(s[2])
         return v * math.cos(th), v * math.sin(th), v, float(s[4])
@@ -415,14 +495,23 @@ def _moments(ss: np.ndarray, Ps: np.ndarray, w: np.ndarray, ref: float
     (M, n, n) and weights ``w`` (M,); headings unwrapped around ``ref`` rad first."""
     if len(w) == 1:
         return ss[0].copy(), Ps[0].copy()
+    if len(w) == 2:
+        # The two models (the IMM filter): the mean in floats (w @ X in numpy's order).
+        w0, w1 = w.tolist()
+        a, b = ss.tolist()
+        a[2] = ref + (a[2] - ref + math.pi) % _TWO_PI - math.pi
+        b[2] = ref + (b[2] - ref + math.pi) % _TWO_PI - math.pi
+        X = np.array([a, b])
+        s = np.array([w0 * u + w1 * v for u, v in zip(a, b, strict=True)])
+        D = X - s
+        P = w0 * Ps[0] + w1 * Ps[1] + (D.T * w) @ D
+        s[2] = _wrap(s[2])
+        return s, P
     X = ss.copy()
     X[:, 2] = ref + (X[:, 2] - ref + math.pi) % _TWO_PI - math.pi
     s = w @ X
     D = X - s
-    if len(w) == 2:  # the two models (the IMM filter): no einsum call overhead
-        P = w[0] * Ps[0] + w[1] * Ps[1] + (D.T * w) @ D
-    else:
-        P = np.einsum("i,ijk->jk", w, Ps) + (D.T * w) @ D
+    P = np.einsum("i,ijk->jk", w, Ps) + (D.T * w) @ D
     s[2] = _wrap(s[2])
     return s, P
 
@@ -446,6 +535,8 @@ class Track:
                 accel_noise=cfg.accel_noise * cfg.manoeuvre_scale,
                 turn_noise=cfg.turn_noise * cfg.manoeuvre_scale)))
         self._n = self._models[0].n
+        self._qs = [(m.qa, m.qw) for m in self._models]
+        self._eye = np.eye(self._n)
         self._fs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.s: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -479,10 +570,20 @@ class Track:
         p10 = 1.0 - math.exp(-abs(dt) / cfg.manoeuvre_time_s)
         Pi = np.array([[1.0 - p01, p01], [p10, 1.0 - p10]])  # Pi[i, j]: from i to j
         c = Pi.T @ mu
-        out_s, out_P = np.empty_like(ss), np.empty_like(Ps)
-        for j, m in enumerate(self._models):
-            s0, P0 = _moments(ss, Ps, Pi[:, j] * mu / c[j], ss[j][2])
-            out_s[j], out_P[j] = m.step(s0, P0, dt)
+        # Both models' mixed priors at once (_moments of M = 2 for each j, stacked over j):
+        # W[j] the weights of the models mixed into model j, X[j] the states with their
+        # headings unwrapped around model j's.
+        W = (Pi * mu[:, None] / c).T
+        ref = ss[:, 2]
+        X = np.repeat(ss[None], 2, 0)
+        X[:, :, 2] = ref[:, None] + (ss[None, :, 2] - ref[:, None] + math.pi) % _TWO_PI \
+            - math.pi
+        s0 = (W[:, None, :] @ X)[:, 0, :]
+        D = X - s0[:, None, :]
+        P0 = W[:, 0, None, None] * Ps[0] + W[:, 1, None, None] * Ps[1] \
+            + (D.transpose(0, 2, 1) * W[:, None, :]) @ D
+        s0[:, 2] = (s0[:, 2] + math.pi) % _TWO_PI - math.pi
+        out_s, out_P = self._models[0].steps(s0, P0, dt, self._qs)
         return out_s, out_P, c
 
     def _combine(self, fs: tuple) -> tuple[np.ndarray, np.ndarray]:
@@ -503,12 +604,15 @@ class Track:
         """Per model, the innovation of measurement ``z`` (M, 3) and the Kalman gain
         (M, n, 3); the models' probabilities after it, by their likelihoods (M,)."""
         ss, Ps, mu = fs
-        ys, Ks = np.empty((len(mu), 3)), np.empty((len(mu), self._n, 3))
-        loglik = np.zeros(len(mu))
-        for j in range(len(mu)):
-            ys[j], S, Si, d2 = _innovation(ss[j], Ps[j], z, R)
-            Ks[j] = Ps[j][:, :3] @ Si
-            loglik[j] = -0.5 * d2 - 0.5 * math.log(max(np.linalg.det(S), 1e-300))
+        # All models at once: stacked innovations, one batched inverse and determinant.
+        ys = z - ss[:, :3]
+        ys[:, 2] = (ys[:, 2] + math.pi) % _TWO_PI - math.pi
+        S = Ps[:, :3, :3] + R
+        Si = np.linalg.inv(S)
+        Ks = Ps[:, :, :3] @ Si
+        loglik = np.array([-0.5 * _mahalanobis(y, Sij) - 0.5 * math.log(max(det, 1e-300))
+                           for y, Sij, det in zip(ys.tolist(), Si.tolist(),
+                                                  np.linalg.det(S).tolist(), strict=True)])
         if len(mu) > 1:
             w = mu * np.exp(loglik - loglik.max())
             mu = w / w.sum()
@@ -520,16 +624,15 @@ class Track:
         the models' probabilities by their likelihoods (``gains``: :meth:`_gains`)."""
         ss, Ps, _ = fs
         ys, Ks, mu = gains if gains is not None else self._gains(fs, z, R)
-        H = np.eye(3, self._n)
-        out_s, out_P = np.empty_like(ss), np.empty_like(Ps)
-        for j in range(len(mu)):
-            K = Ks[j] * scale
-            out_s[j] = ss[j] + K @ ys[j]
-            out_s[j][2] = _wrap(out_s[j][2])
-            I_KH = np.eye(self._n) - K @ H
-            # Joseph form: the true covariance of any gain (so the weighted one's reported
-            # sigma stays honest), symmetric positive.
-            out_P[j] = I_KH @ Ps[j] @ I_KH.T + K @ R @ K.T
+        K = Ks * scale
+        out_s = ss + (K @ ys[:, :, None])[:, :, 0]
+        out_s[:, 2] = (out_s[:, 2] + math.pi) % _TWO_PI - math.pi
+        I_KH = np.repeat(self._eye[None], len(mu), 0)
+        I_KH[:, :, :3] -= K  # I - K H, H = [I3 0]
+        Kt = K.transpose(0, 2, 1)
+        # Joseph form: the true covariance of any gain (so the weighted one's reported
+        # sigma stays honest), symmetric positive.
+        out_P = I_KH @ Ps @ I_KH.transpose(0, 2, 1) + K @ R @ Kt
         return out_s, out_P, mu
 
     def _outlier_q(self, s: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray) -> float:
@@ -562,7 +665,8 @@ class Track:
         if sigma_theta is None or not math.isfinite(sigma_theta):
             sigma_theta = sp / cfg.heading_lever
         st = max(float(sigma_theta), cfg.min_sigma_theta)
-        return np.diag([sp * sp, sp * sp, st * st])
+        v, vt = sp * sp, st * st
+        return np.array([[v, 0.0, 0.0], [0.0, v, 0.0], [0.0, 0.0, vt]])
 
     def update(self, t: float, x: float, y: float, theta: float, sigma: float | None = None,
                sigma_theta: float | None = None) -> Outcome:
@@ -646,34 +750,39 @@ class Track:
         gains = ys, Ks, mu = self._gains(fs, z, R)
         ss, Ps, _ = fs
         sc, Pc = self._combine(fs)
-        s0 = sc[:2]
+        s0 = (float(sc[0]), float(sc[1]))
         # The combined position after the update at weight w, in closed form: model j's
         # mean is ss[j, :2] + w g[j], its covariance (Joseph form) P0 - w (B + B^T) + w^2 C.
         Kp = Ks[:, :2, :]
-        g = np.einsum("jik,jk->ji", Kp, ys)
-        P0 = Ps[:, :2, :2]
-        B = Kp @ Ps[:, :3, :2]
-        B = B + B.transpose(0, 2, 1)
-        C = Kp @ (Ps[:, :3, :3] + R) @ Kp.transpose(0, 2, 1)
+        g = (Kp @ ys[:, :, None])[:, :, 0].tolist()
+        Bs = (Kp @ Ps[:, :3, :2]).tolist()
+        Cs = (Kp @ (Ps[:, :3, :3] + R) @ Kp.transpose(0, 2, 1)).tolist()
+        P0s = Ps[:, :2, :2].tolist()
+        mul = mu.tolist()
+        sl = ss[:, :2].tolist()
 
         # The combined mean and covariance are polynomials in w: mean = a0 + w a1, each
         # model's spread D_j = d_j + w e_j, so cov = K0 + w K1 + w^2 K2 (2x2); their
-        # coefficients once, then each weight of the bisection costs a few float operations
-        # (it runs ~10 times a measurement; numpy's per-call overhead was most of it).
-        a0 = mu @ ss[:, :2]
-        a1 = mu @ g
-        dd = ss[:, :2] - a0
-        ee = g - a1
-        K0 = np.einsum("j,jik->ik", mu, P0) + (dd.T * mu) @ dd
-        K1 = (-np.einsum("j,jik->ik", mu, B) + (dd.T * mu) @ ee + (ee.T * mu) @ dd)
-        K2 = np.einsum("j,jik->ik", mu, C) + (ee.T * mu) @ ee
-        (p0, q0), (p1, q1) = a0.tolist(), a1.tolist()
-        ka = (float(K0[0, 0]), float(K1[0, 0]), float(K2[0, 0]))
-        kb = (0.5 * float(K0[0, 1] + K0[1, 0]), 0.5 * float(K1[0, 1] + K1[1, 0]),
-              0.5 * float(K2[0, 1] + K2[1, 0]))
-        kd = (float(K0[1, 1]), float(K1[1, 1]), float(K2[1, 1]))
+        # coefficients once (in floats), then each weight of the bisection costs a few
+        # float operations (it runs ~10 times a measurement).
+        p0 = q0 = p1 = q1 = 0.0
+        for m, (sx, sy), (gx, gy) in zip(mul, sl, g, strict=True):
+            p0, q0, p1, q1 = p0 + m * sx, q0 + m * sy, p1 + m * gx, q1 + m * gy
+        a_0 = a_1 = a_2 = b_0 = b_1 = b_2 = d_0 = d_1 = d_2 = 0.0
+        for m, (sx, sy), (gx, gy), P, B, C in zip(mul, sl, g, P0s, Bs, Cs, strict=True):
+            dx, dy, ex, ey = sx - p0, sy - q0, gx - p1, gy - q1
+            a_0 += m * (P[0][0] + dx * dx)
+            a_1 += m * (2.0 * (dx * ex - B[0][0]))
+            a_2 += m * (C[0][0] + ex * ex)
+            b_0 += m * (0.5 * (P[0][1] + P[1][0]) + dx * dy)
+            b_1 += m * (dx * ey + ex * dy - (B[0][1] + B[1][0]))
+            b_2 += m * (0.5 * (C[0][1] + C[1][0]) + ex * ey)
+            d_0 += m * (P[1][1] + dy * dy)
+            d_1 += m * (2.0 * (dy * ey - B[1][1]))
+            d_2 += m * (C[1][1] + ey * ey)
+        ka, kb, kd = (a_0, a_1, a_2), (b_0, b_1, b_2), (d_0, d_1, d_2)
 
-        def moved(w: float, ref: np.ndarray = s0) -> float:
+        def moved(w: float, ref: tuple = s0) -> float:
             """Squared Mahalanobis length of the combined position at weight w from ``ref``
             (by default the prediction: the step) against the combined position covariance
             after the update."""
@@ -717,7 +826,7 @@ class Track:
                 # Unless it confirms the one before (a manoeuvre), it may not move the
                 # position further than step_k sigmas from the track that skipped that one.
                 if inn is None or inn[3] > self.confirm_gate:
-                    ref = self._combine(skip)[0][:2]
+                    ref = self._combine(skip)[0][:2].tolist()
                     if moved(0.0, ref) > k2:
                         # Already that far: take the weight that stays closest.
                         cand = np.linspace(0.0, w, 9)
@@ -727,17 +836,15 @@ class Track:
             if w0 < 1.0:
                 # Suspicious (beyond robust_k): the next measurement is bounded against the
                 # track that skipped this one.
-                self._alt = (t, fs, self._correct(fs, z, R, 1.0))
+                self._alt = (t, fs, self._correct(fs, z, R, 1.0, gains))
         out = self._correct(fs, z, R, w, gains)
         if cfg.outlier_mixture:
             q = self._outlier_q(sc, Pc, z, R)
             if q > 1e-9:
                 # The covariance about the output: (1 - q) that of the weighted update (the
                 # measurement was good) + q that of the prediction plus the step taken.
-                out_P = (1.0 - q) * out[1]
-                for j in range(len(out[2])):
-                    D = w * (Ks[j] @ ys[j])
-                    out_P[j] += q * (Ps[j] + np.outer(D, D))
+                D = w * (Ks @ ys[:, :, None])[:, :, 0]
+                out_P = (1.0 - q) * out[1] + q * (Ps + D[:, :, None] * D[:, None, :])
                 out = (out[0], out_P, out[2])
         return out
 
@@ -921,7 +1028,11 @@ class Track:
     def _state(self, t: float, s: np.ndarray, P: np.ndarray) -> TrackState:
         vx, vy, speed, omega = self._models[0].velocity(s)
         cov = P[:3, :3].copy()
-        sig = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
+        # The larger eigenvalue of the symmetric 2x2 position block (its lower triangle, as
+        # eigvalsh reads it), in closed form.
+        a, b, d = float(cov[0, 0]), float(cov[1, 0]), float(cov[1, 1])
+        h = 0.5 * (a - d)
+        sig = math.sqrt(max(0.5 * (a + d) + math.sqrt(h * h + b * b), 0.0))
         return TrackState(float(t), float(s[0]), float(s[1]), _wrap(float(s[2])), vx, vy,
                           speed, omega, sig, math.sqrt(max(float(cov[2, 2]), 0.0)), cov)
 
