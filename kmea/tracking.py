@@ -363,10 +363,11 @@ class _CV(_Model):
         return s, F @ P @ F.T + Q
 
     def steps(self, ss, Ps, dt, qs):
-        """:meth:`step` of M states at once (``ss`` (M, n), ``Ps`` (M, n, n)), model j
-        with the process noise densities ``qs[j]`` = (accel_noise, turn_noise)."""
+        """:meth:`step` of M states at once (``ss`` (M, n), array or nested lists; ``Ps``
+        (M, n, n)), model j with the process noise densities ``qs[j]`` = (accel_noise,
+        turn_noise)."""
         F = self._F(dt)
-        out_s = np.array([F @ s for s in ss])  # F @ s each: the same rounding as step
+        out_s = np.array([F @ s for s in np.asarray(ss)])  # each F @ s: step's rounding
         out_s[:, 2] = (out_s[:, 2] + math.pi) % _TWO_PI - math.pi
         a = abs(dt)
         sg = float(np.sign(dt))
@@ -432,13 +433,15 @@ class _CTRV(_Model):
         return s2v, F @ P @ F.T + Q
 
     def steps(self, ss, Ps, dt, qs):
-        """:meth:`step` of M states at once (``ss`` (M, n), ``Ps`` (M, n, n)), model j
-        with the process noise densities ``qs[j]`` = (accel_noise, turn_noise); the same
+        """:meth:`step` of M states at once (``ss`` (M, n), array or nested lists; ``Ps``
+        (M, n, n)), model j with the process noise densities ``qs[j]`` = (accel_noise,
+        turn_noise); the same
         arithmetic as :meth:`step`, in floats (numpy's per-call cost dominated it)."""
         a = abs(dt)
         h = a * a / 2.0
         out_s, Fs, Qs = [], [], []
-        for (x, y, th, v, w), (qa, qw) in zip(ss.tolist(), qs, strict=True):
+        rows = ss.tolist() if isinstance(ss, np.ndarray) else ss
+        for (x, y, th, v, w), (qa, qw) in zip(rows, qs, strict=True):
             c, sn = math.cos(th), math.sin(th)
             if abs(w * dt) > 1e-6:
                 th2 = th + w * dt
@@ -477,8 +480,8 @@ class _CTRV(_Model):
                            [0.0, 0.0, w4 * h / a, 0.0, w4 * a / a]])
             else:
                 Qs.append([[0.0] * 5] * 5)
-        F = np.array(Fs)
-        return np.array(out_s), F @ Ps @ F.transpose(0, 2, 1) + np.array(Qs)
+        F, Q = np.array([Fs, Qs])
+        return np.array(out_s), F @ Ps @ F.transpose(0, 2, 1) + Q
 
     def velocity(self, s):
         v, th = float(s[3]), float(s[2])
@@ -504,7 +507,7 @@ def _moments(ss: np.ndarray, Ps: np.ndarray, w: np.ndarray, ref: float
         X = np.array([a, b])
         s = np.array([w0 * u + w1 * v for u, v in zip(a, b, strict=True)])
         D = X - s
-        P = w0 * Ps[0] + w1 * Ps[1] + (D.T * w) @ D
+        P = (w[:, None, None] * Ps).sum(0) + (D.T * w) @ D
         s[2] = _wrap(s[2])
         return s, P
     X = ss.copy()
@@ -568,23 +571,32 @@ class Track:
         cfg = self.config
         p01 = 1.0 - math.exp(-abs(dt) / cfg.cruise_time_s)
         p10 = 1.0 - math.exp(-abs(dt) / cfg.manoeuvre_time_s)
-        Pi = np.array([[1.0 - p01, p01], [p10, 1.0 - p10]])  # Pi[i, j]: from i to j
-        c = Pi.T @ mu
-        # Both models' mixed priors at once (_moments of M = 2 for each j, stacked over j):
-        # W[j] the weights of the models mixed into model j, X[j] the states with their
-        # headings unwrapped around model j's.
-        W = (Pi * mu[:, None] / c).T
-        ref = ss[:, 2]
-        X = np.repeat(ss[None], 2, 0)
-        X[:, :, 2] = ref[:, None] + (ss[None, :, 2] - ref[:, None] + math.pi) % _TWO_PI \
-            - math.pi
-        s0 = (W[:, None, :] @ X)[:, 0, :]
-        D = X - s0[:, None, :]
-        P0 = W[:, 0, None, None] * Ps[0] + W[:, 1, None, None] * Ps[1] \
-            + (D.transpose(0, 2, 1) * W[:, None, :]) @ D
-        s0[:, 2] = (s0[:, 2] + math.pi) % _TWO_PI - math.pi
-        out_s, out_P = self._models[0].steps(s0, P0, dt, self._qs)
-        return out_s, out_P, c
+        # Pi[i][j]: from model i to model j; c[j] = (Pi^T mu)[j], model j's probability
+        # after the switch. Both models' mixed priors (_moments for each j) at once: the
+        # means in floats (summed in numpy's order, so bit for bit the same), the
+        # covariances as one stacked product.
+        Pi = ((1.0 - p01, p01), (p10, 1.0 - p10))
+        m0, m1 = mu.tolist()
+        c = [Pi[0][0] * m0 + Pi[1][0] * m1, Pi[0][1] * m0 + Pi[1][1] * m1]
+        rows = ss.tolist()
+        W, Ds, means = [], [], []
+        for j in range(2):
+            w0, w1 = Pi[0][j] * m0 / c[j], Pi[1][j] * m1 / c[j]
+            ref = rows[j][2]
+            x0, x1 = list(rows[0]), list(rows[1])
+            x0[2] = ref + (x0[2] - ref + math.pi) % _TWO_PI - math.pi
+            x1[2] = ref + (x1[2] - ref + math.pi) % _TWO_PI - math.pi
+            m = [w0 * u + w1 * v for u, v in zip(x0, x1, strict=True)]
+            Ds.append([[u - v for u, v in zip(x0, m, strict=True)],
+                       [u - v for u, v in zip(x1, m, strict=True)]])
+            m[2] = _wrap(m[2])
+            means.append(m)
+            W.append((w0, w1))
+        W = np.array(W)
+        D = np.array(Ds)
+        P0 = (W[:, :, None, None] * Ps).sum(1) + (D.transpose(0, 2, 1) * W[:, None, :]) @ D
+        out_s, out_P = self._models[0].steps(means, P0, dt, self._qs)
+        return out_s, out_P, np.array(c)
 
     def _combine(self, fs: tuple) -> tuple[np.ndarray, np.ndarray]:
         """The models' combined state (n,) and covariance (n, n). The same filter tuple is
@@ -595,7 +607,8 @@ class Track:
         if last is not None and last[0] is fs:
             return last[1]
         ss, Ps, mu = fs
-        out = _moments(ss, Ps, mu, ss[int(np.argmax(mu))][2])
+        m = mu.tolist()
+        out = _moments(ss, Ps, mu, float(ss[m.index(max(m)), 2]))
         self._last_combined = (fs, out)
         return out
 
