@@ -488,6 +488,23 @@ class _CTRV(_Model):
         return v * math.cos(th), v * math.sin(th), v, float(s[4])
 
 
+# Derived configurations, made once per configuration (a candidates' track is made at
+# most rejections; validating a configuration costs more than a filter update).
+@functools.lru_cache(maxsize=16)
+def _manoeuvre_config(cfg: TrackerConfig) -> TrackerConfig:
+    """The second model's configuration: the process noise times ``manoeuvre_scale``."""
+    return cfg.with_(accel_noise=cfg.accel_noise * cfg.manoeuvre_scale,
+                     turn_noise=cfg.turn_noise * cfg.manoeuvre_scale)
+
+
+@functools.lru_cache(maxsize=16)
+def _candidates_config(cfg: TrackerConfig) -> TrackerConfig:
+    """The candidates' own track: it takes every step (no step bound) and does not
+    re-acquire."""
+    return cfg.with_(reacquire_n=10 ** 9, step_k=1e9, reacquire_follow=False,
+                     outlier_mixture=False)
+
+
 def _model(cfg: TrackerConfig) -> _Model:
     return _CV(cfg) if cfg.model == "cv" else _CTRV(cfg)
 
@@ -534,9 +551,7 @@ class Track:
         self.confirm_gate = chi2_quantile_3(cfg.confirm_probability)
         self._models = [_model(cfg)]
         if cfg.manoeuvre_scale > 1.0:
-            self._models.append(_model(cfg.with_(
-                accel_noise=cfg.accel_noise * cfg.manoeuvre_scale,
-                turn_noise=cfg.turn_noise * cfg.manoeuvre_scale)))
+            self._models.append(_model(_manoeuvre_config(cfg)))
         self._n = self._models[0].n
         self._qs = [(m.qa, m.qw) for m in self._models]
         self._eye = np.eye(self._n)
@@ -684,7 +699,8 @@ class Track:
     def update(self, t: float, x: float, y: float, theta: float, sigma: float | None = None,
                sigma_theta: float | None = None) -> Outcome:
         """Apply one pose measurement taken at ``t`` s; see :class:`Outcome`."""
-        if not all(math.isfinite(v) for v in (t, x, y, theta)):
+        if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)
+                and math.isfinite(theta)):
             return Outcome("rejected", "not finite", math.nan, self.state())
         z = np.array([float(x), float(y), _wrap(float(theta))])
         R = self.noise(sigma, sigma_theta)
@@ -977,8 +993,7 @@ class Track:
             else:
                 self._cand_prev = ([], None)
             # Their own track takes every step (no step bound) and does not re-acquire.
-            c = Track(self.name, cfg.with_(reacquire_n=10 ** 9, step_k=1e9,
-                                           reacquire_follow=False, outlier_mixture=False))
+            c = Track(self.name, _candidates_config(cfg))
             c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
             self._cand, self._cand_track = [(t, z, R)], c
         if len(self._cand) >= cfg.reacquire_n:
