@@ -463,25 +463,28 @@ class _CTRV(_Model):
                 f12 = v * dt * c
                 f13 = dt * sn
                 f14 = v * dt * dt * c / 2.0
-            out_s.append([nx, ny, _wrap(th + w * dt), v, w])
-            Fs.append([[1.0, 0.0, f02, f03, f04], [0.0, 1.0, f12, f13, f14],
-                       [0.0, 0.0, 1.0, 0.0, dt], [0.0, 0.0, 0.0, 1.0, 0.0],
-                       [0.0, 0.0, 0.0, 0.0, 1.0]])
+            out_s += (nx, ny, _wrap(th + w * dt), v, w)
+            Fs += (1.0, 0.0, f02, f03, f04, 0.0, 1.0, f12, f13, f14, 0.0, 0.0, 1.0, 0.0, dt,
+                   0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
             if a > 0:
                 # G (5, 2) = [[h c, 0], [h sn, 0], [0, h], [a, 0], [0, a]]: G diag(q) G^T / a,
                 # each entry a single product (the two columns do not overlap).
                 g0, g1 = h * c, h * sn
                 u0, u1, u3 = g0 * qa, g1 * qa, a * qa
                 w2, w4 = h * qw, a * qw
-                Qs.append([[u0 * g0 / a, u0 * g1 / a, 0.0, u0 * a / a, 0.0],
-                           [u1 * g0 / a, u1 * g1 / a, 0.0, u1 * a / a, 0.0],
-                           [0.0, 0.0, w2 * h / a, 0.0, w2 * a / a],
-                           [u3 * g0 / a, u3 * g1 / a, 0.0, u3 * a / a, 0.0],
-                           [0.0, 0.0, w4 * h / a, 0.0, w4 * a / a]])
+                Qs += (u0 * g0 / a, u0 * g1 / a, 0.0, u0 * a / a, 0.0,
+                       u1 * g0 / a, u1 * g1 / a, 0.0, u1 * a / a, 0.0,
+                       0.0, 0.0, w2 * h / a, 0.0, w2 * a / a,
+                       u3 * g0 / a, u3 * g1 / a, 0.0, u3 * a / a, 0.0,
+                       0.0, 0.0, w4 * h / a, 0.0, w4 * a / a)
             else:
-                Qs.append([[0.0] * 5] * 5)
-        F, Q = np.array([Fs, Qs])
-        return np.array(out_s), F @ Ps @ F.transpose(0, 2, 1) + Q
+                Qs += (0.0,) * 25
+        # One array of all the numbers (cheaper than nested lists): F, Q, then the states.
+        M = len(qs)
+        flat = np.array(Fs + Qs + out_s)
+        F = flat[:25 * M].reshape(M, 5, 5)
+        Q = flat[25 * M:50 * M].reshape(M, 5, 5)
+        return flat[50 * M:].reshape(M, 5), F @ Ps @ F.transpose(0, 2, 1) + Q
 
     def velocity(self, s):
         v, th = float(s[3]), float(s[2])
@@ -521,12 +524,14 @@ def _moments(ss: np.ndarray, Ps: np.ndarray, w: np.ndarray, ref: float
         a, b = ss.tolist()
         a[2] = ref + (a[2] - ref + math.pi) % _TWO_PI - math.pi
         b[2] = ref + (b[2] - ref + math.pi) % _TWO_PI - math.pi
-        X = np.array([a, b])
-        s = np.array([w0 * u + w1 * v for u, v in zip(a, b, strict=True)])
-        D = X - s
-        P = (w[:, None, None] * Ps).sum(0) + (D.T * w) @ D
+        s = [w0 * u + w1 * v for u, v in zip(a, b, strict=True)]
+        # D = X - s and D.T * w (as numpy's (D.T * w) @ D lays them out: the same product).
+        da = [u - v for u, v in zip(a, s, strict=True)]
+        db = [u - v for u, v in zip(b, s, strict=True)]
+        DD = np.array([[da, db], [[v * w0 for v in da], [v * w1 for v in db]]])
+        P = (w[:, None, None] * Ps).sum(0) + DD[1].T @ DD[0]
         s[2] = _wrap(s[2])
-        return s, P
+        return np.array(s), P
     X = ss.copy()
     X[:, 2] = ref + (X[:, 2] - ref + math.pi) % _TWO_PI - math.pi
     s = w @ X
@@ -633,18 +638,21 @@ class Track:
         (M, n, 3); the models' probabilities after it, by their likelihoods (M,)."""
         ss, Ps, mu = fs
         # All models at once: stacked innovations, one batched inverse and determinant.
-        ys = z - ss[:, :3]
-        ys[:, 2] = (ys[:, 2] + math.pi) % _TWO_PI - math.pi
+        z0, z1, z2 = z.tolist()
+        yl = [[z0 - s0, z1 - s1, _wrap(z2 - s2)] for s0, s1, s2, *_ in ss.tolist()]
         S = Ps[:, :3, :3] + R
         Si = np.linalg.inv(S)
         Ks = Ps[:, :, :3] @ Si
-        loglik = np.array([-0.5 * _mahalanobis(y, Sij) - 0.5 * math.log(max(det, 1e-300))
-                           for y, Sij, det in zip(ys.tolist(), Si.tolist(),
-                                                  np.linalg.det(S).tolist(), strict=True)])
+        loglik = [-0.5 * _mahalanobis(y, Sij) - 0.5 * math.log(max(det, 1e-300))
+                  for y, Sij, det in zip(yl, Si.tolist(), np.linalg.det(S).tolist(),
+                                         strict=True)]
         if len(mu) > 1:
-            w = mu * np.exp(loglik - loglik.max())
-            mu = w / w.sum()
-        return ys, Ks, mu
+            # The likelihoods relative to the largest (floats, the same as numpy's).
+            top = max(loglik)
+            w = [m * math.exp(v - top) for m, v in zip(mu.tolist(), loglik, strict=True)]
+            tot = sum(w)
+            mu = np.array([v / tot for v in w])
+        return np.array(yl), Ks, mu
 
     def _correct(self, fs: tuple, z: np.ndarray, R: np.ndarray, scale: float,
                  gains: tuple | None = None) -> tuple:
@@ -654,7 +662,7 @@ class Track:
         ys, Ks, mu = gains if gains is not None else self._gains(fs, z, R)
         K = Ks * scale
         out_s = ss + (K @ ys[:, :, None])[:, :, 0]
-        out_s[:, 2] = (out_s[:, 2] + math.pi) % _TWO_PI - math.pi
+        out_s[:, 2] = [_wrap(v) for v in out_s[:, 2].tolist()]
         I_KH = np.repeat(self._eye[None], len(mu), 0)
         I_KH[:, :, :3] -= K  # I - K H, H = [I3 0]
         Kt = K.transpose(0, 2, 1)
