@@ -528,8 +528,8 @@ def _moments(ss: np.ndarray, Ps: np.ndarray, w: np.ndarray, ref: float
         # D = X - s and D.T * w (as numpy's (D.T * w) @ D lays them out: the same product).
         da = [u - v for u, v in zip(a, s, strict=True)]
         db = [u - v for u, v in zip(b, s, strict=True)]
-        DD = np.array([[da, db], [[v * w0 for v in da], [v * w1 for v in db]]])
-        P = (w[:, None, None] * Ps).sum(0) + DD[1].T @ DD[0]
+        DD = np.array(da + db + [v * w0 for v in da] + [v * w1 for v in db]).reshape(4, -1)
+        P = w0 * Ps[0] + w1 * Ps[1] + DD[2:].T @ DD[:2]
         s[2] = _wrap(s[2])
         return np.array(s), P
     X = ss.copy()
@@ -559,7 +559,7 @@ class Track:
             self._models.append(_model(_manoeuvre_config(cfg)))
         self._n = self._models[0].n
         self._qs = [(m.qa, m.qw) for m in self._models]
-        self._eye = np.eye(self._n)
+        self._eyes = np.repeat(np.eye(self._n)[None], len(self._models), 0)
         self._fs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.s: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -599,6 +599,7 @@ class Track:
         m0, m1 = mu.tolist()
         c = [Pi[0][0] * m0 + Pi[1][0] * m1, Pi[0][1] * m0 + Pi[1][1] * m1]
         rows = ss.tolist()
+        n = len(rows[0])
         W, Ds, means = [], [], []
         for j in range(2):
             w0, w1 = Pi[0][j] * m0 / c[j], Pi[1][j] * m1 / c[j]
@@ -607,14 +608,16 @@ class Track:
             x0[2] = ref + (x0[2] - ref + math.pi) % _TWO_PI - math.pi
             x1[2] = ref + (x1[2] - ref + math.pi) % _TWO_PI - math.pi
             m = [w0 * u + w1 * v for u, v in zip(x0, x1, strict=True)]
-            Ds.append([[u - v for u, v in zip(x0, m, strict=True)],
-                       [u - v for u, v in zip(x1, m, strict=True)]])
+            Ds += [u - v for u, v in zip(x0, m, strict=True)]
+            Ds += [u - v for u, v in zip(x1, m, strict=True)]
             m[2] = _wrap(m[2])
             means.append(m)
-            W.append((w0, w1))
-        W = np.array(W)
-        D = np.array(Ds)
-        P0 = (W[:, :, None, None] * Ps).sum(1) + (D.transpose(0, 2, 1) * W[:, None, :]) @ D
+            W += (w0, w1)
+        flat = np.array(W + Ds)
+        W = flat[:4].reshape(2, 2)
+        D = flat[4:].reshape(2, 2, n)
+        P0 = W[:, 0, None, None] * Ps[0] + W[:, 1, None, None] * Ps[1] \
+            + (D.transpose(0, 2, 1) * W[:, None, :]) @ D
         out_s, out_P = self._models[0].steps(means, P0, dt, self._qs)
         return out_s, out_P, np.array(c)
 
@@ -663,7 +666,7 @@ class Track:
         K = Ks * scale
         out_s = ss + (K @ ys[:, :, None])[:, :, 0]
         out_s[:, 2] = [_wrap(v) for v in out_s[:, 2].tolist()]
-        I_KH = np.repeat(self._eye[None], len(mu), 0)
+        I_KH = self._eyes.copy()
         I_KH[:, :, :3] -= K  # I - K H, H = [I3 0]
         Kt = K.transpose(0, 2, 1)
         # Joseph form: the true covariance of any gain (so the weighted one's reported
