@@ -678,13 +678,15 @@ class Track:
         """The posterior probability that measurement ``z`` is an outlier, against the
         combined prediction ``s``, ``P``: its position innovation's Gaussian density against
         the outliers' (uniform within ``outlier_radius``), weighted by the prior."""
-        a = P[0, 0] + R[0, 0]
-        b = 0.5 * (P[0, 1] + P[1, 0]) + R[0, 1]
-        d = P[1, 1] + R[1, 1]
+        (p00, p01), (p10, p11) = P[:2, :2].tolist()
+        (r00, r01), (_, r11) = R[:2, :2].tolist()
+        a = p00 + r00
+        b = 0.5 * (p01 + p10) + r01
+        d = p11 + r11
         det = a * d - b * b
         if not det > 0.0:
             return 0.0
-        x, y = z[0] - s[0], z[1] - s[1]
+        x, y = float(z[0] - s[0]), float(z[1] - s[1])
         d2 = (d * x * x - 2.0 * b * x * y + a * y * y) / det
         good = math.exp(-0.5 * d2) / (2.0 * math.pi * math.sqrt(det))
         r = self._q_prior
@@ -795,8 +797,9 @@ class Track:
         # mean is ss[j, :2] + w g[j], its covariance (Joseph form) P0 - w (B + B^T) + w^2 C.
         Kp = Ks[:, :2, :]
         g = (Kp @ ys[:, :, None])[:, :, 0].tolist()
+        # B = Kp P[:3, :2]; C = Kp S Kp^T equals it (K = P H^T S^-1), so it is not formed.
         Bs = (Kp @ Ps[:, :3, :2]).tolist()
-        Cs = (Kp @ (Ps[:, :3, :3] + R) @ Kp.transpose(0, 2, 1)).tolist()
+        Cs = Bs
         P0s = Ps[:, :2, :2].tolist()
         mul = mu.tolist()
         sl = ss[:, :2].tolist()
