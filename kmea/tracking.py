@@ -795,10 +795,11 @@ class Track:
         s0 = (float(sc[0]), float(sc[1]))
         # The combined position after the update at weight w, in closed form: model j's
         # mean is ss[j, :2] + w g[j], its covariance (Joseph form) P0 - w (B + B^T) + w^2 C.
-        Kp = Ks[:, :2, :]
-        g = (Kp @ ys[:, :, None])[:, :, 0].tolist()
-        # B = Kp P[:3, :2]; C = Kp S Kp^T equals it (K = P H^T S^-1), so it is not formed.
-        Bs = (Kp @ Ps[:, :3, :2]).tolist()
+        KY = (Ks @ ys[:, :, None])[:, :, 0]  # each model's full Kalman correction K y
+        g = KY[:, :2].tolist()
+        # B = Kp P[:3, :2] (Kp: the gain's position rows); C = Kp S Kp^T equals it
+        # (K = P H^T S^-1), so it is not formed.
+        Bs = (Ks[:, :2, :] @ Ps[:, :3, :2]).tolist()
         Cs = Bs
         P0s = Ps[:, :2, :2].tolist()
         mul = mu.tolist()
@@ -886,7 +887,7 @@ class Track:
             if q > 1e-9:
                 # The covariance about the output: (1 - q) that of the weighted update (the
                 # measurement was good) + q that of the prediction plus the step taken.
-                D = w * (Ks @ ys[:, :, None])[:, :, 0]
+                D = w * KY
                 out_P = (1.0 - q) * out[1] + q * (Ps + D[:, :, None] * D[:, None, :])
                 out = (out[0], out_P, out[2])
         return out
