@@ -1069,15 +1069,16 @@ class Track:
         return self._state(t, s, P)
 
     def _state(self, t: float, s: np.ndarray, P: np.ndarray) -> TrackState:
-        vx, vy, speed, omega = self._models[0].velocity(s)
+        sl = s.tolist()
+        vx, vy, speed, omega = self._models[0].velocity(sl)
         cov = P[:3, :3].copy()
+        (a, _, _), (b, d, _), (_, _, c) = cov.tolist()
         # The larger eigenvalue of the symmetric 2x2 position block (its lower triangle, as
         # eigvalsh reads it), in closed form.
-        a, b, d = float(cov[0, 0]), float(cov[1, 0]), float(cov[1, 1])
         h = 0.5 * (a - d)
         sig = math.sqrt(max(0.5 * (a + d) + math.sqrt(h * h + b * b), 0.0))
-        return TrackState(float(t), float(s[0]), float(s[1]), _wrap(float(s[2])), vx, vy,
-                          speed, omega, sig, math.sqrt(max(float(cov[2, 2]), 0.0)), cov)
+        return TrackState(float(t), sl[0], sl[1], _wrap(sl[2]), vx, vy, speed, omega, sig,
+                          math.sqrt(max(c, 0.0)), cov)
 
 
 @dataclass(frozen=True)
