@@ -71,6 +71,14 @@ from typing import Any
 
 import numpy as np
 
+try:
+    # The gufuncs behind np.linalg.inv and np.linalg.det: the same LAPACK calls, without
+    # the public functions' per-call argument checks and error-state switch (most of the
+    # cost of a 3x3 inverse). Private to numpy; without them, the public functions.
+    from numpy.linalg import _umath_linalg as _gufuncs
+except ImportError:  # pragma: no cover
+    _gufuncs = None
+
 __all__ = [
     "MODELS",
     "Outcome",
@@ -89,8 +97,24 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % _TWO_PI - math.pi
 
 
+def _inv(S: np.ndarray) -> np.ndarray:
+    """np.linalg.inv of float64 ``S`` (..., 3, 3), bit for bit. A singular S gives NaN
+    here (numpy warns): callers check their result and call :func:`np.linalg.inv` itself
+    when it is not finite (it raises LinAlgError as before)."""
+    if _gufuncs is None:  # pragma: no cover
+        return np.linalg.inv(S)
+    return _gufuncs.inv(S, signature="d->d")
+
+
+def _det(S: np.ndarray) -> np.ndarray:
+    """np.linalg.det of float64 ``S`` (..., 3, 3), bit for bit (the same gufunc call)."""
+    if _gufuncs is None:  # pragma: no cover
+        return np.linalg.det(S)
+    return _gufuncs.det(S, signature="d->d")
+
+
 def _innovation(s: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+                ) -> tuple[list, np.ndarray, np.ndarray, float] | None:
     """Innovation of measurement ``z`` (x, y, theta) with covariance ``R`` (3, 3) against
     the predicted state ``s`` and covariance ``P``: (y (3 floats), S, S^-1, Mahalanobis
     d^2), or None when S is singular."""
@@ -98,11 +122,16 @@ def _innovation(s: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray
     z0, z1, z2 = z.tolist()
     y = [z0 - s0, z1 - s1, _wrap(z2 - s2)]
     S = P[:3, :3] + R
-    try:
-        Si = np.linalg.inv(S)
-    except np.linalg.LinAlgError:
-        return None
-    return y, S, Si, _mahalanobis(y, Si.tolist())
+    Si = _inv(S)
+    d2 = _mahalanobis(y, Si.tolist())
+    if not math.isfinite(d2):
+        # Singular (or overflowing) S: np.linalg.inv's own answer.
+        try:
+            Si = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return None
+        d2 = _mahalanobis(y, Si.tolist())
+    return y, S, Si, d2
 
 
 def _mahalanobis(y: list, Si: list) -> float:
@@ -644,11 +673,14 @@ class Track:
         z0, z1, z2 = z.tolist()
         yl = [[z0 - s0, z1 - s1, _wrap(z2 - s2)] for s0, s1, s2, *_ in ss.tolist()]
         S = Ps[:, :3, :3] + R
-        Si = np.linalg.inv(S)
+        Si = _inv(S)
+        d2s = [_mahalanobis(y, Sij) for y, Sij in zip(yl, Si.tolist(), strict=True)]
+        if not all(map(math.isfinite, d2s)):
+            Si = np.linalg.inv(S)  # singular: raises LinAlgError
+            d2s = [_mahalanobis(y, Sij) for y, Sij in zip(yl, Si.tolist(), strict=True)]
         Ks = Ps[:, :, :3] @ Si
-        loglik = [-0.5 * _mahalanobis(y, Sij) - 0.5 * math.log(max(det, 1e-300))
-                  for y, Sij, det in zip(yl, Si.tolist(), np.linalg.det(S).tolist(),
-                                         strict=True)]
+        loglik = [-0.5 * d2 - 0.5 * math.log(max(det, 1e-300))
+                  for d2, det in zip(d2s, _det(S).tolist(), strict=True)]
         if len(mu) > 1:
             # The likelihoods relative to the largest (floats, the same as numpy's).
             top = max(loglik)
