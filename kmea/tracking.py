@@ -629,7 +629,7 @@ class Track:
         c = [Pi[0][0] * m0 + Pi[1][0] * m1, Pi[0][1] * m0 + Pi[1][1] * m1]
         rows = ss.tolist()
         n = len(rows[0])
-        W, Ds, means = [], [], []
+        W, Ds, DW, means = [], [], [], []
         for j in range(2):
             w0, w1 = Pi[0][j] * m0 / c[j], Pi[1][j] * m1 / c[j]
             ref = rows[j][2]
@@ -637,16 +637,18 @@ class Track:
             x0[2] = ref + (x0[2] - ref + math.pi) % _TWO_PI - math.pi
             x1[2] = ref + (x1[2] - ref + math.pi) % _TWO_PI - math.pi
             m = [w0 * u + w1 * v for u, v in zip(x0, x1, strict=True)]
-            Ds += [u - v for u, v in zip(x0, m, strict=True)]
-            Ds += [u - v for u, v in zip(x1, m, strict=True)]
+            d0 = [u - v for u, v in zip(x0, m, strict=True)]
+            d1 = [u - v for u, v in zip(x1, m, strict=True)]
+            Ds += d0 + d1
+            DW += [v * w0 for v in d0] + [v * w1 for v in d1]  # D.T * w, as rows
             m[2] = _wrap(m[2])
             means.append(m)
             W += (w0, w1)
-        flat = np.array(W + Ds)
-        W = flat[:4].reshape(2, 2)
-        D = flat[4:].reshape(2, 2, n)
-        P0 = W[:, 0, None, None] * Ps[0] + W[:, 1, None, None] * Ps[1] \
-            + (D.transpose(0, 2, 1) * W[:, None, :]) @ D
+        flat = np.array(W + Ds + DW)
+        W = flat[:4].reshape(2, 2, 1, 1)
+        D = flat[4:4 + 4 * n].reshape(2, 2, n)
+        DW = flat[4 + 4 * n:].reshape(2, 2, n)
+        P0 = W[:, 0] * Ps[0] + W[:, 1] * Ps[1] + DW.transpose(0, 2, 1) @ D
         out_s, out_P = self._models[0].steps(means, P0, dt, self._qs)
         return out_s, out_P, np.array(c)
 
@@ -695,7 +697,7 @@ class Track:
         the models' probabilities by their likelihoods (``gains``: :meth:`_gains`)."""
         ss, Ps, _ = fs
         ys, Ks, mu = gains if gains is not None else self._gains(fs, z, R)
-        K = Ks * scale
+        K = Ks * scale if scale != 1.0 else Ks  # (Ks * 1.0 == Ks; K is only read)
         out_s = ss + (K @ ys[:, :, None])[:, :, 0]
         out_s[:, 2] = [_wrap(v) for v in out_s[:, 2].tolist()]
         I_KH = self._eyes.copy()
