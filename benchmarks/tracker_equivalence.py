@@ -14,7 +14,13 @@ per update (the mean of :meth:`Tracker.update` over the drives, each timed in tu
 same measurements). Prints figures; no asserts (exit status 1 when decisions differ or a
 state differs by more than 1e-9).
 
-    .venv/bin/python benchmarks/tracker_equivalence.py REV [--quick]
+``--pipeline``: also the pipeline pattern (issue 14): the fixed-camera pipeline
+(corner-pnp, tracking detector, ``filter_kind="kalman"``) on ``render(90)`` frames, once
+with each version's ``Tracker``, timing every update inside the pipeline (thread CPU time);
+then the two robots' recorded measurements replayed through both versions (compared as
+above; best of 5, warm).
+
+    .venv/bin/python benchmarks/tracker_equivalence.py REV [--quick] [--pipeline]
 """
 
 from __future__ import annotations
@@ -112,8 +118,80 @@ def run(mod, changes: dict, rows) -> tuple:
     return outs, spent, trk
 
 
-def main(rev: str, quick: bool = False) -> int:
+def _timed(base: type, spent: list, calls: list | None) -> type:
+    """``base`` (a Tracker class) whose updates are timed into ``spent`` (thread CPU time,
+    s) and recorded into ``calls`` (when given)."""
+
+    class Timed(base):
+        def update(self, *a, **k):
+            if calls is not None:
+                calls.append((a, k))
+            t0 = time.thread_time()
+            out = super().update(*a, **k)
+            spent.append(time.thread_time() - t0)
+            return out
+
+    return Timed
+
+
+def pipeline(old_mod) -> tuple[list, float, float]:
+    """The pipeline pattern: (the pipeline's Tracker.update calls (args), us per update
+    inside the pipeline with REV's Tracker, with the working tree's)."""
+    import kmea.pipeline as kp
+    from kmea.benchmarks.pipeline import render
+    from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
+
+    frames, scene = render(90)
+    calls: list = []
+    costs = []
+    for mod in (old_mod, new_mod):
+        spent: list[float] = []
+        saved, kp.Tracker = kp.Tracker, _timed(mod.Tracker, spent,
+                                               calls if mod is new_mod else None)
+        try:
+            p = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
+                algorithm="corner-pnp", robots=tuple(scene.robot_specs()), tracking=True,
+                filter_kind="kalman"))
+            try:
+                for f in frames:
+                    det = p.detector.detect(f.image)
+                    p.process(FrameInput(f.index, f.timestamp, f.image, detections=det))
+            finally:
+                p.close()
+        finally:
+            kp.Tracker = saved
+        costs.append(float(np.median(spent[4:])) * 1e6)
+    return calls, costs[0], costs[1]
+
+
+def replay(old_mod, calls) -> None:
+    """The pipeline's recorded updates through both versions: outputs and cost."""
+    worst, bad, best = 0.0, 0, {}
+    for name, mod in (("REV", old_mod), ("working tree", new_mod)):
+        times = []
+        for _ in range(5):
+            trk = mod.Tracker(mod.TrackerConfig())
+            t0 = time.perf_counter()
+            outs = [trk.update(*a, **k) for a, k in calls]
+            times.append((time.perf_counter() - t0) / len(calls))
+        best[name] = (min(times), outs)
+    for a, b in zip(best["REV"][1], best["working tree"][1], strict=True):
+        bad += (a.kind, a.reason) != (b.kind, b.reason)
+        worst = max(worst, state_diff(a.state, b.state))
+    kinds = sorted({o.kind for o in best["REV"][1]})
+    print(f"pipeline replay ({len(calls)} updates, {', '.join(kinds)}): largest state "
+          f"difference {worst:.3g}, differing decisions {bad}; cost per update (best of 5): "
+          f"REV {best['REV'][0] * 1e6:.0f} us, working tree "
+          f"{best['working tree'][0] * 1e6:.0f} us")
+
+
+def main(rev: str, quick: bool = False, pipe: bool = False) -> int:
     old_mod = load_rev(rev)
+    if pipe:
+        calls, c_old, c_new = pipeline(old_mod)
+        print(f"in the pipeline (render(90), corner-pnp, tracking, kalman; median thread CPU "
+              f"time per update): REV {c_old:.0f} us, working tree {c_new:.0f} us")
+        replay(old_mod, calls)
     worst = {"state": 0.0, "predicted": 0.0, "d2": 0.0}
     decisions = updates = bit_identical = 0
     spent_old = spent_new = 0.0
@@ -156,4 +234,4 @@ if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     if len(args) != 1:
         sys.exit(__doc__)
-    sys.exit(main(args[0], "--quick" in sys.argv))
+    sys.exit(main(args[0], "--quick" in sys.argv, "--pipeline" in sys.argv))
