@@ -692,13 +692,19 @@ class Track:
         return np.array(yl), Ks, mu
 
     def _correct(self, fs: tuple, z: np.ndarray, R: np.ndarray, scale: float,
-                 gains: tuple | None = None) -> tuple:
+                 gains: tuple | None = None, ky: np.ndarray | None = None) -> tuple:
         """Each model corrected by measurement ``z`` with its Kalman gain times ``scale``;
-        the models' probabilities by their likelihoods (``gains``: :meth:`_gains`)."""
+        the models' probabilities by their likelihoods (``gains``: :meth:`_gains`; ``ky``:
+        its gains times its innovations (M, n), when already known)."""
         ss, Ps, _ = fs
         ys, Ks, mu = gains if gains is not None else self._gains(fs, z, R)
-        K = Ks * scale if scale != 1.0 else Ks  # (Ks * 1.0 == Ks; K is only read)
-        out_s = ss + (K @ ys[:, :, None])[:, :, 0]
+        if scale != 1.0:
+            K, ky = Ks * scale, None
+        else:
+            K = Ks  # (Ks * 1.0 == Ks; K is only read)
+        if ky is None:
+            ky = (K @ ys[:, :, None])[:, :, 0]
+        out_s = ss + ky
         out_s[:, 2] = [_wrap(v) for v in out_s[:, 2].tolist()]
         I_KH = self._eyes.copy()
         I_KH[:, :, :3] -= K  # I - K H, H = [I3 0]
@@ -914,8 +920,8 @@ class Track:
             if w0 < 1.0:
                 # Suspicious (beyond robust_k): the next measurement is bounded against the
                 # track that skipped this one.
-                self._alt = (t, fs, self._correct(fs, z, R, 1.0, gains))
-        out = self._correct(fs, z, R, w, gains)
+                self._alt = (t, fs, self._correct(fs, z, R, 1.0, gains, KY))
+        out = self._correct(fs, z, R, w, gains, KY)
         if cfg.outlier_mixture:
             q = self._outlier_q(sc, Pc, z, R)
             if q > 1e-9:
