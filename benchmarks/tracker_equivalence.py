@@ -4,11 +4,12 @@ Loads ``kmea/tracking.py`` of revision REV (``git show REV:kmea/tracking.py``) a
 temporary module next to the working tree's ``kmea.tracking`` and runs both, measurement by
 measurement, on the same drives: every drive of the tuning sets and the held-out sets of
 ``kmea.benchmarks.tracking`` (measurements with their outliers, as ``update_cost`` makes
-them), the "tune C-like" drives with the "cv" model and with shuffled (out-of-order)
-measurements, and a hand-move case (a standing robot carried away, an outlier among the
-measurements at its new place, a gap that resets the track). Compares every Outcome's
-kind, reason and retracted measurements, and the states after each measurement and
-predicted 50 ms ahead (x, y, theta, sigma, sigma_theta, vx, vy, speed, omega, cov).
+them), the "tune C-like" drives with the "cv" model, with one model (no IMM) and with
+shuffled (out-of-order) measurements, and a hand-move case (a standing robot carried away,
+an outlier among the measurements at its new place, a gap that resets the track). Compares
+every Outcome's kind, reason and retracted measurements, the states after each measurement
+(x, y, theta, sigma, sigma_theta, vx, vy, speed, omega, cov) and each drive's prediction
+50 ms after its last measurement.
 Prints the largest differences, the number of differing decisions, and both versions' cost
 per update (the mean of :meth:`Tracker.update` over the drives, each timed in turn on the
 same measurements). Prints figures; no asserts (exit status 1 when decisions differ or a
@@ -79,6 +80,7 @@ def drives(quick: bool):
             yield f"{mset.name} {seed}", {}, rows
             if mset.name == TUNE_HARD[0].name:
                 yield f"{mset.name} {seed} cv", {"model": "cv"}, rows
+                yield f"{mset.name} {seed} one model", {"manoeuvre_scale": 1.0}, rows
                 # Out of order: every 7th measurement swapped with the one before it.
                 sw = list(rows)
                 for k in range(7, len(sw), 7):
