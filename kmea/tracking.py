@@ -768,7 +768,7 @@ class Track:
         if dt < -cfg.reset_after_s:
             return Outcome("rejected", f"too old ({-dt:.2f} s before the last measurement)",
                            math.nan, None)
-        fs = self._predict(self._fs, dt)
+        fs = fs_pred = self._predict(self._fs, dt)
         inn = _innovation(*self._combine(fs), z, R)
         if inn is None:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
@@ -790,7 +790,9 @@ class Track:
                                f"from the track ({reason})", d2, self.state())
             if dt >= 0:
                 self._rej_run.append((t, z, R))
-            return Outcome("rejected", reason, d2, self.predict(max(t, self.t)))
+            # The prediction to t (as self.predict(t) would compute it again).
+            st = self._state(t, *self._combine(fs_pred)) if dt > 0 else self.predict(self.t)
+            return Outcome("rejected", reason, d2, st)
         self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
         self._rej_run = []
         if retracted or dt < 0:
