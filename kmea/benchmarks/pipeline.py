@@ -150,6 +150,15 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
               f"detection, {out['cpu_ms']:6.2f} ms/frame CPU = "
               f"{out['cpu_ms'] / bare_cpu * 100:5.1f} % of bare detection's CPU (main thread "
               f"{out['main_cpu_ms']:.2f} ms)")
+        m = out["marks"]
+        if len(m) - 1 > 2 * STEADY_FROM:
+            k = len(m) - 1 - STEADY_FROM
+            sw, sc, sm = ((m[-1, j] - m[STEADY_FROM, j]) / k * 1e3 for j in range(3))
+            print(f"{algo}, tracking, robots' tracking filter, steady state (frames "
+                  f"{STEADY_FROM}-{len(m) - 2}): {sw:6.2f} ms/frame wall = "
+                  f"{sw / (1e3 / bare_fps) * 100:5.1f} % of bare detection, {sc:6.2f} ms/frame "
+                  f"CPU = {sc / bare_cpu * 100:5.1f} % of bare detection's CPU (main thread "
+                  f"{sm:.2f} ms)")
 
 
 def run(quick: bool = False) -> None:
