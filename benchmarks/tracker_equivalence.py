@@ -41,8 +41,7 @@ from kmea import tracking as new_mod
 from kmea.benchmarks.tracking import (
     HELD_OUT,
     TUNE_HARD,
-    make_measurements,
-    trajectory,
+    drive_rows,
     tuning_sets,
 )
 
@@ -70,13 +69,7 @@ def drives(quick: bool):
         sets = tuple(replace(s, seeds=s.seeds[:1], duration=15.0) for s in sets)
     for mset in sets:
         for seed in mset.seeds:
-            tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn,
-                            mset.max_accel, mset.stops)
-            ms = make_measurements(tr, seed, mset.fps, mset.sigma, 0.05, burst=mset.burst,
-                                   manoeuvre_outliers=mset.manoeuvre_outliers,
-                                   stop_outliers=mset.stop_outliers)
-            rows = [(float(ms.t[k]), *map(float, ms.z[k]), float(ms.sigma[k]))
-                    for k in range(len(ms.t))]
+            rows = drive_rows(mset, seed)
             yield f"{mset.name} {seed}", {}, rows
             if mset.name == TUNE_HARD[0].name:
                 yield f"{mset.name} {seed} cv", {"model": "cv"}, rows

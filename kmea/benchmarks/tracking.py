@@ -539,6 +539,18 @@ def run(quick: bool = False) -> None:
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 
+def drive_rows(mset: MotionSet, seed: int) -> list[tuple[float, float, float, float, float]]:
+    """The measurements of drive ``seed`` of ``mset`` with its outliers, as the filters take
+    them: rows (t s, x m, y m, theta rad, sigma m)."""
+    tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel,
+                    mset.stops)
+    ms = make_measurements(tr, seed, mset.fps, mset.sigma, 0.05, burst=mset.burst,
+                           manoeuvre_outliers=mset.manoeuvre_outliers,
+                           stop_outliers=mset.stop_outliers)
+    return [(float(ms.t[k]), *map(float, ms.z[k]), float(ms.sigma[k]))
+            for k in range(len(ms.t))]
+
+
 def update_cost(cfg: TrackerConfig = TUNED, tracker: type = Tracker,
                 sets: tuple[MotionSet, ...] | None = None) -> float:
     """The mean time of one :meth:`Tracker.update` (s) over the drives of ``sets`` (by
@@ -549,14 +561,8 @@ def update_cost(cfg: TrackerConfig = TUNED, tracker: type = Tracker,
     for mset in sets if sets is not None else TUNE_HARD[::2]:
         spent, count = 0.0, 0
         for seed in mset.seeds:
-            tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn,
-                            mset.max_accel, mset.stops)
-            ms = make_measurements(tr, seed, mset.fps, mset.sigma, 0.05, burst=mset.burst,
-                                   manoeuvre_outliers=mset.manoeuvre_outliers,
-                                   stop_outliers=mset.stop_outliers)
             trk = tracker(cfg)
-            rows = [(float(ms.t[k]), *map(float, ms.z[k]), float(ms.sigma[k]))
-                    for k in range(len(ms.t))]
+            rows = drive_rows(mset, seed)
             t0 = time.perf_counter()
             for t, x, y, th, s in rows:
                 trk.update("r", t, x, y, th, s)
