@@ -640,7 +640,7 @@ class CornerPnP(EstimatorBase):
             dis = self._disagreement(fit, refs, xy, world_map)
             new, new_keep = self._consensus(fit, refs, inliers, X_refs, uv_refs, xy, dis,
                                             world_map, obs)
-            if new == inliers and all(np.array_equal(new_keep[i], keep[i]) for i in refs):
+            if new == inliers and all(np.array_equal(new_keep[i], keep[i]) for i in new):
                 break
             keep = new_keep
             if len(new) < self.min_references:
