@@ -353,19 +353,16 @@ class _Model:
              ) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
-    def step(self, s: np.ndarray, P: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def steps(self, ss: Any, Ps: np.ndarray, dt: float, qs: list[tuple[float, float]]
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """M states (M, n) and covariances (M, n, n) moved by ``dt`` s (negative: backwards;
+        the uncertainty still grows), model j with the process noise densities ``qs[j]`` =
+        (accel_noise, turn_noise)."""
         raise NotImplementedError
 
     def velocity(self, s: np.ndarray) -> tuple[float, float, float, float]:
         """(vx, vy, speed, omega)."""
         raise NotImplementedError
-
-
-def _pv_noise(q: float, dt: float) -> np.ndarray:
-    """Continuous white-acceleration noise of a (position, velocity) pair over dt."""
-    a = abs(dt)
-    return q * np.array([[a ** 3 / 3.0, a * a / 2.0 * np.sign(dt)],
-                         [a * a / 2.0 * np.sign(dt), a]])
 
 
 class _CV(_Model):
@@ -379,24 +376,12 @@ class _CV(_Model):
         P[5, 5] = cfg.max_turn_rate ** 2
         return s, P
 
-    def step(self, s, P, dt):
-        F = np.eye(6)
-        F[0, 3] = F[1, 4] = F[2, 5] = dt
-        s = F @ s
-        s[2] = _wrap(s[2])
-        Q = np.zeros((6, 6))
-        for i, j, q in ((0, 3, self.qa), (1, 4, self.qa), (2, 5, self.qw)):
-            B = _pv_noise(q, dt)
-            Q[i, i], Q[i, j], Q[j, i], Q[j, j] = B[0, 0], B[0, 1], B[1, 0], B[1, 1]
-        # Backwards (dt < 0, retrodiction) the uncertainty still grows.
-        return s, F @ P @ F.T + Q
-
     def steps(self, ss, Ps, dt, qs):
-        """:meth:`step` of M states at once (``ss`` (M, n), array or nested lists; ``Ps``
-        (M, n, n)), model j with the process noise densities ``qs[j]`` = (accel_noise,
-        turn_noise)."""
+        """:meth:`_Model.steps` (``ss`` an array or nested lists): F the identity with dt
+        coupling each of x, y, theta to its rate; Q the continuous white-acceleration noise
+        of each (position, rate) pair."""
         F = self._F(dt)
-        out_s = np.array([F @ s for s in np.asarray(ss)])  # each F @ s: step's rounding
+        out_s = np.array([F @ s for s in np.asarray(ss)])  # one state at a time (its rounding)
         out_s[:, 2] = (out_s[:, 2] + math.pi) % _TWO_PI - math.pi
         a = abs(dt)
         sg = float(np.sign(dt))
@@ -428,44 +413,11 @@ class _CTRV(_Model):
         P[4, 4] = cfg.max_turn_rate ** 2
         return s, P
 
-    def step(self, s, P, dt):
-        x, y, th, v, w = s
-        c, sn = math.cos(th), math.sin(th)
-        F = np.eye(5)
-        if abs(w * dt) > 1e-6:
-            th2 = th + w * dt
-            c2, s2 = math.cos(th2), math.sin(th2)
-            nx = x + v / w * (s2 - sn)
-            ny = y + v / w * (c - c2)
-            F[0, 2] = v / w * (c2 - c)
-            F[0, 3] = (s2 - sn) / w
-            F[0, 4] = v * dt * c2 / w - v / (w * w) * (s2 - sn)
-            F[1, 2] = v / w * (s2 - sn)
-            F[1, 3] = (c - c2) / w
-            F[1, 4] = v * dt * s2 / w - v / (w * w) * (c - c2)
-        else:
-            nx = x + v * dt * c
-            ny = y + v * dt * sn
-            F[0, 2] = -v * dt * sn
-            F[0, 3] = dt * c
-            F[0, 4] = -v * dt * dt * sn / 2.0
-            F[1, 2] = v * dt * c
-            F[1, 3] = dt * sn
-            F[1, 4] = v * dt * dt * c / 2.0
-        F[2, 4] = dt
-        s2v = np.array([nx, ny, _wrap(th + w * dt), v, w])
-        a = abs(dt)
-        # White linear and angular acceleration mapped through the model (discretised).
-        G = np.array([[a * a / 2.0 * c, 0.0], [a * a / 2.0 * sn, 0.0], [0.0, a * a / 2.0],
-                      [a, 0.0], [0.0, a]])
-        Q = G @ np.diag([self.qa, self.qw]) @ G.T / a if a > 0 else np.zeros((5, 5))
-        return s2v, F @ P @ F.T + Q
-
     def steps(self, ss, Ps, dt, qs):
-        """:meth:`step` of M states at once (``ss`` (M, n), array or nested lists; ``Ps``
-        (M, n, n)), model j with the process noise densities ``qs[j]`` = (accel_noise,
-        turn_noise); the same
-        arithmetic as :meth:`step`, in floats (numpy's per-call cost dominated it)."""
+        """:meth:`_Model.steps` (``ss`` an array or nested lists): constant turn rate and
+        speed, F its Jacobian; Q white linear and angular acceleration mapped through the
+        model (discretised): G diag(q) G^T / |dt|. In floats (numpy's per-call cost
+        dominated it)."""
         a = abs(dt)
         h = a * a / 2.0
         out_s, Fs, Qs = [], [], []
@@ -615,8 +567,8 @@ class Track:
         switching probabilities over |dt| (IMM), then each moved by its own model."""
         ss, Ps, mu = fs
         if len(self._models) == 1:
-            s, P = self._models[0].step(ss[0], Ps[0], dt)
-            return s[None], P[None], mu
+            out_s, out_P = self._models[0].steps(ss, Ps, dt, self._qs)
+            return out_s, out_P, mu
         cfg = self.config
         p01 = 1.0 - math.exp(-abs(dt) / cfg.cruise_time_s)
         p10 = 1.0 - math.exp(-abs(dt) / cfg.manoeuvre_time_s)
