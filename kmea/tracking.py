@@ -725,7 +725,6 @@ class Track:
         if inn is None:
             return Outcome("rejected", "singular innovation covariance", math.nan, self.state())
         y_, S, _, d2 = inn
-        retracted = None
         retracted: list = []
         t_before, fs_before = self.t, self._fs
         if d2 > self.gate and dt >= 0 and cfg.look_back:
@@ -791,10 +790,9 @@ class Track:
         # mean is ss[j, :2] + w g[j], its covariance (Joseph form) P0 - w (B + B^T) + w^2 C.
         KY = (Ks @ ys[:, :, None])[:, :, 0]  # each model's full Kalman correction K y
         g = KY[:, :2].tolist()
-        # B = Kp P[:3, :2] (Kp: the gain's position rows); C = Kp S Kp^T equals it
-        # (K = P H^T S^-1), so it is not formed.
+        # B = Kp P[:3, :2] (Kp: the gain's position rows); the quadratic coefficient
+        # C = Kp S Kp^T equals it (K = P H^T S^-1), so B stands for both below.
         Bs = (Ks[:, :2, :] @ Ps[:, :3, :2]).tolist()
-        Cs = Bs
         P0s = Ps[:, :2, :2].tolist()
         mul = mu.tolist()
         sl = ss[:, :2].tolist()
@@ -807,17 +805,17 @@ class Track:
         for m, (sx, sy), (gx, gy) in zip(mul, sl, g, strict=True):
             p0, q0, p1, q1 = p0 + m * sx, q0 + m * sy, p1 + m * gx, q1 + m * gy
         a_0 = a_1 = a_2 = b_0 = b_1 = b_2 = d_0 = d_1 = d_2 = 0.0
-        for m, (sx, sy), (gx, gy), P, B, C in zip(mul, sl, g, P0s, Bs, Cs, strict=True):
+        for m, (sx, sy), (gx, gy), P, B in zip(mul, sl, g, P0s, Bs, strict=True):
             dx, dy, ex, ey = sx - p0, sy - q0, gx - p1, gy - q1
             a_0 += m * (P[0][0] + dx * dx)
             a_1 += m * (2.0 * (dx * ex - B[0][0]))
-            a_2 += m * (C[0][0] + ex * ex)
+            a_2 += m * (B[0][0] + ex * ex)
             b_0 += m * (0.5 * (P[0][1] + P[1][0]) + dx * dy)
             b_1 += m * (dx * ey + ex * dy - (B[0][1] + B[1][0]))
-            b_2 += m * (0.5 * (C[0][1] + C[1][0]) + ex * ey)
+            b_2 += m * (0.5 * (B[0][1] + B[1][0]) + ex * ey)
             d_0 += m * (P[1][1] + dy * dy)
             d_1 += m * (2.0 * (dy * ey - B[1][1]))
-            d_2 += m * (C[1][1] + ey * ey)
+            d_2 += m * (B[1][1] + ey * ey)
         ka, kb, kd = (a_0, a_1, a_2), (b_0, b_1, b_2), (d_0, d_1, d_2)
 
         def moved(w: float, ref: tuple = s0) -> float:
@@ -973,10 +971,7 @@ class Track:
             return False
         if t - self._cand[0][0] > self.config.reacquire_window_s or t < c.t:
             return False
-        tp, zp, Rp = self._cand[-1]
-        reach = self.config.max_speed * abs(t - tp) + 3.0 * math.sqrt(
-            R[0, 0] + Rp[0, 0])
-        if math.hypot(z[0] - zp[0], z[1] - zp[1]) > reach:
+        if not self._reachable(self._cand[-1], t, z, R):
             return False
         inn = _innovation(*c._combine(c._predict(c._fs, t - c.t)), z, R)
         return inn is not None and inn[3] <= self.look_back_gate and inn[3] < d2
@@ -1008,8 +1003,7 @@ class Track:
         if len(self._cand) >= cfg.reacquire_n:
             c = self._cand_track
             self._set(c._fs, c.t)
-            self._hist, self._rej_run, self._alt = [], [], None
-            self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
+            self._forget()
             return True
         return False
 
@@ -1020,14 +1014,24 @@ class Track:
         cfg = self.config
         if c is None or not cand or t - cand[0][0] > cfg.reacquire_window_s:
             return False
-        # Consecutive candidates further apart than the robot can drive (max_speed, plus 3
-        # sigma of the two measurements) are not one robot: random outliers in a row.
-        tp, zp, Rp = cand[-1]
-        reach = cfg.max_speed * abs(t - tp) + 3.0 * math.sqrt(R[0, 0] + Rp[0, 0])
-        if math.hypot(z[0] - zp[0], z[1] - zp[1]) > reach:
+        if not self._reachable(cand[-1], t, z, R):
             return False
         out = c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
         return out.kind == "update"
+
+    def _reachable(self, last: tuple, t: float, z: np.ndarray, R: np.ndarray) -> bool:
+        """Could the robot of candidate ``last`` (t, z, R) be at ``z`` at ``t``? Candidates
+        further apart than it can drive (max_speed, plus 3 sigma of the two measurements)
+        are not one robot: random outliers in a row."""
+        tp, zp, Rp = last
+        reach = self.config.max_speed * abs(t - tp) + 3.0 * math.sqrt(R[0, 0] + Rp[0, 0])
+        return math.hypot(z[0] - zp[0], z[1] - zp[1]) <= reach
+
+    def _forget(self) -> None:
+        """Drop the look-back history, the rejected run, the cumulative bound's alternative
+        track and the re-acquisition candidates (a new or restarted track)."""
+        self._hist, self._rej_run, self._alt = [], [], None
+        self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
 
     def _start(self, t: float, z: np.ndarray, R: np.ndarray) -> None:
         cfg = self.config
@@ -1038,8 +1042,7 @@ class Track:
             [cfg.cruise_time_s, cfg.manoeuvre_time_s]) / (cfg.cruise_time_s
                                                           + cfg.manoeuvre_time_s)
         self._set((np.repeat(s[None], M, 0), np.repeat(P[None], M, 0), mu), t)
-        self._hist, self._rej_run, self._alt = [], [], None
-        self._cand, self._cand_track, self._cand_prev = [], None, ([], None)
+        self._forget()
 
     # ------------------------------------------------------------------ output
     @property
