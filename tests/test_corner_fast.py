@@ -103,23 +103,9 @@ def ref_sigmas(fit, xy, F, O):
 
 
 def ref_square_pose(P, frames, lengths, keep=None):
-    n = len(P)
-    w = np.ones((n, 4)) if keep is None else np.asarray(keep, dtype=float)
-    c = marker_corners_local(1.0)[None, :, :2] * np.asarray(lengths, float)[:, None, None]
-    sw = w.sum(axis=1)
-    mP = np.einsum("nk,nki->ni", w, P) / sw[:, None]
-    mc = np.einsum("nk,nki->ni", w, c) / sw[:, None]
-    a = np.einsum("nki,nij->nkj", P - mP[:, None, :], frames[:, :, :2])
-    cc = c - mc[:, None, :]
-    ang = np.arctan2(np.sum(w * (cc[:, :, 0] * a[:, :, 1] - cc[:, :, 1] * a[:, :, 0]), axis=1),
-                     np.sum(w * (cc[:, :, 0] * a[:, :, 0] + cc[:, :, 1] * a[:, :, 1]), axis=1))
-    Rz = np.zeros((n, 3, 3))
-    Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(ang)
-    Rz[:, 1, 0] = np.sin(ang)
-    Rz[:, 0, 1] = -Rz[:, 1, 0]
-    Rz[:, 2, 2] = 1.0
-    Rw = frames @ Rz
-    return mP - np.einsum("nij,nj->ni", Rw[:, :, :2], mc), Rw
+    """The general (weighted) square fit, with all 4 corners kept unless told otherwise: the
+    reference of square_pose's all-corner shortcut."""
+    return square_pose(P, frames, lengths, np.ones((len(P), 4), bool) if keep is None else keep)
 
 
 def ref_corner_outliers(R, t, K, d, uv, centres, rotations, lengths, sigma_px, threshold):

@@ -968,8 +968,8 @@ class CornerPnP(EstimatorBase):
             d_g, _, _ = corner_outliers(fit.R, fit.t, fit.K, fit.d, uv[g], centres[g], Rw[g],
                                         lengths[g], self._corner_sigma(fit), self._corner_q)
             drop[g] = d_g
-        sel = np.flatnonzero(drop >= 0) if (drop >= 0).any() else ()
-        if len(sel):
+        sel = np.flatnonzero(drop >= 0)
+        if sel.size:
             keep = np.ones((sel.size, 4), bool)
             keep[np.arange(sel.size), drop[sel]] = False
             centres[sel], Rw[sel] = square_pose(P[sel], frames[sel], lengths[sel], keep)
