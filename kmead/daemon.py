@@ -647,7 +647,6 @@ class Daemon:
         # Latency compensation: the pose predicted to the send time (live sources only: a
         # file's timestamps are not the wall clock).
         predict = self.cfg["filter"]["predict"] and self.live and tracker is not None
-        sent: list[str] = []
         for fix in fixes.values():
             extra = None
             t_fix, x, y, th, sigma = t, fix.x, fix.y, fix.theta, fix.sigma
@@ -665,10 +664,9 @@ class Daemon:
             # Every datagram first: a telemetry body wakes the telemetry thread, which
             # would take the GIL from the next robot's datagram.
             self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False)
-            sent.append(fix.name)
             tot.robots_seen.add(fix.name)
-        for name in sent:
-            self.relay.publish_fix(name)
+        for fix in fixes.values():
+            self.relay.publish_fix(fix.name)
         for name in self.relay.tick(t):
             self.event("warning", f"robot {name} not seen for "
                                   f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")

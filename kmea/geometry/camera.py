@@ -106,21 +106,10 @@ def distort(xy: np.ndarray, d: np.ndarray, jac: bool = False):
     out = np.stack([xd, yd], axis=1)
     if not jac:
         return out
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d[:12]
+    J = distort_jacobian(xy, d)
+    k4, k5, k6 = np.asarray(d[5:8], dtype=float).tolist()
     r2 = x * x + y * y
-    a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     b = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    rad = a / b
-    da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    db = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
-    drad = (da * b - a * db) / (b * b)  # d rad / d r2
-    tx = s1 + 2.0 * s2 * r2
-    ty = s3 + 2.0 * s4 * r2
-    J = np.empty((len(x), 2, 2))
-    J[:, 0, 0] = rad + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x + 2.0 * tx * x
-    J[:, 0, 1] = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y + 2.0 * tx * y
-    J[:, 1, 0] = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y + 2.0 * ty * x
-    J[:, 1, 1] = rad + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x + 2.0 * ty * y
     dk1 = np.stack([x * r2 / b, y * r2 / b], axis=1)
     return out, J, dk1
 
