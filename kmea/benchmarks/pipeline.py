@@ -125,17 +125,8 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
                   f"{np.max(loo) * 1e3 if loo else float('nan'):.2f} mm; stage ms/frame: "
                   + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
                   + extra)
-            if tracking and len(res) > 2 * STEADY_FROM:
-                # A live camera runs for hours: the first second (the cold first frame, the
-                # floor's references averaged, markers uncovered for the first time) is
-                # start-up; the rest is what every later second costs.
-                m = out["marks"]
-                k = len(m) - 1 - STEADY_FROM
-                sw, sc, sm = ((m[-1, j] - m[STEADY_FROM, j]) / k * 1e3 for j in range(3))
-                print(f"{algo}, tracking, steady state (frames {STEADY_FROM}-{len(res) - 1})"
-                      f": {sw:6.2f} ms/frame wall = {sw / (1e3 / bare_fps) * 100:5.1f} % of "
-                      f"bare detection, {sc:6.2f} ms/frame CPU = {sc / bare_cpu * 100:5.1f} % "
-                      f"of bare detection's CPU (main thread {sm:.2f} ms)")
+            if tracking:
+                _print_steady(f"{algo}, tracking", out["marks"], bare_fps, bare_cpu)
         (fw, fc), (tw, tc) = row["full detection"], row["tracking"]
         print(f"{algo}: tracking / full detection = {tw / fw:.2f} (wall), {tc / fc:.2f} (CPU)")
         # The library's default robot filter is the paper's IIR; the daemon's configuration
@@ -150,15 +141,23 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
               f"detection, {out['cpu_ms']:6.2f} ms/frame CPU = "
               f"{out['cpu_ms'] / bare_cpu * 100:5.1f} % of bare detection's CPU (main thread "
               f"{out['main_cpu_ms']:.2f} ms)")
-        m = out["marks"]
-        if len(m) - 1 > 2 * STEADY_FROM:
-            k = len(m) - 1 - STEADY_FROM
-            sw, sc, sm = ((m[-1, j] - m[STEADY_FROM, j]) / k * 1e3 for j in range(3))
-            print(f"{algo}, tracking, robots' tracking filter, steady state (frames "
-                  f"{STEADY_FROM}-{len(m) - 2}): {sw:6.2f} ms/frame wall = "
-                  f"{sw / (1e3 / bare_fps) * 100:5.1f} % of bare detection, {sc:6.2f} ms/frame "
-                  f"CPU = {sc / bare_cpu * 100:5.1f} % of bare detection's CPU (main thread "
-                  f"{sm:.2f} ms)")
+        _print_steady(f"{algo}, tracking, robots' tracking filter", out["marks"], bare_fps,
+                      bare_cpu)
+
+
+def _print_steady(label: str, marks: np.ndarray, bare_fps: float, bare_cpu: float) -> None:
+    """The run's figures from frame STEADY_FROM on (``marks``: :func:`pipeline_rate`'s frame
+    boundaries). A live camera runs for hours: the first second (the cold first frame, the
+    floor's references averaged, markers uncovered for the first time) is start-up; the
+    rest is what every later second costs."""
+    n = len(marks) - 1
+    if n <= 2 * STEADY_FROM:
+        return
+    k = n - STEADY_FROM
+    sw, sc, sm = ((marks[-1, j] - marks[STEADY_FROM, j]) / k * 1e3 for j in range(3))
+    print(f"{label}, steady state (frames {STEADY_FROM}-{n - 1}): {sw:6.2f} ms/frame wall = "
+          f"{sw / (1e3 / bare_fps) * 100:5.1f} % of bare detection, {sc:6.2f} ms/frame CPU = "
+          f"{sc / bare_cpu * 100:5.1f} % of bare detection's CPU (main thread {sm:.2f} ms)")
 
 
 def run(quick: bool = False) -> None:
