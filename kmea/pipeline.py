@@ -36,6 +36,12 @@ __all__ = ["STAGES", "FrameInput", "FrameResult", "MarkerObserver", "Pipeline",
 
 STAGES = ("capture", "detect", "pose", "estimate", "loo", "filter", "robots", "output")
 
+# A fixed marker whose reference corners moved by at most this (px) keeps its pose, for
+# estimators that fit corners (kmea.incremental.IncrementalPoses.reuse_px): a tenth of a
+# pixel, above the 0.005-0.05 px of one more averaged look, below the 0.1-0.3 px corner
+# noise of a single detection.
+REUSE_PX = 0.1
+
 
 @dataclass
 class FrameInput:
@@ -328,6 +334,10 @@ class Pipeline:
             self.estimator.warm_start = self.settings.tracking
         if hasattr(self, "inc_loo"):
             self.inc_loo.reset()
+        # A floor reference averaged once more keeps its pose when the estimator fits the
+        # corners (see IncrementalPoses).
+        self.inc_poses.reuse_px = REUSE_PX if getattr(self.estimator, "fits_corners",
+                                                      False) else 0.0
 
     def close(self) -> None:
         """Stop the detector's background thread, if it has one."""

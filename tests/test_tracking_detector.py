@@ -776,3 +776,79 @@ def test_code_sampler_homographies_are_opencvs_and_a_degenerate_quad_spoils_only
     s = CodeSampler(np.stack([flat, good]), np.stack([code, code]), gray.shape)
     scores = s.scores(gray)
     assert scores[0] == 0.0 and scores[1] > 0.95, scores
+
+
+def test_a_small_bump_is_noticed_in_its_frame_by_the_rotating_drift_check():
+    # 0.1 degrees moves the floor by about a pixel: every code still reads, only the drift
+    # shows it; the drift of a third of the markers is measured per frame.
+    fps = 30.0
+    frames, src = _frames("sim:default?bump_at=0.4&bump_deg=0.1", 16)
+    tracker = _tracker(src)
+    modes = [(f.index, d.mode, d.events) for f in frames for d in [tracker.detect(f.image)]]
+    bump_frame = math.ceil(0.4 * fps)
+    bumped = [i for i, _, ev in modes if any("camera moved" in e for e in ev)]
+    assert bumped == [bump_frame], modes
+    assert modes[bump_frame][1] == "full"
+
+
+def test_a_floor_marker_pushed_by_two_pixels_is_noticed_within_the_drift_rotation():
+    frames, src = _frames("sim:default", 14)
+    tracker = _tracker(src)
+    every = tracker.settings.drift_every
+    for f in frames[:6]:
+        tracker.detect(f.image)
+    static = sorted(m for m, t in tracker.tracks.items() if t.static)
+    assert len(static) > 3 * tracker.settings.drift_min  # a share, not all, per frame
+    mid = static[len(static) // 2]
+    c = tracker.tracks[mid].corners
+    x0, y0 = (np.floor(c.min(axis=0)) - 6).astype(int)
+    x1, y1 = (np.ceil(c.max(axis=0)) + 6).astype(int)
+    events = []
+    for f in frames[6:6 + every]:
+        img = f.image.copy()
+        # The marker's patch moved 2 px right (its surroundings are the plain floor).
+        img[y0:y1, x0 + 2:x1 + 2] = f.image[y0:y1, x0:x1]
+        d = tracker.detect(img)
+        events += [e for e in d.events if e.startswith("floor marker")]
+        assert not d.restart
+    assert any(str(mid) in e.split("moved")[0] for e in events), events
+
+
+def test_a_floor_reference_averaged_once_more_keeps_its_pose_for_corner_fits(default_frames):
+    from kmea.incremental import IncrementalPoses
+
+    frames, src = default_frames
+    p = _tracked_pipeline(src, algorithm="corner-pnp")
+    det = p.detector.detect(frames[0].image)
+    ids, corners = det.ids, det.corners
+    posed: list[list[int]] = []
+
+    def pose(i, c, w2c=None):
+        posed.append([int(m) for m in i])
+        return p.poses(i, c, w2c)
+
+    fixed = [m for m in ids.tolist() if m in p.inc_poses.fixed]
+    for reuse_px in (0.1, 0.0):
+        inc = IncrementalPoses(p.inc_poses.fixed, reuse_px=reuse_px)
+        first, _ = inc.poses(pose, ids, corners)
+        nudged = corners.copy()
+        a, b = (ids.tolist().index(m) for m in fixed[:2])
+        nudged[a] += 0.04   # one more averaged look
+        nudged[b] += 0.3    # a reference that really changed
+        posed.clear()
+        second, _ = inc.poses(pose, ids, nudged)
+        by_id = {o.id: o for o in second}
+        old = {o.id: o for o in first}
+        assert np.array_equal(by_id[fixed[0]].corners, nudged[a])
+        assert np.array_equal(by_id[fixed[1]].corners, nudged[b])
+        repose = {m for call in posed for m in call}
+        assert fixed[1] in repose
+        if reuse_px:
+            assert fixed[0] not in repose and inc.refreshed == 1
+            assert by_id[fixed[0]].marker2cam_t is old[fixed[0]].marker2cam_t
+        else:
+            assert fixed[0] in repose and inc.refreshed == 0
+    assert p.inc_poses.reuse_px == 0.1  # on for corner-pnp
+    p.set_algorithm("kmea")
+    assert p.inc_poses.reuse_px == 0.0  # off for estimators that read the poses
+    p.close()

@@ -263,6 +263,9 @@ class CornerPnP(EstimatorBase):
     """
 
     name = "corner-pnp"
+    # The fit reads the references' corners, not their poses (a pose only seeds a cold
+    # fit and the depth scale of markers off the map's planes).
+    fits_corners = True
 
     def __init__(self, threshold: float | None = None, start_threshold: float | None = None,
                  huber_px: float = 1.0, refine_intrinsics: bool | str = "auto",

@@ -60,8 +60,12 @@ class TrackingConfig:
     full_every: a background full detection every this many frames (new markers), at half
     resolution except every ``full_res_every``-th (small, far markers) and after a loss.
     move_px: a static marker whose corners drift more than this moved.
+    drift_every: each static marker's drift is measured every this many frames (a
+    rotating share of them a frame, at least ``drift_min``; all of them when there are no
+    more); its code is checked every frame.
     bump_fraction: this share of the static markers moved or missing (at least
-    ``bump_min`` of them) = the camera was bumped.
+    ``bump_min`` of them) = the camera was bumped; counted among the markers whose drift
+    was measured in the frame, and among all of them for the code check.
     min_score: a static marker is seen when its code correlates at least this much with
     the image at its reference corners (:func:`code_scores`); add_score: a static marker
     found by a background detection is taken (or replaces its reference) from this score.
@@ -78,6 +82,8 @@ class TrackingConfig:
     full_res_every: int = 10
     average: int = 8
     move_px: float = 1.0
+    drift_every: int = 3
+    drift_min: int = 8
     bump_fraction: float = 0.5
     bump_min: int = 3
     min_score: float = 0.6
@@ -209,6 +215,30 @@ GATE_WAIT_S = 0.25
 # A followed marker's corners may leave the similarity image of its last corners by this much
 # (px); see TrackingDetector._follow.
 SHAPE_PX = 0.5
+
+
+def _sides(q: np.ndarray) -> np.ndarray:
+    """(n, 4) side lengths (px) of quads q (n, 4, 2): corner k to corner k + 1."""
+    d = q[:, _NEXT] - q
+    return np.sqrt(np.add.reduce(d * d, axis=2))
+
+
+def _median(v: list[float]) -> float:
+    """The median of a few floats (np.median costs ~15 us a call)."""
+    v = sorted(v)
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+_NEXT = [1, 2, 3, 0]
+
+
+def _subpix_window(ref: np.ndarray) -> int:
+    """The floor check's ``cornerSubPix`` half-window (px) for reference corners ref
+    (N, 4, 2) px: 0.3 of the median marker's module (7 modules a side), 2 to 6 px."""
+    side = np.linalg.norm(ref[:, 0] - ref[:, 2], axis=1) / np.sqrt(2.0)
+    module = float(np.median(side)) / 7.0
+    return int(min(6, max(2, round(0.3 * module))))
 
 
 @dataclass(eq=False)
@@ -515,28 +545,41 @@ class TrackingDetector:
         if st:
             ref = np.stack([self.tracks[m].corners for m in st])
             key = (tuple(st), tuple(self.tracks[m] for m in st), gray.shape)
-            if self._sampler is None or self._sampler[0] != key:
-                self._sampler = (key, CodeSampler(ref, np.stack([self._code(m) for m in st]),
-                                                  gray.shape))
+            if self._sampler is None or self._sampler[0][:3] != key:
+                # With the cornerSubPix window of these references (the same for a marker
+                # at every look, whichever share is measured).
+                self._sampler = ((*key, _subpix_window(ref)),
+                                 CodeSampler(ref, np.stack([self._code(m) for m in st]),
+                                             gray.shape))
             seen = self._sampler[1].scores(gray) >= s.min_score
-            refined = self._subpix(gray, ref)
-            for m, r in zip(st, refined, strict=True):
-                if self.tracks[m].sub is None:  # first tracked frame since the reference
-                    self.tracks[m].sub = r
-            sub0 = np.stack([self.tracks[m].sub for m in st])
+            # The drift of a rotating share of them (cornerSubPix is the floor check's
+            # largest cost): a bump moves every marker, so any share shows it at once; a
+            # single marker pushed by less than its code's tolerance shows within
+            # drift_every frames.
+            chk = self._drift_share(len(st))
+            refined = self._subpix(gray, ref[chk], self._sampler[0][3])
+            for k, r in zip(chk, refined, strict=True):
+                if self.tracks[st[k]].sub is None:  # first look since the reference
+                    self.tracks[st[k]].sub = r
+            sub0 = np.stack([self.tracks[st[k]].sub for k in chk])
             # Drift of the refinement from the refinement at the reference (same method on
             # both sides: the detector's own refinement differs by up to ~1 px on oblique
             # wall markers).
             # Moved: at least 3 corners drifted (a robot's plate over one corner pulls only
             # that corner; the reference stays right for a marker that did not move).
-            far = (np.linalg.norm(refined - sub0, axis=2) > s.move_px).sum(axis=1) >= 3
+            far = np.zeros(len(st), dtype=bool)
+            far[chk] = (np.linalg.norm(refined - sub0, axis=2) > s.move_px).sum(axis=1) >= 3
             moved = [m for m, ok, f in zip(st, seen, far, strict=True) if ok and f]
-            bad = int((~seen).sum()) + len(moved)
-            if len(st) >= s.bump_min and bad >= max(s.bump_min, s.bump_fraction * len(st)):
+            missing = int((~seen).sum())
+            bad_chk = int((~seen[chk]).sum()) + len(moved)
+            if len(st) >= s.bump_min and (
+                    missing >= max(s.bump_min, s.bump_fraction * len(st))
+                    or (len(chk) >= s.bump_min
+                        and bad_chk >= max(s.bump_min, s.bump_fraction * len(chk)))):
                 self.bumps += 1
-                events.append(f"camera moved: {bad} of {len(st)} floor markers moved or "
-                              "missing at their place in the image; full detection and "
-                              "estimation restart")
+                events.append(f"camera moved: {len(moved)} of {len(chk)} floor markers "
+                              f"measured moved, {missing} of {len(st)} missing at their "
+                              "place in the image; full detection and estimation restart")
                 return self._full(gray, events)
             if moved:
                 events.append("floor marker(s) " + ", ".join(map(str, moved))
@@ -620,15 +663,14 @@ class TrackingDetector:
             q = q[inside]
         p = self.full_detector.parameters
         bits = self.dictionary.markerSize + 2 * p.markerBorderBits
-        perim = np.linalg.norm(q - np.roll(q, -1, axis=1), axis=2).sum(axis=1)
-        module = perim / (4.0 * bits)
-        coarse = int(min(8, max(2, round(0.8 * float(np.median(module))))))
+        module = _sides(q).sum(axis=1) / (4.0 * bits)
+        coarse = int(min(8, max(2, round(0.8 * _median(module.tolist())))))
         pts = np.ascontiguousarray(q.reshape(-1, 1, 2), dtype=np.float32)
         pts = cv2.cornerSubPix(gray, pts, (coarse, coarse), (-1, -1),
                                (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.05))
         # The detector's window, from the coarse corners (as it takes it from its contour's).
         c1 = pts.reshape(-1, 4, 2).astype(np.float64)
-        module = np.linalg.norm(c1 - np.roll(c1, -1, axis=1), axis=2).sum(axis=1) / (4.0 * bits)
+        module = _sides(c1).sum(axis=1) / (4.0 * bits)
         rel = float(getattr(p, "relativeCornerRefinmentWinSize", 0.3))
         wins = np.minimum(p.cornerRefinementWinSize,
                           np.maximum(1, np.rint(rel * module))).astype(int)
@@ -662,11 +704,21 @@ class TrackingDetector:
         self.followed += int(ok.sum())
         return {m: got[k] for k, m in enumerate(ids) if ok[k]}
 
-    def _subpix(self, gray: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        """(N, 4, 2) ``cornerSubPix`` of the reference corners (N, 4, 2) px."""
-        side = np.linalg.norm(ref[:, 0] - ref[:, 2], axis=1) / np.sqrt(2.0)
-        module = float(np.median(side)) / 7.0
-        win = int(min(6, max(2, round(0.3 * module))))
+    def _drift_share(self, n: int) -> np.ndarray:
+        """Indices of the n static markers whose drift is measured in this frame: every
+        ``drift_every``-th from a start that rotates frame by frame (all when that is
+        fewer than ``drift_min``)."""
+        s = self.settings
+        every = max(1, int(s.drift_every))
+        if every == 1 or n <= s.drift_min:
+            return np.arange(n)
+        chk = np.arange(self.frame % every, n, every)
+        return chk if len(chk) >= s.drift_min else np.arange(n)
+
+    @staticmethod
+    def _subpix(gray: np.ndarray, ref: np.ndarray, win: int) -> np.ndarray:
+        """(N, 4, 2) ``cornerSubPix`` of the reference corners (N, 4, 2) px, half-window
+        ``win`` px (:func:`_subpix_window`)."""
         pts = ref.reshape(-1, 1, 2).astype(np.float32)
         crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01)
         refined = cv2.cornerSubPix(gray, pts, (win, win), (-1, -1), crit)
