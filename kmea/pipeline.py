@@ -449,14 +449,16 @@ class Pipeline:
                     changed = False
                 elif changed:
                     self._refit_age = 0
-                if (not changed and self.robot_specs and self._floor_obs
+                if (self.robot_specs and self._floor_obs
                         and hasattr(self.estimator, "place_on_planes")):
                     # The floor of the last camera fit: the robots are placed from their
                     # corners with that fit and sent before any pose is computed; their
                     # observations come from those placements (no IPPE pose for them).
+                    # Also when the floor changed: the refit below is for the statistics
+                    # and the next frame (the same fixes with and without a relay).
                     early, known = self._robots_from_corners(inp.timestamp, ids, corners,
                                                              on_robots, rejections)
-                if changed and on_robots is not None and self.robot_specs:
+                if changed and early is None and on_robots is not None and self.robot_specs:
                     # The floor's corners changed (one more averaged look, a marker back in
                     # view): re-posing it and refitting the camera can take 10 ms or more.
                     # The robots go first, placed with the camera fit of the floor as it

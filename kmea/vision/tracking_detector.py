@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import math
 import os
 import threading
 from collections.abc import Collection
@@ -108,23 +109,26 @@ def marker_codes(dictionary: cv2.aruco.Dictionary, ids: Collection[int]) -> dict
 def _homographies(quads: np.ndarray, size: int) -> np.ndarray:
     """(N, 3, 3) homographies mapping module coordinates [0, size]^2 (x right, y down) to the
     image quads (N, 4, 2) TL, TR, BR, BL: the closed-form square-to-quadrilateral mapping
-    (Heckbert, "Fundamentals of texture mapping", 1989), batched; the exact homography of
-    the four corners, as a direct linear solve gives it, without the solve. A degenerate quad
-    (three corners on a line) gives non-finite entries."""
-    x0, x1, x2, x3 = (quads[:, k, 0] for k in range(4))
-    y0, y1, y2, y3 = (quads[:, k, 1] for k in range(4))
-    sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
-    dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
-    with np.errstate(divide="ignore", invalid="ignore"):
+    (Heckbert, "Fundamentals of texture mapping", 1989); the exact homography of the four
+    corners, as a direct linear solve gives it, without the solve. A degenerate quad (three
+    corners on a line) gives non-finite entries. In floats, quad by quad: it runs for the
+    followed markers of every frame (a few quads), where numpy's per-call cost on (N,)
+    arrays was ~50 us."""
+    out = []
+    inf = math.inf
+    for (x0, y0), (x1, y1), (x2, y2), (x3, y3) in np.asarray(quads, float).tolist():
+        sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
+        dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
         den = dx1 * dy2 - dx2 * dy1
-        g = (sx * dy2 - dx2 * sy) / den
-        h = (dx1 * sy - sx * dy1) / den
-    H = np.empty((len(quads), 3, 3))
-    H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = x1 - x0 + g * x1, x3 - x0 + h * x3, x0
-    H[:, 1, 0], H[:, 1, 1], H[:, 1, 2] = y1 - y0 + g * y1, y3 - y0 + h * y3, y0
-    H[:, 2, 0], H[:, 2, 1], H[:, 2, 2] = g, h, 1.0
-    H[:, :, :2] /= size
-    return H
+        if den != 0.0:
+            g = (sx * dy2 - dx2 * sy) / den
+            h = (dx1 * sy - sx * dy1) / den
+        else:
+            g = h = inf
+        out.append(((x1 - x0 + g * x1) / size, (x3 - x0 + h * x3) / size, x0,
+                    (y1 - y0 + g * y1) / size, (y3 - y0 + h * y3) / size, y0,
+                    g / size, h / size, 1.0))
+    return np.array(out, dtype=float).reshape(-1, 3, 3)
 
 
 class CodeSampler:
@@ -217,10 +221,13 @@ GATE_WAIT_S = 0.25
 SHAPE_PX = 0.5
 
 
-def _sides(q: np.ndarray) -> np.ndarray:
-    """(n, 4) side lengths (px) of quads q (n, 4, 2): corner k to corner k + 1."""
-    d = q[:, _NEXT] - q
-    return np.sqrt(np.add.reduce(d * d, axis=2))
+def _perimeter(c: list) -> float:
+    """The perimeter (px) of a quad c (4 [x, y] pairs): corner k to corner k + 1."""
+    total = 0.0
+    for (x0, y0), (x1, y1) in zip(c, c[1:] + c[:1], strict=True):
+        dx, dy = x1 - x0, y1 - y0
+        total += math.sqrt(dx * dx + dy * dy)
+    return total
 
 
 def _median(v: list[float]) -> float:
@@ -229,8 +236,6 @@ def _median(v: list[float]) -> float:
     n = len(v)
     return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
 
-
-_NEXT = [1, 2, 3, 0]
 
 
 def _subpix_window(ref: np.ndarray) -> int:
@@ -651,57 +656,60 @@ class TrackingDetector:
         ~0.5 ms per region detection."""
         if not preds:
             return {}
-        ids = list(preds)
-        q = np.stack([preds[m] for m in ids])                               # (n, 4, 2)
+        # The per-marker glue in floats: a few quads a frame, where numpy's per-call cost
+        # on (n, 4, 2) arrays was most of this method's time.
         h, w = gray.shape
-        inside = ((q[..., 0] >= 2) & (q[..., 0] <= w - 3) & (q[..., 1] >= 2)
-                  & (q[..., 1] <= h - 3)).all(axis=1)
-        if not inside.all():  # near the border: the region detection decides
-            ids = [m for m, ok in zip(ids, inside.tolist(), strict=True) if ok]
-            if not ids:
-                return {}
-            q = q[inside]
+        quads = {m: preds[m].tolist() for m in preds}
+        # Near the border: the region detection decides.
+        ids = [m for m, c in quads.items()
+               if all(2 <= x <= w - 3 and 2 <= y <= h - 3 for x, y in c)]
+        if not ids:
+            return {}
+        qs = [quads[m] for m in ids]
         p = self.full_detector.parameters
         bits = self.dictionary.markerSize + 2 * p.markerBorderBits
-        module = _sides(q).sum(axis=1) / (4.0 * bits)
-        coarse = int(min(8, max(2, round(0.8 * _median(module.tolist())))))
-        pts = np.ascontiguousarray(q.reshape(-1, 1, 2), dtype=np.float32)
+        coarse = int(min(8, max(2, round(0.8 * _median([_perimeter(c) / (4.0 * bits)
+                                                        for c in qs])))))
+        pts = np.array(qs, dtype=np.float32).reshape(-1, 1, 2)
         pts = cv2.cornerSubPix(gray, pts, (coarse, coarse), (-1, -1),
                                (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.05))
         # The detector's window, from the coarse corners (as it takes it from its contour's).
-        c1 = pts.reshape(-1, 4, 2).astype(np.float64)
-        module = _sides(c1).sum(axis=1) / (4.0 * bits)
         rel = float(getattr(p, "relativeCornerRefinmentWinSize", 0.3))
-        wins = np.minimum(p.cornerRefinementWinSize,
-                          np.maximum(1, np.rint(rel * module))).astype(int)
+        wins = [int(min(p.cornerRefinementWinSize, max(1, round(rel * (_perimeter(c)
+                                                                      / (4.0 * bits))))))
+                for c in pts.reshape(-1, 4, 2).astype(np.float64).tolist()]
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
                 p.cornerRefinementMaxIterations, p.cornerRefinementMinAccuracy)
         fine = pts.reshape(-1, 4, 1, 2)
-        for win in set(wins.tolist()):
-            sel = np.flatnonzero(wins == win)
+        for win in set(wins):
+            sel = [k for k, v in enumerate(wins) if v == win]
             part = np.ascontiguousarray(fine[sel].reshape(-1, 1, 2))
             fine[sel] = cv2.cornerSubPix(gray, part, (win, win), (-1, -1), crit
                                          ).reshape(-1, 4, 1, 2)
         got = fine.reshape(-1, 4, 2).astype(np.float64)
-        # The shape held: the last corners map onto the new ones by a similarity (a frame's
-        # perspective change is far below a pixel) - a corner caught by another feature
-        # (the robot's other marker, an edge) breaks it by pixels.
-        old = np.stack([self.tracks[m].corners for m in ids])
-        z0 = old[..., 0] + 1j * old[..., 1]
-        z1 = got[..., 0] + 1j * got[..., 1]
-        z0 = z0 - z0.mean(axis=1, keepdims=True)
-        z1 = z1 - z1.mean(axis=1, keepdims=True)
-        a = (np.conj(z0) * z1).sum(axis=1) / (np.abs(z0) ** 2).sum(axis=1)
-        shape = np.abs(z1 - a[:, None] * z0).max(axis=1)
-        self.shape_px.extend(shape.tolist())
-        ok = ((np.abs(got - q).max(axis=(1, 2)) <= coarse + 2.0)
-              & (np.abs(np.abs(a) - 1.0) < 0.15) & (shape <= SHAPE_PX))
-        if ok.any():
-            score = code_scores(gray, got[ok], np.stack([self._code(m) for m, k
-                                                        in zip(ids, ok.tolist(), strict=True)
-                                                        if k]))
-            ok[ok] = score >= self.settings.follow_score
-        self.followed += int(ok.sum())
+        ok: list[bool] = []
+        for m, q, g in zip(ids, qs, got.tolist(), strict=True):
+            # The shape held: the last corners map onto the new ones by a similarity (a
+            # frame's perspective change is far below a pixel) - a corner caught by another
+            # feature (the robot's other marker, an edge) breaks it by pixels.
+            z0 = [complex(x, y) for x, y in self.tracks[m].corners.tolist()]
+            z1 = [complex(x, y) for x, y in g]
+            c0, c1 = sum(z0) / 4.0, sum(z1) / 4.0
+            z0 = [z - c0 for z in z0]
+            z1 = [z - c1 for z in z1]
+            a = sum(u.conjugate() * v for u, v in zip(z0, z1, strict=True)) / sum(
+                abs(u) ** 2 for u in z0)
+            shape = max(abs(v - a * u) for u, v in zip(z0, z1, strict=True))
+            self.shape_px.append(shape)
+            step = max(max(abs(gx - qx), abs(gy - qy)) for (gx, gy), (qx, qy)
+                       in zip(g, q, strict=True))
+            ok.append(step <= coarse + 2.0 and abs(abs(a) - 1.0) < 0.15 and shape <= SHAPE_PX)
+        keep = [k for k, v in enumerate(ok) if v]
+        if keep:
+            score = code_scores(gray, got[keep], np.stack([self._code(ids[k]) for k in keep]))
+            for k, sc in zip(keep, score.tolist(), strict=True):
+                ok[k] = sc >= self.settings.follow_score
+        self.followed += sum(ok)
         return {m: got[k] for k, m in enumerate(ids) if ok[k]}
 
     def _drift_share(self, n: int) -> np.ndarray:
