@@ -6,6 +6,7 @@ Each benchmark is a function ``run(quick: bool) -> None`` that prints its own ta
 from __future__ import annotations
 
 import argparse
+import inspect
 from collections.abc import Callable
 from importlib import import_module
 
@@ -27,6 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"benchmarks to run (default: all): {', '.join(BENCHES)}, daemon, "
                         "latency")
     p.add_argument("--quick", action="store_true", help="fewer repetitions")
+    p.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="frames for the benchmarks that take a count (pipeline: 90 by "
+                        "default; 1640x1232 frames are pre-rendered, ~6 MB each)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -45,5 +49,9 @@ def run(args: argparse.Namespace) -> int:
             module, func = target.split(":")
             target = getattr(import_module(module), func)
         print(f"== {name} ==", flush=True)
-        target(quick=args.quick)
+        frames = getattr(args, "frames", None)
+        if frames is not None and "frames" in inspect.signature(target).parameters:
+            target(quick=args.quick, frames=frames)
+        else:
+            target(quick=args.quick)
     return 0

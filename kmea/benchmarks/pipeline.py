@@ -160,13 +160,15 @@ def _print_steady(label: str, marks: np.ndarray, bare_fps: float, bare_cpu: floa
           f"{sc / bare_cpu * 100:5.1f} % of bare detection's CPU (main thread {sm:.2f} ms)")
 
 
-def run(quick: bool = False) -> None:
+def run(quick: bool = False, frames: int | None = None) -> None:
     import cv2
 
     from kmea.vision.detection import DetectorConfig
     from kmea.vision.fastdetect import FastDetector
 
-    n = 20 if quick else 90
+    n = frames if frames is not None else 20 if quick else 90
+    if n < 2:
+        raise SystemExit("kmea bench pipeline: --frames must be at least 2")
     t0 = time.perf_counter()
     frames, scene = render(n)
     images = [f.image for f in frames]

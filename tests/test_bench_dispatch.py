@@ -1,0 +1,40 @@
+"""``kmea bench``'s dispatcher: names and the options it passes to each benchmark."""
+
+from __future__ import annotations
+
+import argparse
+
+from kmea import bench
+
+
+def _args(*argv: str, benches: dict) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    bench.add_arguments(p)
+    args = p.parse_args(list(argv))
+    args.daemon_benches = benches
+    return args
+
+
+def test_frames_reaches_the_benchmarks_that_take_a_count_only():
+    calls: list[tuple[str, dict]] = []
+
+    def counted(quick: bool = False, frames: int | None = None) -> None:
+        calls.append(("counted", {"quick": quick, "frames": frames}))
+
+    def plain(quick: bool = False) -> None:
+        calls.append(("plain", {"quick": quick}))
+
+    benches = {"counted": counted, "plain": plain}
+    assert bench.run(_args("counted", "plain", "--frames", "300", benches=benches)) == 0
+    assert calls == [("counted", {"quick": False, "frames": 300}),
+                     ("plain", {"quick": False})]
+    calls.clear()
+    assert bench.run(_args("counted", "--quick", benches=benches)) == 0
+    assert calls == [("counted", {"quick": True, "frames": None})]
+
+
+def test_an_unknown_benchmark_is_named_and_nothing_runs(capsys):
+    ran: list[str] = []
+    benches = {"plain": lambda quick=False: ran.append("plain")}
+    assert bench.run(_args("plain", "nope", benches=benches)) == 2
+    assert ran == [] and "'nope'" in capsys.readouterr().out
