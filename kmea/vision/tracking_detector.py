@@ -247,12 +247,22 @@ def _subpix_window(ref: np.ndarray) -> int:
 
 
 @dataclass(eq=False)
+class _FloorCheck:
+    """What the static markers' per-frame check needs while their references hold."""
+
+    key: tuple                              # (ids, their tracks, image shape)
+    ref: np.ndarray                         # (n, 4, 2) reference corners, px
+    win: int                                # cornerSubPix half-window, px
+    sampler: CodeSampler                    # their codes at the references
+    sub0: np.ndarray                        # (n, 4, 2) first look's cornerSubPix; NaN: none
+
+
+@dataclass(eq=False)
 class _Track:
     corners: np.ndarray                     # (4, 2) last seen
     velocity: np.ndarray                    # (4, 2) px per frame
     static: bool
     seen: int                               # frame number last seen
-    sub: np.ndarray | None = None           # (4, 2) cornerSubPix at the reference (static)
     looks: int = 1                          # full-resolution detections averaged (static)
     steady: bool = False                    # velocity from two consecutive frames (moving)
 
@@ -277,7 +287,7 @@ class TrackingDetector:
         self.roi_detector = MarkerDetector(config)._detector
         self.dictionary = self.full_detector.dictionary
         self._codes: dict[int, np.ndarray] = {}
-        self._sampler: tuple[tuple, CodeSampler] | None = None
+        self._floor: _FloorCheck | None = None
         self._tuned: dict[int, MarkerDetector] = {}  # the detection thread's (see _worker)
         self._half_ok = False
         self._side = 0.0  # median marker side (px) of the last full detection
@@ -548,32 +558,26 @@ class TrackingDetector:
         st = [m for m, t in self.tracks.items() if t.static]
         moved: list[int] = []
         if st:
-            ref = np.stack([self.tracks[m].corners for m in st])
-            key = (tuple(st), tuple(self.tracks[m] for m in st), gray.shape)
-            if self._sampler is None or self._sampler[0][:3] != key:
-                # With the cornerSubPix window of these references (the same for a marker
-                # at every look, whichever share is measured).
-                self._sampler = ((*key, _subpix_window(ref)),
-                                 CodeSampler(ref, np.stack([self._code(m) for m in st]),
-                                             gray.shape))
-            seen = self._sampler[1].scores(gray) >= s.min_score
+            fc = self._floor_check(st, gray.shape)
+            seen = fc.sampler.scores(gray) >= s.min_score
             # The drift of a rotating share of them (cornerSubPix is the floor check's
             # largest cost): a bump moves every marker, so any share shows it at once; a
             # single marker pushed by less than its code's tolerance shows within
             # drift_every frames.
             chk = self._drift_share(len(st))
-            refined = self._subpix(gray, ref[chk], self._sampler[0][3])
-            for k, r in zip(chk, refined, strict=True):
-                if self.tracks[st[k]].sub is None:  # first look since the reference
-                    self.tracks[st[k]].sub = r
-            sub0 = np.stack([self.tracks[st[k]].sub for k in chk])
+            refined = self._subpix(gray, fc.ref[chk], fc.win)
+            first = np.isnan(fc.sub0[chk, 0, 0])
+            if first.any():  # first look since the reference
+                fc.sub0[chk[first]] = refined[first]
             # Drift of the refinement from the refinement at the reference (same method on
             # both sides: the detector's own refinement differs by up to ~1 px on oblique
             # wall markers).
             # Moved: at least 3 corners drifted (a robot's plate over one corner pulls only
             # that corner; the reference stays right for a marker that did not move).
+            d = refined - fc.sub0[chk]
             far = np.zeros(len(st), dtype=bool)
-            far[chk] = (np.linalg.norm(refined - sub0, axis=2) > s.move_px).sum(axis=1) >= 3
+            far[chk] = np.add.reduce(np.add.reduce(d * d, axis=2) > s.move_px ** 2,
+                                     axis=1) >= 3
             moved = [m for m, ok, f in zip(st, seen, far, strict=True) if ok and f]
             missing = int((~seen).sum())
             bad_chk = int((~seen[chk]).sum()) + len(moved)
@@ -711,6 +715,28 @@ class TrackingDetector:
                 ok[k] = sc >= self.settings.follow_score
         self.followed += sum(ok)
         return {m: got[k] for k, m in enumerate(ids) if ok[k]}
+
+    def _floor_check(self, st: list[int], shape: tuple[int, ...]) -> _FloorCheck:
+        """The floor check of the static markers ``st`` (their tracks as they are now),
+        built again when a reference changed; a marker whose track did not change keeps
+        its first look's refinement."""
+        key = (tuple(st), tuple(self.tracks[m] for m in st), shape)
+        fc = self._floor
+        if fc is not None and fc.key == key:
+            return fc
+        ref = np.stack([self.tracks[m].corners for m in st])
+        sub0 = np.full(ref.shape, np.nan)
+        if fc is not None:
+            old = {t: k for k, t in enumerate(fc.key[1])}
+            for k, t in enumerate(key[1]):
+                j = old.get(t)
+                if j is not None:
+                    sub0[k] = fc.sub0[j]
+        # The cornerSubPix window of these references (the same for a marker at every
+        # look, whichever share is measured).
+        self._floor = fc = _FloorCheck(key, ref, _subpix_window(ref), CodeSampler(
+            ref, np.stack([self._code(m) for m in st]), shape[:2]), sub0)
+        return fc
 
     def _drift_share(self, n: int) -> np.ndarray:
         """Indices of the n static markers whose drift is measured in this frame: every
