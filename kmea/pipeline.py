@@ -268,6 +268,7 @@ class Pipeline:
 
         self.inc_poses = IncrementalPoses()
         self._floor_obs: list[MarkerObservation] = []  # last frame's fixed markers (tracking)
+        self._floor_cache: tuple | None = None  # see _floor_rows
         self._refit_age = 0  # frames since the floor's camera fit was last updated (tracking)
         self.inc_loo = IncrementalLoo(self.settings.loo_every)
         self.configure(self.settings)
@@ -565,22 +566,38 @@ class Pipeline:
         that fit keeps its corners there (its observation is reused); the fixed markers not
         in it keep their new corners and are returned second (placed, not references:
         ``exclude``)."""
-        last = {o.id: o for o in self._floor_obs}
+        rows, stack = self._floor_rows()
         fixed = self.inc_poses.fixed
         c = corners.copy()
         new = []
+        ks, js = [], []
         for k, m in enumerate(ids.tolist()):
-            o = last.get(m)
-            if o is not None:
-                c[k] = np.asarray(o.corners, float).reshape(4, 2)
+            j = rows.get(m)
+            if j is not None:
+                ks.append(k)
+                js.append(j)
             elif m in fixed:
                 new.append(m)
+        if ks:
+            c[ks] = stack[js]
         return c, tuple(new)
+
+    def _floor_rows(self) -> tuple[dict[int, int], np.ndarray]:
+        """The last fit's floor (``_floor_obs``) as id -> row and its corners stacked
+        (m, 4, 2) px; kept while the list is the same (frames with deferred markers keep
+        it, and compare against it every frame)."""
+        cache = self._floor_cache
+        if cache is None or cache[0] is not self._floor_obs:
+            floor = self._floor_obs
+            stack = np.array([np.asarray(o.corners, float).reshape(4, 2) for o in floor]
+                             ).reshape(-1, 4, 2)
+            cache = self._floor_cache = (floor, {o.id: k for k, o in enumerate(floor)}, stack)
+        return cache[1], cache[2]
 
     def _floor_grew(self, ids: np.ndarray) -> bool:
         """Is a fixed marker in ``ids`` that the last frame's floor did not have (back in
         view: the camera fit gains a reference and is solved again)?"""
-        had = {o.id for o in self._floor_obs}
+        had = self._floor_rows()[0]
         fixed = self.inc_poses.fixed
         return any(m in fixed and m not in had for m in ids.tolist())
 
