@@ -458,3 +458,16 @@ def test_residuals_are_reference_distances_after_alignment() -> None:
             assert e.residuals[o.id] == pytest.approx(np.linalg.norm(p - m[o.id].position))
     rms = math.sqrt(np.mean(np.square(list(e.residuals.values()))))
     assert e.info["rms_residual"] == pytest.approx(rms)
+
+
+@pytest.mark.parametrize("n", [3, 12])  # the few new ones of a tracked frame; a whole frame
+def test_a_non_finite_pose_is_named_among_few_or_many_observations(n: int) -> None:
+    from kmea.estimators.base import check_observations
+
+    obs = [MarkerObservation(i, np.eye(3), np.array([0.0, 0.0, 1.0 + i])) for i in range(n)]
+    assert check_observations(obs) == obs
+    for bad_R, bad_t in ((np.eye(3), np.array([0.0, np.inf, 1.0])),
+                         (np.where(np.eye(3) > 0, np.nan, 0.0), np.ones(3))):
+        broken = [*obs[:-1], MarkerObservation(n - 1, bad_R, bad_t)]
+        with pytest.raises(ValueError, match=f"observation id {n - 1}: non-finite pose"):
+            check_observations(broken)

@@ -361,9 +361,14 @@ def check_observations(observations: Sequence[MarkerObservation]) -> list[Marker
         Rs.append(R)
         ts.append(t)
         out.append(o)
-    if out:
-        # One vectorised finiteness test for the whole frame (this runs every frame).
+    if len(out) > 8:
+        # One vectorised finiteness test for a whole frame.
         ok = np.isfinite(np.stack(Rs)).all(axis=(1, 2)) & np.isfinite(np.stack(ts)).all(axis=1)
         if not ok.all():
             raise ValueError(f"observation id {out[int(np.argmin(ok))].id}: non-finite pose")
+    else:
+        # A few (a tracked frame's new ones, every frame): floats beat numpy's per-call cost.
+        for o, R, t in zip(out, Rs, ts, strict=True):
+            if not all(map(math.isfinite, R.ravel().tolist() + t.tolist())):
+                raise ValueError(f"observation id {o.id}: non-finite pose")
     return out
