@@ -406,3 +406,57 @@ def test_a_known_consensus_rotation_decides_like_the_scene() -> None:
         lowest_differs += not np.allclose(low, a.marker2cam_R)
     assert lowest_differs >= 5, "the scene never overrules the lowest error: nothing tested"
     assert same >= trials - 2  # leave-one-out vs full consensus: equal up to rare ties
+
+
+def _exact_by_definition(corners: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The test exact_corners makes, written out without its screen: the pose of the
+    corners' homography (unit square -> undistorted corners) reprojects them to 1e-3 px."""
+    out = []
+    sq = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]])
+    for c in corners:
+        u = cv2.undistortPoints(c.reshape(-1, 1, 2), K, D, criteria=(
+            cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)).reshape(4, 2)
+        # The homography through the 4 points, by its 8 linear equations (h33 = 1).
+        A = np.zeros((8, 8))
+        for k, ((x, y), (a, b)) in enumerate(zip(sq, u, strict=True)):
+            A[2 * k] = [x, y, 1, 0, 0, 0, -a * x, -a * y]
+            A[2 * k + 1] = [0, 0, 0, x, y, 1, -b * x, -b * y]
+        H = np.append(np.linalg.solve(A, u.reshape(8)), 1.0).reshape(3, 3)
+        lam = 2.0 / (np.linalg.norm(H[:, 0]) + np.linalg.norm(H[:, 1])) * np.sign(H[2, 2])
+        r1, r2, t = H[:, 0] * lam, H[:, 1] * lam, H[:, 2] * lam
+        U, _, Vt = np.linalg.svd(np.stack([r1, r2, np.cross(r1, r2)], axis=1))
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        p = sq @ R[:, :2].T + t
+        err = np.sqrt(((p[:, :2] / p[:, 2:] - u) ** 2).sum(axis=1).mean()) * K[0, 0]
+        out.append(err < 1e-3)
+    return np.array(out)
+
+
+def test_exact_corner_screen_decides_as_the_full_test() -> None:
+    """exact_corners skips its SVD for corners that are plainly not a square's projection:
+    on exact corners of small, large, oblique and off-centre markers, and on the same with
+    0.0005-0.5 px of noise, it decides as the test without the screen."""
+    from kmea.vision.ippe import exact_corners
+
+    rng = np.random.default_rng(14)
+    K, D = CAM.camera_matrix, CAM.dist_coeffs
+    corners, labels = [], []
+    for _ in range(300):
+        tilt = math.radians(rng.uniform(0.0, 82.0))
+        R = rot_z(rng.uniform(-math.pi, math.pi)) @ rot_x(tilt) @ rot_z(rng.uniform(0, 6.3))
+        p = np.array([rng.uniform(-0.8, 0.8), rng.uniform(-0.55, 0.55), rng.uniform(0, 0.2)])
+        length = rng.choice([0.02, 0.06, 0.15])
+        for sigma in (0.0, 0.0005, 0.005, 0.05, 0.5):
+            Rc, t, c = project(R, p, length, rng, sigma)
+            if Rc[:, 2] @ t < 0 and (c > 2).all() and (c[:, 0] < CAM.width - 3).all() \
+                    and (c[:, 1] < CAM.height - 3).all():
+                corners.append(c)
+                labels.append(sigma)
+    corners = np.array(corners)
+    labels = np.array(labels)
+    got = exact_corners(corners, K, D)
+    want = _exact_by_definition(corners, K, D)
+    assert (labels == 0.0).sum() > 100 and (labels >= 0.05).sum() > 150
+    assert got[labels == 0.0].all()             # exact corners are exact
+    assert not got[labels >= 0.05].any()        # real detections are not
+    np.testing.assert_array_equal(got, want)
