@@ -411,10 +411,11 @@ def test_a_known_consensus_rotation_decides_like_the_scene() -> None:
 def _exact_by_definition(corners: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
     """The test exact_corners makes, written out without its screen: the pose of the
     corners' homography (unit square -> undistorted corners) reprojects them to 1e-3 px."""
+    from kmea.vision.cvcompat import undistort_points  # OpenCV 4's and 5's signatures
     out = []
     sq = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]])
     for c in corners:
-        u = cv2.undistortPoints(c.reshape(-1, 1, 2), K, D, criteria=(
+        u = undistort_points(c.reshape(-1, 1, 2), K, D, criteria=(
             cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)).reshape(4, 2)
         # The homography through the 4 points, by its 8 linear equations (h33 = 1).
         A = np.zeros((8, 8))
