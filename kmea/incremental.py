@@ -155,7 +155,7 @@ class IncrementalLoo:
 
     def __init__(self, every: int = 30) -> None:
         self.every = max(1, int(every))
-        self._key: tuple | None = None
+        self._key: dict[int, MarkerObservation] | None = None
         self._value: dict[int, float] = {}
         self._age = 0
         self.computed = 0
@@ -169,11 +169,13 @@ class IncrementalLoo:
             compute: Callable[[], dict[int, float]]) -> tuple[dict[int, float], bool]:
         """(errors, computed now): ``compute()`` unless the map markers' observations are
         the same objects as last time and it ran fewer than ``every`` frames ago."""
-        key = tuple(o for o in obs if o.id in in_map)  # held: identities stay unique
+        # By id, not by order: a full detection lists the markers in its own order, a
+        # tracked frame by id, and the errors do not depend on the order.
+        key = {o.id: o for o in obs if o.id in in_map}  # held: identities stay unique
         self._age += 1
         old = self._key
         same = old is not None and len(old) == len(key) and all(
-            a is b for a, b in zip(old, key, strict=True))
+            old.get(i) is o for i, o in key.items())
         if same and self._age < self.every:
             self.reused += 1
             return self._value, False
