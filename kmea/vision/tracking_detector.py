@@ -237,7 +237,6 @@ def _median(v: list[float]) -> float:
     return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
-
 def _subpix_window(ref: np.ndarray) -> int:
     """The floor check's ``cornerSubPix`` half-window (px) for reference corners ref
     (N, 4, 2) px: 0.3 of the median marker's module (7 modules a side), 2 to 6 px."""
