@@ -9,7 +9,8 @@ per frame:
   reference corners (from the last full detection) are checked, not searched: the marker's
   7x7 module grid is sampled at the reference quadrilateral and compared with its code
   (:func:`verify_codes`: a hidden marker fails and is not reported in that frame), and
-  ``cv2.cornerSubPix`` from the reference corners measures how far each corner drifted.
+  ``cv2.cornerSubPix`` from the reference corners measures how far each corner drifted
+  (a rotating third of the markers a frame: ``drift_every``).
   A marker whose corners drifted more than ``move_px`` moved: a full detection follows.
   When most static markers drift, or fail their code, the camera was bumped: a full
   detection runs at once (in that frame), every reference is replaced and the result
