@@ -239,6 +239,11 @@ HELD_OUT = (
     # fresh seeds.
     MotionSet("held-out I", (1301, 1302, 1303, 1304, 1305, 1306), 1.5, 3.0, 0.006, 20.0,
               max_accel=4.0),
+    # Added for issue 16's seventh round before any change of that round, and not run until
+    # the final table (except once with main's filter for its "before" row): C's dynamics,
+    # fresh seeds.
+    MotionSet("held-out J", (1401, 1402, 1403, 1404, 1405, 1406), 1.5, 3.0, 0.006, 20.0,
+              max_accel=4.0),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
