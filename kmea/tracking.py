@@ -48,6 +48,11 @@ retracted one misses the rebuilt track (by that quantile when that implies fewer
 the gate when as many), the accepted one is retracted and reported as rejected, late
 (:attr:`Outcome.retracted`, :attr:`Outcome.retracted_all`, :attr:`Tracker.rejections`).
 
+Recovery (``recover``): when the two measurements right after an accepted one are both
+rejected, lie close to each other and fit the track rebuilt without that accepted one
+(inside the gate), the accepted one is retracted and reported (one outlier instead of two)
+and the track goes on from the rebuilt one through both, with full Kalman updates.
+
 Re-acquisition candidates must also be reachable from each other at ``max_speed``; once 2
 agree, a measurement inside the gate that fits them well and the track poorly is the next
 candidate (``reacquire_follow``); a measurement that breaks their chain is dropped when the
@@ -212,6 +217,11 @@ class TrackerConfig:
     a good one Gaussian with the innovation covariance), the covariance about the output is
     (1 - q) (the covariance if it was good) + q (the covariance if it was an outlier), each
     with the squared distance of its mean from the output.
+    recover: two rejected measurements in a row right after an accepted one, close to each
+    other (within 3 sigma of the two plus what the track's speed covers in between), and
+    fitting the track rebuilt without that accepted one (its gate): the accepted one is
+    retracted and the track rebuilt through them with full Kalman updates, instead of
+    rejecting the robot's measurements until re-acquisition (module docstring).
     """
 
     model: str = "ctrv"
@@ -237,6 +247,7 @@ class TrackerConfig:
     reacquire_skip_outlier: bool = True
     step_k: float = 1.5
     outlier_mixture: bool = True
+    recover: bool = False
     outlier_probability: float = 0.05
     outlier_radius: float = 0.2
     manoeuvre_scale: float = 200.0
@@ -251,7 +262,7 @@ class TrackerConfig:
             if f.name == "model":
                 continue
             if f.name in ("look_back", "step_cumulative", "reacquire_follow",
-                          "reacquire_skip_outlier", "outlier_mixture"):
+                          "reacquire_skip_outlier", "outlier_mixture", "recover"):
                 v = getattr(self, f.name)
                 if not isinstance(v, bool):
                     raise ValueError(f"tracker {f.name} must be true or false, got {v!r}")
@@ -741,6 +752,10 @@ class Track:
                                f"from the track ({reason})", d2, self.state())
             if dt >= 0:
                 self._rej_run.append((t, z, R))
+                if cfg.recover and not retracted:
+                    rec = self._recover()
+                    if rec is not None:
+                        return rec
             # The prediction to t (as self.predict(t) would compute it again).
             st = self._state(t, *self._combine(fs_pred)) if dt > 0 else self.predict(self.t)
             return Outcome("rejected", reason, d2, st)
@@ -946,6 +961,49 @@ class Track:
                 continue
             return fsp, y_, S, d2, out, new_hist, tc, fs
         return None
+
+    def _recover(self) -> Outcome | None:
+        """Recovery after a rejected run (``recover``): the last accepted measurement pulled
+        the track (an outlier that fitted a prediction the robot no longer follows, e.g. at
+        the end of a brake to a stop) and the robot's next measurements are rejected. When
+        exactly two measurements in a row were rejected since it, they lie close to each
+        other (a standing or moving robot, not outliers scattered around it: within 3 sigma
+        of the two plus what the track's speed covers in between), and each fits the track
+        rebuilt from before the accepted one without it (inside the gate), the accepted one
+        is retracted (one outlier instead of two) and the track goes on from the rebuilt
+        one, through both with full Kalman updates (its covariance is the filter's own),
+        instead of rejecting until re-acquisition.
+        Returns the outcome, or None (nothing changed)."""
+        hist, run = self._hist, self._rej_run
+        if not hist or len(run) != 2 or hist[-1][2] != self.t or run[0][0] <= hist[-1][2]:
+            return None
+        (t1, z1, R1), (t2, z2, R2) = run
+        tc, fs = hist[-1][0], hist[-1][1]
+        speed = abs(self._models[0].velocity(self._combine(fs)[0])[2])
+        reach = speed * (t2 - t1) + 3.0 * math.sqrt(R1[0, 0] + R2[0, 0])
+        if math.hypot(z2[0] - z1[0], z2[1] - z1[1]) > reach:
+            return None
+        for tk, zk, Rk in run:
+            fsp = self._predict(fs, tk - tc)
+            inn = _innovation(*self._combine(fsp), zk, Rk)
+            if inn is None or inn[3] > self.gate:
+                return None
+            fs, tc = self._correct(fsp, zk, Rk, 1.0), tk
+        # Two consistent measurements that fit the track without it against one that fit
+        # the track with it: fewer outliers if it was the one. (Whether it misses the track
+        # through the two cannot tell: that track, from two measurements, is wide.)
+        _, _, tj, zj, Rj = hist[-1]
+        inn1 = _innovation(*self._combine(self._predict(fs, tj - tc)), zj, Rj)
+        if inn1 is None:
+            return None
+        y1, S1, _, d2_1 = inn1
+        retracted = (tj, float(zj[0]), float(zj[1]), float(zj[2]),
+                     self._reason(y1, S1, d2_1))
+        self._set(fs, tc)
+        self._forget()
+        return Outcome("update", "recovered: the measurement before the last two was an "
+                       f"outlier: {retracted[4]}", inn[3], self.state(), retracted,
+                       (retracted,))
 
     def _reason(self, y_: np.ndarray, S: np.ndarray, d2: float) -> str:
         dpos = math.hypot(y_[0], y_[1])

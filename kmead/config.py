@@ -49,6 +49,7 @@ LIVE_KEYS = {
     "filter.look_back_n", "filter.step_cumulative", "filter.confirm_probability",
     "filter.reacquire_follow", "filter.max_speed", "filter.reacquire_skip_outlier",
     "filter.outlier_mixture", "filter.outlier_probability", "filter.outlier_radius",
+    "filter.recover",
     "relay.stale_after_s", "relay.stale_repeat_s", "relay.extra_fields", "stats.window",
     "stats.loo", "stats.displaced_threshold", "stats.displaced_frames", "log.level",
 }

@@ -435,7 +435,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
                "look_back": _bool, "look_back_probability": _probability,
                "look_back_n": integer(1, 10), "step_cumulative": _bool,
                "confirm_probability": _probability, "reacquire_follow": _bool,
-               "reacquire_skip_outlier": _bool, "outlier_mixture": _bool,
+               "reacquire_skip_outlier": _bool, "outlier_mixture": _bool, "recover": _bool,
                "outlier_probability": _probability,
                "outlier_radius": number(0, 100, lo_open=True, unit=" m"),
                "max_speed": number(0, 100, lo_open=True, unit=" m/s"),
