@@ -49,9 +49,10 @@ the gate when as many), the accepted one is retracted and reported as rejected, 
 (:attr:`Outcome.retracted`, :attr:`Outcome.retracted_all`, :attr:`Tracker.rejections`).
 
 Recovery (``recover``): when the two measurements right after an accepted one are both
-rejected, lie close to each other and fit the track rebuilt without that accepted one
-(inside the gate), the accepted one is retracted and reported (one outlier instead of two)
-and the track goes on from the rebuilt one through both, with full Kalman updates.
+rejected, lie close to each other and fit the track rebuilt without that accepted one (the
+first inside the gate, the second inside the confirmation quantile), the accepted one is
+retracted and reported (one outlier instead of two) and the track goes on from the rebuilt
+one through both, with full Kalman updates.
 
 Re-acquisition candidates must also be reachable from each other at ``max_speed``; once 2
 agree, a measurement inside the gate that fits them well and the track poorly is the next
@@ -218,9 +219,10 @@ class TrackerConfig:
     (1 - q) (the covariance if it was good) + q (the covariance if it was an outlier), each
     with the squared distance of its mean from the output.
     recover: two rejected measurements in a row right after an accepted one, close to each
-    other (within 3 sigma of the two plus what the track's speed covers in between), and
-    fitting the track rebuilt without that accepted one (its gate): the accepted one is
-    retracted and the track rebuilt through them with full Kalman updates, instead of
+    other (within 3 sigma of the two plus what the track's speed covers in between), the
+    first inside the gate of the track rebuilt without that accepted one and the second
+    inside the confirm_probability quantile of that track through the first: the accepted
+    one is retracted and the track rebuilt through them with full Kalman updates, instead of
     rejecting the robot's measurements until re-acquisition (module docstring).
     """
 
@@ -247,7 +249,7 @@ class TrackerConfig:
     reacquire_skip_outlier: bool = True
     step_k: float = 1.5
     outlier_mixture: bool = True
-    recover: bool = False
+    recover: bool = True
     outlier_probability: float = 0.05
     outlier_radius: float = 0.2
     manoeuvre_scale: float = 200.0
@@ -968,8 +970,10 @@ class Track:
         the end of a brake to a stop) and the robot's next measurements are rejected. When
         exactly two measurements in a row were rejected since it, they lie close to each
         other (a standing or moving robot, not outliers scattered around it: within 3 sigma
-        of the two plus what the track's speed covers in between), and each fits the track
-        rebuilt from before the accepted one without it (inside the gate), the accepted one
+        of the two plus what the track's speed covers in between), the first fits the track
+        rebuilt from before the accepted one without it (inside the gate) and the second
+        confirms it (inside the confirmation quantile of that track through the first), the
+        accepted one
         is retracted (one outlier instead of two) and the track goes on from the rebuilt
         one, through both with full Kalman updates (its covariance is the filter's own),
         instead of rejecting until re-acquisition.
@@ -983,10 +987,13 @@ class Track:
         reach = speed * (t2 - t1) + 3.0 * math.sqrt(R1[0, 0] + R2[0, 0])
         if math.hypot(z2[0] - z1[0], z2[1] - z1[1]) > reach:
             return None
-        for tk, zk, Rk in run:
+        # The first inside the gate of the track rebuilt without the accepted one; the
+        # second confirms the first: inside the confirmation quantile of the track through
+        # it (as a manoeuvre's second measurement confirms its first, ``step_cumulative``).
+        for gate, (tk, zk, Rk) in zip((self.gate, self.confirm_gate), run, strict=True):
             fsp = self._predict(fs, tk - tc)
             inn = _innovation(*self._combine(fsp), zk, Rk)
-            if inn is None or inn[3] > self.gate:
+            if inn is None or inn[3] > gate:
                 return None
             fs, tc = self._correct(fsp, zk, Rk, 1.0), tk
         # Two consistent measurements that fit the track without it against one that fit
