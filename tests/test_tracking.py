@@ -216,9 +216,10 @@ def test_look_back_retracts_an_accepted_outlier_and_reports_it() -> None:
     # One model, no step bound, no outlier mixture: the look-back alone (the step bound
     # would keep the outlier from pulling the track that far; with the mixture the outlier's
     # chance of being one widens the covariance, and the next good measurement is accepted
-    # and pulls the track back without a look-back).
+    # and pulls the track back without a look-back; recovery after two rejections would
+    # retract it one measurement later).
     base = TrackerConfig(accel_noise=0.25, manoeuvre_scale=1.0, step_k=1e9,
-                         outlier_mixture=False)
+                         outlier_mixture=False, recover=False)
     for look_back in (True, False):
         trk = Tracker(base.with_(look_back=look_back))
         rng = np.random.default_rng(0)
