@@ -9,7 +9,10 @@ with the normal and the fast detector, then with tracking for a fixed camera
 every frame, with the default estimator and with ``corner-pnp``, back to back on the same
 frames. Times are wall-clock and CPU (``time.process_time``: every thread of the process,
 the tracking detector's background full detection and OpenCV's worker threads included),
-per frame and as a share of bare ``detectMarkers``. The daemon's figures with its threads,
+per frame and as a share of bare ``detectMarkers``: the one timed at the start and, for
+each tracking run, one timed just before it (this machine's speed drifts by tens of percent
+within a minute; the adjacent one compares like with like). The daemon's figures with its
+threads,
 files and sockets are ``kmea bench daemon``.
 """
 
@@ -91,10 +94,14 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
     leave-one-out error of the floor (accuracy)."""
     robots = tuple(scene.robot_specs())
     truth = [f.truth for f in frames]
+    images = [f.image for f in frames]
+    dic = scene.world_map.dictionary
     for algo in algorithms:
         row = {}
         for label, tracking in (("full detection", False), ("tracking", True)):
             out: dict = {}
+            if tracking:
+                adjacent = _adjacent_bare(images, dic)
             rate, ms = pipeline_rate(frames, scene, PipelineSettings(
                 algorithm=algo, robots=robots, tracking=tracking), out)
             res = out["results"]
@@ -127,12 +134,14 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
                   + extra)
             if tracking:
                 _print_steady(f"{algo}, tracking", out["marks"], bare_fps, bare_cpu)
+                _print_adjacent(f"{algo}, tracking", out["marks"], adjacent)
         (fw, fc), (tw, tc) = row["full detection"], row["tracking"]
         print(f"{algo}: tracking / full detection = {tw / fw:.2f} (wall), {tc / fc:.2f} (CPU)")
         # The library's default robot filter is the paper's IIR; the daemon's configuration
         # defaults to the tracking filter (kmea.tracking), whose update runs per robot per
         # frame: the same tracking run with it.
         out = {}
+        adjacent = _adjacent_bare(images, dic)
         rate, _ = pipeline_rate(frames, scene, PipelineSettings(
             algorithm=algo, robots=robots, tracking=True, filter_kind="kalman"), out)
         wall = 1e3 / rate
@@ -143,6 +152,28 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
               f"{out['main_cpu_ms']:.2f} ms)")
         _print_steady(f"{algo}, tracking, robots' tracking filter", out["marks"], bare_fps,
                       bare_cpu)
+        _print_adjacent(f"{algo}, tracking, robots' tracking filter", out["marks"], adjacent)
+
+
+def _adjacent_bare(images: list[np.ndarray], dictionary: str) -> float:
+    """Bare ``detectMarkers`` (default parameters) on the same frames, timed just before a
+    run (wall ms a frame): this machine's speed drifts by tens of percent over a minute, so
+    the run is also compared with the detection timed next to it."""
+    fps, _ = bare_detection(images, {}, dictionary)
+    return 1e3 / fps
+
+
+def _print_adjacent(label: str, marks: np.ndarray, bare_ms: float) -> None:
+    """The run's wall time per frame (whole run and from STEADY_FROM on) against the bare
+    detection timed just before it (``bare_ms``)."""
+    n = len(marks) - 1
+    whole = (marks[-1, 0] - marks[0, 0]) / n * 1e3
+    text = f"{label}, against bare detection timed just before it ({bare_ms:.2f} ms/frame): " \
+           f"{whole / bare_ms * 100:5.1f} %"
+    if n > 2 * STEADY_FROM:
+        steady = (marks[-1, 0] - marks[STEADY_FROM, 0]) / (n - STEADY_FROM) * 1e3
+        text += f" (frames {STEADY_FROM}-{n - 1}: {steady / bare_ms * 100:5.1f} %)"
+    print(text)
 
 
 def _print_steady(label: str, marks: np.ndarray, bare_fps: float, bare_cpu: float) -> None:
