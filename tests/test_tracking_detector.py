@@ -493,6 +493,17 @@ def test_live_frame_time_is_the_sensor_timestamp():
     assert min(d.totals.latency_ms) >= 40.0  # counted from the exposure, not the receipt
 
 
+def test_tracking_is_on_for_live_sources_only_and_can_be_switched_off():
+    from kmead.config import load_config
+
+    on = load_config(None, use_local=False).data
+    assert on["detector"]["tracking"] is True  # the default
+    assert PipelineSettings.from_config(on, live=True).tracking
+    assert not PipelineSettings.from_config(on, live=False).tracking  # frame-exact files
+    off = load_config(None, sets=["detector.tracking=false"], use_local=False).data
+    assert not PipelineSettings.from_config(off, live=True).tracking
+
+
 def test_refit_pacing_is_a_detector_setting():
     from kmead.config import ConfigError, load_config
 
