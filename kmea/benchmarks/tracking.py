@@ -205,6 +205,13 @@ class MotionSet:
     stop_outliers: float = 0.0
 
 
+def _c_like(name: str, first_seed: int, **extra) -> MotionSet:
+    """Six drives with held-out C's dynamics (1.5 m/s, 3 rad/s, 6 mm, 20 frames/s, 4 m/s^2
+    braking), seeds ``first_seed`` to ``first_seed + 5``; ``extra``: other MotionSet fields."""
+    return MotionSet(name, tuple(range(first_seed, first_seed + 6)), 1.5, 3.0, 0.006, 20.0,
+                     max_accel=4.0, **extra)
+
+
 TUNE = MotionSet("tune", (0, 1, 2, 3), 1.2, 2.5, 0.003, 30.0, 30.0)
 #: The configuration tuned on TUNE by `kmea bench tracking` (printed as "tuned on ..."), the
 #: default of :class:`TrackerConfig`.
@@ -215,59 +222,47 @@ HELD_OUT = (
     MotionSet("held-out D", (401, 402, 403, 404, 405, 406), 1.2, 3.0, 0.004, 25.0,
               max_accel=3.0),
     MotionSet("held-out B", (201, 202, 203, 204, 205, 206), 0.8, 2.0, 0.0015, 30.0),
-    MotionSet("held-out C", (301, 302, 303, 304, 305, 306), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
+    _c_like("held-out C", 301),
     # Created before the filter was tuned on the C-like tuning sets below and not run until
     # the end: C's dynamics, seeds never used before.
-    MotionSet("held-out E", (901, 902, 903, 904, 905, 906), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
+    _c_like("held-out E", 901),
     # Added for issue 16's third round (set C's remaining failures) before any change or
     # tuning of that round, and not run until the final table: C's dynamics, fresh seeds.
-    MotionSet("held-out F", (1001, 1002, 1003, 1004, 1005, 1006), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
+    _c_like("held-out F", 1001),
     # Added for issue 16's fourth round (the remaining in-gate and braking outliers of C and
     # F) before any change of that round, and not run until the final table: C's dynamics,
     # fresh seeds.
-    MotionSet("held-out G", (1101, 1102, 1103, 1104, 1105, 1106), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
+    _c_like("held-out G", 1101),
     # Added for issue 16's fifth round (a third, "stopped" model) before any change of that
     # round, and not run until the final table: C's dynamics, fresh seeds.
-    MotionSet("held-out H", (1201, 1202, 1203, 1204, 1205, 1206), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
+    _c_like("held-out H", 1201),
     # Added for issue 16's sixth round before any change of that round, and not run until
     # the final table (except once with main's filter for its "before" row): C's dynamics,
     # fresh seeds.
-    MotionSet("held-out I", (1301, 1302, 1303, 1304, 1305, 1306), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
+    _c_like("held-out I", 1301),
     # Added for issue 16's seventh round before any change of that round, and not run until
     # the final table (except once with main's filter for its "before" row): C's dynamics,
     # fresh seeds.
-    MotionSet("held-out J", (1401, 1402, 1403, 1404, 1405, 1406), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
+    _c_like("held-out J", 1401),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
 #: seeds; the second with harsher outliers: 30 % of outliers followed by another, and extra
 #: outliers during hard manoeuvres.
 TUNE_HARD = (
-    MotionSet("tune C-like", (601, 602, 603, 604, 605, 606), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0),
-    MotionSet("tune harsh", (611, 612, 613, 614, 615, 616), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0, burst=0.3, manoeuvre_outliers=0.1),
+    _c_like("tune C-like", 601),
+    _c_like("tune harsh", 611, burst=0.3, manoeuvre_outliers=0.1),
     # Added in the third round to reproduce held-out C's remaining failures on tuning data:
     # frequent brakes to a standstill (45 % of the segments are stops), extra outliers near
     # the stops (the end of a brake, the first 0.5 s standing) and bursts of two in a row.
-    MotionSet("tune stops", (621, 622, 623, 624, 625, 626), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0, burst=0.3, stops=0.45, stop_outliers=0.15),
+    _c_like("tune stops", 621, burst=0.3, stops=0.45, stop_outliers=0.15),
     # Added in the fourth round for the remaining held-out failures (single outliers inside
     # the gate at a standing or slow robot, an outlier at the end of a brake): as "tune
     # stops" without the bursts, fresh seeds.
-    MotionSet("tune standing", (631, 632, 633, 634, 635, 636), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0, stops=0.45, stop_outliers=0.15),
+    _c_like("tune standing", 631, stops=0.45, stop_outliers=0.15),
     # Added in the seventh round (recovery after a rejected run needs more brakes into a stop
     # with an outlier at their end than the other sets hold): as "tune stops", fresh seeds.
-    MotionSet("tune stops 2", (641, 642, 643, 644, 645, 646), 1.5, 3.0, 0.006, 20.0,
-              max_accel=4.0, burst=0.3, stops=0.45, stop_outliers=0.15),
+    _c_like("tune stops 2", 641, burst=0.3, stops=0.45, stop_outliers=0.15),
 )
 
 
