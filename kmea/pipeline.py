@@ -597,7 +597,9 @@ class Pipeline:
     def _floor_grew(self, ids: np.ndarray) -> bool:
         """Is a fixed marker in ``ids`` that the last frame's floor did not have (back in
         view: the camera fit gains a reference and is solved again)?"""
-        had = self._floor_rows()[0]
+        # Ids only: the floor list is a new one every frame without deferred markers, so
+        # _floor_rows (which stacks its corners) would rebuild on every steady frame.
+        had = {o.id for o in self._floor_obs}
         fixed = self.inc_poses.fixed
         return any(m in fixed and m not in had for m in ids.tolist())
 
