@@ -981,11 +981,9 @@ class Track:
         hist, run = self._hist, self._rej_run
         if not hist or len(run) != 2 or hist[-1][2] != self.t or run[0][0] <= hist[-1][2]:
             return None
-        (t1, z1, R1), (t2, z2, R2) = run
         tc, fs = hist[-1][0], hist[-1][1]
         speed = abs(self._models[0].velocity(self._combine(fs)[0])[2])
-        reach = speed * (t2 - t1) + 3.0 * math.sqrt(R1[0, 0] + R2[0, 0])
-        if math.hypot(z2[0] - z1[0], z2[1] - z1[1]) > reach:
+        if not self._reachable(run[0], *run[1], speed=speed):
             return None
         # The first inside the gate of the track rebuilt without the accepted one; the
         # second confirms the first: inside the confirmation quantile of the track through
@@ -1084,12 +1082,14 @@ class Track:
         out = c.update(t, z[0], z[1], z[2], math.sqrt(R[0, 0]), math.sqrt(R[2, 2]))
         return out.kind == "update"
 
-    def _reachable(self, last: tuple, t: float, z: np.ndarray, R: np.ndarray) -> bool:
+    def _reachable(self, last: tuple, t: float, z: np.ndarray, R: np.ndarray,
+                   speed: float | None = None) -> bool:
         """Could the robot of candidate ``last`` (t, z, R) be at ``z`` at ``t``? Candidates
-        further apart than it can drive (max_speed, plus 3 sigma of the two measurements)
-        are not one robot: random outliers in a row."""
+        further apart than it can drive (``speed`` m/s, by default max_speed, plus 3 sigma
+        of the two measurements) are not one robot: random outliers in a row."""
         tp, zp, Rp = last
-        reach = self.config.max_speed * abs(t - tp) + 3.0 * math.sqrt(R[0, 0] + Rp[0, 0])
+        v = self.config.max_speed if speed is None else speed
+        reach = v * abs(t - tp) + 3.0 * math.sqrt(R[0, 0] + Rp[0, 0])
         return math.hypot(z[0] - zp[0], z[1] - zp[1]) <= reach
 
     def _forget(self) -> None:
