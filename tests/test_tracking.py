@@ -13,6 +13,8 @@ from kmea.benchmarks.tracking import (
     evaluate,
     make_measurements,
     outlier_effect,
+    run_iir,
+    run_kalman,
     trajectory,
 )
 from kmea.tracking import Track, Tracker, TrackerConfig, chi2_quantile_3
@@ -252,9 +254,35 @@ def test_outlier_caused_jump_stays_below_3_sigma_and_rejections_are_reported() -
     assert kal["caused_big"] == 0 and 0.0 < kal["caused_max_sig"] < 3.0
     assert kal["caught"] >= 0.9 * kal["outliers"]
     assert kal["reported"] == kal["caught"]  # every rejected outlier is in the report
-    # The metric can fail: the raw measurements (IIR alpha 1) follow every outlier.
+    # Against the run with the outlier measurements left out (the outliers' own doing):
+    # every outlier of this drive is rejected, and a rejected measurement leaves no trace.
+    assert kal["caught"] == kal["outliers"]
+    assert kal["own_big"] == 0 and kal["own_max_sig"] == 0.0
+    # The metrics can fail: the raw measurements (IIR alpha 1) follow every outlier.
     raw = evaluate(s, "iir", 1.0)
     assert raw["caused_big"] >= 0.9 * raw["outliers"] and raw["caused_max_sig"] > 10.0
+    assert raw["own_big"] >= 0.9 * raw["outliers"] and raw["own_max_sig"] > 10.0
+
+
+def test_left_out_measurements_give_the_prediction_of_the_filter_without_them() -> None:
+    tr = trajectory(7, duration=6.0)
+    ms = make_measurements(tr, 7, outliers=0.05)
+    skip = ms.outlier
+    assert 3 <= int(skip.sum()) < len(ms.t) // 5
+    out, info = run_kalman(ms, TrackerConfig(), skip)
+    # The same filter fed only the other measurements, asked for its state at each time.
+    trk = Tracker(TrackerConfig())
+    for k in range(len(ms.t)):
+        t = float(ms.t[k])
+        if not skip[k]:
+            trk.update("r", t, *ms.z[k], float(ms.sigma[k]))
+        st = trk.predict("r", t)
+        assert (out[k, 0], out[k, 1], info["sigma"][k]) == (st.x, st.y, st.sigma)
+    assert not info["rejected"][skip].any()
+    # The IIR filter holds its previous output there.
+    iir, _ = run_iir(ms, 1.0, skip)
+    k = int(np.flatnonzero(skip)[0])
+    assert np.array_equal(iir[k], iir[k - 1]) and np.array_equal(iir[k - 1], ms.z[k - 1])
 
 
 def test_outlier_effect_is_the_difference_to_the_clean_run() -> None:

@@ -270,11 +270,16 @@ TUNE_HARD = (
 )
 
 
-def run_iir(ms: Measurements, alpha: float) -> tuple[np.ndarray, dict]:
-    """IIR outputs (M, 3) at the measurement times."""
+def run_iir(ms: Measurements, alpha: float, skip: np.ndarray | None = None
+            ) -> tuple[np.ndarray, dict]:
+    """IIR outputs (M, 3) at the measurement times; ``skip`` (M,) bool: measurements left
+    out (the output there is the previous one)."""
     f = PoseFilter(alpha=alpha, reset_after_s=1.0)
     out = np.zeros_like(ms.z)
     for k in range(len(ms.t)):
+        if skip is not None and skip[k]:
+            out[k] = out[k - 1] if k else ms.z[k]
+            continue
         p, th = f.update("r", float(ms.t[k]), np.array([ms.z[k, 0], ms.z[k, 1], 0.0]),
                          float(ms.z[k, 2]))
         out[k] = (p[0], p[1], th)
@@ -286,10 +291,12 @@ def run_iir(ms: Measurements, alpha: float) -> tuple[np.ndarray, dict]:
                  "reacquired": [], "sigma": ms.sigma.copy(), "cov": cov}
 
 
-def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
+def run_kalman(ms: Measurements, cfg: TrackerConfig, skip: np.ndarray | None = None
+               ) -> tuple[np.ndarray, dict]:
     """Tracking-filter outputs (M, 3) at the measurement times (a rejected measurement's
     output is the prediction to its time), with the filter's own position sigma (M,) m and
-    which rejections were reported in :attr:`Tracker.rejections`."""
+    which rejections were reported in :attr:`Tracker.rejections`; ``skip`` (M,) bool:
+    measurements left out (the output there is the prediction to its time)."""
     trk = Tracker(cfg, keep=len(ms.t) + 1)
     out = np.zeros_like(ms.z)
     sig = np.zeros(len(ms.t))
@@ -298,6 +305,12 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
     reacq = []
     for k in range(len(ms.t)):
         t = float(ms.t[k])
+        if skip is not None and skip[k]:
+            st = trk.predict("r", t)
+            if st is not None:
+                out[k] = (st.x, st.y, st.theta)
+                sig[k], cov[k] = st.sigma, st.cov[:2, :2]
+            continue
         o = trk.update("r", t, ms.z[k, 0], ms.z[k, 1], ms.z[k, 2], float(ms.sigma[k]))
         st = trk.predict("r", t)
         out[k] = (st.x, st.y, st.theta)
@@ -348,9 +361,11 @@ def outlier_effect(ms: Measurements, out: np.ndarray, sigma: np.ndarray, clean: 
 
 
 def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
-            clean: np.ndarray | None = None) -> dict:
+            clean: np.ndarray | None = None, dropped: np.ndarray | None = None) -> dict:
     """The figures of one filter on one drive (module docstring); ``clean``: the outputs of
-    the same drive and noise without outliers (for the outlier-caused jumps)."""
+    the same drive and noise without outliers (for the outlier-caused jumps); ``dropped``:
+    the outputs of the run with outliers with the outliers' measurements left out (for the
+    jumps the outliers themselves cause, without the good measurements they replaced)."""
     t = ms.t
     gx, gy, gth = tr.at(t)
     keep = (t >= 1.0) & ~((t >= tr.kidnap_t) & (t < tr.kidnap_t + 0.5))
@@ -390,12 +405,18 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
            "reported": int(np.sum(info["reported"] & rej & outl)),
            "false_rej": int(np.sum(rej & ~ms.outlier & keep)), "n": int(np.sum(keep)),
            "reacquire_s": after[0] if after else math.nan,
-           "caused_big": 0, "caused_max_sig": 0.0, "caused_max_m": 0.0}
+           "caused_big": 0, "caused_max_sig": 0.0, "caused_max_m": 0.0,
+           "own_big": 0, "own_max_sig": 0.0, "own_max_m": 0.0}
     if clean is not None:
         eff_m, eff_s = outlier_effect(ms, out, info["sigma"], clean, keep)
         res["caused_big"] = int(np.sum(eff_s > 3.0))
         res["caused_max_sig"] = float(np.max(eff_s, initial=0.0))
         res["caused_max_m"] = float(np.max(eff_m, initial=0.0))
+    if dropped is not None:
+        eff_m, eff_s = outlier_effect(ms, out, info["sigma"], dropped, keep)
+        res["own_big"] = int(np.sum(eff_s > 3.0))
+        res["own_max_sig"] = float(np.max(eff_s, initial=0.0))
+        res["own_max_m"] = float(np.max(eff_m, initial=0.0))
     return res
 
 
@@ -406,25 +427,26 @@ def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
     outliers each drive is also run without them (same seed: same noise, same missing
     frames) for the jumps the outliers cause (:func:`outlier_effect`)."""
     rows = []
-    run_f = (lambda m: run_iir(m, param)) if filt == "iir" else (lambda m: run_kalman(m, param))
+    run_f = run_iir if filt == "iir" else run_kalman
     for seed in mset.seeds:
         tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel,
                         mset.stops)
         ms = make_measurements(tr, seed, mset.fps, mset.sigma, outliers, burst=mset.burst,
                                manoeuvre_outliers=mset.manoeuvre_outliers,
                                stop_outliers=mset.stop_outliers)
-        out, info = run_f(ms)
-        clean = None
+        out, info = run_f(ms, param)
+        clean = dropped = None
         if outliers > 0:
-            clean, _ = run_f(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0))
-        rows.append(metrics(tr, ms, out, info, clean))
+            clean, _ = run_f(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0), param)
+            dropped, _ = run_f(ms, param, ms.outlier)
+        rows.append(metrics(tr, ms, out, info, clean, dropped))
     agg = {"pos": math.sqrt(np.mean([r["pos"] ** 2 for r in rows])),
            "head": math.sqrt(np.mean([r["head"] ** 2 for r in rows])),
            "lag": float(np.mean([r["lag"] for r in rows]))}
     for k in ("jumps_outlier", "jumps_all", "outliers", "caught", "reported", "false_rej",
-              "n", "caused_big", "over3", "nees_sum"):
+              "n", "caused_big", "own_big", "over3", "nees_sum"):
         agg[k] = sum(r[k] for r in rows)
-    for k in ("max_jump_outlier", "caused_max_sig", "caused_max_m"):
+    for k in ("max_jump_outlier", "caused_max_sig", "caused_max_m", "own_max_sig", "own_max_m"):
         agg[k] = max(r[k] for r in rows)
     re = [r["reacquire_s"] for r in rows]
     agg["reacquire_s"] = max(re) if re and not any(math.isnan(v) for v in re) else math.nan
@@ -488,43 +510,63 @@ def _row(name: str, c: dict, a: dict) -> str:
             f"{round(c['lag'] * 1000):4d} {a['pos'] * 1000:6.2f} {math.degrees(a['head']):5.2f} "
             f"{round(a['lag'] * 1000):4d} {a['caused_big']:4d}/{a['outliers']:<4d} "
             f"{a['caused_max_sig']:6.1f} {a['caused_max_m'] * 1000:6.1f} "
+            f"{a['own_big']:4d}/{a['outliers']:<4d} {a['own_max_sig']:6.1f} "
             f"{a['jumps_outlier']:4d} {a['max_jump_outlier'] * 1000:6.1f} "
             f"{a['caught']:4d}/{a['outliers']:<4d} {a['reported']:4d} {a['false_rej']:5d} "
             f"{re:>9} {c['nees_sum'] / c['n']:6.2f} {100.0 * c['over3'] / c['n']:5.2f} "
             f"{a['nees_sum'] / a['n']:6.2f} {100.0 * a['over3'] / a['n']:5.2f}")
 
 
-def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig) -> None:
-    """Print the held-out table for IIR alpha 1 and ``alpha`` and the Kalman ``cfg``."""
+def _set_rows(s: MotionSet, alpha: float, cfg: TrackerConfig) -> str:
+    """One set's heading and rows of :func:`table`."""
+    lines = [f"{s.name}: seeds {s.seeds}, {s.duration:g} s, <= {s.max_speed} m/s, "
+             f"<= {s.max_turn} rad/s, <= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, "
+             f"{s.fps:g} fps, 5 % outliers of 5-20 cm" + (
+                 f" ({s.burst:g} of them followed by another, {s.manoeuvre_outliers:g} more "
+                 f"in hard manoeuvres, {s.stop_outliers:g} more near stops)"
+                 if s.burst or s.manoeuvre_outliers or s.stop_outliers else "")
+             + (f"; {s.stops:g} of the segments stops" if s.stops != 0.2 else ""),
+             f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}",
+             f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
+             f"{'lag':>4} {'caused':>9} {'max s':>6} {'max mm':>6} {'own':>9} {'max s':>6} "
+             f"{'steps':>4} {'max mm':>6} "
+             f"{'caught':>9} {'rep':>4} {'false':>5} {'reacquire':>9} {'NEES':>6} "
+             f"{'>3s %':>5} {'NEES':>6} {'>3s %':>5}"]
+    for a_ in sorted({1.0, alpha}, reverse=True):
+        lines.append(_row(f"IIR alpha={a_:g}", evaluate(s, "iir", a_, 0.0),
+                          evaluate(s, "iir", a_)))
+    lines.append(_row(f"Kalman {cfg.model}", evaluate(s, "kalman", cfg, 0.0),
+                      evaluate(s, "kalman", cfg)))
+    return "\n".join(lines)
+
+
+def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig, jobs: int = 1
+          ) -> None:
+    """Print the held-out table for IIR alpha 1 and ``alpha`` and the Kalman ``cfg``
+    (``jobs``: sets run in that many processes; the figures do not depend on it)."""
     print("  caused: outliers whose jump (output with outliers minus output of the same drive\n"
           "  and noise without them, at the outlier and the 3 frames after) exceeds 3 sigma\n"
           "  (the filter's own reported position sigma; IIR: the measurement's) / outliers;\n"
           "  max s, max mm: the largest such jump in sigmas and in mm (not necessarily the\n"
-          "  same one). steps: outputs at an outlier whose error changed by more than 3\n"
-          "  measurement sigmas (raw, includes the prediction through manoeuvres), max mm.\n"
+          "  same one). own: the same against the run with outliers whose outlier\n"
+          "  measurements are left out (the outlier's own doing, without the loss of the good\n"
+          "  measurement it replaced); max s: the largest of those. steps: outputs at an\n"
+          "  outlier whose error changed by more than 3 measurement sigmas (raw, includes the\n"
+          "  prediction through manoeuvres), max mm.\n"
           "  caught: outliers rejected; rep: of them reported in Tracker.rejections; false:\n"
           "  good measurements rejected; reacquire: slowest re-acquisition after the hand move\n"
           "  calibration of the reported sigma (IIR: the measurement's), without / with the\n"
           "  outliers: NEES, the mean position e^T P^-1 e (2 when honest); >3s %: outputs whose\n"
           "  error exceeds 3 reported sigmas (honest: <= 1.1 %)")
+    if jobs > 1:
+        import multiprocessing
+
+        with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+            for text in pool.starmap(_set_rows, [(s, alpha, cfg) for s in sets]):
+                print(text, flush=True)
+        return
     for s in sets:
-        print(f"{s.name}: seeds {s.seeds}, {s.duration:g} s, <= {s.max_speed} m/s, "
-              f"<= {s.max_turn} rad/s, <= {s.max_accel:g} m/s^2, sigma {s.sigma * 1000:g} mm, "
-              f"{s.fps:g} fps, 5 % outliers of 5-20 cm" + (
-                  f" ({s.burst:g} of them followed by another, {s.manoeuvre_outliers:g} more "
-                  f"in hard manoeuvres, {s.stop_outliers:g} more near stops)"
-                  if s.burst or s.manoeuvre_outliers or s.stop_outliers else "")
-              + (f"; {s.stops:g} of the segments stops" if s.stops != 0.2 else ""))
-        print(f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}")
-        print(f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
-              f"{'lag':>4} {'caused':>9} {'max s':>6} {'max mm':>6} {'steps':>4} {'max mm':>6} "
-              f"{'caught':>9} {'rep':>4} {'false':>5} {'reacquire':>9} {'NEES':>6} "
-              f"{'>3s %':>5} {'NEES':>6} {'>3s %':>5}")
-        for a_ in sorted({1.0, alpha}, reverse=True):
-            print(_row(f"IIR alpha={a_:g}", evaluate(s, "iir", a_, 0.0),
-                       evaluate(s, "iir", a_)), flush=True)
-        print(_row(f"Kalman {cfg.model}", evaluate(s, "kalman", cfg, 0.0),
-                   evaluate(s, "kalman", cfg)), flush=True)
+        print(_set_rows(s, alpha, cfg), flush=True)
 
 
 def quick_sets() -> tuple[MotionSet, ...]:
