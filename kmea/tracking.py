@@ -247,7 +247,7 @@ class TrackerConfig:
     confirm_probability: float = 0.95
     reacquire_follow: bool = True
     reacquire_skip_outlier: bool = True
-    step_k: float = 1.5
+    step_k: float = 1.2
     outlier_mixture: bool = True
     recover: bool = True
     outlier_probability: float = 0.05

@@ -471,6 +471,10 @@ GRID = tuple((qa, ms, 1.5) for qa, ms in ((0.03, 20.0), (0.03, 40.0), (0.03, 100
                                           (0.06, 100.0), (0.06, 200.0), (0.06, 400.0),
                                           (0.12, 200.0)))
 QUICK_GRID = ((0.06, 40.0, 1.5), (0.06, 200.0, 1.5))
+#: The step bounds of :func:`tune`'s second stage (added in the eighth round of issue 16):
+#: step_k with the chosen noise densities, on all six tuning sets (--quick: two values).
+STEP_GRID = (1.5, 1.4, 1.3, 1.2, 1.1, 1.0)
+QUICK_STEP_GRID = (1.5, 1.2)
 
 
 def tuning_sets(quick: bool = False) -> tuple[MotionSet, ...]:
@@ -480,8 +484,21 @@ def tuning_sets(quick: bool = False) -> tuple[MotionSet, ...]:
                                         for s in sets)
 
 
-def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple]]:
-    """Best IIR alpha and Kalman configuration on the tuning sets only; also the grid.
+def _pick(grid: list[tuple]) -> tuple:
+    """The rule: among the grid's configurations whose outlier-caused jumps > 3 sigma
+    (summed over the sets) are within 2 of the fewest, the one with the lowest summed score."""
+    fewest = min(c for _, _, c, _ in grid)
+    return min((x for x in grid if x[2] <= fewest + 2), key=lambda x: x[3])
+
+
+def _grid_point(cfg: TrackerConfig, sets: tuple[MotionSet, ...]) -> tuple:
+    rows = [evaluate(m, "kalman", cfg) for m in sets]
+    return (cfg, rows, sum(r["caused_big"] for r in rows),
+            sum(_score(r, m) for r, m in zip(rows, sets, strict=True)))
+
+
+def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple], list[tuple]]:
+    """Best IIR alpha and Kalman configuration on the tuning sets only; also the two grids.
 
     IIR alpha: the lowest score (position and heading RMSE relative to the noise) on TUNE.
     Kalman: every configuration of the grid on the three tuning sets with their outliers;
@@ -489,19 +506,19 @@ def tune(quick: bool = False) -> tuple[float, TrackerConfig, list[tuple]]:
     the fewest, the lowest summed score. (The rule was fixed before the grid was run.) The
     grid runs on the three sets it was chosen on (TUNE, "tune C-like", "tune harsh"); "tune
     stops", added in the third round for the outlier mechanisms, and "tune standing", added
-    in the fourth, are in the tuning table but the grid was not re-run with them."""
+    in the fourth, are in the tuning table but the grid was not re-run with them.
+
+    Second stage (eighth round): the step bound step_k over STEP_GRID with the chosen noise
+    densities, on all six tuning sets, by the same rule."""
     sets = tuning_sets(quick)[:3]
-    grid = []
     alphas = (1.0, 0.8, 0.6, 0.5, 0.4, 0.3)
     best_a = min(alphas, key=lambda a: _score(evaluate(sets[0], "iir", a), sets[0]))
-    for qa, ms, k in GRID if not quick else QUICK_GRID:
-        cfg = TrackerConfig(accel_noise=qa, manoeuvre_scale=ms, step_k=k)
-        rows = [evaluate(m, "kalman", cfg) for m in sets]
-        grid.append((cfg, rows, sum(r["caused_big"] for r in rows),
-                     sum(_score(r, m) for r, m in zip(rows, sets, strict=True))))
-    fewest = min(c for _, _, c, _ in grid)
-    best = min((x for x in grid if x[2] <= fewest + 2), key=lambda x: x[3])
-    return best_a, best[0], grid
+    grid = [_grid_point(TrackerConfig(accel_noise=qa, manoeuvre_scale=ms, step_k=k), sets)
+            for qa, ms, k in (GRID if not quick else QUICK_GRID)]
+    best = _pick(grid)[0]
+    steps = [_grid_point(best.with_(step_k=k), tuning_sets(quick))
+             for k in (STEP_GRID if not quick else QUICK_STEP_GRID)]
+    return best_a, _pick(steps)[0], grid, steps
 
 
 def _row(name: str, c: dict, a: dict) -> str:
@@ -578,18 +595,19 @@ def run(quick: bool = False) -> None:
     """Tune on the tuning sets, print the held-out table (--quick: a smaller grid, shorter
     drives)."""
     t0 = time.perf_counter()
-    alpha, cfg, grid = tune(quick)
+    alpha, cfg, grid, steps = tune(quick)
     names = ", ".join(f"{m.name} (seeds {m.seeds})" for m in tuning_sets(quick)[:3])
-    print(f"tuned on {names}: IIR alpha {alpha:g}; Kalman {cfg.model}, accel_noise "
-          f"{cfg.accel_noise:g} m^2/s^3, manoeuvre_scale {cfg.manoeuvre_scale:g}, step_k "
-          f"{cfg.step_k:g}")
-    print("  grid (accel, scale, step_k: per tuning set pos mm, head deg, caused jumps > 3 "
-          "sigma; total caused, score):")
-    for c, rows, caused, score in grid:
-        per = "  ".join(f"{r['pos'] * 1000:5.2f} {math.degrees(r['head']):4.2f} "
-                        f"{r['caused_big']:3d}" for r in rows)
-        print(f"    {c.accel_noise:5g} {c.manoeuvre_scale:5g} {c.step_k:4g}: {per}  "
-              f"{caused:3d} {score:6.1f}", flush=True)
+    print(f"tuned on {names} (noise densities), then all six tuning sets (step_k): IIR alpha "
+          f"{alpha:g}; Kalman {cfg.model}, accel_noise {cfg.accel_noise:g} m^2/s^3, "
+          f"manoeuvre_scale {cfg.manoeuvre_scale:g}, step_k {cfg.step_k:g}")
+    for title, points in (("grid", grid), ("step grid", steps)):
+        print(f"  {title} (accel, scale, step_k: per tuning set pos mm, head deg, caused jumps "
+              "> 3 sigma; total caused, score):")
+        for c, rows, caused, score in points:
+            per = "  ".join(f"{r['pos'] * 1000:5.2f} {math.degrees(r['head']):4.2f} "
+                            f"{r['caused_big']:3d}" for r in rows)
+            print(f"    {c.accel_noise:5g} {c.manoeuvre_scale:5g} {c.step_k:4g}: {per}  "
+                  f"{caused:3d} {score:6.1f}", flush=True)
     table(HELD_OUT if not quick else quick_sets(), alpha, cfg)
     print(f"({time.perf_counter() - t0:.0f} s)")
 
