@@ -248,6 +248,10 @@ HELD_OUT = (
     # the final table (except once with main's filter for its "before" row): C's dynamics,
     # fresh seeds.
     _c_like("held-out K", 1501),
+    # Added for issue 16's ninth round before any change of that round, and not run until
+    # the final table (except once with main's filter for its "before" row): C's dynamics,
+    # fresh seeds.
+    _c_like("held-out L", 1601),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
