@@ -389,7 +389,10 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
     from kmead.daemon import Daemon
 
     scene = scene_from_spec("sim:default", width=WIDTH)
-    src = SimSource("sim:default?bump_at=0.5&bump_deg=1.5", width=WIDTH, frames=36)
+    # The bump at 0.8 s of the scene's 30 frames/s: frame 24, 2.4 s into serving (a CI run
+    # beside other heavy jobs once took more than 1.5 s to reach tracking, and a full
+    # detection met a bump at frame 15 instead: handled, but without the event).
+    src = SimSource("sim:default?bump_at=0.8&bump_deg=1.5", width=WIDTH, frames=36)
     frames = [src.read() for _ in range(36)]
     # A live source from frames rendered beforehand, served in real time at 10 frames/s
     # (a loaded test machine keeps up; live sources drop what the pipeline cannot take).
@@ -428,12 +431,12 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
         d.close()
         logging.getLogger("kmead").removeHandler(caught)
     assert len(results) >= 8  # live: newest frame wins, a loaded machine drops some
-    assert max(r.index for r in results) >= 20  # frames after the bump were processed
+    assert max(r.index for r in results) >= 28  # frames after the bump were processed
     assert sum(r.detect_mode == "tracked" for r in results) >= len(results) // 2
     moved = [r for r in caught.records if "camera moved" in r.getMessage()]
     assert len(moved) == 1, [r.getMessage() for r in caught.records]
     bumped = [r for r in results if r.restart]
-    assert len(bumped) == 1 and bumped[0].index >= 15
+    assert len(bumped) == 1 and bumped[0].index >= 24
     assert all(r.ok for r in results if r.index >= bumped[0].index)
 
 
