@@ -5,7 +5,8 @@ This process plays C cameras (ZeroMQ PUB sockets sending ``robot.NAME`` messages
 robots each at ``fps``, capture time = the Unix time of sending) and the robots (one UDP
 listener). Latency = UDP arrival - the measurement's time: the ZeroMQ hop, the fusion and
 the UDP hop, i.e. what fusion adds between a camera's daemon and a robot. CPU = the node
-process's user + system time over the wall time (100 % = one core).
+process's user + system time over the wall time (100 % = one core). Loads stay within the
+configuration's MAX_ROBOTS robots per node; beyond the node's capacity by a faster rate.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import zmq
 
 from kmea import protocol as P
 from kmead.relay import parse_datagram
+from kmead.settings_schema import MAX_ROBOTS
 
 
 def _cpu_s(pid: int) -> float:
@@ -51,11 +53,12 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         cfg = Path(tmp) / "fuse.toml"
         cfg.write_text("\n".join(toml))
+        err = open(Path(tmp) / "node.err", "w+")  # noqa: SIM115 (closed below)
         proc = subprocess.Popen(
             [sys.executable, "-m", "kmea.cli", "fuse", "--config", str(cfg), "--headless",
              "--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""',
              "--set", 'log.level="error"', *(a for e in eps for a in ("--input", e))],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdout=subprocess.DEVNULL, stderr=err)
         lat: list[float] = []
         got = [0]
         stop = threading.Event()
@@ -76,6 +79,13 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         th.start()
         try:
             time.sleep(2.0)  # start-up and ZeroMQ subscriptions
+            if proc.poll() is not None:
+                # A node that did not start (e.g. a configuration it refuses) would show as
+                # every message lost: say why instead.
+                err.seek(0)
+                lines = err.read().strip().splitlines() or ["(no output)"]
+                raise RuntimeError(f"the fusion node exited with {proc.returncode}: "
+                                   f"{lines[-1]}")
             period = 1.0 / fps
             cpu0, w0 = _cpu_s(proc.pid), time.monotonic()
             sent = 0
@@ -106,6 +116,7 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
             proc.terminate()
             proc.wait(timeout=10)
             th.join(timeout=2)
+            err.close()
             udp.close()
             for s in pubs:
                 s.close(linger=0)
@@ -117,7 +128,10 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
 
 
 def run(quick: bool = False) -> None:
-    loads = [(2, 2, 30.0), (4, 10, 30.0), (8, 20, 30.0), (16, 25, 30.0)]
+    # Cameras, robots per camera, frames/s. A node takes at most MAX_ROBOTS robots (the
+    # configuration's bound), so the loads beyond its capacity come from a faster rate.
+    loads = [(2, 2, 30.0), (4, 10, 30.0), (8, 8, 30.0), (8, 8, 60.0), (8, 8, 120.0)]
+    assert all(c * r <= MAX_ROBOTS for c, r, _ in loads)
     if quick:
         loads = loads[:3]
     seconds = 2.0 if quick else 5.0
