@@ -411,16 +411,12 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
            "reacquire_s": after[0] if after else math.nan,
            "caused_big": 0, "caused_max_sig": 0.0, "caused_max_m": 0.0,
            "own_big": 0, "own_max_sig": 0.0, "own_max_m": 0.0}
-    if clean is not None:
-        eff_m, eff_s = outlier_effect(ms, out, info["sigma"], clean, keep)
-        res["caused_big"] = int(np.sum(eff_s > 3.0))
-        res["caused_max_sig"] = float(np.max(eff_s, initial=0.0))
-        res["caused_max_m"] = float(np.max(eff_m, initial=0.0))
-    if dropped is not None:
-        eff_m, eff_s = outlier_effect(ms, out, info["sigma"], dropped, keep)
-        res["own_big"] = int(np.sum(eff_s > 3.0))
-        res["own_max_sig"] = float(np.max(eff_s, initial=0.0))
-        res["own_max_m"] = float(np.max(eff_m, initial=0.0))
+    for name, ref in (("caused", clean), ("own", dropped)):
+        if ref is not None:
+            eff_m, eff_s = outlier_effect(ms, out, info["sigma"], ref, keep)
+            res[f"{name}_big"] = int(np.sum(eff_s > 3.0))
+            res[f"{name}_max_sig"] = float(np.max(eff_s, initial=0.0))
+            res[f"{name}_max_m"] = float(np.max(eff_m, initial=0.0))
     return res
 
 
@@ -429,7 +425,8 @@ def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
     """Figures of one filter ("iir" with alpha, or "kalman" with a config) summed/averaged
     over the drives of ``mset``, with a fraction ``outliers`` of the measurements jumps. With
     outliers each drive is also run without them (same seed: same noise, same missing
-    frames) for the jumps the outliers cause (:func:`outlier_effect`)."""
+    frames) for the jumps the outliers cause (:func:`outlier_effect`), and with the outlier
+    measurements left out for the outliers' own jumps."""
     rows = []
     run_f = run_iir if filt == "iir" else run_kalman
     for seed in mset.seeds:
