@@ -252,6 +252,10 @@ HELD_OUT = (
     # the final table (except once with main's filter for its "before" row): C's dynamics,
     # fresh seeds.
     _c_like("held-out L", 1601),
+    # Added for issue 16's tenth round (an acceleration in the motion model, CTRA) before any
+    # change of that round, and not run until the final table (except once with main's filter
+    # for its "before" row): C's dynamics, fresh seeds.
+    _c_like("held-out M", 1701),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
