@@ -973,10 +973,9 @@ class Track:
         of the two plus what the track's speed covers in between), the first fits the track
         rebuilt from before the accepted one without it (inside the gate) and the second
         confirms it (inside the confirmation quantile of that track through the first), the
-        accepted one
-        is retracted (one outlier instead of two) and the track goes on from the rebuilt
-        one, through both with full Kalman updates (its covariance is the filter's own),
-        instead of rejecting until re-acquisition.
+        accepted one is retracted (one outlier instead of two) and the track goes on from
+        the rebuilt one, through both with full Kalman updates (its covariance is the
+        filter's own), instead of rejecting until re-acquisition.
         Returns the outcome, or None (nothing changed)."""
         hist, run = self._hist, self._rej_run
         if not hist or len(run) != 2 or hist[-1][2] != self.t or run[0][0] <= hist[-1][2]:

@@ -15,6 +15,7 @@ from kmea.geometry import (
     check_rotvecs,
     check_transform,
     distort,
+    intersect_ray_height,
     intersect_rays_planes,
     invert_transform,
     kabsch,
@@ -222,6 +223,24 @@ def test_ray_plane_intersection_recovers_known_points(seed: int) -> None:
     assert np.isnan(intersect_rays_planes(origin, par, q, flat)).all()
     lam = ray_plane_parameter(origin, direction, q, n)
     assert np.allclose(origin + lam[:, None] * direction, target, atol=1e-9)
+
+
+def test_one_ray_at_a_height_is_the_batched_intersection_to_the_bit() -> None:
+    rng = np.random.default_rng(16)
+    origin = rng.normal(size=(200, 3)) + np.array([0.0, 0.0, 2.0])
+    direction = rng.normal(size=(200, 3))
+    height = rng.uniform(-0.2, 0.5, 200)
+    direction[:5, 2] = 0.0  # parallel to the plane
+    P = intersect_rays_planes(origin, direction, np.column_stack(
+        [np.zeros((200, 2)), height]), np.array([0.0, 0.0, 1.0]))
+    assert np.isnan(P).any(axis=1).sum() > 50  # planes behind some origins
+    for o, d, h, p in zip(origin.tolist(), direction.tolist(), height.tolist(), P,
+                          strict=True):
+        got = intersect_ray_height(o, d, h)
+        if np.isnan(p).any():
+            assert got is None
+        else:
+            assert got is not None and np.array_equal(np.array(got), p)
 
 
 def test_unit_rays_depth_is_the_ray_plane_intersection_from_the_camera() -> None:

@@ -7,13 +7,12 @@ world frame as ``p_world = scale * R @ p_cam + t``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Collection, Mapping, Sequence
 
 import numpy as np
 
 from kmea.estimators.base import Estimate, MarkerEstimate, MarkerObservation
-from kmea.geometry import make_transform, yaw_of
+from kmea.geometry import intersect_ray_height, make_transform, yaw_of
 from kmea.map_model import MarkerMap
 
 __all__ = [
@@ -133,16 +132,12 @@ def apply_plane_heights(markers: dict[int, MarkerEstimate], camera_world: np.nda
         me = markers.get(mid)
         if me is None or mid in refs:
             continue
-        # kmea.geometry.intersect_rays_planes with the plane z = h, in floats (the same
-        # operations: its sums over the normal's zero components add exact zeros); per
-        # robot marker per frame, where numpy's per-call cost was ~50 us a marker.
         x, y, z = np.asarray(me.position, dtype=float).tolist()
         dx, dy, dz = x - cx, y - cy, z - cz
         if abs(dz) < 1e-12:
             continue
-        lam = (float(h) - cz) / dz
-        p = (cx + lam * dx, cy + lam * dy, cz + lam * dz)
-        if not (lam > 0.0 and math.isfinite(lam) and all(map(math.isfinite, p))):
+        p = intersect_ray_height((cx, cy, cz), (dx, dy, dz), h)
+        if p is None:
             continue
         me.position = np.array(p)
         moved.append(mid)

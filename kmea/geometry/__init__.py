@@ -32,7 +32,12 @@ from kmea.geometry.frames import (
     make_transform,
     marker_corners_local,
 )
-from kmea.geometry.planes import intersect_rays_planes, ray_plane_parameter, unit_rays_plane_depth
+from kmea.geometry.planes import (
+    intersect_ray_height,
+    intersect_rays_planes,
+    ray_plane_parameter,
+    unit_rays_plane_depth,
+)
 from kmea.geometry.rotations import (
     check_rotation,
     check_rotvecs,
@@ -61,6 +66,7 @@ __all__ = [
     "distort_jacobian_entries",
     "distort_xy",
     "euler_zyx_fixed_deg",
+    "intersect_ray_height",
     "intersect_rays_planes",
     "invert_transform",
     "kabsch",

@@ -7,9 +7,13 @@ leading dimensions: origins, directions, points and normals are (..., 3).
 
 from __future__ import annotations
 
+import contextlib
+import math
+
 import numpy as np
 
-__all__ = ["intersect_rays_planes", "ray_plane_parameter", "unit_rays_plane_depth"]
+__all__ = ["intersect_ray_height", "intersect_rays_planes", "ray_plane_parameter",
+           "unit_rays_plane_depth"]
 
 
 def ray_plane_parameter(origins: np.ndarray, directions: np.ndarray, points: np.ndarray,
@@ -32,6 +36,24 @@ def intersect_rays_planes(origins: np.ndarray, directions: np.ndarray, points: n
     bad = ~(lam > 0) | ~np.isfinite(lam)
     P = np.where(bad[..., None], np.nan, P)
     return P
+
+
+def intersect_ray_height(origin: tuple[float, float, float],
+                         direction: tuple[float, float, float], height: float
+                         ) -> tuple[float, float, float] | None:
+    """:func:`intersect_rays_planes` for one ray (x, y, z floats, metres) and the horizontal
+    plane z = ``height`` (normal +z), in floats: the same operations (the sums over the
+    normal's zero components add exact zeros), without numpy's per-call cost (the pipeline
+    places each robot marker on its plane every frame). None where that gives NaN: the plane
+    behind the origin or parallel to the ray."""
+    ox, oy, oz = origin
+    dx, dy, dz = direction
+    with contextlib.suppress(ZeroDivisionError):
+        lam = (float(height) - oz) / dz
+        p = (ox + lam * dx, oy + lam * dy, oz + lam * dz)
+        if lam > 0.0 and math.isfinite(lam) and all(map(math.isfinite, p)):
+            return p
+    return None
 
 
 def unit_rays_plane_depth(x: np.ndarray, y: np.ndarray, normal: np.ndarray, offset: float,
