@@ -1,15 +1,17 @@
-"""kmea: the tools (map, calibrate, print, experiment, bench, fuse, doctor, keys, export,
-snapshot).
+"""kmea: the library's tools (map, calibrate, print, experiment, bench).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
-dependency of one tool never breaks another.
+dependency of one tool never breaks another. The ``kmea`` command (``kmead.kmea_cli``) is
+this front door with the daemon-side tools added (fuse, doctor, keys, export, snapshot and
+the daemon's benchmarks): the library never reaches into the daemon.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable, Mapping
 from importlib import import_module
 
 # name -> (module, one-line help)
@@ -19,25 +21,25 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
     "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
     "bench": ("kmea.bench", "benchmarks that print figures"),
-    # Daemon-side tools (sockets, UDP, files, the Pi), imported only when run: the one place
-    # the library reaches into the daemon.
-    "fuse": ("kmead.fusion", "fuse several cameras' robot poses (docs/fusion.md)"),
-    "doctor": ("kmead.doctor", "check a Raspberry Pi install: versions, camera, ports, files"),
-    "export": ("kmead.mcap_export", "a recording as MCAP for Foxglove (foxglove extra)"),
-    "snapshot": ("kmead.snapshot_cli", "save a running kmead's camera frame as PNG"),
-    "keys": ("kmead.keys_cli", "make CURVE keys for kmead and its clients (docs/security.md)"),
 }
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None,
+         commands: Mapping[str, tuple[str, str]] | None = None,
+         extra_benches: Callable[[], dict] | None = None,
+         description: str | None = None) -> int:
+    """Run one subcommand. ``commands``: name -> (module, help), by default the library's
+    :data:`COMMANDS`; ``extra_benches``: called for ``bench`` only, more benchmarks (name ->
+    function) for it to offer (the daemon's, from ``kmead.kmea_cli``)."""
     from kmea import __version__
 
-    parser = argparse.ArgumentParser(prog="kmea", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="kmea",
+                                     description=description or __doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"kmea {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     modules = {}
     argv = sys.argv[1:] if argv is None else argv
-    for name, (module, help_) in COMMANDS.items():
+    for name, (module, help_) in (COMMANDS if commands is None else commands).items():
         p = sub.add_parser(name, help=help_)
         # Only the chosen command's module is imported (and so its dependencies).
         if argv and argv[0] == name:
@@ -45,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
             modules[name].add_arguments(p)
     args = parser.parse_args(argv)
     if args.command == "bench":
-        args.daemon_benches = _daemon_benches()
+        args.daemon_benches = extra_benches() if extra_benches is not None else {}
     try:
         return int(modules[args.command].run(args) or 0)
     except KeyboardInterrupt:
@@ -56,19 +58,6 @@ def main(argv: list[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-
-
-def _daemon_benches() -> dict:
-    """The daemon's benchmarks (threads, sockets, files), when kmead is installed: the front
-    door is the one place of the library that may reach the daemon."""
-    try:
-        from kmead import bench
-    except ImportError:
-        return {}
-    from kmead import fusion_bench
-
-    return {"daemon": bench.run_daemon, "latency": bench.run_latency,
-            "fusion-node": fusion_bench.run, "tui": bench.run_tui}
 
 
 if __name__ == "__main__":

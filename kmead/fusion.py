@@ -568,3 +568,18 @@ def run(args: Any) -> int:
         node.close()
     print(summary, flush=True)
     return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m kmead.fusion [options]``: ``kmea fuse`` in a process of its own (the
+    fusion-node benchmark starts it so)."""
+    import argparse
+    import sys
+
+    p = argparse.ArgumentParser(prog="kmea fuse", description=add_arguments.__doc__)
+    add_arguments(p)
+    return run(p.parse_args(sys.argv[1:] if argv is None else argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

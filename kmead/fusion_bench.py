@@ -55,7 +55,7 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         cfg.write_text("\n".join(toml))
         err = open(Path(tmp) / "node.err", "w+")  # noqa: SIM115 (closed below)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "kmea.cli", "fuse", "--config", str(cfg), "--headless",
+            [sys.executable, "-m", "kmead.fusion", "--config", str(cfg), "--headless",
              "--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""',
              "--set", 'log.level="error"', *(a for e in eps for a in ("--input", e))],
             stdout=subprocess.DEVNULL, stderr=err)

@@ -41,7 +41,7 @@ def test_doctor_on_this_machine_says_no_camera_with_the_fix(tmp_path: Path) -> N
     """The real command, on a machine without camera or picamera2."""
     cfg = _config(tmp_path, NET_ANY)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, "-m", "kmea.cli", "doctor", "--config", cfg],
+    r = subprocess.run([sys.executable, "-m", "kmead.kmea_cli", "doctor", "--config", cfg],
                        capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
     out = r.stdout
     assert r.returncode == 1, r.stderr

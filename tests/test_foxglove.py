@@ -18,11 +18,10 @@ pytest.importorskip("foxglove", reason="the foxglove extra is not installed")
 mcap_reader = pytest.importorskip("mcap.reader", reason="the mcap package is not installed")
 websockets = pytest.importorskip("websockets", reason="the websockets package is not installed")
 
-from kmea import cli as kmea_cli  # noqa: E402
 from kmea.sim.renderer import Renderer  # noqa: E402
 from kmea.sim.scenes import scene_from_spec  # noqa: E402
 from kmea.vision.overlay import OverlayMarker  # noqa: E402
-from kmead import cli  # noqa: E402
+from kmead import cli, kmea_cli  # noqa: E402
 from kmead.foxglove_bridge import (  # noqa: E402
     TOPICS,
     FoxgloveServer,

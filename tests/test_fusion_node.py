@@ -15,12 +15,12 @@ import pytest
 import zmq
 
 from kmea import protocol as P
-from kmea.cli import main as kmea_main
 from kmea.sim.scenes import get_scene
 from kmead.config import ConfigError, load_config
 from kmead.csvlog import HEADER
 from kmead.daemon import Daemon
 from kmead.fusion import FusionNode, measurement_from, parse_inputs
+from kmead.kmea_cli import main as kmea_main
 from kmead.relay import datagram, parse_datagram
 
 SPEED = 0.01  # m/s: the robots stay where the test expects them for its ~20 s

@@ -21,11 +21,10 @@ import numpy as np
 import pytest
 import zmq
 
-from kmea import cli as kmea_cli
 from kmea import protocol as P
 from kmea_tui import cli as tui_cli
 from kmea_tui.widgets.camera_view import CameraFrame
-from kmead import cli
+from kmead import cli, kmea_cli
 from kmead.config import load_config
 from kmead.daemon import Daemon
 

@@ -11,8 +11,8 @@ import pytest
 import zmq
 import zmq.auth
 
-from kmea import cli as kmea_cli
 from kmea.curve_client import CurveKeyError, read_certificate, read_client_keys
+from kmead import kmea_cli
 from kmead.keys import OPERATOR, VIEWER, CurveServer, KeysError, add_client, connect_client
 
 

@@ -21,12 +21,11 @@ import pytest
 import zmq
 from security_helpers import LiveDaemon, robots_toml, udp_listener
 
-from kmea import cli as kmea_cli
 from kmea import protocol as P
 from kmea.sim.renderer import Renderer
 from kmea.sim.scenes import scene_from_spec
 from kmea.vision.camera import pi_camera_v2, save_camera
-from kmead import cli
+from kmead import cli, kmea_cli
 from kmead.keys import connect_client
 from kmead.relay import parse_datagram
 

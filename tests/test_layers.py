@@ -1,8 +1,8 @@
 """The layer rules of the architecture (docs/architecture.md), enforced on the source.
 
-- ``kmea`` (the library) imports neither ``kmead`` (the daemon) nor ``kmea_tui`` (the UI).
-  The one exception: the command-line front door ``kmea/cli.py`` may import the daemon
-  modules of :data:`KMEA_CLI_DAEMON_TOOLS` lazily (inside a function), for daemon-side tools.
+- ``kmea`` (the library) imports neither ``kmead`` (the daemon) nor ``kmea_tui`` (the UI),
+  with no exception: the ``kmea`` command's daemon-side tools are added above both, in
+  ``kmead/kmea_cli.py``.
 - ``kmea_tui`` imports from ``kmea`` only the wire protocol and the stdlib-only helpers of
   :data:`TUI_MAY_IMPORT`, and never ``kmead``; those modules import only the standard
   library (and each other). A subprocess checks that importing the UI loads neither
@@ -32,9 +32,6 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("kmea", "kmead", "kmea_tui")
 
-KMEA_CLI_DAEMON_TOOLS = {"kmead", "kmead.bench", "kmead.cli", "kmead.config", "kmead.keys",
-                         "kmead.keys_cli", "kmead.fuse", "kmead.fusion", "kmead.fusion_bench",
-                         "kmead.doctor", "kmead.mcap_export", "kmead.snapshot_cli"}
 TUI_MAY_IMPORT = {"kmea", "kmea.protocol", "kmea.jsonsafe", "kmea.jsonlimits", "kmea.tomlvalue",
                   "kmea.curve_client"}
 # Functions' lazy imports that do not count as edges for the cycle check (module -> targets).
@@ -115,8 +112,6 @@ def test_the_library_imports_neither_the_daemon_nor_the_ui() -> None:
     for imp in all_imports():
         if top(imp.module) != "kmea" or top(imp.target) not in ("kmead", "kmea_tui"):
             continue
-        if imp.module == "kmea.cli" and imp.lazy and imp.target in KMEA_CLI_DAEMON_TOOLS:
-            continue  # the front door's daemon-side tools
         bad.add((imp.module, imp.target))
         where[(imp.module, imp.target)] = imp.line
     assert not bad, "kmea must not import kmead/kmea_tui: " + ", ".join(

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from kmea.cli import main as kmea_main
 from kmea.pipeline import PipelineSettings
 from kmea.tracking import TrackerConfig
 from kmead import cli
 from kmead.config import load_config
 from kmead.fusion import tracker_config as fusion_tracker_config
+from kmead.kmea_cli import main as kmea_main
 
 # The settings that were library-only before they became [filter] keys.
 KEYS = ("robust_k", "step_k", "look_back", "look_back_probability", "manoeuvre_scale",

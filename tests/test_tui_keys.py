@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 from security_helpers import LiveDaemon
 
-from kmea import cli as kmea_cli
 from kmea_tui import cli as tui_cli
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
+from kmead import kmea_cli
 
 
 async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:

@@ -1,0 +1,39 @@
+"""kmea: the tools (map, calibrate, print, experiment, bench, fuse, doctor, keys, export,
+snapshot).
+
+The ``kmea`` command: the library's front door (:mod:`kmea.cli`) with the daemon-side tools
+(sockets, UDP, files, the Pi) and the daemon's benchmarks added. It lives here, above both
+layers, so that the library never imports the daemon.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from kmea import cli
+
+# name -> (module, one-line help), imported only when run.
+DAEMON_COMMANDS: dict[str, tuple[str, str]] = {
+    "fuse": ("kmead.fusion", "fuse several cameras' robot poses (docs/fusion.md)"),
+    "doctor": ("kmead.doctor", "check a Raspberry Pi install: versions, camera, ports, files"),
+    "export": ("kmead.mcap_export", "a recording as MCAP for Foxglove (foxglove extra)"),
+    "snapshot": ("kmead.snapshot_cli", "save a running kmead's camera frame as PNG"),
+    "keys": ("kmead.keys_cli", "make CURVE keys for kmead and its clients (docs/security.md)"),
+}
+
+
+def daemon_benches() -> dict:
+    """The daemon's benchmarks (threads, sockets, files) for ``kmea bench``."""
+    from kmead import bench, fusion_bench
+
+    return {"daemon": bench.run_daemon, "latency": bench.run_latency,
+            "fusion-node": fusion_bench.run, "tui": bench.run_tui}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return cli.main(argv, {**cli.COMMANDS, **DAEMON_COMMANDS}, daemon_benches,
+                    __doc__.splitlines()[0])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
