@@ -256,6 +256,10 @@ HELD_OUT = (
     # change of that round, and not run until the final table (except once with main's filter
     # for its "before" row): C's dynamics, fresh seeds.
     _c_like("held-out M", 1701),
+    # Added for issue 16's eleventh round (the output after a rejected measurement) before
+    # any change of that round, and not run until the final table (except once with main's
+    # filter for its "before" row): C's dynamics, fresh seeds.
+    _c_like("held-out N", 1801),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
