@@ -211,9 +211,10 @@ class TrackerConfig:
     both as an interacting-multiple-model filter (module docstring); 1 = one model.
     manoeuvre_time_s, cruise_time_s: the mean time (s) spent in a manoeuvre and between
     manoeuvres (the models' switching rates).
-    outlier_mixture: the covariance after each measurement (accepted or rejected) includes
-    the chance that the decision was wrong, as probabilistic data association does: with
-    the posterior probability q that the measurement is an outlier (prior
+    outlier_mixture: the covariance after each accepted measurement includes the chance
+    that it was an outlier (after a rejected one the track keeps the prediction's), as
+    probabilistic data association does: with the posterior probability q that the
+    measurement is an outlier (prior
     outlier_probability, an outlier's position uniform within outlier_radius m of the robot,
     a good one Gaussian with the innovation covariance), the covariance about the output is
     (1 - q) (the covariance if it was good) + q (the covariance if it was an outlier), each

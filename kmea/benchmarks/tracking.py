@@ -373,11 +373,15 @@ def outlier_effect(ms: Measurements, out: np.ndarray, sigma: np.ndarray, clean: 
 
 
 def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
-            clean: np.ndarray | None = None, dropped: np.ndarray | None = None) -> dict:
+            clean: np.ndarray | None = None, dropped: np.ndarray | None = None,
+            dropped_sigma: np.ndarray | None = None) -> dict:
     """The figures of one filter on one drive (module docstring); ``clean``: the outputs of
     the same drive and noise without outliers (for the outlier-caused jumps); ``dropped``:
     the outputs of the run with outliers with the outliers' measurements left out (for the
-    jumps the outliers themselves cause, without the good measurements they replaced)."""
+    jumps the outliers themselves cause, without the good measurements they replaced), and
+    ``dropped_sigma`` its reported sigmas (M,) m: the "oracle", the same filter told which
+    measurements are outliers, whose outlier-caused jumps are those of the measurements
+    the outliers replaced alone (what no outlier handling can remove)."""
     t = ms.t
     gx, gy, gth = tr.at(t)
     keep = (t >= 1.0) & ~((t >= tr.kidnap_t) & (t < tr.kidnap_t + 0.5))
@@ -418,13 +422,18 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
            "false_rej": int(np.sum(rej & ~ms.outlier & keep)), "n": int(np.sum(keep)),
            "reacquire_s": after[0] if after else math.nan,
            "caused_big": 0, "caused_max_sig": 0.0, "caused_max_m": 0.0,
-           "own_big": 0, "own_max_sig": 0.0, "own_max_m": 0.0}
+           "own_big": 0, "own_max_sig": 0.0, "own_max_m": 0.0,
+           "oracle_big": 0, "oracle_max_sig": 0.0}
     for name, ref in (("caused", clean), ("own", dropped)):
         if ref is not None:
             eff_m, eff_s = outlier_effect(ms, out, info["sigma"], ref, keep)
             res[f"{name}_big"] = int(np.sum(eff_s > 3.0))
             res[f"{name}_max_sig"] = float(np.max(eff_s, initial=0.0))
             res[f"{name}_max_m"] = float(np.max(eff_m, initial=0.0))
+    if clean is not None and dropped is not None and dropped_sigma is not None:
+        _, eff_s = outlier_effect(ms, dropped, dropped_sigma, clean, keep)
+        res["oracle_big"] = int(np.sum(eff_s > 3.0))
+        res["oracle_max_sig"] = float(np.max(eff_s, initial=0.0))
     return res
 
 
@@ -444,18 +453,20 @@ def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
                                manoeuvre_outliers=mset.manoeuvre_outliers,
                                stop_outliers=mset.stop_outliers)
         out, info = run_f(ms, param)
-        clean = dropped = None
+        clean = dropped = dropped_sigma = None
         if outliers > 0:
             clean, _ = run_f(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0), param)
-            dropped, _ = run_f(ms, param, ms.outlier)
-        rows.append(metrics(tr, ms, out, info, clean, dropped))
+            dropped, dinfo = run_f(ms, param, ms.outlier)
+            dropped_sigma = dinfo["sigma"]
+        rows.append(metrics(tr, ms, out, info, clean, dropped, dropped_sigma))
     agg = {"pos": math.sqrt(np.mean([r["pos"] ** 2 for r in rows])),
            "head": math.sqrt(np.mean([r["head"] ** 2 for r in rows])),
            "lag": float(np.mean([r["lag"] for r in rows]))}
     for k in ("jumps_outlier", "jumps_all", "outliers", "caught", "reported", "false_rej",
-              "n", "caused_big", "own_big", "over3", "nees_sum"):
+              "n", "caused_big", "own_big", "oracle_big", "over3", "nees_sum"):
         agg[k] = sum(r[k] for r in rows)
-    for k in ("max_jump_outlier", "caused_max_sig", "caused_max_m", "own_max_sig", "own_max_m"):
+    for k in ("max_jump_outlier", "caused_max_sig", "caused_max_m", "own_max_sig", "own_max_m",
+              "oracle_max_sig"):
         agg[k] = max(r[k] for r in rows)
     re = [r["reacquire_s"] for r in rows]
     agg["reacquire_s"] = max(re) if re and not any(math.isnan(v) for v in re) else math.nan
@@ -542,6 +553,7 @@ def _row(name: str, c: dict, a: dict) -> str:
             f"{round(a['lag'] * 1000):4d} {a['caused_big']:4d}/{a['outliers']:<4d} "
             f"{a['caused_max_sig']:6.1f} {a['caused_max_m'] * 1000:6.1f} "
             f"{a['own_big']:4d}/{a['outliers']:<4d} {a['own_max_sig']:6.1f} "
+            f"{a['oracle_big']:4d}/{a['outliers']:<4d} {a['oracle_max_sig']:6.1f} "
             f"{a['jumps_outlier']:4d} {a['max_jump_outlier'] * 1000:6.1f} "
             f"{a['caught']:4d}/{a['outliers']:<4d} {a['reported']:4d} {a['false_rej']:5d} "
             f"{re:>9} {c['nees_sum'] / c['n']:6.2f} {100.0 * c['over3'] / c['n']:5.2f} "
@@ -560,6 +572,7 @@ def _set_rows(s: MotionSet, alpha: float, cfg: TrackerConfig) -> str:
              f"  {'':<16} {'no outliers':^17} {'5 % outliers':^17}",
              f"  {'filter':<16} {'pos mm':>6} {'deg':>5} {'lag':>4} {'pos mm':>6} {'deg':>5} "
              f"{'lag':>4} {'caused':>9} {'max s':>6} {'max mm':>6} {'own':>9} {'max s':>6} "
+             f"{'oracle':>9} {'max s':>6} "
              f"{'steps':>4} {'max mm':>6} "
              f"{'caught':>9} {'rep':>4} {'false':>5} {'reacquire':>9} {'NEES':>6} "
              f"{'>3s %':>5} {'NEES':>6} {'>3s %':>5}"]
@@ -581,7 +594,9 @@ def table(sets: tuple[MotionSet, ...], alpha: float, cfg: TrackerConfig, jobs: i
           "  max s, max mm: the largest such jump in sigmas and in mm (not necessarily the\n"
           "  same one). own: the same against the run with outliers whose outlier\n"
           "  measurements are left out (the outlier's own doing, without the loss of the good\n"
-          "  measurement it replaced); max s: the largest of those. steps: outputs at an\n"
+          "  measurement it replaced); max s: the largest of those. oracle: the caused jumps\n"
+          "  of the same filter told which measurements are outliers (left out), in its own\n"
+          "  sigma: those of the lost good measurements alone. steps: outputs at an\n"
           "  outlier whose error changed by more than 3 measurement sigmas (raw, includes the\n"
           "  prediction through manoeuvres), max mm.\n"
           "  caught: outliers rejected; rep: of them reported in Tracker.rejections; false:\n"
