@@ -23,7 +23,7 @@ def test_prints_a_row_per_rate_with_the_outliers_counted() -> None:
     for fps, f in rows.items():
         outliers, caused, caught = int(f[1]), int(f[2]), int(f[8])
         # 6 drives of 8 s from 1 s on, 5 % of the frames are outliers.
-        assert 0.02 * 6 * 7 * float(fps) < outliers < 0.08 * 6 * 8 * float(fps), line
+        assert 0.02 * 6 * 7 * float(fps) < outliers < 0.08 * 6 * 8 * float(fps), f
         assert 0 <= caused <= outliers and 0 < caught <= outliers
         kalman_mm, iir_mm = float(f[10]), float(f[14])
         assert 0.0 < kalman_mm < iir_mm  # the IIR filter follows every outlier
