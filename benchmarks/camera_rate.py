@@ -22,28 +22,15 @@ import multiprocessing
 import time
 from dataclasses import replace
 
-from kmea.benchmarks.tracking import TUNED, _c_like, evaluate
+from kmea.benchmarks.tracking import TUNED, _c_like, aggregate, drive_metrics
 
 SEEDS = 2001  #: the first of the 60 drives' seeds
 
 
-def _chunk(args: tuple[float, int, float]) -> tuple[float, dict, dict]:
+def _chunk(args: tuple[float, int, float]) -> tuple[float, list[dict], list[dict]]:
     fps, first, duration = args
     mset = replace(_c_like(f"C at {fps:g} fps", first), fps=fps, duration=duration)
-    return fps, evaluate(mset, "kalman", TUNED), evaluate(mset, "iir", 0.6)
-
-
-def _merge(parts: list[dict]) -> dict:
-    n = sum(p["drives"] for p in parts)
-    out = {k: math.sqrt(sum(p[k] ** 2 * p["drives"] for p in parts) / n)
-           for k in ("pos", "head")}
-    out["lag"] = sum(p["lag"] * p["drives"] for p in parts) / n
-    for k in ("outliers", "caused_big", "own_big", "oracle_big", "caught", "false_rej"):
-        out[k] = sum(p[k] for p in parts)
-    for k in ("caused_max_sig", "own_max_sig", "oracle_max_sig"):
-        out[k] = max(p[k] for p in parts)
-    out["drives"] = n
-    return out
+    return fps, drive_metrics(mset, "kalman", TUNED), drive_metrics(mset, "iir", 0.6)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,8 +53,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{'deg':>5} {'lag ms':>6} "
           f"| {'IIR 0.6 pos mm':>14} {'lag ms':>6}")
     for fps in rates:
-        k = _merge([r[1] for r in res if r[0] == fps])
-        i = _merge([r[2] for r in res if r[0] == fps])
+        k = aggregate([row for r in res if r[0] == fps for row in r[1]])
+        i = aggregate([row for r in res if r[0] == fps for row in r[2]])
         print(f"{fps:4g} {k['outliers']:8d} {k['caused_big']:9d} {k['caused_max_sig']:6.1f} "
               f"{k['own_big']:6d} {k['own_max_sig']:6.1f} {k['oracle_big']:6d} "
               f"{k['oracle_max_sig']:6.1f} {k['caught']:6d} "

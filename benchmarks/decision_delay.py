@@ -16,7 +16,6 @@ lag against the truth is 0; the delay is L frames of delivery. Prints figures; n
 from __future__ import annotations
 
 import argparse
-import math
 import multiprocessing
 
 import numpy as np
@@ -26,6 +25,7 @@ from kmea.benchmarks.tracking import (
     TUNED,
     Measurements,
     MotionSet,
+    aggregate,
     make_measurements,
     metrics,
     trajectory,
@@ -68,13 +68,7 @@ def _set(args: tuple[MotionSet, int]) -> tuple[str, int, dict]:
         out, info = run_delayed(ms, delay)
         clean, _ = run_delayed(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0), delay)
         rows.append(metrics(tr, ms, out, info, clean))
-    agg = {"pos": math.sqrt(np.mean([r["pos"] ** 2 for r in rows])),
-           "lag": float(np.mean([r["lag"] for r in rows])),
-           "caused_max_sig": max(r["caused_max_sig"] for r in rows),
-           "nees": sum(r["nees_sum"] for r in rows) / sum(r["n"] for r in rows)}
-    for k in ("caused_big", "outliers"):
-        agg[k] = sum(r[k] for r in rows)
-    return mset.name, delay, agg
+    return mset.name, delay, aggregate(rows)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
             tot[1] += g["outliers"]
             print(f"{d:5d} {name:<12} {g['caused_big']:5d}/{g['outliers']:<5d} "
                   f"{g['caused_max_sig']:6.1f} {g['pos'] * 1000:7.2f} "
-                  f"{round(g['lag'] * 1000):6d} {g['nees']:5.2f}")
+                  f"{round(g['lag'] * 1000):6d} {g['nees_sum'] / g['n']:5.2f}")
         print(f"{d:5d} {'all':<12} {tot[0]:5d}/{tot[1]:<5d}")
     print("delay: frames between a measurement and the output for its time; caused: outliers "
           "whose output (with outliers minus without, outlier frame and 3 after) exceeds 3 of "

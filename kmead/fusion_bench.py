@@ -50,10 +50,9 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
     names = [f"r{c}_{k}" for c in range(cameras) for k in range(robots)]
     toml = [f'[[robots]]\nname = "{n}"\nmarkers = [{i}]\n'
             f'destinations = ["udp:127.0.0.1:{port}"]\n' for i, n in enumerate(names)]
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, open(Path(tmp) / "node.err", "w+") as err:
         cfg = Path(tmp) / "fuse.toml"
         cfg.write_text("\n".join(toml))
-        err = open(Path(tmp) / "node.err", "w+")  # noqa: SIM115 (closed below)
         proc = subprocess.Popen(
             [sys.executable, "-m", "kmead.fusion", "--config", str(cfg), "--headless",
              "--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""',
@@ -116,7 +115,6 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
             proc.terminate()
             proc.wait(timeout=10)
             th.join(timeout=2)
-            err.close()
             udp.close()
             for s in pubs:
                 s.close(linger=0)

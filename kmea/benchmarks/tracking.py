@@ -440,10 +440,17 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
 def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
              outliers: float = 0.05) -> dict:
     """Figures of one filter ("iir" with alpha, or "kalman" with a config) summed/averaged
-    over the drives of ``mset``, with a fraction ``outliers`` of the measurements jumps. With
-    outliers each drive is also run without them (same seed: same noise, same missing
-    frames) for the jumps the outliers cause (:func:`outlier_effect`), and with the outlier
-    measurements left out for the outliers' own jumps."""
+    over the drives of ``mset`` (:func:`aggregate` of :func:`drive_metrics`)."""
+    return aggregate(drive_metrics(mset, filt, param, outliers))
+
+
+def drive_metrics(mset: MotionSet, filt: str, param: float | TrackerConfig,
+                  outliers: float = 0.05) -> list[dict]:
+    """:func:`metrics` of one filter on each drive of ``mset``, with a fraction ``outliers``
+    of the measurements jumps. With outliers each drive is also run without them (same seed:
+    same noise, same missing frames) for the jumps the outliers cause
+    (:func:`outlier_effect`), and with the outlier measurements left out for the outliers'
+    own jumps and the oracle's."""
     rows = []
     run_f = run_iir if filt == "iir" else run_kalman
     for seed in mset.seeds:
@@ -459,6 +466,13 @@ def evaluate(mset: MotionSet, filt: str, param: float | TrackerConfig,
             dropped, dinfo = run_f(ms, param, ms.outlier)
             dropped_sigma = dinfo["sigma"]
         rows.append(metrics(tr, ms, out, info, clean, dropped, dropped_sigma))
+    return rows
+
+
+def aggregate(rows: list[dict]) -> dict:
+    """Drives' :func:`metrics` combined: RMSEs over all drives' outputs (each drive's
+    weighted equally), the mean lag, counts summed, largest jumps, the slowest
+    re-acquisition."""
     agg = {"pos": math.sqrt(np.mean([r["pos"] ** 2 for r in rows])),
            "head": math.sqrt(np.mean([r["head"] ** 2 for r in rows])),
            "lag": float(np.mean([r["lag"] for r in rows]))}
