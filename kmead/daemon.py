@@ -27,7 +27,6 @@ from kmea.metrics import WindowStats
 from kmea.moved import MovedMonitor
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
 from kmea.recording import Recorder, ReplaySource
-from kmea.vision.camera import CameraModel
 from kmead import bodies
 from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
@@ -38,9 +37,9 @@ from kmead.files import DataDir, FileRefused, same_file
 from kmead.gc_pacing import GcPacing
 from kmead.log_ring import LogRing
 from kmead.outputs import RunTotals, csv_lines, truth_record
+from kmead.plan import check_camera, plan_startup, robot_ids_problem
 from kmead.relay import Relay
 from kmead.rollback import ChangeGuard
-from kmead.settings_schema import check_intrinsics
 from kmead.startup import (
     EXIT_CONFIG,
     EXIT_OK,
@@ -49,8 +48,6 @@ from kmead.startup import (
     configured_map,
     fit_camera,
     is_paced_sim,
-    load_camera_file,
-    load_configured_map,
     open_configured_source,
 )
 from kmead.telemetry import Telemetry, TelemetryLogHandler
@@ -116,19 +113,18 @@ class Daemon:
     def _build(self) -> None:
         cfg = self.cfg
         self.source = None
-        # Files named in the configuration first: their errors are configuration errors.
-        self.world_map = load_configured_map(cfg, None) if cfg["map"]["file"] else None
-        camera = load_camera_file(cfg) if cfg["camera"]["file"] else None
+        # Every configuration problem is found here, as `kmead --check` finds it (exit 2);
+        # what follows can fail only at opening (exit 1).
+        plan = plan_startup(cfg)
+        for w in plan.warnings:
+            log.warning("%s", w)
+        self.world_map = plan.world_map
         self.source = open_configured_source(cfg)
         self.source_spec = cfg["source"]["spec"]
         self.replay = isinstance(self.source, ReplaySource)
         self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(cfg)
-        if self.world_map is None:
-            self.world_map = load_configured_map(cfg, self.source)
-        self._map_warnings()
-        camera = fit_camera(cfg, camera, self.source)
-        self._check_camera(camera)
-        self._check_ids()
+        camera = fit_camera(cfg, plan.camera, self.source)
+        check_camera(cfg, camera)
         try:
             self.data_dir = DataDir(cfg["log"]["dir"])
         except FileRefused as e:
@@ -187,24 +183,9 @@ class Daemon:
         log.info("foxglove: serving %s (open it in Foxglove: Open connection, "
                  "Foxglove WebSocket)", self.foxglove.url)
 
-    def _map_warnings(self) -> None:
-        from kmea.maps import check_map
-
-        for w in check_map(self.world_map):  # the same warnings as `kmea map check`
-            log.warning("map %s: %s", self.world_map.source, w)
-
     def _secure_network(self) -> None:
-        """Keys (CURVE on both sockets) or loopback only, or an explicit insecure = true."""
-        from kmead.keys import exposure
-
+        """CURVE on both sockets when keys are configured (the plan judged the exposure)."""
         net = self.cfg["network"]
-        error, warning = exposure({"network.telemetry": net["telemetry"],
-                                   "network.control": net["control"]},
-                                  net["keys"], net["insecure"])
-        if error:
-            raise StartupError(error, EXIT_CONFIG)
-        if warning:
-            log.warning("%s", warning)
         if net["keys"]:
             import zmq
 
@@ -221,47 +202,6 @@ class Daemon:
     def _key_counts(self) -> tuple[int, int]:
         roles = [r for r, _ in self.curve.ring._roles.values()] if self.curve else []
         return roles.count("operator"), roles.count("viewer")
-
-    def _check_camera(self, cam: CameraModel) -> None:
-        try:
-            check_intrinsics(cam.fx, cam.fy, float(cam.camera_matrix[0, 2]),
-                             float(cam.camera_matrix[1, 2]), cam.width, cam.height,
-                             f"camera: {self.cfg['camera']['file'] or 'default camera'}")
-        except ConfigError as e:
-            raise StartupError(str(e)) from None
-
-    def _dictionary_size(self) -> tuple[str, int | None]:
-        """The detector's dictionary and its size (None for a custom dictionary file)."""
-        from kmea.aruco_names import PREDEFINED, canonical_name
-
-        name = self.cfg["detector"]["dictionary"] or self.world_map.dictionary
-        known = canonical_name(name)
-        return name, PREDEFINED[known] if known else None
-
-    def _robot_ids_problem(self, robots: list[dict]) -> str | None:
-        name, size = self._dictionary_size()
-        for r in robots if size is not None else ():
-            bad = [m for m in r["markers"] if m >= size]
-            if bad:
-                return (f"robots: robot {r['name']!r} marker {bad[0]} is outside {name} "
-                        f"(ids 0-{size - 1}): it could never be found")
-        return None
-
-    def _check_ids(self) -> None:
-        """Map ids the detector's dictionary cannot hold: a warning naming them; a robot
-        marker it cannot hold: an error."""
-        name, size = self._dictionary_size()
-        # The map's own dictionary was judged by check_map (_map_warnings); a detector
-        # dictionary set in the configuration is judged here.
-        own = name == self.world_map.dictionary
-        big = [i for i in self.world_map.ids if not own and size is not None and i >= size]
-        if big:
-            shown = ", ".join(map(str, big[:10])) + (" ..." if len(big) > 10 else "")
-            log.warning("map %s: ids %s are outside %s (ids 0-%d) and can never be detected",
-                        self.world_map.source, shown, name, size - 1)
-        problem = self._robot_ids_problem(self.cfg["robots"])
-        if problem:
-            raise StartupError(problem)
 
     def _settings(self) -> PipelineSettings:
         """The pipeline's settings from the configuration (tracking only for live sources)."""
@@ -342,7 +282,7 @@ class Daemon:
     def _apply(self, key: str, value: Any, old: Any, remote: bool = False) -> Any:
         section = key.partition(".")[0]
         v = self.cfg.set(key, value, where="control", remote=remote)
-        problem = self._robot_ids_problem(v) if key == "robots" else None
+        problem = robot_ids_problem(self.cfg, self.world_map, v) if key == "robots" else None
         if problem:
             self.cfg.set(key, old, where="control")
             raise ConfigError(f"control: {problem}")

@@ -248,14 +248,15 @@ class Doctor:
         return cfg
 
     def check_files(self, cfg: Any) -> None:
-        """The file checks of ``kmead --check`` (:func:`kmead.check.check_config`), one line
-        each for the map and the camera file."""
+        """The checks of start-up and ``kmead --check`` (:func:`kmead.plan.plan_startup`),
+        one line each for the map and the camera file."""
         from kmea.vision.camera import load_camera
-        from kmead.check import CheckError, check_config
+        from kmead.plan import plan_startup
+        from kmead.startup import StartupError
 
         try:
-            warnings = check_config(cfg)
-        except CheckError as e:
+            warnings = plan_startup(cfg).warnings
+        except StartupError as e:
             what, _, why = str(e).partition(": ")
             name, fix = (("map", "fix the file (`kmea map check FILE`)") if what == "map" else
                          ("camera file", "calibrate again (`kmea calibrate`) or fix camera.file")
@@ -272,7 +273,7 @@ class Doctor:
                      "used; calibrate (`kmea calibrate --source picamera ... --out "
                      "/etc/kmead/camera.yml`) and set camera.file")
             return
-        model = load_camera(cam)  # check_config has loaded it once already: it loads
+        model = load_camera(cam)  # the plan has loaded it once already: it loads
         self.add(True, "camera file", f"{cam} ({model.width}x{model.height}, "
                  f"fx {model.fx:.0f} px)")
 

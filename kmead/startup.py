@@ -9,8 +9,8 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from kmea.maps import MapError, MarkerMap, default_map, load_map
-from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
+from kmea.maps import MarkerMap, default_map, load_map
+from kmea.vision.camera import CameraError, CameraModel, pi_camera_v2
 from kmea.vision.sources import FrameSource, SourceError, open_source, parse_source_spec
 from kmead.config import Config
 
@@ -64,22 +64,6 @@ def configured_map(cfg: Config, source: FrameSource | None) -> MarkerMap:
     return m if isinstance(m, MarkerMap) else default_map()
 
 
-def load_configured_map(cfg: Config, source: FrameSource | None) -> MarkerMap:
-    """:func:`configured_map`, a bad file as :class:`StartupError`."""
-    try:
-        return configured_map(cfg, source)
-    except MapError as e:
-        raise StartupError(f"map: {e}") from None
-
-
-def load_camera_file(cfg: Config) -> CameraModel:
-    """The camera model file of ``camera.file`` (``StartupError`` when it is bad)."""
-    try:
-        return load_camera(cfg["camera"]["file"])
-    except CameraError as e:
-        raise StartupError(f"camera: {e}") from None
-
-
 def fit_camera(cfg: Config, cam: CameraModel | None, source: FrameSource) -> CameraModel:
     """The configured camera, else the source's, else a Pi Camera v2; at the frame size."""
     size = getattr(source, "size", None)
@@ -91,7 +75,8 @@ def fit_camera(cfg: Config, cam: CameraModel | None, source: FrameSource) -> Cam
         if not isinstance(cam, CameraModel):
             cam = pi_camera_v2()
     if size and (cam.width, cam.height) != tuple(size):
-        if cfg["camera"]["file"]:
+        configured = (cfg["source"]["width"], cfg["source"]["height"])
+        if cfg["camera"]["file"] and tuple(size) != configured:  # else the plan said it
             logging.getLogger("kmead").warning(
                 "camera: %s is for %dx%d; rescaled to the frame size %dx%d (calibrate at "
                 "this size for the best accuracy)", cfg["camera"]["file"], cam.width,

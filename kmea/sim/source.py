@@ -44,7 +44,7 @@ class SimSource(FrameSource):
         super().__init__()
         bump_at, bump_deg = options.pop("bump_at", None), options.pop("bump_deg", None)
         if isinstance(scene, str):
-            scene, spec_bump = _strip_bump(scene)
+            scene, spec_bump = split_bump(scene)
             bump_at = spec_bump.get("bump_at", bump_at)
             bump_deg = spec_bump.get("bump_deg", bump_deg)
             self.scene = scene_from_spec(scene, **options)
@@ -111,7 +111,7 @@ class SimSource(FrameSource):
         self._t0 = None
 
 
-def _strip_bump(spec: str) -> tuple[str, dict[str, float]]:
+def split_bump(spec: str) -> tuple[str, dict[str, float]]:
     """(spec without ``bump_at`` / ``bump_deg``, their values): source options, not scene
     options."""
     base, q, query = spec.partition("?")

@@ -1,0 +1,105 @@
+"""Start-up and ``kmead --check`` are one judgement (kmead.plan): every configuration that
+start-up refuses, --check refuses with the same line and the same exit code, and the
+reverse. Each case runs both, in-process, through the real command line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kmead import cli
+
+NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
+       "--set", 'network.control="tcp://127.0.0.1:*"']
+SMALL = ["--set", "source.width=640", "--set", "source.height=480", "--set", "source.fps=0"]
+
+
+def _robots_config(tmp: Path) -> list[str]:
+    p = tmp / "robots.toml"
+    p.write_text('[detector]\ndictionary = "DICT_4X4_50"\n\n'
+                 '[[robots]]\nname = "r1"\nmarkers = [60, 61]\n')
+    return ["--config", str(p)]
+
+
+def _undecodable_images(tmp: Path) -> list[str]:
+    d = tmp / "frames"
+    d.mkdir()
+    for i in range(3):
+        (d / f"f{i}.png").write_bytes(b"not a png at all")
+    return ["--source", f"images:{d}"]
+
+
+def _same_outputs(tmp: Path) -> list[str]:
+    return ["--log", str(tmp / "run.out"), "--record", str(tmp / "run.out")]
+
+
+def _missing_keys(tmp: Path) -> list[str]:
+    return ["--set", f'network.keys="{tmp / "no-keys"}"']
+
+
+def _bad_map(tmp: Path) -> list[str]:
+    p = tmp / "m.csv"
+    p.write_text("id,x,y,z,rx_deg,ry_deg,rz_deg\n13,0,0,0,0,0,zero\n")
+    return ["--map", str(p)]
+
+
+# name -> arguments (a function of a temporary folder); each is a configuration problem.
+REFUSALS = {
+    "reachable telemetry without keys": lambda t: [
+        "--set", 'network.telemetry="tcp://0.0.0.0:5555"'],
+    "robot markers outside the dictionary": _robots_config,
+    "unknown sim scene": lambda t: ["--source", "sim:nosuchscene"],
+    "missing image folder": lambda t: ["--source", f"images:{t / 'nodir'}"],
+    "image folder without a decodable image": _undecodable_images,
+    "missing video": lambda t: ["--source", f"video:{t / 'none.mp4'}"],
+    "missing recording": lambda t: ["--source", f"replay:{t / 'none.jsonl'}"],
+    "missing map file": lambda t: ["--map", str(t / "none.csv")],
+    "malformed map": _bad_map,
+    "missing camera file": lambda t: ["--camera", str(t / "none.yml")],
+    "unwritable log": lambda t: ["--log", "/proc/kmead-test.csv"],
+    "log and recording the same file": _same_outputs,
+    "missing key directory": _missing_keys,
+}
+
+
+def _run(argv: list[str], capsys) -> tuple[int, str]:
+    code = cli.main(argv)
+    return code, capsys.readouterr().err.strip()
+
+
+@pytest.mark.parametrize("case", sorted(REFUSALS))
+def test_every_refusal_is_the_same_through_check_and_start(case, tmp_path, capsys):
+    args = REFUSALS[case](tmp_path)
+    net = [] if any("network.telemetry" in a for a in args) else NET
+    check_code, check_err = _run([*args, *SMALL, *net, "--check"], capsys)
+    run_code, run_err = _run([*args, *SMALL, *net, "--headless", "--frames", "1"], capsys)
+    assert run_code == 2, f"start-up: {run_err}"
+    assert check_code == run_code, f"--check: {check_err}\nstart-up: {run_err}"
+    # Start-up may log warnings before the refusal; the refusal is its last line, and
+    # --check prints the same line.
+    last = run_err.splitlines()[-1]
+    assert last in check_err.splitlines(), f"--check: {check_err}\nstart-up: {last}"
+    assert len(last) < 400 and "Traceback" not in run_err + check_err
+
+
+def test_a_configuration_check_accepts_starts(tmp_path, capsys):
+    log = tmp_path / "run.csv"
+    args = [*SMALL, *NET, "--source", "sim", "--log", str(log)]
+    assert _run([*args, "--check"], capsys)[0] == 0
+    assert not log.exists()  # --check writes nothing
+    code, err = _run([*args, "--headless", "--frames", "2"], capsys)
+    assert code == 0, err
+    assert len(log.read_text().splitlines()) > 1
+
+
+def test_image_folder_with_one_decodable_image_passes(tmp_path, capsys):
+    import cv2
+
+    d = tmp_path / "frames"
+    d.mkdir()
+    (d / "a.png").write_bytes(b"broken")
+    cv2.imwrite(str(d / "b.png"), np.full((48, 64), 128, np.uint8))
+    code, err = _run(["--source", f"images:{d}", *SMALL, *NET, "--check"], capsys)
+    assert code == 0, err
