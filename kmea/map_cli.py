@@ -19,6 +19,7 @@ from kmea.maps import (
     MarkerMap,
     _angles_deg,
     check_map,
+    check_spread,
     default_map,
     load_map,
     save_map_toml,
@@ -149,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "convert":
             return _convert(args)
         m = _load(args)
+        check_spread(m)
         if args.action == "show":
             print(format_map(m))
             for w in check_map(m):

@@ -14,7 +14,17 @@ import numpy as np
 from kmea.aruco_names import PREDEFINED, is_dictionary_file
 from kmea.geometry import marker_corners_local
 
-__all__ = ["MapError", "Marker", "MarkerMap", "check_map"]
+__all__ = ["MapError", "Marker", "MarkerMap", "check_map", "check_spread"]
+
+# A camera of this many pixels across that sees the whole map images each marker at
+# width * side / extent pixels; ArUco needs some 10 px, so a map spanning more than this
+# many marker sides is not one floor in metres (a map in millimetres spans ~30,000).
+MAX_SIDES_SPANNED = 1000
+# A marker whose nearest neighbour is this many times farther than the map's median
+# spacing, and farther than twice the rest of the map is wide, is a typing slip
+# (7,227,150,0 for 7,0.227,0.150,0).
+FAR_SPACINGS = 20.0
+MAX_OVERLAPS_SHOWN = 10
 
 
 class MapError(ValueError):
@@ -81,7 +91,8 @@ class MarkerMap:
 
     ``origin_id``, ``x_id`` and ``y_id`` are the anchors of LMEA and of KMEA's scale step.
     ``reference_length`` (m) is the denominator of the mean relative error; ``None`` means
-    the diagonal of the floor markers' extent.
+    the diagonal of the floor markers' extent. ``extra["where"]``: id -> where the marker
+    was read ("FILE: line N"), to name it in warnings.
     """
 
     markers: dict[int, Marker]
@@ -128,11 +139,21 @@ class MarkerMap:
         return math.hypot(x1 - x0, y1 - y0)
 
 
+def check_spread(m: MarkerMap) -> None:
+    """:class:`MapError` for a map whose markers do not span a length (all at one point,
+    or one marker): no estimator can scale to it and no error can be relative to it."""
+    ref = m.ref_length()
+    if not (math.isfinite(ref) and ref > 0):
+        raise MapError(f"{m.source}: the markers' centres span {ref:g} m: a map needs "
+                       "markers at different places (at least three, apart)")
+
+
 def check_map(m: MarkerMap) -> list[str]:
     """Warnings about a loaded map that is usable but probably not what was meant.
 
     Anchors missing from the map (LMEA then never estimates; KMEA's scale step uses the
-    centroid), ids the dictionary cannot encode, an unknown dictionary, overlapping markers.
+    centroid), ids the dictionary cannot encode, an unknown dictionary, overlapping markers,
+    positions that look like millimetres and a marker far from all others (a typing slip).
     """
     out: list[str] = []
     for label, mid in (("origin_id", m.origin_id), ("x_id", m.x_id), ("y_id", m.y_id)):
@@ -153,10 +174,43 @@ def check_map(m: MarkerMap) -> list[str]:
     P = m.positions(ids)
     N = np.array([m[i].normal for i in ids])
     L = np.array([m[i].length for i in ids])
+    overlaps = []
     for a in range(len(ids)):
         d = np.linalg.norm(P[a + 1:] - P[a], axis=1)
         same = N[a + 1:] @ N[a] > 0.9
-        for j in np.nonzero(same & (d < (L[a + 1:] + L[a]) / 2))[0]:
-            out.append(f"markers {ids[a]} and {ids[a + 1 + j]} overlap "
-                       f"(centres {d[j]:.4f} m apart)")
+        overlaps += [f"markers {ids[a]} and {ids[a + 1 + j]} overlap (centres {d[j]:.4f} m "
+                     "apart)" for j in np.nonzero(same & (d < (L[a + 1:] + L[a]) / 2))[0]]
+    if len(overlaps) > MAX_OVERLAPS_SHOWN:
+        overlaps = [*overlaps[:MAX_OVERLAPS_SHOWN - 1],
+                    f"... and {len(overlaps) - MAX_OVERLAPS_SHOWN + 1} more overlapping pairs"]
+    return out + overlaps + _implausible(m, ids, P, L)
+
+
+def _implausible(m: MarkerMap, ids: list[int], P: np.ndarray, L: np.ndarray) -> list[str]:
+    """Positions that are not metres of one floor: an extent of thousands of marker sides,
+    and single markers far from all the others."""
+    if len(ids) < 3:
+        return []
+    out: list[str] = []
+    where = m.extra.get("where", {})
+    side = float(np.median(L))
+    D = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2)
+    np.fill_diagonal(D, np.inf)
+    nearest = D.min(1)
+    spacing = float(np.median(nearest))
+    slips = []
+    for a in np.nonzero(nearest > FAR_SPACINGS * max(spacing, side))[0]:
+        rest = np.delete(P, a, axis=0)
+        if nearest[a] > 2 * np.linalg.norm(rest.max(0) - rest.min(0)):
+            slips.append(a)
+            p = ", ".join(f"{v:g}" for v in P[a])
+            out.append(f"{where.get(ids[a], f'marker {ids[a]}')}: marker {ids[a]} at "
+                       f"({p}) m is {nearest[a]:.4g} m from the nearest other marker "
+                       f"(median spacing {spacing:.3g} m): a typing slip?")
+    kept = np.delete(P, slips, axis=0)
+    span = float(np.linalg.norm(kept.max(0) - kept.min(0)))
+    if span > MAX_SIDES_SPANNED * side:
+        out.insert(0, f"the markers span {span:.4g} m, {span / side:.0f} times their "
+                      f"{side:g} m side: map positions are metres (are these millimetres?); "
+                      "a camera seeing it all would image each marker at under 2 px")
     return out

@@ -26,7 +26,7 @@ import tomli_w
 
 from kmea.aruco_names import check_dictionary_name, is_dictionary_file
 from kmea.geometry import euler_zyx_fixed_deg
-from kmea.map_model import MapError, Marker, MarkerMap, check_map
+from kmea.map_model import MapError, Marker, MarkerMap, check_map, check_spread
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -38,6 +38,7 @@ __all__ = [
     "Marker",
     "MarkerMap",
     "check_map",
+    "check_spread",
     "default_map",
     "dumps_map_toml",
     "load_csv_markers",
@@ -113,8 +114,13 @@ def _add(markers: dict[int, Marker], m: Marker, where: str) -> None:
 def load_csv_markers(path: Path, default_length: float) -> dict[int, Marker]:
     """Read ``id,x,y,z[,rx_deg,ry_deg,rz_deg][,length]`` (metres, degrees); blank lines are
     skipped. ``default_length`` (m) is used where ``length`` is absent or empty."""
+    return _read_csv(Path(path), default_length)[0]
+
+
+def _read_csv(path: Path, default_length: float) -> tuple[dict[int, Marker], dict[int, str]]:
+    """The markers of a CSV map and where each was read (id -> "FILE: line N")."""
     markers: dict[int, Marker] = {}
-    path = Path(path)
+    wheres: dict[int, str] = {}
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
@@ -137,6 +143,7 @@ def load_csv_markers(path: Path, default_length: float) -> dict[int, Marker]:
                 if all(v in ("", None) for v in row.values()):
                     continue
                 _add(markers, _make_marker(row, where, default_length), where)
+                wheres[next(reversed(markers))] = f"line {reader.line_num}"
     except OSError as e:
         raise MapError(f"{path}: cannot read: {e.strerror or e}") from None
     except UnicodeDecodeError:
@@ -145,7 +152,7 @@ def load_csv_markers(path: Path, default_length: float) -> dict[int, Marker]:
         raise MapError(f"{path}: bad CSV: {e}") from None
     if not markers:
         raise MapError(f"{path}: no markers")
-    return markers
+    return markers, wheres
 
 
 def load_map(path: str | Path, dictionary: str = "DICT_5X5_50",
@@ -162,9 +169,9 @@ def load_map(path: str | Path, dictionary: str = "DICT_5X5_50",
         if isinstance(default_length, bool) or not (math.isfinite(default_length)
                                                     and default_length > 0):
             raise MapError(f"{path}: default marker length must be > 0 m, got {default_length!r}")
-        markers = load_csv_markers(path, default_length)
+        markers, wheres = _read_csv(path, default_length)
         return MarkerMap(markers, dictionary=dictionary, default_length=default_length,
-                         name=path.stem, source=str(path))
+                         name=path.stem, source=str(path), extra={"where": wheres})
     if path.suffix.lower() == ".toml":
         try:
             text = path.read_text(encoding="utf-8")
@@ -209,6 +216,7 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
         raise MapError(f"{source}: markers: expected a non-empty array of tables [[markers]]")
     use_lines = lines is not None and len(lines) == len(rows)
     markers: dict[int, Marker] = {}
+    wheres: dict[int, str] = {}
     for i, row in enumerate(rows):
         where = f"{source}: markers[{i}]" + (f" (line {lines[i]})" if use_lines else "")
         if not isinstance(row, dict):
@@ -220,6 +228,7 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
             if k not in row:
                 raise MapError(f"{where}: missing key {k!r}")
         _add(markers, _make_marker(row, where, default_length, strict=True), where)
+        wheres[next(reversed(markers))] = where.removeprefix(f"{source}: ")
     anchors = {}
     for key, default in (("origin_id", 13), ("x_id", 16), ("y_id", 4)):
         anchors[key] = _int(data.get(key, default), f"{source}: {key}", strict=True)
@@ -232,7 +241,8 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
     if ref is not None and ref <= 0:
         raise MapError(f"{source}: reference_length must be > 0 m, got {ref}")
     return MarkerMap(markers, dictionary=dictionary, default_length=default_length,
-                     reference_length=ref, name=name, source=source, **anchors)
+                     reference_length=ref, name=name, source=source, extra={"where": wheres},
+                     **anchors)
 
 
 # ---------------------------------------------------------------------------- saving

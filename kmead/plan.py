@@ -17,7 +17,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from kmea.maps import MapError, MarkerMap, check_map, default_map
+from kmea.maps import MapError, MarkerMap, check_map, check_spread, default_map
 from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
 from kmea.vision.sources import SourceError, parse_source_spec
 from kmead.config import Config, ConfigError
@@ -59,6 +59,10 @@ def plan_startup(cfg: Config) -> StartupPlan:
     source_map, source_camera = _source_preview(cfg, prefix)
     world_map = _configured_map(cfg) or source_map or default_map()
     where = cfg["map"]["file"] or world_map.source or "the built-in map"
+    try:
+        check_spread(world_map)
+    except MapError as e:
+        raise StartupError(f"map: {e}") from None
     warnings += [f"map {where}: {w}" for w in check_map(world_map)]
     preview = camera or source_camera or pi_camera_v2()
     warnings += _camera_size(cfg, preview)

@@ -103,3 +103,24 @@ def test_image_folder_with_one_decodable_image_passes(tmp_path, capsys):
     cv2.imwrite(str(d / "b.png"), np.full((48, 64), 128, np.uint8))
     code, err = _run(["--source", f"images:{d}", *SMALL, *NET, "--check"], capsys)
     assert code == 0, err
+
+
+def test_markers_all_at_one_point_refused_at_check_and_start(tmp_path, capsys):
+    p = tmp_path / "zero.csv"
+    p.write_text("id,x,y,z\n" + "".join(f"{i},0,0,0\n" for i in range(20)))
+    check = _run(["--map", str(p), *SMALL, *NET, "--check"], capsys)
+    run = _run(["--map", str(p), *SMALL, *NET, "--headless", "--frames", "1"], capsys)
+    assert check[0] == run[0] == 2
+    assert run[1].splitlines()[-1] in check[1].splitlines()
+    assert "span 0 m" in run[1] and "Traceback" not in run[1]
+    # One summary line, not the 190 pairs.
+    assert len(check[1].splitlines()) <= 2
+
+
+def test_a_map_in_millimetres_is_warned_at_check_and_start(tmp_path, capsys):
+    p = tmp_path / "mm.csv"
+    p.write_text("id,x,y,z\n13,0,0,0\n16,1700,0,0\n4,0,1200,0\n5,850,600,0\n")
+    check = _run(["--map", str(p), *SMALL, *NET, "--check"], capsys)
+    run = _run(["--map", str(p), *SMALL, *NET, "--headless", "--frames", "1"], capsys)
+    assert check[0] == run[0] == 0
+    assert "millimetres" in check[1] and "millimetres" in run[1]

@@ -362,3 +362,53 @@ def test_map_accepts_every_dictionary_the_config_accepts(tmp_path: Path) -> None
     # A saved map writes the canonical name and loads back the same.
     save_map_toml(load_map(tmp_path / "lower.toml"), tmp_path / "again.toml")
     assert 'dictionary = "DICT_5X5_100"' in (tmp_path / "again.toml").read_text()
+
+
+def _raf_rows() -> list[str]:
+    from importlib import resources
+
+    text = resources.files("kmea").joinpath("data/raf4_floor_markers.csv").read_text()
+    return text.strip().splitlines()
+
+
+def test_a_map_in_millimetres_is_named_at_check(tmp_path: Path, capsys) -> None:
+    rows = _raf_rows()
+    head = rows[0].split(",")
+    mm = [rows[0]]
+    for r in rows[1:]:
+        v = dict(zip(head, r.split(","), strict=True))
+        for k in ("x", "y", "z"):
+            v[k] = str(float(v[k]) * 1000)
+        mm.append(",".join(v[k] for k in head))
+    p = tmp_path / "mm.csv"
+    p.write_text("\n".join(mm) + "\n")
+    assert kmea_main(["map", "check", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert "are these millimetres?" in out and "metres" in out
+    # The same map in metres says nothing of the kind.
+    q = tmp_path / "m.csv"
+    q.write_text("\n".join(rows) + "\n")
+    assert kmea_main(["map", "check", str(q)]) == 0
+    assert "are these millimetres" not in capsys.readouterr().out
+
+
+def test_a_line_far_from_all_others_is_named_by_its_line(tmp_path: Path, capsys) -> None:
+    rows = _raf_rows()
+    head = rows[0].split(",")
+    slip = dict.fromkeys(head, "0")
+    slip.update(id="45", x="227", y="150")
+    rows.append(",".join(slip[k] for k in head))
+    p = tmp_path / "slip.csv"
+    p.write_text("\n".join(rows) + "\n")
+    assert kmea_main(["map", "check", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert f"line {len(rows)}: marker 45 at (227, 150, 0) m" in out
+    assert "are these millimetres" not in out  # the rest of the map is in metres
+
+
+def test_markers_all_at_one_point_are_refused(tmp_path: Path, capsys) -> None:
+    p = tmp_path / "zero.csv"
+    p.write_text("id,x,y,z\n" + "".join(f"{i},0,0,0\n" for i in range(20)))
+    assert kmea_main(["map", "check", str(p)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "span 0 m" in err and str(p) in err
