@@ -24,9 +24,9 @@ BENCHES: dict[str, str] = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    every = {**BENCHES, **(p.get_default("daemon_benches") or {})}
     p.add_argument("names", nargs="*", metavar="NAME",
-                   help=f"benchmarks to run (default: all): {', '.join(BENCHES)}, daemon, "
-                        "latency")
+                   help=f"benchmarks to run (default: all): {', '.join(every)}")
     p.add_argument("--quick", action="store_true", help="fewer repetitions")
     p.add_argument("--frames", type=int, default=None, metavar="N",
                    help="frames for the benchmarks that take a count (pipeline: 90 by "
@@ -34,8 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the named benchmarks; ``args.daemon_benches`` (name -> function, set by the
-    ``kmea`` front door) adds the daemon's own."""
+    """Run the named benchmarks; ``args.daemon_benches`` (name -> function or
+    "module:function", set by the ``kmea`` front door) adds the daemon's own."""
     benches: dict[str, Callable[..., None] | str] = {**BENCHES,
                                                       **getattr(args, "daemon_benches", {})}
     names = args.names or list(benches)

@@ -1,4 +1,4 @@
-"""kmea: the library's tools (map, calibrate, print, experiment, bench).
+"""kmea: the library's tools (each COMMAND has its own --help).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from importlib import import_module
 
 # name -> (module, one-line help)
@@ -26,11 +26,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 def main(argv: list[str] | None = None,
          commands: Mapping[str, tuple[str, str]] | None = None,
-         extra_benches: Callable[[], dict] | None = None,
+         extra_benches: Mapping[str, str] | None = None,
          description: str | None = None) -> int:
     """Run one subcommand. ``commands``: name -> (module, help), by default the library's
-    :data:`COMMANDS`; ``extra_benches``: called for ``bench`` only, more benchmarks (name ->
-    function) for it to offer (the daemon's, from ``kmead.kmea_cli``)."""
+    :data:`COMMANDS`; ``extra_benches``: more benchmarks for ``bench`` to offer (name ->
+    "module:function"; the daemon's, from ``kmead.kmea_cli``)."""
     from kmea import __version__
 
     parser = argparse.ArgumentParser(prog="kmea",
@@ -41,13 +41,13 @@ def main(argv: list[str] | None = None,
     argv = sys.argv[1:] if argv is None else argv
     for name, (module, help_) in (COMMANDS if commands is None else commands).items():
         p = sub.add_parser(name, help=help_)
+        if name == "bench":
+            p.set_defaults(daemon_benches=dict(extra_benches or {}))
         # Only the chosen command's module is imported (and so its dependencies).
         if argv and argv[0] == name:
             modules[name] = import_module(module)
             modules[name].add_arguments(p)
     args = parser.parse_args(argv)
-    if args.command == "bench":
-        args.daemon_benches = extra_benches() if extra_benches is not None else {}
     try:
         return int(modules[args.command].run(args) or 0)
     except KeyboardInterrupt:

@@ -1,5 +1,4 @@
-"""kmea: the tools (map, calibrate, print, experiment, bench, fuse, doctor, keys, export,
-snapshot).
+"""kmea: KMEA's tools (each COMMAND has its own --help).
 
 The ``kmea`` command: the library's front door (:mod:`kmea.cli`) with the daemon-side tools
 (sockets, UDP, files, the Pi) and the daemon's benchmarks added. It lives here, above both
@@ -22,16 +21,16 @@ DAEMON_COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def daemon_benches() -> dict:
-    """The daemon's benchmarks (threads, sockets, files) for ``kmea bench``."""
-    from kmead import bench, fusion_bench
-
-    return {"daemon": bench.run_daemon, "latency": bench.run_latency,
-            "fusion-node": fusion_bench.run, "tui": bench.run_tui}
+# The daemon's benchmarks (threads, sockets, files) for ``kmea bench``: name ->
+# "module:function", imported only when run.
+DAEMON_BENCHES: dict[str, str] = {
+    "daemon": "kmead.bench:run_daemon", "latency": "kmead.bench:run_latency",
+    "fusion-node": "kmead.fusion_bench:run", "tui": "kmead.bench:run_tui",
+}
 
 
 def main(argv: list[str] | None = None) -> int:
-    return cli.main(argv, {**cli.COMMANDS, **DAEMON_COMMANDS}, daemon_benches,
+    return cli.main(argv, {**cli.COMMANDS, **DAEMON_COMMANDS}, DAEMON_BENCHES,
                     __doc__.splitlines()[0])
 
 

@@ -38,3 +38,32 @@ def test_an_unknown_benchmark_is_named_and_nothing_runs(capsys):
     benches = {"plain": lambda quick=False: ran.append("plain")}
     assert bench.run(_args("plain", "nope", benches=benches)) == 2
     assert ran == [] and "'nope'" in capsys.readouterr().out
+
+
+def test_help_lists_every_command_and_every_benchmark(capsys):
+    import pytest
+
+    from kmead import kmea_cli
+
+    with pytest.raises(SystemExit):
+        kmea_cli.main(["--help"])
+    text = capsys.readouterr().out
+    for name in {**kmea_cli.cli.COMMANDS, **kmea_cli.DAEMON_COMMANDS}:
+        assert f"    {name}" in text, name
+    description = text.split("\n\n")[1]
+    assert description.rstrip().endswith(")."), description  # a whole sentence, not cut
+    with pytest.raises(SystemExit):
+        kmea_cli.main(["bench", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in {**bench.BENCHES, **kmea_cli.DAEMON_BENCHES}:
+        assert f" {name}," in text or f" {name} " in text, name
+
+
+def test_daemon_benchmarks_are_importable_targets():
+    from importlib import import_module
+
+    from kmead import kmea_cli
+
+    for target in kmea_cli.DAEMON_BENCHES.values():
+        module, func = target.split(":")
+        assert callable(getattr(import_module(module), func)), target
