@@ -33,6 +33,7 @@ SYSTEM_SITE = Path("/usr/lib/python3/dist-packages")
 # Python of each Raspberry Pi OS release: the apt picamera2 is built for it alone.
 OS_PYTHON = {"bookworm": (3, 11), "trixie": (3, 13)}
 MIN_FREE_BYTES = 1 << 30
+BOARD_MODEL = Path("/proc/device-tree/model")
 
 
 @dataclass
@@ -58,6 +59,7 @@ class Doctor:
     codename: str | None = None
     groups: Callable[[], Iterable[int]] = os.getgroups
     min_free_bytes: int = MIN_FREE_BYTES
+    board: str | None = None  # the device tree's model; None: read from BOARD_MODEL
     results: list[Check] = field(default_factory=list)
 
     def add(self, ok: bool, name: str, text: str) -> Check:
@@ -66,7 +68,7 @@ class Doctor:
         return c
 
     # ------------------------------------------------------------------ software
-    def check_python(self) -> None:
+    def check_python(self, pi: bool = True) -> None:
         v = sys.version_info
         ver = f"{v.major}.{v.minor}.{v.micro}"
         want = OS_PYTHON.get(self.codename or "")
@@ -80,7 +82,7 @@ class Doctor:
         else:
             self.add(True, "python", f"{ver} ({sys.executable})")
         in_venv = sys.prefix != sys.base_prefix
-        if in_venv and self.system_site.is_dir():
+        if pi and in_venv and self.system_site.is_dir():
             sees = any(Path(p) == self.system_site for p in sys.path)
             if sees:
                 self.add(True, "venv", f"{sys.prefix} sees the apt packages ({self.system_site})")
@@ -268,6 +270,12 @@ class Doctor:
                 self.add(False, "files", w)
         self.add(True, "map", cfg["map"]["file"] or "the built-in RobotAtFactory 4.0 map")
         cam = cfg["camera"]["file"]
+        live = cfg["source"]["spec"].split("?")[0].split(":")[0] in ("picamera", "camera")
+        if not cam and not live:
+            self.add(True, "camera file", f"none needed for the source "
+                     f"{cfg['source']['spec']} (it brings its camera model or uses a nominal "
+                     "one)")
+            return
         if not cam:
             self.add(False, "camera file", "none configured: a nominal Pi Camera v2 model is "
                      "used; calibrate (`kmea calibrate --source picamera ... --out "
@@ -315,11 +323,29 @@ class Doctor:
             self.add(True, "disk", text)
 
     # ------------------------------------------------------------------ all
+    def on_pi(self) -> bool:
+        if self.board is None:
+            try:
+                self.board = BOARD_MODEL.read_bytes().rstrip(b"\0").decode("ascii", "replace")
+            except OSError:
+                self.board = ""
+        return "Raspberry Pi" in self.board
+
     def run_all(self) -> list[Check]:
-        self.check_python()
-        mods = self.check_picamera2() if self.check_numpy_opencv() else None
-        self.check_camera(mods)
-        self.check_permissions()
+        pi = self.on_pi()
+        if not pi:
+            # A laptop or CI machine: no apt picamera2, camera or video group to look for,
+            # and nothing to rebuild for them.
+            self.codename = None
+            board = self.board or "no device-tree model"
+            self.add(True, "machine", f"not a Raspberry Pi ({board}): the Pi checks (apt "
+                     "packages, picamera2, camera, video group) skipped; Python, numpy, "
+                     "OpenCV, configuration, ports, files and disk checked")
+        self.check_python(pi)
+        numpy_ok = self.check_numpy_opencv()
+        if pi:
+            self.check_camera(self.check_picamera2() if numpy_ok else None)
+            self.check_permissions()
         cfg = self.load()
         if cfg is not None:
             self.check_ports(cfg)
