@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from kmea.maps import (
+    DEFAULT_DICTIONARY,
     MapError,
     MarkerMap,
     _angles_deg,
@@ -36,8 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", type=Path, help="convert: TOML file to write "
                    "(default: FILE with the suffix .toml)")
     p.add_argument("--force", action="store_true", help="convert: overwrite the output")
-    p.add_argument("--dictionary", default="DICT_5X5_50",
-                   help="CSV maps: ArUco dictionary name (default DICT_5X5_50)")
+    p.add_argument("--dictionary", default=DEFAULT_DICTIONARY,
+                   help=f"CSV maps: ArUco dictionary name (default {DEFAULT_DICTIONARY}: "
+                        "RobotAtFactory's DICT_5X5_50 codes are its first 50)")
     p.add_argument("--length", type=float, default=0.06,
                    help="CSV maps: marker side where the file has no length, m (default 0.06)")
     p.add_argument("--origin-id", type=int, help="convert: origin marker id (default 13)")

@@ -14,7 +14,14 @@ import numpy as np
 from kmea.aruco_names import PREDEFINED, is_dictionary_file
 from kmea.geometry import marker_corners_local
 
-__all__ = ["MapError", "Marker", "MarkerMap", "check_map", "check_spread"]
+__all__ = ["DEFAULT_DICTIONARY", "MapError", "Marker", "MarkerMap", "check_map",
+           "check_spread"]
+
+#: The dictionary of a map that names none. RobotAtFactory 4.0's floor markers are
+#: DICT_5X5_50 codes (ids 0-49); DICT_5X5_100's first 50 codes are the same, and its wall
+#: markers (ids 50-65) need the larger dictionary, so every map reads DICT_5X5_100 unless
+#: it says otherwise.
+DEFAULT_DICTIONARY = "DICT_5X5_100"
 
 # A camera of this many pixels across that sees the whole map images each marker at
 # width * side / extent pixels; ArUco needs some 10 px, so a map spanning more than this

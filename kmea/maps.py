@@ -26,7 +26,7 @@ import tomli_w
 
 from kmea.aruco_names import check_dictionary_name, is_dictionary_file
 from kmea.geometry import euler_zyx_fixed_deg
-from kmea.map_model import MapError, Marker, MarkerMap, check_map, check_spread
+from kmea.map_model import DEFAULT_DICTIONARY, MapError, Marker, MarkerMap, check_map, check_spread
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -34,6 +34,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 __all__ = [
+    "DEFAULT_DICTIONARY",
     "MapError",
     "Marker",
     "MarkerMap",
@@ -155,7 +156,7 @@ def _read_csv(path: Path, default_length: float) -> tuple[dict[int, Marker], dic
     return markers, wheres
 
 
-def load_map(path: str | Path, dictionary: str = "DICT_5X5_50",
+def load_map(path: str | Path, dictionary: str = DEFAULT_DICTIONARY,
              default_length: float = 0.06) -> MarkerMap:
     """Load a map from ``.toml`` or ``.csv``.
 
@@ -206,7 +207,7 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
     if default_length <= 0:
         raise MapError(f"{source}: default_length must be > 0 m, got {default_length}")
     folder = Path(source).parent if Path(source).is_file() else None
-    dictionary = _check_dictionary(data.get("dictionary", "DICT_5X5_50"),
+    dictionary = _check_dictionary(data.get("dictionary", DEFAULT_DICTIONARY),
                                    f"{source}: dictionary", folder)
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str):
@@ -324,6 +325,6 @@ def default_map() -> MarkerMap:
         markers = load_csv_markers(Path(floor_csv), 0.06)
         for mk in load_csv_markers(Path(wall_csv), 0.04).values():
             _add(markers, mk, str(wall_csv))
-    return MarkerMap(markers, dictionary="DICT_5X5_100", default_length=0.06, origin_id=13,
+    return MarkerMap(markers, dictionary=DEFAULT_DICTIONARY, default_length=0.06, origin_id=13,
                      x_id=16, y_id=4, reference_length=2.081, name="RobotAtFactory 4.0",
                      source="<built-in RobotAtFactory 4.0>")

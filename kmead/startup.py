@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from kmea.maps import MarkerMap, default_map, load_map
+from kmea.maps import DEFAULT_DICTIONARY, MarkerMap, default_map, load_map
 from kmea.vision.camera import CameraError, CameraModel, pi_camera_v2
 from kmea.vision.sources import FrameSource, SourceError, open_source, parse_source_spec
 from kmead.config import Config
@@ -58,7 +58,7 @@ def configured_map(cfg: Config, source: FrameSource | None) -> MarkerMap:
     (``MapError`` for a bad file)."""
     path = cfg["map"]["file"]
     if path:
-        return load_map(path, dictionary=cfg["detector"]["dictionary"] or "DICT_5X5_100",
+        return load_map(path, dictionary=cfg["detector"]["dictionary"] or DEFAULT_DICTIONARY,
                         default_length=cfg["detector"]["marker_length"])
     m = getattr(source, "world_map", None)
     return m if isinstance(m, MarkerMap) else default_map()

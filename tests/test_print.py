@@ -180,3 +180,16 @@ def test_print_cli(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["print", "charuco", "7by5", "--out", str(tmp_path / "x.png")]) == 2
     assert main(["print", "marker", "1", "--out", str(tmp_path / "x.jpg")]) == 2
     assert "use .png or .pdf" in capsys.readouterr().err
+
+
+def test_print_marker_at_its_map_size(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A wall marker of the built-in map is 40 mm, a floor marker 60 mm; --size-mm wins."""
+    for mid, side in ((60, 40.0), (13, 60.0), (99, 60.0)):
+        out = tmp_path / f"m{mid}.pdf"
+        assert main(["print", "marker", str(mid), "--dpi", "100", "--out", str(out)]) == 0
+        text = capsys.readouterr().out
+        assert f"id {mid}, {side:g} mm" in text
+        assert ("not in the map" in text) == (mid == 99)
+    assert main(["print", "marker", "60", "--size-mm", "50", "--dpi", "100", "--out",
+                 str(tmp_path / "x.pdf")]) == 0
+    assert "id 60, 50 mm" in capsys.readouterr().out
