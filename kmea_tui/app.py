@@ -132,6 +132,7 @@ class KmeaTui(App[None]):
         self.replay_done = False
         self.ping_ok: bool | None = None
         self.ping_detail = ""
+        self.role: str | None = None  # "viewer": the daemon serves this key read-only
         self.last_telemetry: float | None = None
         self.connection_state = "connecting"
         self.config_loaded = False
@@ -339,8 +340,9 @@ class KmeaTui(App[None]):
         while True:
             reply = await self.client.request("ping", timeout=min(0.5, self.ping_period))
             ok = bool(reply.get("ok"))
-            if ok != self.ping_ok:
-                self.post_message(ConnectionChanged(ok, str(reply.get("error", ""))))
+            role = reply.get("role") if isinstance(reply.get("role"), str) else None
+            if ok != self.ping_ok or (ok and role != self.role):
+                self.post_message(ConnectionChanged(ok, str(reply.get("error", "")), role))
             await asyncio.sleep(self.ping_period)
 
     def on_connection_changed(self, msg: ConnectionChanged) -> None:
@@ -350,6 +352,8 @@ class KmeaTui(App[None]):
     def _connection_changed(self, msg: ConnectionChanged) -> None:
         was = self.ping_ok
         self.ping_ok, self.ping_detail = msg.ok, msg.detail
+        if msg.ok:
+            self.role = msg.role
         if (msg.ok and was is False) or (msg.ok and not self.config_loaded):
             # (Re)connected: the daemon may have restarted with another configuration.
             self.control("get_state")
@@ -377,7 +381,8 @@ class KmeaTui(App[None]):
         self.connection_state = state
         frozen = state in FROZEN_STATES
         with suppress(NoMatches, ScreenStackError):  # shutting down
-            self.query_one(StatusBar).show(state, self.frame, detail)
+            self.query_one(StatusBar).show(state, self.frame, detail,
+                                           read_only=self.role == "viewer")
             if frozen != self.frozen:
                 self._set_frozen(frozen)
 

@@ -216,6 +216,9 @@ class DaemonClient:
                 # Lazy pirate: a REQ socket that missed its reply is unusable; start afresh.
                 req.close(linger=0)
                 self._req = None
+                if self.keys is None:  # a keyed daemon ignores a plain client: say so first
+                    return {"ok": False, "error": f"no reply within {wait:g} s: down, or it "
+                                                  f"needs --keys DIR ({self.control})"}
                 return {"ok": False, "error": f"no reply from {self.control} within {wait:g} s"}
         try:
             reply = protocol.decode_body(data)

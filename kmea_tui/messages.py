@@ -33,10 +33,13 @@ class TelemetryBatch(Message):
 
 @dataclass
 class ConnectionChanged(Message):
-    """The control ping result changed: ``ok`` is False when the daemon does not answer."""
+    """The control ping result changed: ``ok`` is False when the daemon does not answer;
+    ``role``: what the daemon says this client's key is ("operator", "viewer"; None
+    without keys)."""
 
     ok: bool
     detail: str = ""
+    role: str | None = None
 
 
 @dataclass

@@ -36,6 +36,9 @@ SOCKET_MAX_BYTES = 16 * P.MAX_MESSAGE_BYTES
 COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop", "record_start",
             "record_stop", "reload_map", "save_config", "reset_stats", "camera_watch",
             "snapshot", "get_log")
+# What a viewer key may ask: everything that only reads (the watch-only role sees all the
+# operator sees); the rest changes settings, files or statistics.
+READ_ONLY = ("ping", "get_state", "get_config", "camera_watch", "snapshot", "get_log")
 
 
 class Daemon(Protocol):
@@ -165,9 +168,8 @@ class ControlServer:
         """
         self.requests += 1
         try:
-            if role is not None and not role.startswith("operator "):
-                raise RequestError(f"control refused: key of {role}; only operator keys may "
-                                   "control (viewers watch telemetry)")
+            if role == "revoked":
+                raise RequestError("control refused: this key is no longer allowed")
             if len(frames) != 1:
                 raise RequestError(f"expected one JSON frame, got {len(frames)} frames")
             try:
@@ -178,7 +180,13 @@ class ControlServer:
             if cmd not in COMMANDS:
                 raise RequestError(f"unknown command {_short(cmd)} "
                                    f"(commands: {', '.join(COMMANDS)})")
+            kind = role.split(" ", 1)[0] if role is not None else None
+            if kind not in (None, "operator") and cmd not in READ_ONLY:
+                raise RequestError(f"control refused: {cmd} needs an operator key; this is "
+                                   f"the key of {role} (read-only: {', '.join(READ_ONLY)})")
             reply = getattr(self, f"_cmd_{cmd}")(req)
+            if cmd == "ping":  # the UI says what its key may do
+                reply["role"] = kind
             return {"ok": True, "cmd": cmd, **reply}
         except (RequestError, ConfigError, ValueError, OSError) as e:
             text = str(e) or type(e).__name__

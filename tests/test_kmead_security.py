@@ -433,11 +433,23 @@ def test_curve_operator_viewer_stranger_and_plain_client(tmp_path: Path, keys: P
         assert sub.poll(3000) and sub.recv_multipart()[0] == b"frame"
         sub.close(0)
         req = connect_client(ctx, d.control, keys, "screen")
-        req.send(P.encode_body({"cmd": "set", "key": "filter.alpha", "value": 0.5}))
-        assert req.poll(3000)
-        reply = P.decode_body(req.recv())
-        assert reply["ok"] is False and "viewer" in reply["error"]
+
+        def ask(body: dict) -> dict:
+            req.send(P.encode_body(body))
+            assert req.poll(10000)
+            return P.decode_body(req.recv())
+
+        reply = ask({"cmd": "set", "key": "filter.alpha", "value": 0.5})
+        assert reply["ok"] is False and "viewer 'screen'" in reply["error"]
+        assert "needs an operator key" in reply["error"]
+        # It sees everything the operator sees, read-only, and is told its role.
+        assert ask({"cmd": "ping"})["role"] == "viewer"
+        assert ask({"cmd": "get_config"})["config"]["filter"]["alpha"] == 0.9
+        assert ask({"cmd": "get_state"})["ok"] is True
+        assert ask({"cmd": "get_log", "limit": 5})["ok"] is True
+        assert ask({"cmd": "log_start"})["ok"] is False
         req.close(0)
+        assert d.cmd("ping")["role"] == "operator"
         assert d.daemon.cfg["filter"]["alpha"] == 0.9
         # An unknown key and a plain client: nothing within 1 s, on either socket.
         pub, sec = zmq.curve_keypair()

@@ -11,6 +11,7 @@ from security_helpers import LiveDaemon
 from kmea_tui import cli as tui_cli
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
+from kmea_tui.widgets.status_bar import StatusBar
 from kmead import kmea_cli
 
 
@@ -49,16 +50,23 @@ async def test_operator_ui_connects_and_controls_viewer_ui_only_watches(keyed) -
                                   client="wall"), theme="textual-dark", ping_period=0.5)
     async with viewer.run_test(size=(80, 24)) as pilot:
         await _wait(pilot, lambda: viewer.markers_body is not None, "viewer telemetry")
+        # Everything live, read-only, and the status line says so.
+        await _wait(pilot, lambda: viewer.connection_state == "connected", "viewer live")
+        await _wait(pilot, lambda: viewer.config_loaded, "the viewer's configuration")
+        assert not viewer.frozen
+        await _wait(pilot, lambda: "viewer (read-only)" in str(
+            viewer.query_one(StatusBar).render()), "the read-only status line")
         reply = await viewer.client.request("set", key="filter.alpha", value=0.2)
         assert reply["ok"] is False and "viewer" in reply["error"]
     assert d.daemon.cfg["filter"]["alpha"] == 0.7
 
-    # Without keys the same UI sees nothing from a keyed daemon.
+    # Without keys the same UI sees nothing from a keyed daemon, and says keys may be why.
     plain = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=0.5), theme="textual-dark",
                     ping_period=0.5)
     async with plain.run_test(size=(80, 24)) as pilot:
-        await pilot.pause(1.0)
-        assert plain.markers_body is None and plain.connection_state != "connected"
+        await _wait(pilot, lambda: plain.connection_state == "disconnected", "no reply")
+        assert plain.markers_body is None
+        assert "--keys DIR" in str(plain.query_one(StatusBar).render())
 
 
 def test_tui_with_a_missing_key_file_exits_2_with_one_line(tmp_path: Path,

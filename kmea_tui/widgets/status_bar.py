@@ -21,10 +21,13 @@ SHORT = {"capture": "cap", "detect": "det", "pose": "pose", "estimate": "est", "
 
 
 def status_text(state: str, frame: dict[str, Any] | None, width: int = 80,
-                detail: str = "") -> Text:
-    """One line: state, fps, dropped frames, total time, then stages that fit ``width``."""
+                detail: str = "", read_only: bool = False) -> Text:
+    """One line: state (and "viewer (read-only)" for a viewer key), fps, dropped frames,
+    total time, then stages that fit ``width``."""
     t = Text(no_wrap=True, overflow="ellipsis")
     t.append(f"● {LABELS.get(state, state)}", STATE_STYLES.get(state, "bold"))
+    if read_only:
+        t.append("  viewer (read-only)", "bold cyan")
     if detail and state in ("disconnected", "stale", "connecting"):
         t.append(f" ({detail})", "bright_black")
     if frame and state not in LIVE_STATES:
@@ -60,14 +63,18 @@ class StatusBar(Static):
         super().__init__("● connecting", id=id)
         self.state = "connecting"
         self.detail = ""
+        self.read_only = False
         self.frame: dict[str, Any] | None = None
         self._shown: Text | None = None
 
-    def show(self, state: str, frame: dict[str, Any] | None = None, detail: str = "") -> None:
+    def show(self, state: str, frame: dict[str, Any] | None = None, detail: str = "",
+             read_only: bool | None = None) -> None:
         self.state, self.detail = state, detail
+        if read_only is not None:
+            self.read_only = read_only
         if frame is not None:
             self.frame = frame
-        text = status_text(state, self.frame, self.size.width or 80, detail)
+        text = status_text(state, self.frame, self.size.width or 80, detail, self.read_only)
         if text != self._shown:  # the state is checked twice a second: mostly unchanged
             self._shown = text
             self.update(text, layout=False)
