@@ -244,9 +244,14 @@ class CameraInfo(TypedDict):
     fy: float
 
 
-class MapInfo(TypedDict):
+class MapInfo(TypedDict, total=False):
+    """The map's name and marker count (always), and ``extent``: [xmin, xmax, ymin, ymax]
+    of its floor markers' centres, m (what the UI's map outline shows before, or without,
+    any marker estimate: a fusion node)."""
+
     name: str
     n: int
+    extent: list[float]
 
 
 class InputState(TypedDict):

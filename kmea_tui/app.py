@@ -11,6 +11,7 @@ A second small worker pings the control socket every second for the connection s
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import time
 from collections import deque
@@ -22,7 +23,7 @@ from textual import work
 from textual.app import App, ComposeResult, ScreenStackError
 from textual.binding import Binding
 from textual.css.query import NoMatches
-from textual.widgets import Footer, HelpPanel, Input, Select, TabbedContent, TabPane
+from textual.widgets import Footer, HelpPanel, Input, Select, Static, TabbedContent, TabPane
 
 from kmea import protocol
 from kmea_tui.client import DaemonClient, RecordingClient
@@ -139,6 +140,7 @@ class KmeaTui(App[None]):
         self.daemon_stopped = False
         self.frozen = False
         self.camera_size: tuple[int, int] | None = None  # the frame size, from the status
+        self.fusion_node = False  # the status says so: no markers, statistics or camera
         self._log_attached = False
         self._ui_ready = asyncio.Event()
 
@@ -327,8 +329,29 @@ class KmeaTui(App[None]):
         self.daemon_stopped = body.get("state") == "stopped"
         cam = body["camera"]
         self.camera_size = (cam["width"], cam["height"])
+        extent = body.get("map", {}).get("extent")
+        if isinstance(extent, list) and len(extent) == 4 and all(
+                isinstance(v, (int, float)) and math.isfinite(v) for v in extent):
+            floor = self.query_one(FloorMap)
+            if floor.outline != tuple(extent):
+                floor.outline = tuple(float(v) for v in extent)
+                floor.refresh()
+        if "fusion" in body and not self.fusion_node:
+            self._became_fusion_node()
         self.query_one(LogPane).update_status(body)
         self.query_one(ConfigPane).set_algorithms(body["algorithms"])
+
+    def _became_fusion_node(self) -> None:
+        """A fusion node has robots, no markers, statistics or camera: say so in those
+        tabs and open on Robots (unless the user already chose a tab)."""
+        self.fusion_node = True
+        note = "a fusion node has no {}: its robots are on 2 Robots and 4 Map"
+        self.query_one("#markers-summary", Static).update(note.format("markers"))
+        self.query_one("#stats-summary", Static).update(note.format("marker statistics"))
+        self.query_one(CameraPane).show_caption("camera: not available on a fusion node "
+                                                "(no camera)")
+        if self.query_one(TabbedContent).active == "markers":
+            self.action_show_tab("robots")
 
     # -- connection state ----------------------------------------------------------------------
     @work(exclusive=True, group="ping")
@@ -498,7 +521,9 @@ class KmeaTui(App[None]):
         with suppress(NoMatches):
             self.show_tab_data(self.query_one(TabbedContent).active)
         self.refresh_bindings()
-        if event.pane.id == "camera" and self.client.live:
+        if event.pane.id == "camera" and self.fusion_node:
+            pass  # nothing to watch; the caption says so
+        elif event.pane.id == "camera" and self.client.live:
             self.camera_watch_loop()
         elif event.pane.id == "camera":
             self.query_one(CameraPane).show_caption(

@@ -134,10 +134,16 @@ def status_body(*, t0: float, source: str, config_file: str, config_files: list[
                       "frames": r.frames if r else 0, "bytes": r.bytes if r else 0},
         "camera": {"width": camera.width, "height": camera.height, "fx": camera.fx,
                    "fy": camera.fy},
-        "map": {"name": world_map.name, "n": len(world_map)},
+        "map": map_info(world_map),
         "frames": frames, "dropped": dropped, "bad_frames": bad_frames,
         "telemetry": telemetry, "control": control,
     }
     if stopped:
         body["state"] = "stopped"
     return body
+
+
+def map_info(world_map: Any) -> dict:
+    """The ``status`` body's ``map``: name, marker count and floor extent (m)."""
+    return {"name": world_map.name, "n": len(world_map),
+            "extent": [round(v, 4) for v in world_map.floor_extent()]}

@@ -53,6 +53,9 @@ class Daemon(Protocol):
     last_result: Any
     guard: Any  # kmead.rollback.ChangeGuard
     data_dir: Any  # kmead.files.DataDir
+    camera_feed: Any  # kmead.camera_feed.CameraFeed; None on a fusion node (no camera)
+    log_ring: Any  # kmead.log_ring.LogRing
+    replay: bool
 
     def status(self) -> P.StatusBody: ...
     def publish(self, topic: str, body: dict) -> None: ...
@@ -65,6 +68,7 @@ class Daemon(Protocol):
     def stop_recording(self) -> dict: ...
     def reload_map(self) -> Any: ...
     def save_config(self, path: str | None = None) -> dict: ...
+    def snapshot(self, overlay: bool = False) -> dict: ...
 
 
 class RequestError(ValueError):
@@ -291,6 +295,8 @@ class ControlServer:
     def _cmd_camera_watch(self, req: dict) -> dict:
         """Thumbnails on the ``camera`` topic until the lease ends (renew to keep them)."""
         d = self.daemon
+        if d.camera_feed is None:
+            raise RequestError("camera: not available on a fusion node (no camera)")
         reply = d.camera_feed.watch(req.get("width"), req.get("height"), req.get("lease_s"))
         return {**reply, "images": not d.replay}
 

@@ -31,12 +31,16 @@ import zmq
 
 from kmea import protocol as P
 from kmea.fusion import Fusion, Measurement
+from kmea.maps import MapError
 from kmea.tracking import TrackerConfig
+from kmead.bodies import map_info
 from kmead.config import Config, ConfigError
 from kmead.csvlog import CsvLog, row
 from kmead.files import DataDir
 from kmead.keys import CurveServer, KeysError, exposure
+from kmead.log_ring import LogRing
 from kmead.relay import Relay
+from kmead.startup import configured_map
 from kmead.telemetry import Telemetry, TelemetryLogHandler
 
 log = logging.getLogger("kmead.fusion")
@@ -182,6 +186,8 @@ class FusionNode:
         self.stop_event = threading.Event()
         self.t0 = time.time()
         self.curve = None
+        self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
+        logging.getLogger("kmead").addHandler(self.log_ring)
         net = cfg["network"]
         error, warning = exposure({"network.telemetry": net["telemetry"],
                                    "network.control": net["control"]},
@@ -200,6 +206,11 @@ class FusionNode:
                 self.close()
                 raise ConfigError(str(e)) from None
         self.data_dir = DataDir(cfg["log"]["dir"])
+        try:  # the floor the robots are on: the UI's map outline (map.file, else built-in)
+            self.world_map = configured_map(cfg, None)
+        except MapError as e:
+            self.close()
+            raise ConfigError(f"map: {e}") from None
         self.fusion = Fusion(tracker_config(cfg), cfg["fusion"]["max_age_s"])
         self.names = {r["name"] for r in cfg["robots"]}
         self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx, curve=self.curve)
@@ -353,7 +364,7 @@ class FusionNode:
                         "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
             "recording": {"active": False, "path": None, "frames": 0, "bytes": 0},
             "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
-            "map": {"name": "(fusion node: no map)", "n": 0},
+            "map": map_info(self.world_map),
             "frames": self.outputs, "dropped": sum(i.dropped_old for i in self.inputs),
             "bad_frames": sum(i.bad for i in self.inputs),
             "inputs": [i.body(now_wall) for i in self.inputs],
@@ -375,11 +386,13 @@ class FusionNode:
     def event(self, level: str, text: str) -> None:
         getattr(log, "warning" if level == "warning" else level, log.info)(text)
 
-    # No frames, no marker statistics: what the control thread's get_state reads.
+    # No frames, no marker statistics, no camera: what the control thread reads.
     last_frame_body: dict = {}  # never mutated
     last_result = None
     pipeline = _NoPipeline()
     stats = _NoStats()
+    camera_feed = None
+    replay = False
 
     def tick(self) -> None:
         """Stale robots on the fusion clock (called by the control thread and the loop)."""
@@ -422,7 +435,7 @@ class FusionNode:
     def _unsupported(self, *_: Any) -> dict:
         raise ValueError("not available on a fusion node (no camera)")
 
-    start_recording = stop_recording = reload_map = save_config = _unsupported
+    start_recording = stop_recording = reload_map = save_config = snapshot = _unsupported
 
     # ------------------------------------------------------------------ run
     def run(self) -> int:
@@ -482,6 +495,7 @@ class FusionNode:
         if getattr(self, "_log_handler", None) is not None:
             logging.getLogger("kmead").removeHandler(self._log_handler)
             self._log_handler = None
+        logging.getLogger("kmead").removeHandler(self.log_ring)
         if getattr(self, "relay", None) is not None:
             try:  # robots must not keep following the last fused pose
                 self.relay.shutdown(time.time())
@@ -520,6 +534,8 @@ def add_arguments(p: Any) -> None:
     p.add_argument("--set", metavar="SECTION.KEY=VALUE", action="append", default=[],
                    help="override any configuration key; VALUE is TOML (repeatable)")
     p.add_argument("--log", metavar="FILE.csv", help="CSV log of every fused pose (log.csv)")
+    p.add_argument("--map", metavar="FILE", help="the floor's map, drawn by the terminal UI "
+                                                 "(map.file; default: the built-in one)")
     p.add_argument("--headless", action="store_true", help="no terminal UI")
     p.add_argument("--frames", metavar="N", type=int, help="stop after N fused outputs")
 
@@ -536,7 +552,8 @@ def run(args: Any) -> int:
         print("kmea fuse: --frames: must be >= 1", file=sys.stderr)
         return 2
     try:
-        cfg = load_config(args.config, args.set, {"log.csv": args.log} if args.log else None)
+        overrides = {k: v for k, v in (("log.csv", args.log), ("map.file", args.map)) if v}
+        cfg = load_config(args.config, args.set, overrides or None)
         inputs = parse_inputs([*cfg["fusion"]["inputs"], *args.input])
         node = FusionNode(cfg, inputs, max_outputs=args.frames)
     except ConfigError as e:

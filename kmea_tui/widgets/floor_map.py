@@ -66,6 +66,12 @@ class FloorMap(Widget):
     def __init__(self, id: str | None = None) -> None:
         super().__init__(id=id)
         self.data = MapData()
+        # The daemon's map extent (status ``map.extent``: xmin, xmax, ymin, ymax, m): the
+        # outline before any marker estimate, and all of it on a fusion node.
+        self.outline: tuple[float, ...] | None = None
+        # Grows to every robot position seen, so no robot is drawn off the floor (and the
+        # outline does not follow a moving robot back and forth).
+        self._robots_extent: tuple[float, float, float, float] | None = None
         self.magnification: float | None = None
         self._auto_mag = 100.0
         self._strips: list[Strip] | None = None
@@ -77,6 +83,12 @@ class FloorMap(Widget):
         """Show ``data``, repainting only the lines that differ from what is shown (robots
         move a few lines a frame; the floor stays put)."""
         self.data = data
+        for r in data.robots:
+            x, y = _num(r.get("x")), _num(r.get("y"))
+            if x is None or y is None:
+                continue
+            e = self._robots_extent or (x, x, y, y)
+            self._robots_extent = (min(e[0], x), max(e[1], x), min(e[2], y), max(e[3], y))
         self._update_auto_magnification()
         old = self._strips
         if old is None or len(old) != self.size.height or not self.is_mounted:
@@ -110,8 +122,13 @@ class FloorMap(Widget):
             self._auto_mag = suggested
 
     def extent(self) -> tuple[float, float, float, float]:
-        """The world rectangle drawn as the outline (m): the markers' extent plus a margin."""
+        """The world rectangle drawn as the outline (m): the markers' extent (else the
+        map's, from the status) and every robot position seen, plus a margin."""
         xs, ys = [], []
+        for e in (self.outline, self._robots_extent):
+            if e is not None and len(e) == 4:
+                xs += [e[0], e[1]]
+                ys += [e[2], e[3]]
         for m in self.data.markers:
             for kx, ky in (("map_x", "map_y"), ("x", "y")):
                 x, y = _num(m.get(kx)), _num(m.get(ky))

@@ -1,0 +1,75 @@
+"""The terminal UI on a fusion node (the real app, Pilot, real sockets): it opens on Robots,
+says what a fusion node does not have (markers, statistics, camera) instead of waiting
+forever, asks for no camera, and draws the floor of the map the node was given."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+from kmea.maps import save_map_toml
+from kmea.sim.scenes import get_scene
+from kmea_tui.app import KmeaTui
+from kmea_tui.client import DaemonClient
+from kmea_tui.widgets.floor_map import FloorMap
+from kmead.config import load_config
+from kmead.fusion import FusionNode
+
+
+async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return
+        await pilot.pause(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+async def test_fusion_node_ui_opens_on_robots_and_draws_its_map(tmp_path: Path) -> None:
+    wide = tmp_path / "wide.toml"
+    save_map_toml(get_scene("wide").effective_map(), wide)
+    cfg = load_config(None, ['network.telemetry="tcp://127.0.0.1:*"',
+                             'network.control="tcp://127.0.0.1:*"', 'log.level="warning"',
+                             "network.status_period_s=0.5", f'map.file="{wide}"'])
+    # An input nobody publishes on: the node runs, with nothing to fuse.
+    node = FusionNode(cfg, [("cam0", "tcp://127.0.0.1:9")])
+    tn = threading.Thread(target=node.run, daemon=True)
+    tn.start()
+    app = KmeaTui(DaemonClient(node.telemetry.bound, node.control.bound, timeout=2.0),
+                  theme="textual-dark", ping_period=0.5)
+    try:
+        async with app.run_test(size=(80, 24)) as pilot:
+            await _wait(pilot, lambda: app.fusion_node, "the fusion node's status")
+            await _wait(pilot, lambda: app.query_one("TabbedContent").active == "robots",
+                        "the Robots tab")
+            summary = str(app.query_one("#markers-summary").render())
+            assert "a fusion node has no markers" in summary
+            assert "no marker statistics" in str(app.query_one("#stats-summary").render())
+            await pilot.press("7")
+            await pilot.pause(0.5)
+            caption = str(app.query_one("#camera-caption").render())
+            assert "not available on a fusion node" in caption
+            # The node's map: the wide floor's outline (x up to 2.395 m), not the built-in.
+            x0, x1, _, _ = app.query_one(FloorMap).extent()
+            assert x0 < -0.69 and x1 > 2.39
+            # No camera request was refused (the UI never asks a fusion node for one), and
+            # a direct one gets a reason, not an internal error.
+            reply = await app.client.request("camera_watch", width=80, height=40)
+            assert reply["ok"] is False and "fusion node" in reply["error"]
+            assert (await app.client.request("get_log", limit=5))["ok"] is True
+    finally:
+        node.stop()
+        tn.join(timeout=10)
+        node.close()
+
+
+def test_fusion_node_status_names_its_map(tmp_path: Path) -> None:
+    cfg = load_config(None, ['network.telemetry="tcp://127.0.0.1:*"', 'network.control=""'])
+    node = FusionNode(cfg, [("cam0", "tcp://127.0.0.1:9")])
+    try:
+        m = node.status()["map"]
+        assert m["name"] == "RobotAtFactory 4.0" and m["n"] == 49
+        assert m["extent"] == [-0.695, 0.695, -0.355, 0.355]
+    finally:
+        node.close()
