@@ -452,13 +452,15 @@ class FusionNode:
         next_tick = time.monotonic()
         last_status = time.monotonic()
         try:
-            while not self.stop_event.is_set():
-                if self.max_outputs is not None and self.outputs >= self.max_outputs:
-                    break
+            while not self.stop_event.is_set() and not self.done():
                 for sock, _ in poller.poll(50):
                     inp = by_sock[sock]
                     # Drain what is there, oldest first, then look at the other inputs.
+                    # --frames N is checked before every message: when several are queued
+                    # the Nth output must still be the last one.
                     for _ in range(1000):
+                        if self.done():
+                            break
                         try:
                             frames = sock.recv_multipart(zmq.NOBLOCK)
                         except zmq.Again:
@@ -478,6 +480,10 @@ class FusionNode:
             if e.errno != zmq.ETERM:
                 raise
         return 0
+
+    def done(self) -> bool:
+        """True once ``max_outputs`` fused outputs have been made."""
+        return self.max_outputs is not None and self.outputs >= self.max_outputs
 
     def stop(self) -> None:
         self.stop_event.set()

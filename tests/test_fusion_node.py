@@ -274,3 +274,48 @@ async def test_tui_connects_to_the_fusion_node_and_shows_the_cameras() -> None:
         tn.join(timeout=10)
         node.close()
         _stop(d1, t1)
+
+
+def test_frames_n_stops_at_exactly_n_outputs_with_messages_queued() -> None:
+    """``--frames N`` with more measurements already waiting on both inputs (as when the
+    node is busy or two cameras send at once): the Nth fused output is the last one."""
+    ctx = zmq.Context()
+    pubs = []
+    try:
+        for i in range(2):
+            pub = ctx.socket(zmq.XPUB)  # XPUB: the node's subscription can be waited for
+            pub.setsockopt(zmq.LINGER, 0)
+            pub.bind(f"inproc://frames-{i}")
+            pubs.append(pub)
+        cfg = load_config(None, [
+            'network.telemetry=""', 'network.control=""', 'log.level="warning"',
+            'robots=[{name="amr1", markers=[40], height=0.2, destinations=[]}, '
+            '{name="amr2", markers=[42], height=0.2, destinations=[]}]'])
+        node = FusionNode(cfg, parse_inputs(["inproc://frames-0", "inproc://frames-1"]),
+                          max_outputs=5, context=ctx)
+        try:
+            for pub in pubs:
+                assert pub.poll(30_000), "the node never subscribed"
+                assert pub.recv() == b"\x01" + P.TOPIC_ROBOT_PREFIX.encode()
+            # inproc delivers on send: all 20 are queued before run() reads the first.
+            for k in range(10):
+                for pub, name in zip(pubs, ("amr1", "amr2"), strict=True):
+                    pub.send_multipart(P.encode(f"robot.{name}", {
+                        "name": name, "seq": k, "valid": True, "t": 100.0 + 0.1 * k,
+                        "x": 0.5 + 0.001 * k, "y": 0.3, "theta": 0.0, "sigma": 0.002}))
+            tn = threading.Thread(target=node.run, daemon=True)
+            tn.start()
+            tn.join(timeout=60)
+            stuck = tn.is_alive()
+            node.stop()
+            tn.join(timeout=10)
+            assert not stuck, [(i.received, i.bad, i.measurements) for i in node.inputs]
+            assert node.outputs == 5
+            assert sum(i.received for i in node.inputs) == 5  # the rest are left unread
+            assert node.summary().startswith("kmea fuse: 5 fused outputs;")
+        finally:
+            node.close()
+    finally:
+        for pub in pubs:
+            pub.close(linger=0)
+        ctx.term()

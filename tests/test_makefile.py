@@ -1,0 +1,110 @@
+"""The README's commands on a machine without Python 3.11 or without the venv module (issue 31).
+
+These run the real Makefile recipes. The suite's own venv stands in for .venv (``STAMP=``
+skips the install step), so each case takes a few seconds and changes nothing in the tree.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+NO_PY = "no-such-python3.11"
+SKIP_LINE = f"*** make: Bookworm stack SKIPPED: {NO_PY} not found"
+
+pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU make")
+
+
+def _make(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    # Under `make test` the outer make's command-line variables and REQUIRE_BOOKWORM reach
+    # this process through the environment; the inner make must not inherit them.
+    inherited = {"MAKEFLAGS", "MFLAGS", "MAKELEVEL", "MAKEOVERRIDES", "REQUIRE_BOOKWORM", "ARGS"}
+    clean = {k: v for k, v in os.environ.items() if k not in inherited}
+    clean.update(env or {})
+    return subprocess.run(
+        ["make", "--no-print-directory", "-C", str(ROOT), *args],
+        env=clean, capture_output=True, text=True, timeout=300,
+    )
+
+
+def _here() -> list[str]:
+    """Run lint and the suite with the interpreter running these tests, without installing."""
+    return ["STAMP=", f"BIN={Path(sys.executable).parent}", f"PY_BOOKWORM={NO_PY}"]
+
+
+def test_make_test_without_python311_runs_current_stack_and_says_bookworm_was_skipped() -> None:
+    r = _make("test", *_here(), "ARGS=-n 0 -p no:cacheprovider tests/test_jsonsafe.py")
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out
+    assert "All checks passed" in out  # ruff ran
+    assert "== suite on Python" in out and " passed" in out  # the suite ran on today's stack
+    lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
+    assert lines[-1].startswith(SKIP_LINE), out  # the skip line comes last, after the suite
+    assert "PY_BOOKWORM=" in lines[-1] and "Python 3.11" in lines[-1]
+
+
+def test_make_test_fails_and_prints_no_skip_line_when_the_suite_fails() -> None:
+    r = _make("test", *_here(), "ARGS=-n 0 -p no:cacheprovider tests/no_such_test_file.py")
+    out = r.stdout + r.stderr
+    assert r.returncode != 0, out
+    assert "SKIPPED" not in out
+
+
+def test_required_bookworm_fails_when_python311_is_missing() -> None:
+    r = _make("test-bookworm", f"PY_BOOKWORM={NO_PY}", env={"REQUIRE_BOOKWORM": "1"})
+    out = r.stdout + r.stderr
+    assert r.returncode != 0, out
+    assert f"make: {NO_PY} not found: the Bookworm stack needs Python 3.11" in out
+    assert "SKIPPED" not in out
+
+
+def test_optional_bookworm_is_skipped_with_exit_0() -> None:
+    r = _make("test-bookworm", f"PY_BOOKWORM={NO_PY}")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert r.stdout.strip().startswith(SKIP_LINE)
+
+
+def test_ci_runs_exactly_the_readme_test_command() -> None:
+    ci = (ROOT / ".ci" / "run").read_text()
+    command = [ln for ln in ci.splitlines() if ln.strip() and not ln.startswith("#")][-1]
+    assert command == "REQUIRE_BOOKWORM=1 make test"
+    assert f"`{command}`" in (ROOT / "README.md").read_text()
+
+
+def test_on_a_pi_make_test_uses_the_pis_own_stack(tmp_path: Path) -> None:
+    # No Pi here: a dry run with the Pi detection forced shows the plan make would carry out.
+    r = _make("-n", "test", "ON_PI=yes", "CODENAME=trixie", f"VENV={tmp_path / 'v'}",
+              f"PY_BOOKWORM={NO_PY}")
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out
+    assert "--system-site-packages" in out and "-c constraints/trixie.txt" in out
+    assert "bookworm" not in out.lower(), out  # neither run nor reported as skipped
+    assert f"{tmp_path / 'v'}/bin/python -m pytest" in out
+
+
+def test_missing_venv_module_gets_one_line_naming_the_package(tmp_path: Path) -> None:
+    # A Python like Debian's without python3-venv: `import ensurepip` fails.
+    shadow = tmp_path / "shadow" / "ensurepip"
+    shadow.mkdir(parents=True)
+    (shadow / "__init__.py").write_text("raise ImportError('No module named ensurepip')\n")
+    fake = tmp_path / "python3"
+    fake.write_text(f'#!/bin/sh\nPYTHONPATH={shadow.parent} exec {sys.executable} "$@"\n')
+    fake.chmod(0o755)
+    venv = tmp_path / "venv"
+    r = _make("lint", f"PY={fake}", f"VENV={venv}")
+    out = r.stdout + r.stderr
+    assert r.returncode != 0
+    assert "Traceback" not in out and "ensurepip is not available" not in out
+    ours = [ln for ln in out.splitlines() if not ln.startswith("make: ***")]
+    v = sys.version_info
+    assert ours == [
+        f"make: {fake} cannot create a venv (no venv/ensurepip module): "
+        f"sudo apt install python{v[0]}.{v[1]}-venv (python3-venv for the system python3)"
+    ], out
+    assert not venv.exists()  # nothing half-made for the next run to trip over
