@@ -35,7 +35,7 @@ from kmea_tui.widgets.log_panel import LogPane
 from kmea_tui.widgets.markers import MarkersPane, moved_ids
 from kmea_tui.widgets.robots import RobotsPane
 from kmea_tui.widgets.stats import StatsPane
-from kmea_tui.widgets.status_bar import StatusBar
+from kmea_tui.widgets.status_bar import StatusBar, output_alert
 
 Client = DaemonClient | RecordingClient
 
@@ -328,6 +328,11 @@ class KmeaTui(App[None]):
         self.camera_size = (cam["width"], cam["height"])
         self.query_one(LogPane).update_status(body)
         self.query_one(ConfigPane).set_algorithms(body["algorithms"])
+        bar = self.query_one(StatusBar)
+        alert = output_alert(body)
+        if alert != bar.alert:
+            bar.alert = alert
+            bar.show(bar.state, None, bar.detail)
 
     # -- connection state ----------------------------------------------------------------------
     @work(exclusive=True, group="ping")

@@ -14,8 +14,10 @@ capture.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
+import os
 import threading
 import time
 from typing import Any
@@ -34,7 +36,7 @@ from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
 from kmead.csvlog import CsvLog
-from kmead.files import DataDir, FileRefused, same_file
+from kmead.files import DataDir, FileRefused, low_space, same_file
 from kmead.gc_pacing import GcPacing
 from kmead.log_ring import LogRing
 from kmead.outputs import RunTotals, csv_lines, truth_record
@@ -60,6 +62,14 @@ __all__ = ["Daemon", "StartupError"]
 log = logging.getLogger("kmead")
 
 DISPLACED_QUIET_S = 30.0
+# How often (s) the free space under a running log or recording is checked: statvfs is a few
+# microseconds, but every frame would be needless.
+SPACE_CHECK_S = 1.0
+OUTPUT_NAMES = {"log": "CSV log", "record": "recording"}
+
+
+class LowSpace(ValueError):
+    """An output refused because its disk is below ``log.min_free_mb`` (one line)."""
 # Live keys that can stop localisation, so a change goes on trial (kmead.rollback): the
 # detector's, and the estimator. Filter, statistics, relay and log keys cannot make a frame
 # fail.
@@ -105,6 +115,10 @@ class Daemon:
         self.curve = None  # kmead.keys.CurveServer when network.keys is set
         self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
         self.guard = ChangeGuard()
+        # Why each output last stopped on its own (a write error, the free-space floor);
+        # None while it runs or after a stop that was asked for. In the status body.
+        self.output_errors: dict[str, str | None] = {"log": None, "record": None}
+        self._space_t = 0.0
         self._resave = False  # save_config ran while a change was on trial
         try:
             self._build()
@@ -159,14 +173,17 @@ class Daemon:
         self._log_handler = TelemetryLogHandler(self.telemetry, logging.NOTSET)
         logging.getLogger("kmead").setLevel(cfg["log"]["level"].upper())
         logging.getLogger("kmead").addHandler(self._log_handler)
-        try:
-            if cfg["log"]["csv"]:
-                self.start_csv(cfg["log"]["csv"])
-            if cfg["log"]["record"]:
-                self.start_recording(cfg["log"]["record"])
-        except ValueError as e:  # an unwritable path: name the key, do not start
-            key = "record" if str(e).startswith("record:") else "csv"
-            raise StartupError(f"key 'log.{key}': {e}") from None
+        for key, start in (("csv", self.start_csv), ("record", self.start_recording)):
+            if not cfg["log"][key]:
+                continue
+            try:
+                start(cfg["log"][key])
+            except LowSpace as e:
+                # A full disk is the moment's state, not a configuration error: the robots
+                # get their poses without this output (event, status "error").
+                self._output_refused("log" if key == "csv" else "record", str(e))
+            except ValueError as e:  # an unwritable path: name the key, do not start
+                raise StartupError(f"key 'log.{key}': {e}") from None
         if cfg.data.get("foxglove", {}).get("enabled"):
             self._start_foxglove()
 
@@ -279,14 +296,73 @@ class Daemon:
                 raise ValueError(f"{kind}: {name} is the file the other output writes")
         return name
 
+    def _check_space(self, path: str, kind: str, remote: bool) -> None:
+        """LowSpace when the disk an output would go to is below ``log.min_free_mb``."""
+        reason = low_space(self.data_dir.root if remote else path,
+                           self.cfg["log"]["min_free_mb"])
+        if reason:
+            raise LowSpace(f"{kind}: not started: {reason}")
+
+    def _output_refused(self, kind: str, text: str) -> None:
+        self.output_errors[kind] = text
+        self.event("error", text)
+
+    def _output_failed(self, kind: str, e: OSError) -> None:
+        """A write error (ENOSPC, EIO) stops that output only: the file keeps its whole rows
+        (kmea.wholewrite cut the failed frame back), the event and the status say why."""
+        out = self.csv if kind == "log" else self.recorder
+        count = f"{out.rows} rows" if kind == "log" else f"{out.frames} frames"
+        cut = ("" if getattr(e, "cut_back", True)
+               else "; its last row may be cut (the file could not be truncated)")
+        self._stop_output(kind, f"{OUTPUT_NAMES[kind]} {out.path}: write failed: "
+                                f"{e.strerror or e}; stopped after {count}{cut}; robots and "
+                                "telemetry go on")
+
+    def _stop_output(self, kind: str, text: str) -> None:
+        try:
+            self.stop_csv() if kind == "log" else self.stop_recording()
+        except OSError as e:  # closing a file on a failing disk: it is stopped all the same
+            log.debug("closing the %s: %s", OUTPUT_NAMES[kind], e)
+            if kind == "log":
+                self.csv = None
+            else:
+                self.recorder = None
+        self._output_refused(kind, text)
+
+    def _watch_space(self) -> None:
+        """Stop an output cleanly (between two frames: whole rows) when its disk falls
+        below the floor, long before a write fails."""
+        now = time.monotonic()
+        if now - self._space_t < SPACE_CHECK_S:
+            return
+        self._space_t = now
+        for kind, out in (("log", self.csv), ("record", self.recorder)):
+            reason = low_space(out.path, self.cfg["log"]["min_free_mb"]) if out else None
+            if reason:
+                count = f"{out.rows} rows" if kind == "log" else f"{out.frames} frames"
+                self._stop_output(kind, f"{OUTPUT_NAMES[kind]} {out.path}: stopped after "
+                                        f"{count}: {reason}; robots and telemetry go on")
+
+    @staticmethod
+    def _forget_created(path: str, remote: bool) -> None:
+        # The empty file a refused control request created (a full disk): its name stays
+        # free for the next try.
+        if remote:
+            with contextlib.suppress(OSError):
+                if os.path.getsize(path) == 0:
+                    os.unlink(path)
+
     def start_csv(self, path: str, remote: bool = False) -> CsvLog:
         if self.csv is not None:
             raise ValueError(f"already logging to {self.csv.path}; stop it first")
+        self._check_space(path, "log", remote)
         path = self._output_path(path, "log", self.recorder, remote)
         try:
             self.csv = CsvLog(path)
         except OSError as e:
+            self._forget_created(path, remote)
             raise ValueError(f"log: cannot write {path}: {e.strerror or e}") from None
+        self.output_errors["log"] = None
         self.totals.csv_paths.append(str(self.csv.path))
         log.info("CSV log started: %s", self.csv.path)
         return self.csv
@@ -303,12 +379,15 @@ class Daemon:
     def start_recording(self, path: str, remote: bool = False) -> Recorder:
         if self.recorder is not None:
             raise ValueError(f"already recording to {self.recorder.path}; stop it first")
+        self._check_space(path, "record", remote)
         path = self._output_path(path, "record", self.csv, remote)
         try:
             self.recorder = Recorder(path, self.pipeline.camera, self.world_map,
                                      self.source_spec, self.cfg.to_dict())
         except OSError as e:
+            self._forget_created(path, remote)
             raise ValueError(f"record: cannot write {path}: {e.strerror or e}") from None
+        self.output_errors["record"] = None
         self.totals.record_paths.append(str(self.recorder.path))
         log.info("recording started: %s", self.recorder.path)
         return self.recorder
@@ -453,6 +532,7 @@ class Daemon:
             config_file=self.cfg.user_file or "<default config>",
             config_files=self.cfg.files, algorithm=self.pipeline.algorithm,
             algorithms=available_algorithms(), csv=self.csv, recorder=self.recorder,
+            output_errors=self.output_errors,
             camera=self.pipeline.camera, world_map=self.world_map,
             frames=self.totals.frames, dropped=self.dropped,
             bad_frames=self.totals.bad_frames,
@@ -607,14 +687,23 @@ class Daemon:
         for name, reason in res.robot_rejections.items():
             self.event("warning", f"robot {name}: measurement rejected by the tracking "
                                   f"filter: {reason}")
-        # 3. files
+        # 3. files: a failing disk stops that file only, never the frame or the robots
+        if self.csv is not None or self.recorder is not None:
+            self._watch_space()
         if self.csv is not None:
-            self.csv.write_rows(csv_lines(res, self.world_map, self.pipeline.robot_heights))
+            try:
+                self.csv.write_rows(csv_lines(res, self.world_map,
+                                              self.pipeline.robot_heights))
+            except OSError as e:
+                self._output_failed("log", e)
         if self.recorder is not None:
             truth = res.meta.get("truth")
-            self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
-                                      res.observations, res.diagnostics,
-                                      truth_record(truth) if truth is not None else None)
+            try:
+                self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
+                                          res.observations, res.diagnostics,
+                                          truth_record(truth) if truth is not None else None)
+            except OSError as e:
+                self._output_failed("record", e)
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
                                                           self.monitor.get))

@@ -450,7 +450,8 @@ SCHEMA: dict[str, dict[str, Check]] = {
                 "status_period_s": number(0.05, 3600, unit=" s"),
                 "keys": _str, "insecure": _bool},
     "log": {"csv": _str, "record": _str, "dir": _str,
-            "level": choice("debug", "info", "warning", "error")},
+            "level": choice("debug", "info", "warning", "error"),
+            "min_free_mb": number(0, 1e7, unit=" MB")},
     "foxglove": {"enabled": _bool, "host": _str, "port": integer(0, 65535),
                  "image_hz": number(0, 60, unit=" images/s")},
 }

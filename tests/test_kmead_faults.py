@@ -1,0 +1,269 @@
+"""Issue 30: nothing lost when the world misbehaves. A real daemon (the paced simulated floor
+through real detection, real ZeroMQ sockets on loopback, real UDP listeners for the robots)
+meets a full disk, a disk below the free-space floor, control requests that would wipe a log,
+settings that break every frame, and a save after --free-ports.
+
+A full disk cannot be made here without root (no mount): the files' disk is a fake that takes
+a budget of bytes, writes part of the write that crosses it and then raises ENOSPC, as a full
+filesystem does; the free-space floor reads a monkeypatched ``os.statvfs``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import socket
+import time
+from pathlib import Path
+
+import pytest
+import zmq
+from security_helpers import LiveDaemon, robots_toml, udp_listener
+
+from kmea import protocol as P
+from kmea import wholewrite
+from kmead.csvlog import COLUMNS, HEADER
+from kmead.relay import parse_datagram
+
+DEADLINE = 30.0
+
+
+class Disk:
+    """A filesystem with ``free`` bytes left, shared by every file opened on it."""
+
+    def __init__(self, free: int) -> None:
+        self.free = free
+        self.partial_writes = 0  # writes cut short by the full disk
+        self.refused = 0  # writes that raised ENOSPC
+
+
+class FullingFile:
+    """An unbuffered file on ``disk``: a write beyond its free space writes what fits and
+    returns the short count; the next one raises ENOSPC (what write(2) does)."""
+
+    def __init__(self, real, disk: Disk) -> None:
+        self.real, self.disk = real, disk
+
+    def write(self, data) -> int:
+        if self.disk.free <= 0:
+            self.disk.refused += 1
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = min(len(data), self.disk.free)
+        if n < len(data):
+            self.disk.partial_writes += 1
+        written = self.real.write(bytes(data[:n]))
+        self.disk.free -= written
+        return written
+
+    def __getattr__(self, name: str):  # truncate, seek, fileno, close, closed
+        return getattr(self.real, name)
+
+
+@pytest.fixture
+def full_disk(monkeypatch: pytest.MonkeyPatch):
+    """Files opened by the outputs go to a Disk; the test sets how much it holds."""
+    disk = Disk(0)
+    real_open = wholewrite.open_output
+    monkeypatch.setattr(wholewrite, "open_output",
+                        lambda path, append=False: FullingFile(real_open(path, append), disk))
+    return disk
+
+
+def _watch(d: LiveDaemon, topics: tuple[str, ...]) -> zmq.Socket:
+    sub = d.ctx.socket(zmq.SUB)
+    for t in topics:
+        sub.setsockopt(zmq.SUBSCRIBE, t.encode())
+    sub.connect(d.telemetry)
+    return sub
+
+
+def _until(sub: zmq.Socket, pred, timeout: float = DEADLINE) -> list[tuple[str, dict]]:
+    """Telemetry messages until one satisfies ``pred(topic, body)`` (all of them, in order)."""
+    seen: list[tuple[str, dict]] = []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if sub.poll(100):
+            topic, body = P.decode(sub.recv_multipart())
+            seen.append((topic, body))
+            if pred(topic, body):
+                return seen
+    raise AssertionError(f"not seen within {timeout} s; last: {seen[-3:]}")
+
+
+def _valid_datagrams(s: socket.socket, n: int, timeout: float = DEADLINE) -> list[dict]:
+    """``n`` datagrams with valid=1 received from now on (a robot still being localised)."""
+    got: list[dict] = []
+    end = time.monotonic() + timeout
+    s.settimeout(0.2)
+    while time.monotonic() < end and len(got) < n:
+        with contextlib.suppress(TimeoutError):
+            m = parse_datagram(s.recv(1024))
+            if m["valid"]:
+                got.append(m)
+    assert len(got) >= n, f"robots got {len(got)} valid poses in {timeout} s, expected {n}"
+    return got
+
+
+def assert_whole_csv(path: Path) -> int:
+    """Header, then rows of 11 fields each ending with a newline; returns the row count."""
+    data = path.read_bytes()
+    assert data.endswith(b"\n"), f"{path}: last row cut: {data[-60:]!r}"
+    lines = data.decode().splitlines()
+    assert lines[0] == HEADER
+    for i, line in enumerate(lines[1:], 2):
+        fields = line.split(",")
+        assert len(fields) == len(COLUMNS), f"{path}: line {i} cut: {line!r}"
+        int(fields[0]), float(fields[1])  # frame, timestamp
+    return len(lines) - 1
+
+
+def assert_whole_jsonl(path: Path) -> int:
+    """Every line a whole JSON object (header first); returns the frame lines."""
+    data = path.read_bytes()
+    assert data.endswith(b"\n"), f"{path}: last line cut: {data[-60:]!r}"
+    lines = data.decode().splitlines()
+    assert json.loads(lines[0])["format"] == "kmead-recording"
+    for line in lines[1:]:
+        assert "frame" in json.loads(line)
+    return len(lines) - 1
+
+
+# ----------------------------------------------------------------------------- a full disk
+
+def test_a_full_disk_stops_the_files_and_the_robots_keep_their_poses(
+        tmp_path: Path, full_disk: Disk) -> None:
+    s1 = udp_listener()
+    data = tmp_path / "data"
+    csv_path, rec_path = data / "run.csv", data / "run.jsonl"
+    # Room for the recording's header and a few frames of both files, then the disk is full.
+    full_disk.free = 150_000
+    d = LiveDaemon(tmp_path, site=robots_toml({"amr1": s1.getsockname()[1]}),
+                   sets=[f'log.csv="{csv_path}"', f'log.record="{rec_path}"',
+                         "log.min_free_mb=0"])
+    sub = _watch(d, ("status", "event"))
+    try:
+        seen = _until(sub, lambda t, b: t == "status" and b["logging"]["error"]
+                      and b["recording"]["error"])
+        st = seen[-1][1]
+        assert not st["logging"]["active"] and not st["recording"]["active"]
+        assert "No space left on device" in st["logging"]["error"]
+        assert "No space left on device" in st["recording"]["error"]
+        events = [b["text"] for t, b in seen if t == "event" and b["level"] == "error"]
+        assert any("CSV log" in e and "write failed" in e for e in events), events
+        assert any("recording" in e and "write failed" in e for e in events), events
+        assert all("\n" not in e for e in events)
+        assert full_disk.partial_writes >= 1  # a write was cut by the disk: the cut-back ran
+        # The robots go on being localised and told, telemetry goes on.
+        _valid_datagrams(s1, 10)
+        frame = d.daemon.totals.frames
+        _until(sub, lambda t, b: t == "status" and b["frames"] > frame + 5)
+        assert d.alive(), d.error
+        # What was written before the disk filled is whole.
+        assert assert_whole_csv(csv_path) > 0
+        assert assert_whole_jsonl(rec_path) > 0
+    finally:
+        sub.close(0)
+        d.close()
+        s1.close()
+    assert d.error is None
+
+
+def test_record_start_and_log_start_on_a_full_data_directory_are_refused(
+        tmp_path: Path, full_disk: Disk) -> None:
+    s1 = udp_listener()
+    d = LiveDaemon(tmp_path, site=robots_toml({"amr1": s1.getsockname()[1]}),
+                   sets=["log.min_free_mb=0"])
+    try:
+        assert d.frames_flow()
+        for cmd, name in (("record_start", "full.jsonl"), ("log_start", "full.csv")):
+            reply = d.cmd(cmd, path=name)
+            assert reply["ok"] is False and "No space left on device" in reply["error"], reply
+            # The refused request leaves nothing behind: the name can be tried again.
+            assert not (d.data / name).exists()
+        assert full_disk.refused >= 2
+        _valid_datagrams(s1, 10)
+        full_disk.free = 10**9  # room again: the same request works
+        assert d.cmd("record_start", path="full.jsonl")["ok"]
+        assert d.cmd("record_stop")["ok"]
+        assert assert_whole_jsonl(d.data / "full.jsonl") >= 0
+        assert d.alive(), d.error
+    finally:
+        d.close()
+        s1.close()
+
+
+# ----------------------------------------------------------------------------- the floor
+
+class FakeSpace:
+    """``os.statvfs`` reporting ``free`` bytes available under ``root``, the truth elsewhere."""
+
+    def __init__(self, root: Path, free: int) -> None:
+        self.root, self.free, self.real = str(root.resolve()), free, os.statvfs
+
+    def __call__(self, path):
+        p = os.path.realpath(os.fspath(path))
+        if not (p + "/").startswith(self.root + "/"):
+            return self.real(path)
+        blocks = 10**7
+        return os.statvfs_result((4096, 4096, blocks, self.free // 4096, self.free // 4096,
+                                  10**6, 10**6, 10**6, 0, 255))
+
+
+def test_the_free_space_floor_stops_a_running_log_cleanly_and_refuses_new_ones(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    space = FakeSpace(tmp_path, 10**10)
+    monkeypatch.setattr(os, "statvfs", space)
+    s1 = udp_listener()
+    data = tmp_path / "data"
+    d = LiveDaemon(tmp_path, site=robots_toml({"amr1": s1.getsockname()[1]}),
+                   sets=[f'log.csv="{data / "run.csv"}"', f'log.record="{data / "run.jsonl"}"',
+                         "log.min_free_mb=50"])
+    sub = _watch(d, ("status", "event"))
+    try:
+        assert d.wait(lambda: d.daemon.csv is not None and d.daemon.csv.rows > 50, DEADLINE)
+        space.free = 20 * 10**6  # 20 MB: below the floor of 50
+        seen = _until(sub, lambda t, b: t == "status" and b["logging"]["error"]
+                      and b["recording"]["error"])
+        st = seen[-1][1]
+        assert not st["logging"]["active"] and not st["recording"]["active"]
+        for what in ("logging", "recording"):
+            assert "20.0 MB free" in st[what]["error"]
+            assert "log.min_free_mb = 50 MB" in st[what]["error"]
+        events = [b["text"] for t, b in seen if t == "event" and b["level"] == "error"]
+        assert any("CSV log" in e and "min_free_mb" in e for e in events), events
+        assert assert_whole_csv(data / "run.csv") > 50
+        assert_whole_jsonl(data / "run.jsonl")
+        for cmd, name in (("log_start", "next.csv"), ("record_start", "next.jsonl")):
+            reply = d.cmd(cmd, path=name)
+            assert reply["ok"] is False, reply
+            assert "not started" in reply["error"] and "min_free_mb" in reply["error"]
+            assert "\n" not in reply["error"] and not (data / name).exists()
+        _valid_datagrams(s1, 10)
+        space.free = 10**10
+        assert d.cmd("log_start", path="next.csv")["ok"]
+        assert d.wait(lambda: d.daemon.status()["logging"]["error"] is None)
+        assert d.alive(), d.error
+    finally:
+        sub.close(0)
+        d.close()
+        s1.close()
+
+
+def test_a_start_below_the_floor_runs_without_the_log(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(os, "statvfs", FakeSpace(tmp_path, 10**6))
+    s1 = udp_listener()
+    csv_path = tmp_path / "data" / "run.csv"
+    d = LiveDaemon(tmp_path, site=robots_toml({"amr1": s1.getsockname()[1]}),
+                   sets=[f'log.csv="{csv_path}"'])
+    try:
+        st = d.daemon.status()
+        assert not st["logging"]["active"] and "below log.min_free_mb" in st["logging"]["error"]
+        assert not csv_path.exists()
+        _valid_datagrams(s1, 10)
+        assert d.alive(), d.error
+    finally:
+        d.close()
+        s1.close()
