@@ -114,6 +114,7 @@ class Recorder:
         self._f = wholewrite.open_output(self.path)
         self._end = 0  # the byte after the last whole line
         self.frames = 0
+        self.mode = "create"  # how it was started: create, append, new name
         self.bytes = 0
         self.camera = camera
         header = {"format": FORMAT, "version": VERSION, "created": time.time(),

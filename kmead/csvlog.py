@@ -68,6 +68,7 @@ class CsvLog:
         self.appended = append
         self._end = self._f.seek(0, os.SEEK_END) if append else 0
         self.rows = 0
+        self.mode = "create"  # how it was started: create, append, new name
         self.bytes = 0
         if not append:
             try:

@@ -20,6 +20,7 @@ import math
 import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from kmea import protocol as P
@@ -35,7 +36,7 @@ from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
-from kmead.csvlog import CsvLog
+from kmead.csvlog import CsvLog, ends_whole, has_header
 from kmead.files import DataDir, FileRefused, low_space, same_file
 from kmead.gc_pacing import GcPacing
 from kmead.log_ring import LogRing
@@ -352,19 +353,50 @@ class Daemon:
                 if os.path.getsize(path) == 0:
                     os.unlink(path)
 
-    def start_csv(self, path: str, remote: bool = False) -> CsvLog:
+    @staticmethod
+    def _keep_existing(path: str, kind: str) -> tuple[str, str]:
+        """Where a restarted output goes without truncating anything: (path, mode).
+
+        mode "create": no file (or an empty one) there; "append": a CSV log of this format
+        ending with a whole row, continued without a second header; "new name": the file
+        is kept as it is and the output goes to ``NAME-2.csv`` (``-3`` ...), the first free
+        name. A recording always gets a new name: its header holds the camera, the map and
+        the configuration of the run that started it, which may have changed since.
+        """
+        p = Path(path)
+        try:
+            if not p.exists() or (p.is_file() and p.stat().st_size == 0):
+                return path, "create"
+            if kind == "log" and p.is_file() and has_header(p) and ends_whole(p):
+                return path, "append"
+        except OSError:
+            pass  # unreadable: never written over, a new name instead
+        for n in range(2, 10000):
+            other = p.with_name(f"{p.stem}-{n}{p.suffix}")
+            if not os.path.lexists(other):
+                return str(other), "new name"
+        raise ValueError(f"{kind}: {p.stem}-2{p.suffix} to -9999 all exist; give a path")
+
+    def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
+        """Start the CSV log. keep: an existing file is never truncated (a restart over
+        control: see _keep_existing); else an operator's path is written afresh."""
         if self.csv is not None:
             raise ValueError(f"already logging to {self.csv.path}; stop it first")
         self._check_space(path, "log", remote)
+        mode = "create"
+        if keep and not remote:
+            path, mode = self._keep_existing(path, "log")
         path = self._output_path(path, "log", self.recorder, remote)
         try:
-            self.csv = CsvLog(path)
+            self.csv = CsvLog(path, append=mode == "append")
         except OSError as e:
             self._forget_created(path, remote)
             raise ValueError(f"log: cannot write {path}: {e.strerror or e}") from None
+        self.csv.mode = mode
         self.output_errors["log"] = None
         self.totals.csv_paths.append(str(self.csv.path))
-        log.info("CSV log started: %s", self.csv.path)
+        log.info("CSV log started: %s%s", self.csv.path,
+                 " (appending: the earlier rows are kept)" if mode == "append" else "")
         return self.csv
 
     def stop_csv(self) -> dict:
@@ -376,10 +408,16 @@ class Daemon:
         log.info("CSV log stopped: %s (%d rows)", c.path, c.rows)
         return {"path": str(c.path), "rows": c.rows, "bytes": c.bytes}
 
-    def start_recording(self, path: str, remote: bool = False) -> Recorder:
+    def start_recording(self, path: str, remote: bool = False, keep: bool = False
+                        ) -> Recorder:
+        """Start recording; keep: as for :meth:`start_csv` (a recording is never appended
+        to: a new name)."""
         if self.recorder is not None:
             raise ValueError(f"already recording to {self.recorder.path}; stop it first")
         self._check_space(path, "record", remote)
+        mode = "create"
+        if keep and not remote:
+            path, mode = self._keep_existing(path, "record")
         path = self._output_path(path, "record", self.csv, remote)
         try:
             self.recorder = Recorder(path, self.pipeline.camera, self.world_map,
@@ -387,6 +425,7 @@ class Daemon:
         except OSError as e:
             self._forget_created(path, remote)
             raise ValueError(f"record: cannot write {path}: {e.strerror or e}") from None
+        self.recorder.mode = mode
         self.output_errors["record"] = None
         self.totals.record_paths.append(str(self.recorder.path))
         log.info("recording started: %s", self.recorder.path)

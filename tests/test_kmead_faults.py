@@ -267,3 +267,54 @@ def test_a_start_below_the_floor_runs_without_the_log(tmp_path: Path,
     finally:
         d.close()
         s1.close()
+
+
+# ----------------------------------------------------------------------------- restarts
+
+def _frames_in_csv(path: Path) -> list[int]:
+    return [int(line.split(",", 1)[0]) for line in path.read_text().splitlines()[1:]]
+
+
+def test_restarting_the_log_and_the_recording_over_control_never_wipes_them(
+        tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    csv_path, rec_path = data / "run.csv", data / "run.jsonl"
+    d = LiveDaemon(tmp_path, sets=[f'log.csv="{csv_path}"', f'log.record="{rec_path}"'])
+    try:
+        assert d.wait(lambda: d.daemon.csv.rows > 100 and d.daemon.recorder.frames > 5,
+                      DEADLINE)
+        assert d.cmd("log_stop")["ok"] and d.cmd("record_stop")["ok"]
+        first_csv, first_rec = csv_path.read_bytes(), rec_path.read_bytes()
+        first_frames = _frames_in_csv(csv_path)
+
+        log = d.cmd("log_start")
+        assert log["ok"] and log["path"] == str(csv_path) and log["mode"] == "append", log
+        rec = d.cmd("record_start")
+        assert rec["ok"] and rec["mode"] == "new name", rec
+        assert rec["path"] == str(data / "run-2.jsonl")
+        assert d.wait(lambda: d.daemon.csv.rows > 100 and d.daemon.recorder.frames > 5,
+                      DEADLINE)
+        assert d.cmd("log_stop")["ok"] and d.cmd("record_stop")["ok"]
+
+        # The first run's rows are all still there, then the second's: one header.
+        assert csv_path.read_bytes().startswith(first_csv)
+        assert csv_path.read_text().count(HEADER) == 1
+        frames = _frames_in_csv(csv_path)
+        assert len(frames) > len(first_frames) + 100
+        assert frames == sorted(frames) and frames[-1] > first_frames[-1]
+        assert_whole_csv(csv_path)
+        assert rec_path.read_bytes() == first_rec
+        assert assert_whole_jsonl(data / "run-2.jsonl") > 5
+
+        # A file at the log's path that is not a whole log of this format is kept as it is.
+        csv_path.write_text("my notes, not a kmead log\n")
+        log = d.cmd("log_start")
+        assert log["ok"] and log["mode"] == "new name" and log["path"] == str(data / "run-2.csv")
+        rec = d.cmd("record_start")
+        assert rec["ok"] and rec["path"] == str(data / "run-3.jsonl")
+        assert d.cmd("log_stop")["ok"] and d.cmd("record_stop")["ok"]
+        assert csv_path.read_text() == "my notes, not a kmead log\n"
+        assert rec_path.read_bytes() == first_rec
+        assert d.alive(), d.error
+    finally:
+        d.close()
