@@ -71,10 +71,6 @@ OUTPUT_NAMES = {"log": "CSV log", "record": "recording"}
 
 class LowSpace(ValueError):
     """An output refused because its disk is below ``log.min_free_mb`` (one line)."""
-# Live keys that can stop localisation, so a change goes on trial (kmead.rollback): the
-# detector's, and the estimator. Filter, statistics, relay and log keys cannot make a frame
-# fail.
-TRIAL_KEYS = {"estimator.algorithm"}
 
 
 class Daemon:
@@ -452,8 +448,9 @@ class Daemon:
                               f"(live keys: {', '.join(sorted(LIVE_KEYS))}, detector.*); "
                               "save it and restart kmead")
         v = self._apply(key, value, old, remote)
-        if key in TRIAL_KEYS or key.startswith("detector."):
-            self.guard.begin(key, old, v)
+        # Every live change goes on trial (kmead.rollback), not only the detector's and the
+        # estimator's: a filter value inside its range once made every frame fail.
+        self.guard.begin(key, old, v)
         log.info("set %s = %r", key, v)
         return v
 
@@ -520,9 +517,9 @@ class Daemon:
             except Exception as e:  # the old value worked before; report if it does not now
                 self.event("error", f"rollback of {trial.key} failed: {e}")
                 continue
-            self.event("warning", f"set {trial.key} rolled back: {trial.failures} of the "
-                                  f"{trial.frames} frames after it failed; the previous "
-                                  f"value is back")
+            self.event("error", f"set {trial.key} rolled back: {trial.failures} of the "
+                                f"{trial.frames} frames after it failed; the previous "
+                                f"value is back")
 
     def reload_map(self) -> MarkerMap:
         new = configured_map(self.cfg, self.source)

@@ -318,3 +318,82 @@ def test_restarting_the_log_and_the_recording_over_control_never_wipes_them(
         assert d.alive(), d.error
     finally:
         d.close()
+
+
+# ----------------------------------------------------------------------------- settings
+
+def test_every_filter_value_the_schema_accepts_runs_the_tracker() -> None:
+    """Each numeric [filter] key at both ends of its range, with both motion models, through
+    a drive with outliers and a 3 s gap: no exception, finite poses (outlier_radius = 1e-300
+    was accepted and divided by zero in every frame)."""
+    import math
+    import random
+
+    from kmea.pipeline import tracker_config
+    from kmea.tracking import Tracker
+    from kmead.config import load_config
+    from kmead.settings_schema import SCHEMA
+
+    base = load_config(None, [], use_local=False)["filter"]
+    checked = 0
+    for key, check in SCHEMA["filter"].items():
+        if not hasattr(check, "lo"):
+            continue  # choices, booleans, integers
+        for value in (check.lo, check.hi):
+            for model in ("ctrv", "cv"):
+                tr = Tracker(tracker_config({**base, key: value, "model": model}))
+                rng = random.Random(1)
+                t = 0.0
+                for i in range(200):
+                    t += 3.0 if i == 100 else 1 / 30
+                    x, y = 0.5 * math.cos(t / 2), 0.4 * math.sin(t / 2)
+                    x += 0.3 if i % 17 == 5 else 0.0  # an outlier now and then
+                    tr.update("r", t, x + rng.gauss(0, 0.003), y + rng.gauss(0, 0.003),
+                              t / 2, 0.003)
+                    st = tr.predict("r", t + 0.05)
+                    assert st is not None and all(
+                        math.isfinite(v) for v in (st.x, st.y, st.theta, st.sigma)), (
+                        key, value, model, st)
+                checked += 1
+    assert checked >= 4 * 12  # every numeric filter key was driven
+
+
+def test_a_live_setting_that_breaks_every_frame_is_rolled_back_whatever_its_key(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from kmea import tracking
+
+    # Stand-in for a value inside its range that the filter still cannot digest (the
+    # ranges now refuse the 1e-300 that did this): every new track raises.
+    real_init = tracking.Track.__init__
+
+    def init(self, name="", config=None):
+        if config is not None and config.outlier_radius == 0.5:
+            raise ZeroDivisionError("float division by zero")
+        real_init(self, name, config)
+
+    monkeypatch.setattr(tracking.Track, "__init__", init)
+    s1 = udp_listener()
+    d = LiveDaemon(tmp_path, site=robots_toml({"amr1": s1.getsockname()[1]}))
+    sub = _watch(d, ("event",))
+    try:
+        assert d.wait(lambda: d.daemon.guard.healthy_before(), DEADLINE)
+        refused = d.cmd("set", key="filter.outlier_radius", value=1e-300)
+        assert refused["ok"] is False
+        assert "filter.outlier_radius" in refused["error"]
+        assert "must be in [0.0001, 10] m" in refused["error"]
+
+        assert d.cmd("set", key="filter.outlier_radius", value=0.5)["ok"]
+        saved = d.cmd("save_config")  # during the trial: the previous value
+        assert saved["ok"] and saved["held"] == ["filter.outlier_radius"]
+        seen = _until(sub, lambda t, b: "rolled back" in b["text"])
+        assert seen[-1][1]["level"] == "error"
+        assert "set filter.outlier_radius rolled back" in seen[-1][1]["text"]
+        assert d.daemon.cfg["filter"]["outlier_radius"] == 0.2
+        assert d.cmd("get_config")["config"]["filter"]["outlier_radius"] == 0.2
+        assert "outlier_radius" not in d.cfg.overlay_path.read_text()
+        _valid_datagrams(s1, 10)  # the robots are localised again
+        assert d.alive(), d.error
+    finally:
+        sub.close(0)
+        d.close()
+        s1.close()
