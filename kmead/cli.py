@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     print(daemon.summary(), flush=True)
     why = "stop requested" if daemon.stop_event.is_set() else (
         f"--frames {args.frames} reached" if args.frames is not None
-        and daemon.totals.frames >= args.frames else "the source ended")
+        and daemon.frames_read >= args.frames else "the source ended")
     final = (f"stopped ({why}): {daemon.totals.frames} frames, exit code {code}"
              if code == 0 else f"stopped with an error: exit code {code}")
     print(reporter.stamp(final), file=sys.stderr, flush=True)

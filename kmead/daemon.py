@@ -66,6 +66,9 @@ DISPLACED_QUIET_S = 30.0
 # How often (s) the free space under a running log or recording is checked: statvfs is a few
 # microseconds, but every frame would be needless.
 SPACE_CHECK_S = 1.0
+# Frames in a row that failed before any frame succeeded: a configuration under which no
+# frame can succeed (the daemon exits 1 naming the first error instead of running forever).
+STARTUP_FAILURES = 30
 OUTPUT_NAMES = {"log": "CSV log", "record": "recording"}
 
 
@@ -116,6 +119,10 @@ class Daemon:
         # None while it runs or after a stop that was asked for. In the status body.
         self.output_errors: dict[str, str | None] = {"log": None, "record": None}
         self._space_t = 0.0
+        self.frames_read = 0  # what --frames counts: frames that came in, failed or not
+        self._fail_streak = 0
+        self._first_failure: str | None = None
+        self._succeeded = False
         self._resave = False  # save_config ran while a change was on trial
         try:
             self._build()
@@ -650,10 +657,16 @@ class Daemon:
             res = self.pipeline.process(inp, on_robots=self._relay_robots)
         except Exception as e:  # a frame the detector or pose cannot digest: report, go on
             self.totals.bad_frames += 1
-            self.event("error", f"frame {frame.index}: {type(e).__name__}: {e}; skipped")
+            text = f"frame {frame.index}: {type(e).__name__}: {e}"
+            self.event("error", f"{text}; skipped")
             log.debug("frame failure", exc_info=True)
+            self._fail_streak += 1
+            if self._first_failure is None:
+                self._first_failure = " ".join(text.split())  # one line
             self._judge(False)
             return None
+        self._fail_streak = 0
+        self._succeeded = True
         self._outputs(res)
         self._camera_outputs(frame.image, res)
         self._judge(bool(res.estimate.ok))
@@ -858,7 +871,7 @@ class Daemon:
         self.gc_pacing = GcPacing() if self.live else None
         try:
             while not self.stop_event.is_set():
-                if self.max_frames is not None and self.totals.frames >= self.max_frames:
+                if self.max_frames is not None and self.frames_read >= self.max_frames:
                     break
                 try:
                     got = self.feed.get(timeout=0.1)
@@ -869,8 +882,11 @@ class Daemon:
                 self.progress_t = time.monotonic()
                 if got is not None:
                     (frame, cap_ms, t_cap), det, det_ms = got
+                    self.frames_read += 1
                     with self.lock:
                         self.process_frame(frame, cap_ms, t_cap, det, det_ms)
+                    if not self._succeeded and self._fail_streak >= STARTUP_FAILURES:
+                        break
                 if self.gc_pacing is not None:
                     self.gc_pacing.idle()
         finally:
@@ -878,7 +894,19 @@ class Daemon:
                 self.gc_pacing.close()
             self.feed.close()
             self.totals.t_end = time.perf_counter()
+        self._check_never_succeeded()
         return self.exit_code
+
+    def _check_never_succeeded(self) -> None:
+        """Frames came in, every one failed, none succeeded: the configuration cannot work
+        (exit 1 with the first error), whether STARTUP_FAILURES or --frames ended the run."""
+        if self._succeeded or self._first_failure is None:
+            return
+        if self.stop_event.is_set() and self._fail_streak < STARTUP_FAILURES:
+            return  # stopped before the frames could tell
+        self.event("error", f"no frame succeeded: {self._fail_streak} failed in a row from "
+                            f"the start; stopping. The first: {self._first_failure}")
+        self.exit_code = EXIT_RUNTIME
 
     def _check_complete(self) -> None:
         """A file source that announced more frames than it gave was cut short."""

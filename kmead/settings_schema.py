@@ -173,7 +173,15 @@ def _endpoint(v: Any, where: str, remote: bool = False) -> str:
 
 # A probability a filter turns into a chi-square quantile or an odds ratio: 1e-300 or
 # 1 - 1e-17 (== 1.0 in a float) is no probability anyone means, and breaks the arithmetic.
-_probability = number(1e-6, 1 - 1e-9)
+def _probability(v: Any, where: str, remote: bool = False) -> float:
+    x = _real(v, where)
+    if not _probability.lo <= x <= _probability.hi:  # type: ignore[attr-defined]
+        raise ConfigError(f"{where}: must be a probability in [1e-06, 1 - 1e-09], got "
+                          f"{_short(v)}")
+    return x
+
+
+_probability.lo, _probability.hi = 1e-6, 1 - 1e-9  # type: ignore[attr-defined]
 
 
 MAX_INPUTS = 16

@@ -397,3 +397,84 @@ def test_a_live_setting_that_breaks_every_frame_is_rolled_back_whatever_its_key(
         sub.close(0)
         d.close()
         s1.close()
+
+
+# ----------------------------------------------------------------------------- start-up
+
+NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
+       "--set", 'network.control="tcp://127.0.0.1:*"']
+FAST = ["--set", "source.width=640", "--set", "source.height=480", "--set", "source.fps=0"]
+
+
+def _failing_pipeline(monkeypatch: pytest.MonkeyPatch, first_ok: int | None = None) -> dict:
+    """Pipeline.process raises ZeroDivisionError (what outlier_radius = 1e-300 did) for every
+    frame, or for the frames before ``first_ok`` calls."""
+    from kmea.pipeline import Pipeline
+
+    real = Pipeline.process
+    calls = {"n": 0}
+
+    def process(self, inp, **kw):
+        calls["n"] += 1
+        if first_ok is None or calls["n"] <= first_ok:
+            raise ZeroDivisionError("float division by zero")
+        return real(self, inp, **kw)
+
+    monkeypatch.setattr(Pipeline, "process", process)
+    return calls
+
+
+@contextlib.contextmanager
+def _sigterm_after(seconds: float):
+    """A run that would never end (the defect) is stopped by SIGTERM (kmead's handler) after
+    ``seconds``, so the test fails instead of hanging."""
+    import signal
+    import threading
+
+    timer = threading.Timer(seconds, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+def _error_lines(err: str) -> list[str]:
+    return [x for x in err.splitlines() if "no frame succeeded" in x]
+
+
+def test_a_start_where_every_frame_fails_exits_1_naming_the_first_error(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    from kmead import cli
+
+    calls = _failing_pipeline(monkeypatch)
+    # No --frames: the unpaced simulator never ends; the failures end the run.
+    with _sigterm_after(120):
+        assert cli.main(["--headless", "--status-every", "0", *FAST, *NET]) == 1
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1, lines
+    assert "30 failed in a row" in lines[0]
+    assert "The first: frame 0: ZeroDivisionError: float division by zero" in lines[0]
+    assert calls["n"] >= 30
+
+    # --frames counts the frames read: 20 failed frames end a --frames 20 run, exit 1.
+    calls["n"] = 0
+    with _sigterm_after(120):
+        assert cli.main(["--headless", "--frames", "20", "--status-every", "0", *FAST,
+                         *NET]) == 1
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and "20 failed in a row" in lines[0], lines
+    assert calls["n"] == 20
+
+
+def test_failed_frames_at_start_followed_by_good_ones_are_not_a_broken_start(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    from kmead import cli
+
+    _failing_pipeline(monkeypatch, first_ok=5)
+    with _sigterm_after(120):
+        assert cli.main(["--headless", "--frames", "40", "--status-every", "0", *FAST,
+                         *NET]) == 0
+    out = capsys.readouterr()
+    assert not _error_lines(out.err)
+    assert "35 frames" in out.out  # the summary counts the frames that succeeded
