@@ -14,7 +14,7 @@ import sys
 import threading
 from typing import Any
 
-from kmead.config import ConfigError, load_config
+from kmead.config import ConfigError, load_config, parse_set
 from kmead.startup import EXIT_CONFIG
 
 STATUS_PERIOD_S = 5.0
@@ -124,9 +124,17 @@ def main(argv: list[str] | None = None) -> int:
     if not args.status_every >= 0:
         print("kmead: --status-every: give seconds >= 0", file=sys.stderr)
         return EXIT_CONFIG
-    sets = [*FREE_PORTS, *args.set] if args.free_ports else args.set
     try:
-        cfg = load_config(args.config, sets, _overrides(args))
+        cfg = load_config(args.config, args.set, _overrides(args))
+        if args.free_ports:
+            # For this run only: a save_config writes the configured endpoints, never
+            # tcp://127.0.0.1:* (every later start would bind random ports). An explicit
+            # --set of the same key wins, as before.
+            given = {parse_set(item)[0] for item in args.set}
+            for item in FREE_PORTS:
+                key, value = parse_set(item)
+                if key not in given:
+                    cfg.set_for_run(key, value, "--free-ports")
     except ConfigError as e:
         print(f"kmead: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG

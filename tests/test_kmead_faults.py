@@ -478,3 +478,71 @@ def test_failed_frames_at_start_followed_by_good_ones_are_not_a_broken_start(
     out = capsys.readouterr()
     assert not _error_lines(out.err)
     assert "35 frames" in out.out  # the summary counts the frames that succeeded
+
+
+# ----------------------------------------------------------------------------- --free-ports
+
+def test_a_save_after_a_free_ports_run_keeps_the_configured_endpoints(tmp_path: Path) -> None:
+    import re
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    site = tmp_path / "site.toml"
+    site.write_text('[network]\ntelemetry = "tcp://127.0.0.1:5755"\n'
+                    'control = "tcp://127.0.0.1:5756"\n')
+    env = {**os.environ, "XDG_CONFIG_HOME": str(tmp_path / "home")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "kmead.cli", "--config", str(site), "--headless", "--free-ports",
+         "--status-every", "0", "--set", "source.width=640", "--set", "source.height=480",
+         "--set", "source.fps=10", "--set", "detector.workers=0"],
+        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    ctx = zmq.Context()
+    overlay = tmp_path / "site.local.toml"
+    try:
+        end = time.monotonic() + DEADLINE
+        found = None
+        while found is None and time.monotonic() < end and proc.poll() is None:
+            found = next((m for x in list(lines) if (m := re.search(
+                r"control (tcp://127\.0\.0\.1:\d+)", x))), None)
+            time.sleep(0.05)
+        assert found, lines
+        control = found.group(1)
+        assert control != "tcp://127.0.0.1:5756"  # --free-ports bound another port
+
+        def cmd(name: str, **args: object) -> dict:
+            req = ctx.socket(zmq.REQ)
+            req.setsockopt(zmq.LINGER, 0)
+            req.connect(control)
+            try:
+                req.send(P.encode_body({"cmd": name, **args}))
+                assert req.poll(15000), f"no reply to {name}"
+                return P.decode_body(req.recv())
+            finally:
+                req.close(0)
+
+        assert cmd("set", key="filter.alpha", value=0.5)["ok"]
+        assert cmd("save_config")["ok"]
+        end = time.monotonic() + DEADLINE  # saved again once the change's trial passed
+        while time.monotonic() < end and not (overlay.exists()
+                                              and "alpha = 0.5" in overlay.read_text()):
+            time.sleep(0.05)
+        saved = overlay.read_text()
+        assert "alpha = 0.5" in saved
+        assert "network" not in saved and "*" not in saved and control not in saved, saved
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=DEADLINE)
+        reader.join(timeout=DEADLINE)
+        proc.stderr.close()
+        ctx.term()
+    # The next start without --free-ports binds the configured endpoints.
+    check = subprocess.run([sys.executable, "-m", "kmead.cli", "--config", str(site), "--check"],
+                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert check.returncode == 0, check.stderr
+    assert 'telemetry = "tcp://127.0.0.1:5755"' in check.stdout
+    assert 'control = "tcp://127.0.0.1:5756"' in check.stdout
