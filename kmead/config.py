@@ -103,6 +103,8 @@ def _read_toml(path: Path) -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML: {e}") from None
+    except RecursionError:  # tomllib recurses per nesting level: 600 levels overflow it
+        raise ConfigError(f"{path}: invalid TOML: nested too deeply") from None
 
 
 def parse_set(item: str) -> tuple[str, Any]:

@@ -546,3 +546,28 @@ def test_a_save_after_a_free_ports_run_keeps_the_configured_endpoints(tmp_path: 
     assert check.returncode == 0, check.stderr
     assert 'telemetry = "tcp://127.0.0.1:5755"' in check.stdout
     assert 'control = "tcp://127.0.0.1:5756"' in check.stdout
+
+
+# ----------------------------------------------------------------------------- bad files
+
+@pytest.mark.parametrize("depth", [600, 3000])
+def test_toml_nested_too_deeply_is_one_line_naming_the_file(
+        tmp_path: Path, capsys: pytest.CaptureFixture, depth: int) -> None:
+    from kmead import cli
+
+    deep = "x = " + "[" * depth + "]" * depth + "\n"
+    cases = {"config": ["--config", str(tmp_path / "c.toml")],
+             "map": ["--map", str(tmp_path / "m.toml")],
+             "camera": ["--camera", str(tmp_path / "k.toml")],
+             "--set": ["--set", "filter.alpha=" + "[" * depth + "]" * depth]}
+    for name in ("c", "m", "k"):
+        (tmp_path / f"{name}.toml").write_text(deep)
+    for what, args in cases.items():
+        code = cli.main(["--headless", "--frames", "1", *args, *NET])
+        err = capsys.readouterr().err.strip()
+        assert code == 2, (what, err[-300:])
+        assert err.count("\n") == 0 and "Traceback" not in err, (what, err[:300])
+        if what == "--set":
+            assert "filter.alpha" in err
+        else:
+            assert args[1] in err and "nested too deeply" in err, (what, err)
