@@ -183,6 +183,8 @@ def load_map(path: str | Path, dictionary: str = DEFAULT_DICTIONARY,
             raise MapError(f"{path}: not a UTF-8 text file") from None
         except tomllib.TOMLDecodeError as e:
             raise MapError(f"{path}: invalid TOML: {e}") from None
+        except RecursionError:  # tomllib recurses per nesting level
+            raise MapError(f"{path}: invalid TOML: nested too deeply") from None
         return map_from_dict(data, str(path), _table_lines(text))
     raise MapError(f"{path}: unknown map format {path.suffix!r} (use .toml or .csv)")
 

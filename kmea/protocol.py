@@ -228,6 +228,7 @@ class LoggingState(TypedDict):
     path: str | None
     rows: int
     bytes: int
+    error: str | None  # why the log stopped on its own (write error, free-space floor)
 
 
 class RecordingState(TypedDict):
@@ -235,6 +236,7 @@ class RecordingState(TypedDict):
     path: str | None
     frames: int
     bytes: int
+    error: str | None  # why the recording stopped on its own
 
 
 class CameraInfo(TypedDict):

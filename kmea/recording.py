@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from kmea import wholewrite
 from kmea.estimators.base import MarkerObservation
 from kmea.jsonsafe import to_jsonable
 from kmea.maps import Marker, MarkerMap
@@ -110,21 +111,27 @@ class Recorder:
         self.path = Path(path)
         if self.path.parent and not self.path.parent.exists():
             self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "wb", buffering=0)  # noqa: SIM115 - closed in close()
+        self._f = wholewrite.open_output(self.path)
+        self._end = 0  # the byte after the last whole line
         self.frames = 0
+        self.mode = "create"  # how it was started: create, append, new name
         self.bytes = 0
         self.camera = camera
         header = {"format": FORMAT, "version": VERSION, "created": time.time(),
                   "source": source, "camera": camera_to_json(camera),
                   "map": map_to_json(world_map), "robots": config.get("robots", []),
                   "config": config}
-        self._line(header)
+        try:
+            self._line(header)
+        except OSError:
+            self._f.close()
+            raise
 
     def _line(self, obj: dict) -> None:
         data = (json.dumps(obj, separators=(",", ":"), allow_nan=False) + "\n").encode()
-        view = memoryview(data)
-        while view:
-            view = view[self._f.write(view):]
+        # A failed write (full disk) is cut back to the last whole line, then raised.
+        wholewrite.write_whole(self._f, data, self._end)
+        self._end += len(data)
         self.bytes += len(data)
 
     def write_frame(self, index: int, t: float, ids: np.ndarray, corners: np.ndarray,

@@ -36,7 +36,7 @@ from kmea_tui.widgets.log_panel import LogPane
 from kmea_tui.widgets.markers import MarkersPane, moved_ids
 from kmea_tui.widgets.robots import RobotsPane
 from kmea_tui.widgets.stats import StatsPane
-from kmea_tui.widgets.status_bar import StatusBar
+from kmea_tui.widgets.status_bar import StatusBar, output_alert
 
 Client = DaemonClient | RecordingClient
 
@@ -340,6 +340,11 @@ class KmeaTui(App[None]):
             self._became_fusion_node()
         self.query_one(LogPane).update_status(body)
         self.query_one(ConfigPane).set_algorithms(body["algorithms"])
+        bar = self.query_one(StatusBar)
+        alert = output_alert(body)
+        if alert != bar.alert:
+            bar.alert = alert
+            bar.show(bar.state, None, bar.detail)
 
     def _became_fusion_node(self) -> None:
         """A fusion node has robots, no markers, statistics or camera: say so in those

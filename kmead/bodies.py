@@ -118,10 +118,14 @@ def status_body(*, t0: float, source: str, config_file: str, config_files: list[
                 algorithm: str, algorithms: list[str], csv: Any, recorder: Any,
                 camera: CameraModel, world_map: MarkerMap, frames: int, dropped: int,
                 bad_frames: int, telemetry: str, control: str,
-                stopped: bool = False) -> StatusBody:
+                stopped: bool = False,
+                output_errors: dict[str, str | None] | None = None) -> StatusBody:
     """``status``: the daemon's state. t0: unix start time; csv, recorder: the open CSV log
     and recording (``path``, ``rows``/``frames``, ``bytes``) or None; stopped: the last
-    status, at shutdown (adds ``"state": "stopped"``)."""
+    status, at shutdown (adds ``"state": "stopped"``); output_errors: ``{"log", "record"}``
+    -> why that output stopped or was refused on its own (a write error, the free-space
+    floor), None when it did not."""
+    errors = output_errors or {}
     now = time.time()
     c, r = csv, recorder
     body: StatusBody = {
@@ -129,9 +133,11 @@ def status_body(*, t0: float, source: str, config_file: str, config_files: list[
         "config_file": config_file, "config_files": list(config_files),
         "algorithm": algorithm, "algorithms": list(algorithms),
         "logging": {"active": c is not None, "path": str(c.path) if c else None,
-                    "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
+                    "rows": c.rows if c else 0, "bytes": c.bytes if c else 0,
+                    "error": errors.get("log")},
         "recording": {"active": r is not None, "path": str(r.path) if r else None,
-                      "frames": r.frames if r else 0, "bytes": r.bytes if r else 0},
+                      "frames": r.frames if r else 0, "bytes": r.bytes if r else 0,
+                      "error": errors.get("record")},
         "camera": {"width": camera.width, "height": camera.height, "fx": camera.fx,
                    "fy": camera.fy},
         "map": map_info(world_map),

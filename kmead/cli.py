@@ -14,7 +14,7 @@ import sys
 import threading
 from typing import Any
 
-from kmead.config import ConfigError, load_config
+from kmead.config import ConfigError, load_config, parse_set
 from kmead.startup import EXIT_CONFIG
 
 STATUS_PERIOD_S = 5.0
@@ -124,9 +124,17 @@ def main(argv: list[str] | None = None) -> int:
     if not args.status_every >= 0:
         print("kmead: --status-every: give seconds >= 0", file=sys.stderr)
         return EXIT_CONFIG
-    sets = [*FREE_PORTS, *args.set] if args.free_ports else args.set
     try:
-        cfg = load_config(args.config, sets, _overrides(args))
+        cfg = load_config(args.config, args.set, _overrides(args))
+        if args.free_ports:
+            # For this run only: a save_config writes the configured endpoints, never
+            # tcp://127.0.0.1:* (every later start would bind random ports). An explicit
+            # --set of the same key wins, as before.
+            given = {parse_set(item)[0] for item in args.set}
+            for item in FREE_PORTS:
+                key, value = parse_set(item)
+                if key not in given:
+                    cfg.set_for_run(key, value, "--free-ports")
     except ConfigError as e:
         print(f"kmead: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
@@ -193,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     print(daemon.summary(), flush=True)
     why = "stop requested" if daemon.stop_event.is_set() else (
         f"--frames {args.frames} reached" if args.frames is not None
-        and daemon.totals.frames >= args.frames else "the source ended")
+        and daemon.frames_read >= args.frames else "the source ended")
     final = (f"stopped ({why}): {daemon.totals.frames} frames, exit code {code}"
              if code == 0 else f"stopped with an error: exit code {code}")
     print(reporter.stamp(final), file=sys.stderr, flush=True)

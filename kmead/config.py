@@ -103,6 +103,8 @@ def _read_toml(path: Path) -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML: {e}") from None
+    except RecursionError:  # tomllib recurses per nesting level: 600 levels overflow it
+        raise ConfigError(f"{path}: invalid TOML: nested too deeply") from None
 
 
 def parse_set(item: str) -> tuple[str, Any]:
@@ -129,12 +131,15 @@ class Config:
     files: configuration files read, in order (the packaged default first).
     base: the configuration from the files alone (no overlay, no command line): what
         ``save_config`` diffs against.
+    run_only: ``section.key`` -> the configured value, for keys this run uses another value
+        of (``--free-ports``): ``save_config`` writes the configured one, never the run's.
     """
 
     data: dict
     files: list[str] = field(default_factory=list)
     user_file: str | None = None
     base: dict = field(default_factory=dict)
+    run_only: dict[str, Any] = field(default_factory=dict)
 
     def __getitem__(self, section: str) -> Any:
         return self.data[section]
@@ -159,6 +164,13 @@ class Config:
         else:
             section, _, name = key.partition(".")
             self.data[section][name] = v
+        return v
+
+    def set_for_run(self, key: str, value: Any, where: str) -> Any:
+        """Like :meth:`set`, for this run only: a save keeps the value configured before."""
+        configured = self.get(key)
+        v = self.set(key, value, where)
+        self.run_only.setdefault(key, configured)
         return v
 
     def to_dict(self) -> dict:
@@ -235,6 +247,7 @@ def overlay_doc(cfg: Config) -> dict:
                 doc["robots"] = table
             continue
         for key, value in table.items():
+            value = cfg.run_only.get(f"{section}.{key}", value)
             if cfg.base.get(section, {}).get(key) != value:
                 doc.setdefault(section, {})[key] = value
     return doc

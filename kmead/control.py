@@ -62,9 +62,10 @@ class Daemon(Protocol):
     def event(self, level: str, text: str) -> None: ...
     def tick(self) -> None: ...
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any: ...
-    def start_csv(self, path: str, remote: bool = False) -> Any: ...
+    def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> Any: ...
     def stop_csv(self) -> dict: ...
-    def start_recording(self, path: str, remote: bool = False) -> Any: ...
+    def start_recording(self, path: str, remote: bool = False, keep: bool = False
+                        ) -> Any: ...
     def stop_recording(self) -> dict: ...
     def reload_map(self) -> Any: ...
     def save_config(self, path: str | None = None) -> dict: ...
@@ -247,10 +248,12 @@ class ControlServer:
             d.data_dir.check_name(name, "log")
         with d.lock:
             if name is None and d.cfg["log"]["csv"]:
-                c = d.start_csv(d.cfg["log"]["csv"])
+                # A restart over control never truncates what was logged (append or a new
+                # name; the reply says which).
+                c = d.start_csv(d.cfg["log"]["csv"], keep=True)
             else:
                 c = d.start_csv(name or time.strftime("kmead-%Y%m%d-%H%M%S.csv"), remote=True)
-        return {"path": str(c.path)}
+        return {"path": str(c.path), "mode": c.mode}
 
     def _cmd_log_stop(self, req: dict) -> dict:
         with self.daemon.lock:
@@ -263,11 +266,11 @@ class ControlServer:
             d.data_dir.check_name(name, "record")
         with d.lock:
             if name is None and d.cfg["log"]["record"]:
-                r = d.start_recording(d.cfg["log"]["record"])
+                r = d.start_recording(d.cfg["log"]["record"], keep=True)
             else:
                 r = d.start_recording(name or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl"),
                                       remote=True)
-        return {"path": str(r.path)}
+        return {"path": str(r.path), "mode": r.mode}
 
     def _cmd_record_stop(self, req: dict) -> dict:
         with self.daemon.lock:

@@ -17,6 +17,8 @@ import math
 import os
 from pathlib import Path
 
+from kmea import wholewrite
+
 HEADER = "frame,timestamp,algorithm,kind,id,x,y,z,yaw,error,refs"
 COLUMNS = HEADER.split(",")
 
@@ -35,24 +37,49 @@ def row(frame: int, timestamp: float, algorithm: str, kind: str, ident: object,
             f"{_f(y, '.7f')},{_f(z, '.7f')},{_f(yaw, '.6f')},{_f(error, '.7f')},{refs}\n")
 
 
-class CsvLog:
-    """An open CSV log. ``write_rows`` takes the lines of one frame."""
+def ends_whole(path: Path) -> bool:
+    """The file ends with a newline (its last row is whole), or is empty."""
+    with open(path, "rb") as f:
+        if f.seek(0, os.SEEK_END) == 0:
+            return True
+        f.seek(-1, os.SEEK_END)
+        return f.read(1) == b"\n"
 
-    def __init__(self, path: str | Path) -> None:
+
+def has_header(path: Path) -> bool:
+    """The file is a CSV log of this format (its first line is :data:`HEADER`)."""
+    with open(path, "rb") as f:
+        return f.readline(len(HEADER) + 2).rstrip(b"\r\n") == HEADER.encode()
+
+
+class CsvLog:
+    """An open CSV log. ``write_rows`` takes the lines of one frame.
+
+    append: continue an existing log of this format (no second header; the caller checks
+    :func:`has_header` and :func:`ends_whole`); else the file is created (or emptied).
+    """
+
+    def __init__(self, path: str | Path, append: bool = False) -> None:
         self.path = Path(path)
         if self.path.parent and not self.path.parent.exists():
             self.path.parent.mkdir(parents=True, exist_ok=True)
         # Unbuffered binary file: one os-level write per frame (whole rows or nothing).
-        self._f = open(self.path, "wb", buffering=0)  # noqa: SIM115 - closed in close()
+        self._f = wholewrite.open_output(self.path, append)
+        self.appended = append
+        self._end = self._f.seek(0, os.SEEK_END) if append else 0
         self.rows = 0
+        self.mode = "create"  # how it was started: create, append, new name
         self.bytes = 0
-        self._write((HEADER + "\n").encode())
+        if not append:
+            try:
+                self._write((HEADER + "\n").encode())
+            except OSError:
+                self._f.close()
+                raise
 
     def _write(self, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
-            n = self._f.write(view)
-            view = view[n:]
+        wholewrite.write_whole(self._f, data, self._end)
+        self._end += len(data)
         self.bytes += len(data)
 
     def write_rows(self, lines: list[str]) -> None:

@@ -14,10 +14,13 @@ capture.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
+import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from kmea import protocol as P
@@ -32,8 +35,8 @@ from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
-from kmead.csvlog import CsvLog
-from kmead.files import DataDir, FileRefused, same_file
+from kmead.csvlog import CsvLog, ends_whole, has_header
+from kmead.files import DataDir, FileRefused, low_space, same_file
 from kmead.gc_pacing import GcPacing
 from kmead.log_ring import LogRing
 from kmead.outputs import RunTotals, csv_lines, truth_record
@@ -57,10 +60,17 @@ __all__ = ["Daemon", "StartupError"]
 log = logging.getLogger("kmead")
 
 DISPLACED_QUIET_S = 30.0
-# Live keys that can stop localisation, so a change goes on trial (kmead.rollback): the
-# detector's, and the estimator. Filter, statistics, relay and log keys cannot make a frame
-# fail.
-TRIAL_KEYS = {"estimator.algorithm"}
+# How often (s) the free space under a running log or recording is checked: statvfs is a few
+# microseconds, but every frame would be needless.
+SPACE_CHECK_S = 1.0
+# Frames in a row that failed before any frame succeeded: a configuration under which no
+# frame can succeed (the daemon exits 1 naming the first error instead of running forever).
+STARTUP_FAILURES = 30
+OUTPUT_NAMES = {"log": "CSV log", "record": "recording"}
+
+
+class LowSpace(ValueError):
+    """An output refused because its disk is below ``log.min_free_mb`` (one line)."""
 
 
 class Daemon:
@@ -102,6 +112,14 @@ class Daemon:
         self.curve = None  # kmead.keys.CurveServer when network.keys is set
         self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
         self.guard = ChangeGuard()
+        # Why each output last stopped on its own (a write error, the free-space floor);
+        # None while it runs or after a stop that was asked for. In the status body.
+        self.output_errors: dict[str, str | None] = {"log": None, "record": None}
+        self._space_t = 0.0
+        self.frames_read = 0  # what --frames counts: frames that came in, failed or not
+        self._fail_streak = 0
+        self._first_failure: str | None = None
+        self._succeeded = False
         self._resave = False  # save_config ran while a change was on trial
         try:
             self._build()
@@ -155,14 +173,17 @@ class Daemon:
         self._log_handler = TelemetryLogHandler(self.telemetry, logging.NOTSET)
         logging.getLogger("kmead").setLevel(cfg["log"]["level"].upper())
         logging.getLogger("kmead").addHandler(self._log_handler)
-        try:
-            if cfg["log"]["csv"]:
-                self.start_csv(cfg["log"]["csv"])
-            if cfg["log"]["record"]:
-                self.start_recording(cfg["log"]["record"])
-        except ValueError as e:  # an unwritable path: name the key, do not start
-            key = "record" if str(e).startswith("record:") else "csv"
-            raise StartupError(f"key 'log.{key}': {e}") from None
+        for key, start in (("csv", self.start_csv), ("record", self.start_recording)):
+            if not cfg["log"][key]:
+                continue
+            try:
+                start(cfg["log"][key])
+            except LowSpace as e:
+                # A full disk is the moment's state, not a configuration error: the robots
+                # get their poses without this output (event, status "error").
+                self._output_refused("log" if key == "csv" else "record", str(e))
+            except ValueError as e:  # an unwritable path: name the key, do not start
+                raise StartupError(f"key 'log.{key}': {e}") from None
         if cfg.data.get("foxglove", {}).get("enabled"):
             self._start_foxglove()
 
@@ -219,16 +240,106 @@ class Daemon:
                 raise ValueError(f"{kind}: {name} is the file the other output writes")
         return name
 
-    def start_csv(self, path: str, remote: bool = False) -> CsvLog:
+    def _check_space(self, path: str, kind: str, remote: bool) -> None:
+        """LowSpace when the disk an output would go to is below ``log.min_free_mb``."""
+        reason = low_space(self.data_dir.root if remote else path,
+                           self.cfg["log"]["min_free_mb"])
+        if reason:
+            raise LowSpace(f"{kind}: not started: {reason}")
+
+    def _output_refused(self, kind: str, text: str) -> None:
+        self.output_errors[kind] = text
+        self.event("error", text)
+
+    def _output_failed(self, kind: str, e: OSError) -> None:
+        """A write error (ENOSPC, EIO) stops that output only: the file keeps its whole rows
+        (kmea.wholewrite cut the failed frame back), the event and the status say why."""
+        out = self.csv if kind == "log" else self.recorder
+        count = f"{out.rows} rows" if kind == "log" else f"{out.frames} frames"
+        cut = ("" if getattr(e, "cut_back", True)
+               else "; its last row may be cut (the file could not be truncated)")
+        self._stop_output(kind, f"{OUTPUT_NAMES[kind]} {out.path}: write failed: "
+                                f"{e.strerror or e}; stopped after {count}{cut}; robots and "
+                                "telemetry go on")
+
+    def _stop_output(self, kind: str, text: str) -> None:
+        try:
+            self.stop_csv() if kind == "log" else self.stop_recording()
+        except OSError as e:  # closing a file on a failing disk: it is stopped all the same
+            log.debug("closing the %s: %s", OUTPUT_NAMES[kind], e)
+            if kind == "log":
+                self.csv = None
+            else:
+                self.recorder = None
+        self._output_refused(kind, text)
+
+    def _watch_space(self) -> None:
+        """Stop an output cleanly (between two frames: whole rows) when its disk falls
+        below the floor, long before a write fails."""
+        now = time.monotonic()
+        if now - self._space_t < SPACE_CHECK_S:
+            return
+        self._space_t = now
+        for kind, out in (("log", self.csv), ("record", self.recorder)):
+            reason = low_space(out.path, self.cfg["log"]["min_free_mb"]) if out else None
+            if reason:
+                count = f"{out.rows} rows" if kind == "log" else f"{out.frames} frames"
+                self._stop_output(kind, f"{OUTPUT_NAMES[kind]} {out.path}: stopped after "
+                                        f"{count}: {reason}; robots and telemetry go on")
+
+    @staticmethod
+    def _forget_created(path: str, remote: bool) -> None:
+        # The empty file a refused control request created (a full disk): its name stays
+        # free for the next try.
+        if remote:
+            with contextlib.suppress(OSError):
+                if os.path.getsize(path) == 0:
+                    os.unlink(path)
+
+    @staticmethod
+    def _keep_existing(path: str, kind: str) -> tuple[str, str]:
+        """Where a restarted output goes without truncating anything: (path, mode).
+
+        mode "create": no file (or an empty one) there; "append": a CSV log of this format
+        ending with a whole row, continued without a second header; "new name": the file
+        is kept as it is and the output goes to ``NAME-2.csv`` (``-3`` ...), the first free
+        name. A recording always gets a new name: its header holds the camera, the map and
+        the configuration of the run that started it, which may have changed since.
+        """
+        p = Path(path)
+        try:
+            if not p.exists() or (p.is_file() and p.stat().st_size == 0):
+                return path, "create"
+            if kind == "log" and p.is_file() and has_header(p) and ends_whole(p):
+                return path, "append"
+        except OSError:
+            pass  # unreadable: never written over, a new name instead
+        for n in range(2, 10000):
+            other = p.with_name(f"{p.stem}-{n}{p.suffix}")
+            if not os.path.lexists(other):
+                return str(other), "new name"
+        raise ValueError(f"{kind}: {p.stem}-2{p.suffix} to -9999 all exist; give a path")
+
+    def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
+        """Start the CSV log. keep: an existing file is never truncated (a restart over
+        control: see _keep_existing); else an operator's path is written afresh."""
         if self.csv is not None:
             raise ValueError(f"already logging to {self.csv.path}; stop it first")
+        self._check_space(path, "log", remote)
+        mode = "create"
+        if keep and not remote:
+            path, mode = self._keep_existing(path, "log")
         path = self._output_path(path, "log", self.recorder, remote)
         try:
-            self.csv = CsvLog(path)
+            self.csv = CsvLog(path, append=mode == "append")
         except OSError as e:
+            self._forget_created(path, remote)
             raise ValueError(f"log: cannot write {path}: {e.strerror or e}") from None
+        self.csv.mode = mode
+        self.output_errors["log"] = None
         self.totals.csv_paths.append(str(self.csv.path))
-        log.info("CSV log started: %s", self.csv.path)
+        log.info("CSV log started: %s%s", self.csv.path,
+                 " (appending: the earlier rows are kept)" if mode == "append" else "")
         return self.csv
 
     def stop_csv(self) -> dict:
@@ -240,15 +351,25 @@ class Daemon:
         log.info("CSV log stopped: %s (%d rows)", c.path, c.rows)
         return {"path": str(c.path), "rows": c.rows, "bytes": c.bytes}
 
-    def start_recording(self, path: str, remote: bool = False) -> Recorder:
+    def start_recording(self, path: str, remote: bool = False, keep: bool = False
+                        ) -> Recorder:
+        """Start recording; keep: as for :meth:`start_csv` (a recording is never appended
+        to: a new name)."""
         if self.recorder is not None:
             raise ValueError(f"already recording to {self.recorder.path}; stop it first")
+        self._check_space(path, "record", remote)
+        mode = "create"
+        if keep and not remote:
+            path, mode = self._keep_existing(path, "record")
         path = self._output_path(path, "record", self.csv, remote)
         try:
             self.recorder = Recorder(path, self.pipeline.camera, self.world_map,
                                      self.source_spec, self.cfg.to_dict())
         except OSError as e:
+            self._forget_created(path, remote)
             raise ValueError(f"record: cannot write {path}: {e.strerror or e}") from None
+        self.recorder.mode = mode
+        self.output_errors["record"] = None
         self.totals.record_paths.append(str(self.recorder.path))
         log.info("recording started: %s", self.recorder.path)
         return self.recorder
@@ -274,8 +395,9 @@ class Daemon:
                               f"(live keys: {', '.join(sorted(LIVE_KEYS))}, detector.*); "
                               "save it and restart kmead")
         v = self._apply(key, value, old, remote)
-        if key in TRIAL_KEYS or key.startswith("detector."):
-            self.guard.begin(key, old, v)
+        # Every live change goes on trial (kmead.rollback), not only the detector's and the
+        # estimator's: a filter value inside its range once made every frame fail.
+        self.guard.begin(key, old, v)
         log.info("set %s = %r", key, v)
         return v
 
@@ -342,9 +464,9 @@ class Daemon:
             except Exception as e:  # the old value worked before; report if it does not now
                 self.event("error", f"rollback of {trial.key} failed: {e}")
                 continue
-            self.event("warning", f"set {trial.key} rolled back: {trial.failures} of the "
-                                  f"{trial.frames} frames after it failed; the previous "
-                                  f"value is back")
+            self.event("error", f"set {trial.key} rolled back: {trial.failures} of the "
+                                f"{trial.frames} frames after it failed; the previous "
+                                f"value is back")
 
     def reload_map(self) -> MarkerMap:
         new = configured_map(self.cfg, self.source)
@@ -393,6 +515,7 @@ class Daemon:
             config_file=self.cfg.user_file or "<default config>",
             config_files=self.cfg.files, algorithm=self.pipeline.algorithm,
             algorithms=available_algorithms(), csv=self.csv, recorder=self.recorder,
+            output_errors=self.output_errors,
             camera=self.pipeline.camera, world_map=self.world_map,
             frames=self.totals.frames, dropped=self.dropped,
             bad_frames=self.totals.bad_frames,
@@ -474,10 +597,16 @@ class Daemon:
             res = self.pipeline.process(inp, on_robots=self._relay_robots)
         except Exception as e:  # a frame the detector or pose cannot digest: report, go on
             self.totals.bad_frames += 1
-            self.event("error", f"frame {frame.index}: {type(e).__name__}: {e}; skipped")
+            text = f"frame {frame.index}: {type(e).__name__}: {e}"
+            self.event("error", f"{text}; skipped")
             log.debug("frame failure", exc_info=True)
+            self._fail_streak += 1
+            if self._first_failure is None:
+                self._first_failure = " ".join(text.split())  # one line
             self._judge(False)
             return None
+        self._fail_streak = 0
+        self._succeeded = True
         self._outputs(res)
         self._camera_outputs(frame.image, res)
         self._judge(bool(res.estimate.ok))
@@ -547,14 +676,23 @@ class Daemon:
         for name, reason in res.robot_rejections.items():
             self.event("warning", f"robot {name}: measurement rejected by the tracking "
                                   f"filter: {reason}")
-        # 3. files
+        # 3. files: a failing disk stops that file only, never the frame or the robots
+        if self.csv is not None or self.recorder is not None:
+            self._watch_space()
         if self.csv is not None:
-            self.csv.write_rows(csv_lines(res, self.world_map, self.pipeline.robot_heights))
+            try:
+                self.csv.write_rows(csv_lines(res, self.world_map,
+                                              self.pipeline.robot_heights))
+            except OSError as e:
+                self._output_failed("log", e)
         if self.recorder is not None:
             truth = res.meta.get("truth")
-            self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
-                                      res.observations, res.diagnostics,
-                                      truth_record(truth) if truth is not None else None)
+            try:
+                self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
+                                          res.observations, res.diagnostics,
+                                          truth_record(truth) if truth is not None else None)
+            except OSError as e:
+                self._output_failed("record", e)
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
                                                           self.monitor.get))
@@ -673,7 +811,7 @@ class Daemon:
         self.gc_pacing = GcPacing() if self.live else None
         try:
             while not self.stop_event.is_set():
-                if self.max_frames is not None and self.totals.frames >= self.max_frames:
+                if self.max_frames is not None and self.frames_read >= self.max_frames:
                     break
                 try:
                     got = self.feed.get(timeout=0.1)
@@ -684,8 +822,11 @@ class Daemon:
                 self.progress_t = time.monotonic()
                 if got is not None:
                     (frame, cap_ms, t_cap), det, det_ms = got
+                    self.frames_read += 1
                     with self.lock:
                         self.process_frame(frame, cap_ms, t_cap, det, det_ms)
+                    if not self._succeeded and self._fail_streak >= STARTUP_FAILURES:
+                        break
                 if self.gc_pacing is not None:
                     self.gc_pacing.idle()
         finally:
@@ -693,7 +834,19 @@ class Daemon:
                 self.gc_pacing.close()
             self.feed.close()
             self.totals.t_end = time.perf_counter()
+        self._check_never_succeeded()
         return self.exit_code
+
+    def _check_never_succeeded(self) -> None:
+        """Frames came in, every one failed, none succeeded: the configuration cannot work
+        (exit 1 with the first error), whether STARTUP_FAILURES or --frames ended the run."""
+        if self._succeeded or self._first_failure is None:
+            return
+        if self.stop_event.is_set() and self._fail_streak < STARTUP_FAILURES:
+            return  # stopped before the frames could tell
+        self.event("error", f"no frame succeeded: {self._fail_streak} failed in a row from "
+                            f"the start; stopping. The first: {self._first_failure}")
+        self.exit_code = EXIT_RUNTIME
 
     def _check_complete(self) -> None:
         """A file source that announced more frames than it gave was cut short."""

@@ -18,7 +18,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SUFFIXES", "DataDir", "FileRefused", "same_file"]
+__all__ = ["SUFFIXES", "DataDir", "FileRefused", "free_bytes", "low_space", "same_file"]
 
 
 class FileRefused(ValueError):
@@ -39,6 +39,32 @@ def same_file(a: str | Path, b: str | Path) -> bool:
         return pa.resolve() == pb.resolve()
     except (OSError, ValueError):
         return False
+
+
+def free_bytes(path: str | Path) -> int | None:
+    """Bytes an unprivileged process may still write on the filesystem of ``path`` (its
+    nearest existing ancestor), or None where that cannot be known (no statvfs)."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        st = os.statvfs(p)
+    except (OSError, AttributeError):
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+def low_space(path: str | Path, floor_mb: float) -> str | None:
+    """Why an output in ``path`` (a file or its directory) must not run: one line when the
+    free space there is below ``floor_mb`` MB (10^6 bytes; 0 = no floor), else None."""
+    if floor_mb <= 0:
+        return None
+    free = free_bytes(path)
+    if free is None or free >= floor_mb * 1e6:
+        return None
+    where = Path(path).absolute()
+    return (f"{free / 1e6:.1f} MB free on the disk of {where}, below log.min_free_mb = "
+            f"{floor_mb:g} MB")
 
 
 class DataDir:

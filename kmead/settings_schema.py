@@ -91,6 +91,7 @@ def number(lo: float, hi: float, lo_open: bool = False, unit: str = "") -> Check
             left = "(" if lo_open else "["
             raise ConfigError(f"{where}: must be in {left}{lo:g}, {hi:g}]{unit}, got {_short(v)}")
         return x
+    check.lo, check.hi, check.lo_open = lo, hi, lo_open  # type: ignore[attr-defined]
     return check
 
 
@@ -170,11 +171,17 @@ def _endpoint(v: Any, where: str, remote: bool = False) -> str:
     return s
 
 
+# A probability a filter turns into a chi-square quantile or an odds ratio: 1e-300 or
+# 1 - 1e-17 (== 1.0 in a float) is no probability anyone means, and breaks the arithmetic.
 def _probability(v: Any, where: str, remote: bool = False) -> float:
     x = _real(v, where)
-    if not 0 < x < 1:
-        raise ConfigError(f"{where}: must be in (0, 1), got {_short(v)}")
+    if not _probability.lo <= x <= _probability.hi:  # type: ignore[attr-defined]
+        raise ConfigError(f"{where}: must be a probability in [1e-06, 1 - 1e-09], got "
+                          f"{_short(v)}")
     return x
+
+
+_probability.lo, _probability.hi = 1e-6, 1 - 1e-9  # type: ignore[attr-defined]
 
 
 MAX_INPUTS = 16
@@ -367,7 +374,7 @@ def _robot(row: Any, where: str) -> dict:
         raise ConfigError(f"{where}.markers: expected one marker id or a pair [left, right], "
                           f"ids 0-{MAX_MARKER_ID}, got {_short(row['markers'])}")
     for key, hi in (("height", 10.0), ("length", 1.0), ("separation", 10.0)):
-        number(0, hi, lo_open=key != "height", unit=" m")(
+        number(0 if key == "height" else 1e-4, hi, unit=" m")(
             row.get(key, ROBOT_DEFAULTS[key]), f"{where}.{key}")
     try:
         spec = robot_from_table(row, where)
@@ -414,7 +421,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
     "camera": {"file": _str},
     "map": {"file": _str},
     "detector": {"dictionary": _dictionary,
-                 "marker_length": number(0, 10, lo_open=True, unit=" m"),
+                 "marker_length": number(1e-4, 10, unit=" m"),
                  "corner_refinement": choice("subpix", "none", "contour", "apriltag"),
                  "parameters": _detector_parameters, "workers": integer(0, 16),
                  "fast": _bool, "fast_window": _fast_window,
@@ -422,35 +429,39 @@ SCHEMA: dict[str, dict[str, Check]] = {
                  "track_full_every": integer(1, 100000),
                  "track_refit_every": integer(1, 100000)},
     "estimator": {"algorithm": _algorithm, "unknown_plane": choice("auto", "floor", "free")},
-    "filter": {"alpha": number(0, 1, lo_open=True),
-               "reset_after_s": number(0, 3600, lo_open=True, unit=" s"),
+    # Physical ranges: a length of 1e-300 m or a time of 1e-300 s is no setting anyone
+    # means, and it divides by zero or overflows inside the filter (outlier_radius = 1e-300
+    # once made every frame fail).
+    "filter": {"alpha": number(1e-3, 1),
+               "reset_after_s": number(0.01, 3600, unit=" s"),
                "kind": choice("iir", "kalman"), "model": choice("cv", "ctrv"),
-               "accel_noise": number(0, 1000, lo_open=True, unit=" m/s^2"),
-               "turn_noise": number(0, 1000, lo_open=True, unit=" rad/s^2"),
+               "accel_noise": number(1e-6, 1000, unit=" m^2/s^3"),
+               "turn_noise": number(1e-6, 1000, unit=" rad^2/s^3"),
                "gate_probability": _probability, "reacquire_n": integer(1, 1000),
-               "manoeuvre_scale": number(1, 1e6), "manoeuvre_time_s": number(
-                   0, 3600, lo_open=True, unit=" s"),
-               "cruise_time_s": number(0, 3600, lo_open=True, unit=" s"),
-               "robust_k": number(0, 1e9, lo_open=True), "step_k": number(0, 1e9, lo_open=True),
+               "manoeuvre_scale": number(1, 1e6),
+               "manoeuvre_time_s": number(0.01, 3600, unit=" s"),
+               "cruise_time_s": number(0.01, 3600, unit=" s"),
+               "robust_k": number(0.01, 1e9), "step_k": number(0.01, 1e9),
                "look_back": _bool, "look_back_probability": _probability,
                "look_back_n": integer(1, 10), "step_cumulative": _bool,
                "confirm_probability": _probability, "reacquire_follow": _bool,
                "reacquire_skip_outlier": _bool, "outlier_mixture": _bool, "recover": _bool,
                "outlier_probability": _probability,
-               "outlier_radius": number(0, 100, lo_open=True, unit=" m"),
-               "max_speed": number(0, 100, lo_open=True, unit=" m/s"),
+               "outlier_radius": number(1e-4, 10, unit=" m"),
+               "max_speed": number(1e-3, 100, unit=" m/s"),
                "predict": _bool},
     "stats": {"loo": _bool, "window": integer(1, 100000),
-              "displaced_threshold": number(0, 10, lo_open=True, unit=" m"),
+              "displaced_threshold": number(1e-4, 10, unit=" m"),
               "displaced_frames": integer(1, 1000)},
-    "relay": {"stale_after_s": number(0, 3600, lo_open=True, unit=" s"),
+    "relay": {"stale_after_s": number(0.01, 3600, unit=" s"),
               "stale_repeat_s": number(0, 3600, unit=" s"), "extra_fields": _bool},
-    "fusion": {"inputs": _endpoints, "max_age_s": number(0, 3600, lo_open=True, unit=" s")},
+    "fusion": {"inputs": _endpoints, "max_age_s": number(1e-3, 3600, unit=" s")},
     "network": {"telemetry": _endpoint, "control": _endpoint,
                 "status_period_s": number(0.05, 3600, unit=" s"),
                 "keys": _str, "insecure": _bool},
     "log": {"csv": _str, "record": _str, "dir": _str,
-            "level": choice("debug", "info", "warning", "error")},
+            "level": choice("debug", "info", "warning", "error"),
+            "min_free_mb": number(0, 1e7, unit=" MB")},
     "foxglove": {"enabled": _bool, "host": _str, "port": integer(0, 65535),
                  "image_hz": number(0, 60, unit=" images/s")},
 }

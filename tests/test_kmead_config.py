@@ -64,7 +64,7 @@ def test_parse_set_values() -> None:
 
 
 @pytest.mark.parametrize(("content", "expect"), [
-    ("[filter]\nalpha = 2.0\n", "key 'filter.alpha': must be in (0, 1]"),
+    ("[filter]\nalpha = 2.0\n", "key 'filter.alpha': must be in [0.001, 1]"),
     ("[filter]\nalfa = 0.5\n", "unknown key 'filter.alfa'"),
     ("[nonsense]\nx = 1\n", "unknown section [nonsense]"),
     ("[filter\nalpha = 1\n", "invalid TOML"),

@@ -29,23 +29,26 @@ def test_documented_defaults_are_the_library_defaults() -> None:
     assert TrackerConfig.from_table(f) == TrackerConfig()
 
 
-BAD = [("robust_k", "0", "must be in (0, 1e+09]"),
-       ("step_k", "-1.5", "must be in (0, 1e+09]"),
+BAD = [("robust_k", "0", "must be in [0.01, 1e+09]"),
+       ("step_k", "-1.5", "must be in [0.01, 1e+09]"),
        ("look_back", "1", "expected true or false"),
-       ("look_back_probability", "1.0", "must be in (0, 1)"),
+       ("look_back_probability", "1.0", "must be a probability in [1e-06, 1 - 1e-09]"),
        ("manoeuvre_scale", "0.5", "must be in [1, 1e+06]"),
-       ("manoeuvre_time_s", "0", "must be in (0, 3600] s"),
+       ("manoeuvre_time_s", "0", "must be in [0.01, 3600] s"),
        ("cruise_time_s", '"long"', "expected a number"),
        ("look_back_n", "0", "must be an integer in [1, 10]"),
        ("look_back_n", "1.5", "expected an integer"),
        ("step_cumulative", '"yes"', "expected true or false"),
-       ("confirm_probability", "0", "must be in (0, 1)"),
+       ("confirm_probability", "0", "must be a probability in [1e-06, 1 - 1e-09]"),
        ("reacquire_follow", "0", "expected true or false"),
-       ("max_speed", "-1", "must be in (0, 100] m/s"),
+       ("max_speed", "-1", "must be in [0.001, 100] m/s"),
        ("reacquire_skip_outlier", "1", "expected true or false"),
        ("outlier_mixture", '"on"', "expected true or false"),
-       ("outlier_probability", "1.5", "must be in (0, 1)"),
-       ("outlier_radius", "0", "must be in (0, 100] m")]
+       ("outlier_probability", "1.5", "must be a probability in [1e-06, 1 - 1e-09]"),
+       ("outlier_radius", "0", "must be in [0.0001, 10] m"),
+       # A radius of 1e-300 m is no radius: it once made every frame fail (issue 30).
+       ("outlier_radius", "1e-300", "must be in [0.0001, 10] m"),
+       ("accel_noise", "1e-300", "must be in [1e-06, 1000] m^2/s^3")]
 
 
 @pytest.mark.parametrize(("key", "value", "expect"), BAD)
@@ -96,15 +99,16 @@ def test_values_reach_the_daemon_and_fusion_filters() -> None:
     assert PipelineSettings.from_config(cfg.data).tracker == want
 
 
-@pytest.mark.parametrize("key, value", [("robust_k", 1e9), ("step_k", 1e-9),
-                                        ("look_back_probability", 1e-9),
+@pytest.mark.parametrize("key, value", [("robust_k", 1e9), ("step_k", 0.01),
+                                        ("look_back_probability", 1e-6),
                                         ("manoeuvre_scale", 1.0), ("manoeuvre_scale", 1e6),
-                                        ("manoeuvre_time_s", 3600.0), ("cruise_time_s", 1e-9),
+                                        ("manoeuvre_time_s", 3600.0), ("cruise_time_s", 0.01),
                                         ("look_back_n", 1), ("look_back_n", 10),
-                                        ("confirm_probability", 1e-9),
-                                        ("max_speed", 1e-9), ("max_speed", 100.0),
-                                        ("outlier_probability", 1e-9),
-                                        ("outlier_radius", 1e-9), ("outlier_radius", 100.0)])
+                                        ("confirm_probability", 1e-6),
+                                        ("confirm_probability", 1 - 1e-9),
+                                        ("max_speed", 1e-3), ("max_speed", 100.0),
+                                        ("outlier_probability", 1e-6),
+                                        ("outlier_radius", 1e-4), ("outlier_radius", 10.0)])
 def test_every_value_the_schema_accepts_builds_a_filter(key: str, value: float) -> None:
     # The schema's ranges lie inside the filter's own checks: a setting that passes the
     # configuration check never fails later, when the daemon builds the filter.

@@ -187,3 +187,21 @@ def test_cli_refuses_bad_arguments_with_one_line(tmp_path, capsys) -> None:
         assert tui_main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1, (argv, err)
+
+
+def test_an_output_stopped_by_the_disk_shows_in_the_status_bar_and_the_log_tab() -> None:
+    from kmea_tui.widgets.log_panel import LogPane
+    from kmea_tui.widgets.status_bar import output_alert
+
+    ok = {"logging": {"active": True, "error": None}, "recording": {"active": False}}
+    assert output_alert(ok) == "" and output_alert(None) == ""
+    full = {"logging": {"active": False, "path": "/d/run.csv",
+                        "error": "CSV log /d/run.csv: write failed: No space left on device"},
+            "recording": {"active": False, "error": "recording /d/r.jsonl: stopped after 3 "
+                                                    "frames: 9.0 MB free"}}
+    alert = output_alert(full)
+    assert alert == "log and recording stopped (Log tab)"
+    line = status_text("connected", {"fps": 30.0, "dropped": 0}, 80, alert=alert).plain
+    assert line.startswith("● connected  log and recording stopped (Log tab)  30.0 fps")
+    shown = LogPane._state_line("CSV log", full["logging"], "rows", "rows").plain
+    assert "stopped" in shown and "No space left on device" in shown

@@ -283,6 +283,8 @@ def _load_toml(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
         raise CameraError(f"{path}: not a text file") from None
     except tomllib.TOMLDecodeError as e:
         raise CameraError(f"{path}: invalid TOML: {e}") from None
+    except RecursionError:  # tomllib recurses per nesting level
+        raise CameraError(f"{path}: invalid TOML: nested too deeply") from None
     unknown = set(data) - _TOML_KEYS
     if unknown:
         raise CameraError(f"{path}: unknown key(s) {sorted(unknown)}")

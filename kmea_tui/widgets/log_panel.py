@@ -70,6 +70,9 @@ class LogPane(Vertical):
                                  str(s.get("path") or "-"), "  ",
                                  f"{s.get(count_key, '-')} {count_label}", "  ",
                                  human_bytes(s.get("bytes")))
+        if s.get("error"):  # stopped on its own: a write error, the free-space floor
+            return Text.assemble((f"{what}: ", "bold"), ("✗ stopped", "bold red"), "  ",
+                                 (str(s["error"]), "red"))
         last = f"  last: {s['path']}" if s.get("path") else ""
         return Text.assemble((f"{what}: ", "bold"), ("○ off", "bright_black"), last)
 

@@ -20,14 +20,24 @@ SHORT = {"capture": "cap", "detect": "det", "pose": "pose", "estimate": "est", "
          "filter": "filt", "robots": "rob", "output": "out"}
 
 
+def output_alert(status: dict[str, Any] | None) -> str:
+    """A few words when the CSV log or the recording stopped on its own (a write error, the
+    free-space floor: ``error`` in the status body), else ""."""
+    stopped = [name for key, name in (("logging", "log"), ("recording", "recording"))
+               if isinstance((status or {}).get(key), dict) and status[key].get("error")]
+    return f"{' and '.join(stopped)} stopped (Log tab)" if stopped else ""
+
+
 def status_text(state: str, frame: dict[str, Any] | None, width: int = 80,
-                detail: str = "", read_only: bool = False) -> Text:
-    """One line: state (and "viewer (read-only)" for a viewer key), fps, dropped frames,
-    total time, then stages that fit ``width``."""
+                detail: str = "", alert: str = "", read_only: bool = False) -> Text:
+    """One line: state ("viewer (read-only)" for a viewer key), ``alert`` (output_alert),
+    fps, dropped frames, total time, then stages that fit ``width``."""
     t = Text(no_wrap=True, overflow="ellipsis")
     t.append(f"● {LABELS.get(state, state)}", STATE_STYLES.get(state, "bold"))
     if read_only:
         t.append("  viewer (read-only)", "bold cyan")
+    if alert:
+        t.append(f"  {alert}", "bold red")
     if detail and state in ("disconnected", "stale", "connecting"):
         t.append(f" ({detail})", "bright_black")
     if frame and state not in LIVE_STATES:
@@ -65,6 +75,7 @@ class StatusBar(Static):
         self.detail = ""
         self.read_only = False
         self.frame: dict[str, Any] | None = None
+        self.alert = ""
         self._shown: Text | None = None
 
     def show(self, state: str, frame: dict[str, Any] | None = None, detail: str = "",
@@ -74,7 +85,8 @@ class StatusBar(Static):
             self.read_only = read_only
         if frame is not None:
             self.frame = frame
-        text = status_text(state, self.frame, self.size.width or 80, detail, self.read_only)
+        text = status_text(state, self.frame, self.size.width or 80, detail, self.alert,
+                           self.read_only)
         if text != self._shown:  # the state is checked twice a second: mostly unchanged
             self._shown = text
             self.update(text, layout=False)
