@@ -48,8 +48,10 @@ $(BW_STAMP): pyproject.toml constraints/bookworm.txt
 	rm -f $(BW_VENV)/.installed-* && touch $@
 
 # The main job on the embedded default: the daemon, headless, on the simulated floor.
+# Free ports: the job never collides with a running kmead (the Pi's service, another user);
+# it prints the ports it bound. ARGS= passes more options (ARGS='--source sim:scenario2').
 run: $(STAMP)
-	$(BIN)/kmead --headless --frames $${FRAMES:-300} --log out/run.csv
+	$(BIN)/kmead --headless --free-ports --frames $${FRAMES:-300} --log out/run.csv $(ARGS)
 
 # The suite on both stacks: today's (.venv) and Raspberry Pi OS Bookworm's (.venv-bookworm).
 # ruff once, then the suite on each stack. On a Pi, .venv is the Pi's own stack (its

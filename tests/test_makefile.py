@@ -108,3 +108,31 @@ def test_missing_venv_module_gets_one_line_naming_the_package(tmp_path: Path) ->
         f"sudo apt install python{v[0]}.{v[1]}-venv (python3-venv for the system python3)"
     ], out
     assert not venv.exists()  # nothing half-made for the next run to trip over
+
+
+def test_make_run_beside_a_kmead_on_the_default_ports(tmp_path: Path) -> None:
+    """The main job binds free ports: a daemon already on 5555/5556 does not stop it, and
+    ARGS reaches kmead (here: where the log goes and a small frame size)."""
+    import socket
+
+    held = []
+    try:
+        for port in (5555, 5556):
+            s = socket.socket()
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:  # someone else holds it: the case this test makes
+                s.close()
+                continue
+            s.listen(1)
+            held.append(s)
+        log = tmp_path / "run.csv"
+        r = _make("run", "STAMP=", f"BIN={Path(sys.executable).parent}", "FRAMES=3",
+                  f"ARGS=--log {log} --set source.width=640 --set source.height=480")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "telemetry tcp://127.0.0.1:" in r.stderr and ":5555" not in r.stderr
+        assert log.read_text().startswith("frame,timestamp,")
+    finally:
+        for s in held:
+            s.close()
