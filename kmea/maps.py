@@ -74,7 +74,9 @@ def _num(value: object, where: str, strict: bool = False) -> float:
     if value is None or value == "":
         raise MapError(f"{where}: missing value")
     if isinstance(value, bool) or (strict and not isinstance(value, (int, float))):
-        raise MapError(f"{where}: expected a number, got {value!r}")
+        what = (f"the string {value!r} (a number is written without quotes)"
+                if isinstance(value, str) else repr(value))
+        raise MapError(f"{where}: expected a number, got {what}")
     try:
         v = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):

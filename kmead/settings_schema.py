@@ -57,9 +57,29 @@ def _short(v: Any, n: int = 60) -> str:
     return r if len(r) <= n else r[:n - 3] + "..."
 
 
+def _got(v: Any) -> str:
+    """What a wrong value is, in TOML's words: a string that holds a number says it is a
+    string (the quotes are the mistake), not just its repr."""
+    if isinstance(v, bool):
+        return f"the boolean {str(v).lower()}"
+    if isinstance(v, str):
+        try:
+            float(v)
+        except ValueError:
+            return f"the string {_short(v)}"
+        return f"the string {_short(v)} (a number is written without quotes: {_short(v)[1:-1]})"
+    if isinstance(v, (int, float)):
+        return f"the number {_short(v)}"
+    if isinstance(v, (list, tuple)):
+        return f"an array {_short(v)}"
+    if isinstance(v, dict):
+        return f"a table {_short(v)}"
+    return _short(v)
+
+
 def _str(v: Any, where: str, remote: bool = False) -> str:
     if not isinstance(v, str):
-        raise ConfigError(f"{where}: expected a string, got {_short(v)}")
+        raise ConfigError(f"{where}: expected a string, got {_got(v)}")
     if len(v) > MAX_TEXT or "\x00" in v:
         raise ConfigError(f"{where}: string too long or with a NUL character")
     return v
@@ -67,13 +87,13 @@ def _str(v: Any, where: str, remote: bool = False) -> str:
 
 def _bool(v: Any, where: str, remote: bool = False) -> bool:
     if not isinstance(v, bool):
-        raise ConfigError(f"{where}: expected true or false, got {_short(v)}")
+        raise ConfigError(f"{where}: expected true or false, got {_got(v)}")
     return v
 
 
 def _real(v: Any, where: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ConfigError(f"{where}: expected a number, got {_short(v)}")
+        raise ConfigError(f"{where}: expected a number, got {_got(v)}")
     try:
         x = float(v)
     except OverflowError:
@@ -99,7 +119,7 @@ def integer(lo: int, hi: int) -> Check:
     """An integer (not a bool, not a float) in [lo, hi]."""
     def check(v: Any, where: str, remote: bool = False) -> int:
         if isinstance(v, bool) or not isinstance(v, int):
-            raise ConfigError(f"{where}: expected an integer, got {_short(v)}")
+            raise ConfigError(f"{where}: expected an integer, got {_got(v)}")
         if not lo <= v <= hi:
             raise ConfigError(f"{where}: must be an integer in [{lo}, {hi}], got {_short(v)}")
         return int(v)

@@ -93,7 +93,10 @@ def test_bad_config_file_refuses_to_start(tmp_path: Path, capsys: pytest.Capture
 
 @pytest.mark.parametrize(("args", "expect"), [
     (["--set", "filter.beta=1"], "--set: unknown key 'filter.beta'"),
-    (["--set", "filter.alpha=fast"], "--set: key 'filter.alpha': expected a number, got 'fast'"),
+    (["--set", "filter.alpha=fast"],
+     "--set: key 'filter.alpha': expected a number, got the string 'fast'"),
+    (["--set", 'filter.alpha="0.5"'], "--set: key 'filter.alpha': expected a number, got the "
+     "string '0.5' (a number is written without quotes: 0.5)"),
     (["--set", "stats.window=0"], "--set: key 'stats.window': must be an integer in [1, 100000]"),
     (["--set", "noequals"], "expected SECTION.KEY=VALUE"),
     (["--algorithm", "nope"], "--algorithm: key 'estimator.algorithm': unknown algorithm"),

@@ -236,7 +236,8 @@ BAD_TOML = [
     (HEAD + "rz = 5\n", "markers[0] (line 1): unknown key(s) ['rz']"),
     (HEAD + "\n" + HEAD, "markers[1] (line 7): duplicate marker id 1"),
     ("[[markers]]\nid = 1\nx = 0\ny = 0\n", "markers[0] (line 1): missing key 'z'"),
-    (HEAD.replace("x = 0", 'x = "0.5"'), "markers[0] (line 1): x: expected a number, got '0.5'"),
+    (HEAD.replace("x = 0", 'x = "0.5"'), "markers[0] (line 1): x: expected a number, got the "
+                                         "string '0.5' (a number is written without quotes)"),
     (HEAD.replace("x = 0", "x = true"), "markers[0] (line 1): x: expected a number, got True"),
     (HEAD.replace("x = 0", "x = nan"), "markers[0] (line 1): x: value must be finite, got nan"),
     (HEAD.replace("x = 0", "x = -inf"),
