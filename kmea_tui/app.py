@@ -342,8 +342,9 @@ class KmeaTui(App[None]):
         self.query_one(ConfigPane).set_algorithms(body["algorithms"])
         bar = self.query_one(StatusBar)
         alert = output_alert(body)
-        if alert != bar.alert:
-            bar.alert = alert
+        overlay = any(str(f).endswith(".local.toml") for f in body.get("config_files", []))
+        if alert != bar.alert or overlay != bar.overlay:
+            bar.alert, bar.overlay = alert, overlay
             bar.show(bar.state, None, bar.detail)
 
     def _became_fusion_node(self) -> None:

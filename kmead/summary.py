@@ -78,4 +78,14 @@ def format_summary(d: Daemon) -> str:
         lines.append(f"  CSV log: {', '.join(t.csv_paths)} ({rows} rows)")
     if t.record_paths:
         lines.append(f"  recording: {', '.join(t.record_paths)}")
+    overlay = overlay_files(d.cfg.files)
+    if overlay:
+        lines.append(f"  configuration overlay in effect: {', '.join(overlay)} (saved "
+                     "settings; delete it to undo)")
     return "\n".join(lines)
+
+
+def overlay_files(files: list[str]) -> list[str]:
+    """The overlays among the configuration files read (``*.local.toml``: what a Save
+    wrote, loaded by every later start)."""
+    return [f for f in files if str(f).endswith(".local.toml")]

@@ -124,3 +124,23 @@ def test_a_map_in_millimetres_is_warned_at_check_and_start(tmp_path, capsys):
     run = _run(["--map", str(p), *SMALL, *NET, "--headless", "--frames", "1"], capsys)
     assert check[0] == run[0] == 0
     assert "millimetres" in check[1] and "millimetres" in run[1]
+
+
+def test_a_saved_overlay_is_named_in_the_summary(tmp_path, capsys):
+    """The per-user overlay (what the UI's Save writes) is loaded by every later plain
+    start; the run's summary and the UI's status line say it is in effect."""
+    import os
+
+    from kmea_tui.widgets.status_bar import status_text
+
+    overlay = Path(os.environ["XDG_CONFIG_HOME"]) / "kmead" / "kmead.local.toml"
+    overlay.parent.mkdir(parents=True, exist_ok=True)
+    overlay.write_text("[filter]\nalpha = 0.5\n")
+    try:
+        assert cli.main([*SMALL, *NET, "--headless", "--frames", "1"]) == 0
+        out = capsys.readouterr().out
+    finally:
+        overlay.unlink()
+    assert f"configuration overlay in effect: {overlay}" in out
+    assert "overlay" in status_text("connected", None, overlay=True).plain
+    assert "overlay" not in status_text("connected", None).plain

@@ -29,13 +29,17 @@ def output_alert(status: dict[str, Any] | None) -> str:
 
 
 def status_text(state: str, frame: dict[str, Any] | None, width: int = 80,
-                detail: str = "", alert: str = "", read_only: bool = False) -> Text:
-    """One line: state ("viewer (read-only)" for a viewer key), ``alert`` (output_alert),
-    fps, dropped frames, total time, then stages that fit ``width``."""
+                detail: str = "", alert: str = "", read_only: bool = False,
+                overlay: bool = False) -> Text:
+    """One line: state ("viewer (read-only)" for a viewer key; "overlay" when saved
+    settings overlay the configuration), ``alert`` (output_alert), fps, dropped frames,
+    total time, then stages that fit ``width``."""
     t = Text(no_wrap=True, overflow="ellipsis")
     t.append(f"● {LABELS.get(state, state)}", STATE_STYLES.get(state, "bold"))
     if read_only:
         t.append("  viewer (read-only)", "bold cyan")
+    if overlay:
+        t.append("  overlay", "yellow")
     if alert:
         t.append(f"  {alert}", "bold red")
     if detail and state in ("disconnected", "stale", "connecting"):
@@ -74,6 +78,7 @@ class StatusBar(Static):
         self.state = "connecting"
         self.detail = ""
         self.read_only = False
+        self.overlay = False  # the daemon runs with a saved overlay (status config_files)
         self.frame: dict[str, Any] | None = None
         self.alert = ""
         self._shown: Text | None = None
@@ -86,7 +91,7 @@ class StatusBar(Static):
         if frame is not None:
             self.frame = frame
         text = status_text(state, self.frame, self.size.width or 80, detail, self.alert,
-                           self.read_only)
+                           self.read_only, self.overlay)
         if text != self._shown:  # the state is checked twice a second: mostly unchanged
             self._shown = text
             self.update(text, layout=False)
