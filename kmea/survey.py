@@ -51,6 +51,7 @@ import numpy as np
 from kmea.estimators import get
 from kmea.estimators.base import CameraIntrinsics, MarkerObservation
 from kmea.maps import MarkerMap, _angles_deg
+from kmea.progress import Progress
 
 __all__ = ["MarkerSurvey", "Survey", "format_report", "survey_frames", "write_csv"]
 
@@ -367,10 +368,10 @@ def run_cli(source_spec: str, camera_file: str | None, map_file: str | None, out
             return 2
     errors: list[str] = []
 
+    bar = Progress(frames, "kmea map survey", enabled=not quiet)
+
     def progress(k: int, seen: int) -> None:
-        if not quiet:
-            print(f"\rframe {k + 1}/{frames}: {seen} markers seen", end="", file=sys.stderr,
-                  flush=True)
+        bar.update(k + 1 - bar.done, note=f"{seen} markers seen")
 
     try:
         first = next(iter(_frames_from(source, 1, errors)), None)
@@ -392,8 +393,7 @@ def run_cli(source_spec: str, camera_file: str | None, map_file: str | None, out
                                progress=progress)
     finally:
         source.close()
-        if not quiet:
-            print(file=sys.stderr)
+        bar.close()
     for e in errors[:5]:
         print(f"kmea map survey: skipped frame: {e}", file=sys.stderr)
     write_csv(survey, out)

@@ -76,7 +76,10 @@ def test_cli_writes_a_map_csv_and_reports(tmp_path, capsys):
                "--out", str(out), "--frames", "2"])
     assert rc == 0
     text = capsys.readouterr()
-    assert "frame 2/2" in text.err  # progress
+    # A progress bar with its estimate, one plain line per tenth when not a terminal.
+    lines = [ln for ln in text.err.splitlines() if ln.startswith("kmea map survey [")]
+    assert lines and "\r" not in text.err
+    assert "2/2 frames" in lines[-1] and "ETA" in lines[-1] and "markers seen" in lines[-1]
     assert "7: moved 2" in text.out  # the scene moves marker 7 by +2 cm in x
     flagged = [ln.split(":")[0].strip() for ln in text.out.splitlines()
                if ln.startswith("  ") and "moved" in ln]

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 from kmea.experiments.parts import PARTS, get_part
 
 if TYPE_CHECKING:
-    from kmea.experiments.progress import Progress
+    from kmea.progress import Progress
 
 DEFAULT_ALGORITHMS = ("kmea", "lmea", "lmea-printed", "umeyama", "kmea-robust", "corner-pnp")
 
@@ -141,8 +141,8 @@ def write_outputs(result, out: Path, plots: bool = True, quiet: bool = False,
 
 
 def run(args: argparse.Namespace) -> int:
-    from kmea.experiments.progress import Progress
     from kmea.experiments.run import ExperimentConfig, run_modes
+    from kmea.progress import Progress
 
     algorithms = _algorithms(args.algorithms)
     if args.baseline not in algorithms:

@@ -9,7 +9,8 @@ from typing import TextIO
 
 class Progress:
     """``label [#####.....] done/total  rate/s  ETA``; redrawn in place on a terminal,
-    printed every tenth of the way otherwise (logs stay short)."""
+    printed every tenth of the way otherwise (logs stay short). ``note``: a few words
+    after it (e.g. markers seen so far), updated with :meth:`update`."""
 
     def __init__(self, total: int, label: str, unit: str = "frames",
                  stream: TextIO | None = None, enabled: bool = True) -> None:
@@ -22,9 +23,12 @@ class Progress:
         self.t0 = time.monotonic()
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._last_decile = -1
+        self.note = ""
 
-    def update(self, n: int = 1) -> None:
+    def update(self, n: int = 1, note: str | None = None) -> None:
         self.done = min(self.done + n, self.total)
+        if note is not None:
+            self.note = note
         if not self.enabled:
             return
         if self._tty:
@@ -51,4 +55,4 @@ class Progress:
         eta = (self.total - self.done) / rate if rate > 0 else float("nan")
         eta_s = f"ETA {eta:5.0f} s" if eta == eta else "ETA     ? s"
         return (f"{self.label} [{bar:<{width}}] {self.done}/{self.total} {self.unit} "
-                f"{rate:6.1f}/s {eta_s}")
+                f"{rate:6.1f}/s {eta_s}" + (f"  {self.note}" if self.note else ""))
