@@ -106,7 +106,8 @@ def test_caption_counts_and_focus():
     f = CameraFrame.from_body(_body(markers=markers, focus=123.4))
     cap = camera_caption(f, best_focus=150)
     assert cap.startswith("2 seen")
-    assert "1 suspect" in cap and "1 expected unseen" in cap and "focus 123 (best 150)" in cap
+    assert "1 suspect" in cap and "1 expected unseen (12)" in cap
+    assert "focus 123 (best 150)" in cap and "( )" not in cap
     assert camera_caption(None) == "no camera image yet"
 
 

@@ -321,7 +321,10 @@ def camera_caption(frame: CameraFrame | None, best_focus: float | None = None) -
         parts.append(f"{n['suspect']} suspect (?)")
     if n["rejected"]:
         parts.append(f"{n['rejected']} rejected")
-    parts.append(f"{n['expected']} expected unseen ( )")
+    # Named as the image labels them: "(13)" beside a dashed outline.
+    unseen = [f"({m.id})" for m in frame.markers if m.kind == "expected"]
+    shown = " ".join(unseen[:6]) + (" …" if len(unseen) > 6 else "")
+    parts.append(f"{n['expected']} expected unseen" + (f" {shown}" if unseen else ""))
     if frame.focus is not None:
         f = f"focus {frame.focus:.0f}"
         if best_focus is not None and best_focus > 0:
