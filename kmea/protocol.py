@@ -223,20 +223,24 @@ class StatsBody(TypedDict):
     markers: list[MarkerStats]
 
 
-class LoggingState(TypedDict):
+class _OutputError(TypedDict, total=False):
+    # Why the output stopped on its own (a write error, the free-space floor), None when it
+    # did not; optional: daemons before it (and their recordings) do not send it.
+    error: str | None
+
+
+class LoggingState(_OutputError):
     active: bool
     path: str | None
     rows: int
     bytes: int
-    error: str | None  # why the log stopped on its own (write error, free-space floor)
 
 
-class RecordingState(TypedDict):
+class RecordingState(_OutputError):
     active: bool
     path: str | None
     frames: int
     bytes: int
-    error: str | None  # why the recording stopped on its own
 
 
 class CameraInfo(TypedDict):

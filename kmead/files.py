@@ -51,6 +51,8 @@ def free_bytes(path: str | Path) -> int | None:
         st = os.statvfs(p)
     except (OSError, AttributeError):
         return None
+    if st.f_blocks == 0:  # /proc, /sys: no blocks to run out of (a write fails on its own)
+        return None
     return st.f_bavail * st.f_frsize
 
 

@@ -113,8 +113,8 @@ async def test_keyboard_escape_q_and_a_rejected_value(daemon: Daemon) -> None:
         current = alpha.value
         alpha.focus()
         alpha.value = ""
-        await pilot.press("2", "enter")  # alpha must be in (0, 1]: the daemon refuses
-        await wait_for(pilot, lambda: "must be in (0, 1]" in str(
+        await pilot.press("2", "enter")  # alpha must be in [0.001, 1]: the daemon refuses
+        await wait_for(pilot, lambda: "must be in [0.001, 1]" in str(
             app.query_one("#config-status").render()), "the daemon's refusal")
         assert alpha.value == current  # the field shows the value in force again
         # q, digits typed into the field are text ...
