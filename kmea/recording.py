@@ -104,10 +104,13 @@ def obs_from_json(d: dict) -> MarkerObservation:
 
 
 class Recorder:
-    """Writes a recording; one ``write`` per frame, flushed (whole lines survive a kill)."""
+    """Writes a recording; one ``write`` per frame, flushed (whole lines survive a kill).
+
+    fast_path: the run used the fixed-camera fast path (``detector.tracking`` on a live
+    source); the header says so, so that a replay can say its rows will differ."""
 
     def __init__(self, path: str | Path, camera: CameraModel, world_map: MarkerMap,
-                 source: str, config: dict) -> None:
+                 source: str, config: dict, fast_path: bool = False) -> None:
         self.path = Path(path)
         if self.path.parent and not self.path.parent.exists():
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -120,7 +123,10 @@ class Recorder:
         header = {"format": FORMAT, "version": VERSION, "created": time.time(),
                   "source": source, "camera": camera_to_json(camera),
                   "map": map_to_json(world_map), "robots": config.get("robots", []),
-                  "config": config}
+                  "config": config,
+                  # The fixed-camera fast path paces the floor fit (a replay refits every
+                  # frame): its marker and robot rows differ from a replay's, slightly.
+                  "fast_path": bool(fast_path)}
         try:
             self._line(header)
         except OSError:

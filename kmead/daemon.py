@@ -143,6 +143,12 @@ class Daemon:
         self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(cfg)
         camera = fit_camera(cfg, plan.camera, self.source)
         check_camera(cfg, camera)
+        if self.replay and self.source.header.get("fast_path"):
+            log.warning("replay: %s was recorded with the fixed-camera fast path "
+                        "(detector.tracking on a live source), which refits the floor every "
+                        "detector.track_refit_every frames; the replay refits every frame, so "
+                        "its rows differ slightly (record with --set detector.tracking=false "
+                        "for rows identical to the recorded run's)", self.source_spec)
         try:
             self.data_dir = DataDir(cfg["log"]["dir"])
         except FileRefused as e:
@@ -364,7 +370,8 @@ class Daemon:
         path = self._output_path(path, "record", self.csv, remote)
         try:
             self.recorder = Recorder(path, self.pipeline.camera, self.world_map,
-                                     self.source_spec, self.cfg.to_dict())
+                                     self.source_spec, self.cfg.to_dict(),
+                                     fast_path=self.pipeline.settings.tracking)
         except OSError as e:
             self._forget_created(path, remote)
             raise ValueError(f"record: cannot write {path}: {e.strerror or e}") from None

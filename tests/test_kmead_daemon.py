@@ -464,3 +464,24 @@ def test_fast_detection_keeps_every_tracked_marker(tmp_path: Path) -> None:
                            float(q["y"]) - float(full[k]["y"]))) for k, q in fast.items()}
     assert np.median(list(d.values())) < 1e-3
     assert max(v for k, v in d.items() if k[1] == "robot") < 5e-3
+
+
+def test_a_fast_path_recording_says_its_replay_differs(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture) -> None:
+    """A paced (live) simulator run uses the fixed-camera fast path: the recording's header
+    says so and its replay warns that rows will differ; an unpaced run's header does not."""
+    rec = tmp_path / "live.jsonl"
+    assert cli.main(["--source", "sim", "--headless", "--frames", "5", "--record", str(rec),
+                     "--set", "source.width=640", "--set", "source.height=480",
+                     "--set", "source.fps=30", *NET]) == 0
+    assert json.loads(rec.read_text().splitlines()[0])["fast_path"] is True
+    capsys.readouterr()
+    assert cli.main(["--source", f"replay:{rec}", "--headless", *NET]) == 0
+    assert "recorded with the fixed-camera fast path" in capsys.readouterr().err
+    flat = tmp_path / "flat.jsonl"
+    assert cli.main(["--source", "sim", "--headless", "--frames", "2", "--record", str(flat),
+                     *FAST, *NET]) == 0
+    assert json.loads(flat.read_text().splitlines()[0])["fast_path"] is False
+    capsys.readouterr()
+    assert cli.main(["--source", f"replay:{flat}", "--headless", *NET]) == 0
+    assert "fast path" not in capsys.readouterr().err
