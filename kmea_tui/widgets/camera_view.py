@@ -323,7 +323,7 @@ def camera_caption(frame: CameraFrame | None, best_focus: float | None = None) -
         parts.append(f"{n['rejected']} rejected")
     # Named as the image labels them: "(13)" beside a dashed outline.
     unseen = [f"({m.id})" for m in frame.markers if m.kind == "expected"]
-    shown = " ".join(unseen[:6]) + (" …" if len(unseen) > 6 else "")
+    shown = " ".join(unseen[:2]) + (" …" if len(unseen) > 2 else "")
     parts.append(f"{n['expected']} expected unseen" + (f" {shown}" if unseen else ""))
     if frame.focus is not None:
         f = f"focus {frame.focus:.0f}"
