@@ -336,8 +336,9 @@ def run_cli(source_spec: str, camera_file: str | None, map_file: str | None, out
             quiet: bool = False) -> int:
     """``kmea map survey``; returns the exit code."""
     from kmea.maps import MapError, default_map, load_map
+    from kmea.sources.base import SourceError
+    from kmea.sources.registry import open_source
     from kmea.vision.camera import CameraError, load_camera, model_for_frame
-    from kmea.vision.sources import SourceError, open_source
 
     if frames < 1:
         print("kmea map survey: --frames must be >= 1", file=sys.stderr)

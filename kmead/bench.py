@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from kmea.benchmarks.pipeline import bare_detection, render
-from kmea.sim.source import SimSource
-from kmea.vision.sources import register_source
+from kmea.sources.registry import register_source
+from kmea.sources.sim import SimSource
 from kmead.config import load_config
 from kmead.daemon import Daemon
 

@@ -21,7 +21,7 @@ import threading
 import time
 from collections.abc import Iterator
 
-from kmea.vision.sources import Frame, FrameSource, SourceError
+from kmea.sources.base import Frame, FrameSource, SourceError
 
 __all__ = ["Capture", "CaptureEnded", "DetectPool", "LiveDetect", "NoDetect", "open_feed"]
 

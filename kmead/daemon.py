@@ -29,7 +29,8 @@ from kmea.maps import MarkerMap
 from kmea.metrics import WindowStats
 from kmea.moved import MovedMonitor
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
-from kmea.recording import Recorder, ReplaySource
+from kmea.recording import Recorder
+from kmea.sources.replay import ReplaySource
 from kmead import bodies
 from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
@@ -572,7 +573,7 @@ class Daemon:
         age = time.time() - ts if "sensor_timestamp_ns" in frame.meta else -1.0
         if self.live and 0.0 <= age < 60.0:
             # picamera: the frame's time is the sensor's (the start of readout as unix time,
-            # kmea.vision.picamera_source); the datagram's t and the latency count from it,
+            # kmea.sources.picamera); the datagram's t and the latency count from it,
             # not from when Python received the frame (docs/speed.md: the latency budget).
             # A stamp in the future or a minute old is not trusted.
             t_cap = time.perf_counter() - age

@@ -93,7 +93,7 @@ class Doctor:
                          f"(README, On the Raspberry Pi)")
 
     def check_numpy_opencv(self) -> bool:
-        from kmea.vision.picamera_source import system_numpy_version
+        from kmea.sources.picamera import system_numpy_version
 
         try:
             import numpy as np
@@ -130,8 +130,8 @@ class Doctor:
 
     def check_picamera2(self) -> Any:
         """The picamera2 module trio, or None (with a FIX line)."""
-        from kmea.vision.picamera_source import import_picamera2
-        from kmea.vision.sources import SourceError
+        from kmea.sources.base import SourceError
+        from kmea.sources.picamera import import_picamera2
 
         try:
             mods = import_picamera2()
@@ -157,7 +157,7 @@ class Doctor:
         return nodes
 
     def check_camera(self, mods: Any) -> None:
-        from kmea.vision.picamera_source import describe_open_error
+        from kmea.sources.picamera import describe_open_error
 
         media = sorted(self.dev.glob("media*")) + sorted(self.dev.glob("video*"))
         if mods is None:
@@ -390,7 +390,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from kmea.vision.picamera_source import os_codename
+    from kmea.sources.picamera import os_codename
 
     config = args.config
     if config is None and SERVICE_CONFIG.is_file():

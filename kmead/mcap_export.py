@@ -94,8 +94,8 @@ def export_mcap(recording: str | Path, out: str | Path, csv_path: str | Path | N
     """Write ``out`` from ``recording`` (and its CSV log); ``ExportError`` naming the file."""
     import foxglove
 
-    from kmea.recording import ReplaySource
-    from kmea.vision.sources import SourceError
+    from kmea.sources.base import SourceError
+    from kmea.sources.replay import ReplaySource
     from kmead.foxglove_bridge import FoxgloveLog, FrameView, MarkerView, RobotView
 
     estimates = read_estimates(csv_path) if csv_path else {}

@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from kmea.maps import MapError, MarkerMap, check_map, check_spread, default_map
+from kmea.sources.base import SourceError
+from kmea.sources.registry import parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
-from kmea.vision.sources import SourceError, parse_source_spec
 from kmead.config import Config, ConfigError
 from kmead.settings_schema import check_intrinsics
 from kmead.startup import StartupError, configured_map
@@ -114,7 +115,7 @@ def _source_preview(cfg: Config, prefix: str) -> tuple[MarkerMap | None, CameraM
     rest = parse_source_spec(spec).rest
     if prefix == "sim":
         from kmea.sim.scenes import scene_from_spec
-        from kmea.sim.source import split_bump
+        from kmea.sources.sim import split_bump
 
         try:
             scene = scene_from_spec(split_bump(spec)[0])
@@ -150,7 +151,7 @@ def _header_map(spec: str, header: dict) -> MarkerMap | None:
 def _check_image_folder(spec: str, folder: Path) -> None:
     import cv2
 
-    from kmea.vision.sources import IMAGE_SUFFIXES
+    from kmea.sources.base import IMAGE_SUFFIXES
 
     if not folder.is_dir():
         raise StartupError(f"key 'source.spec': {spec}: no such folder")

@@ -137,7 +137,8 @@ def choice(*options: str) -> Check:
 # ---------------------------------------------------------------------------- strings
 
 def _source_spec(v: Any, where: str, remote: bool = False) -> str:
-    from kmea.vision.sources import SourceError, parse_source_spec  # the one spec grammar
+    from kmea.sources.base import SourceError  # the one spec grammar:
+    from kmea.sources.registry import parse_source_spec
 
     s = _str(v, where)
     try:

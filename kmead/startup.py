@@ -10,8 +10,9 @@ import logging
 from typing import Any
 
 from kmea.maps import DEFAULT_DICTIONARY, MarkerMap, default_map, load_map
+from kmea.sources.base import FrameSource, SourceError
+from kmea.sources.registry import open_source, parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, pi_camera_v2
-from kmea.vision.sources import FrameSource, SourceError, open_source, parse_source_spec
 from kmead.config import Config
 
 EXIT_OK, EXIT_RUNTIME, EXIT_CONFIG = 0, 1, 2

@@ -391,7 +391,7 @@ def test_stalled_picamera_ends_the_daemon_non_zero(tmp_path: Path,
         rig.scene = lambda n, w, h: frames[0]
         rig.stall_after = [2, 0, 0, 0]
         # default timeout: 10 frame periods (0.1 s at 100 fps) when that is above the floor
-        monkeypatch.setattr("kmea.vision.picamera_source.MIN_STALL_TIMEOUT_S", 0.0)
+        monkeypatch.setattr("kmea.sources.picamera.MIN_STALL_TIMEOUT_S", 0.0)
         code = cli.main(["--source", "picamera", *SMALL, "--set", "source.fps=100",
                          "--headless", *NET])
         err = capsys.readouterr().err

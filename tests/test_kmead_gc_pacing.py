@@ -44,8 +44,8 @@ def test_two_daemons_share_one_pacing():
 
 def test_a_live_daemon_collects_only_between_frames():
     from kmea.sim.scenes import scene_from_spec
-    from kmea.sim.source import SimSource
-    from kmea.vision.sources import register_source
+    from kmea.sources.registry import register_source
+    from kmea.sources.sim import SimSource
     from kmead.config import load_config
     from kmead.daemon import Daemon
 

@@ -8,10 +8,7 @@
   library (and each other). A subprocess checks that importing the UI loads neither
   ``kmead`` nor OpenCV nor numpy.
 - No import circles inside a package: every import counts (module level, inside functions,
-  under ``TYPE_CHECKING``), except the lazy imports of a factory listed in
-  :data:`LAZY_FACTORIES` (``kmea.vision.sources.open_source`` picks the simulator's, the
-  replay's or the Pi camera's source by the spec's name, and those sources build on
-  ``kmea.vision.sources``).
+  under ``TYPE_CHECKING``), with no exception.
 
 Imports are read from the AST of every module, and dynamic imports by name
 (``import_module("kmead.bench")``, ``"kmead.bench:run"`` tables) are found as string
@@ -35,8 +32,6 @@ PACKAGES = ("kmea", "kmead", "kmea_tui")
 TUI_MAY_IMPORT = {"kmea", "kmea.protocol", "kmea.jsonsafe", "kmea.jsonlimits", "kmea.tomlvalue",
                   "kmea.curve_client"}
 # Functions' lazy imports that do not count as edges for the cycle check (module -> targets).
-LAZY_FACTORIES = {"kmea.vision.sources": {"kmea.sim.source", "kmea.recording", "kmea.sim",
-                                          "kmea.vision.picamera_source"}}
 # Backports of standard modules, for Python versions before they joined the stdlib.
 STDLIB_BACKPORTS = {"tomli"}  # tomllib before 3.11
 
@@ -194,8 +189,6 @@ def test_no_import_circles(package: str) -> None:
     for imp in all_imports():
         if top(imp.module) == package and top(imp.target) == package \
                 and imp.target != imp.module and imp.target != package:
-            if imp.lazy and imp.target in LAZY_FACTORIES.get(imp.module, ()):
-                continue
             edges.setdefault(imp.module, set()).add(imp.target)
     found = cycles(edges)
     assert not found, f"import circles in {package}: {found}"

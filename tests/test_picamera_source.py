@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from fakepi import forget, install
 
-from kmea.vision.sources import SourceError, open_source
+from kmea.sources.base import SourceError
+from kmea.sources.registry import open_source
 
 
 @pytest.fixture
@@ -126,7 +127,7 @@ def test_sensor_timestamp_becomes_unix_time_of_readout_start(rig) -> None:
 
 
 def test_monotonic_to_unix_conversion() -> None:
-    from kmea.vision.picamera_source import monotonic_to_unix_ns
+    from kmea.sources.picamera import monotonic_to_unix_ns
 
     m, w = time.monotonic_ns(), time.time_ns()
     assert abs(monotonic_to_unix_ns(m) - w) < 2_000_000  # 2 ms
@@ -245,7 +246,7 @@ def test_bad_options(rig) -> None:
 
 def test_describe_open_error_old_versions() -> None:
     """Older picamera2 wordings of the same failures (issues 399, 587, 909)."""
-    from kmea.vision.picamera_source import describe_open_error
+    from kmea.sources.picamera import describe_open_error
 
     for inner in (RuntimeError("Failed to acquire camera"),
                   RuntimeError("camera.acquire() returned unexpected code: -16")):

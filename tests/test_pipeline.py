@@ -8,7 +8,7 @@ import numpy as np
 
 from kmea.pipeline import FrameInput, MarkerObserver, Pipeline, PipelineSettings
 from kmea.recording import Recorder
-from kmea.vision.sources import open_source
+from kmea.sources.registry import open_source
 
 
 def _frames(n: int):

@@ -17,7 +17,6 @@ from kmea.sim import (
     Scene,
     SimFrame,
     SimRobot,
-    SimSource,
     Stationary,
     available_scenes,
     get_scene,
@@ -26,6 +25,7 @@ from kmea.sim import (
     scene_from_spec,
 )
 from kmea.sim.lens import distort, project, ray_map, undistort_pixels
+from kmea.sources.sim import SimSource
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
 
@@ -149,7 +149,7 @@ def test_lens_model_matches_opencv_and_inverts():
 
 
 def test_sim_source_frames_and_open_source():
-    from kmea.vision.sources import open_source
+    from kmea.sources.registry import open_source
 
     with SimSource(get_scene("default", width=160, height=120), start=5, frames=3) as src:
         frames = list(src)

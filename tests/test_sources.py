@@ -9,15 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from kmea.vision.sources import (
-    Frame,
-    FrameSource,
-    SourceError,
-    open_source,
-    parse_source_spec,
-    register_source,
-    source_prefixes,
-)
+from kmea.sources.base import Frame, FrameSource, SourceError
+from kmea.sources.registry import open_source, parse_source_spec, register_source, source_prefixes
 
 
 def _numbered(i: int, w: int = 160, h: int = 120) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
-from kmea.sim.source import SimSource
+from kmea.sources.sim import SimSource
 from kmea.vision.detection import DetectorConfig, MarkerDetector
 from kmea.vision.tracking_detector import (
     TrackingConfig,
@@ -384,7 +384,7 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
     import threading
 
     from kmea.sim.scenes import scene_from_spec
-    from kmea.vision.sources import register_source
+    from kmea.sources.registry import register_source
     from kmead.config import load_config
     from kmead.daemon import Daemon
 
@@ -445,7 +445,8 @@ def test_live_frame_time_is_the_sensor_timestamp():
     that instant as its time and the latency is counted from it."""
     import threading
 
-    from kmea.vision.sources import Frame, FrameSource, register_source
+    from kmea.sources.base import Frame, FrameSource
+    from kmea.sources.registry import register_source
     from kmead.config import load_config
     from kmead.daemon import Daemon
 

@@ -26,7 +26,7 @@ FPS = 30.0
 
 
 def _run(spec: str, n: int):
-    from kmea.sim.source import SimSource
+    from kmea.sources.sim import SimSource
 
     src = SimSource(spec, frames=n)
     frames = [src.read() for _ in range(n)]

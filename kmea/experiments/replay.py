@@ -31,8 +31,8 @@ def replay(path: str | Path, algorithms: Sequence[str], baseline: str = "lmea",
     max_frames: stop after this many frames (None: all).
     progress: called with 1 after each frame is estimated.
     """
-    from kmea.recording import ReplaySource
-    from kmea.vision.sources import SourceError
+    from kmea.sources.base import SourceError
+    from kmea.sources.replay import ReplaySource
 
     try:
         src = ReplaySource(path)

@@ -1,7 +1,7 @@
 """A simulated RobotAtFactory floor: fast, faithful renders with exact ground truth.
 
-See ``docs/simulation.md``. Main entry points: :func:`get_scene`, :class:`Renderer`,
-:class:`SimSource`.
+See ``docs/simulation.md``. Main entry points: :func:`get_scene`, :class:`Renderer`; the
+simulator as a frame source is :class:`kmea.sources.sim.SimSource`.
 """
 
 from kmea.sim.motion import CrossingPath, LoopPath, Stationary
@@ -18,7 +18,6 @@ from kmea.sim.scenes import (
     scenario2_camera,
     scene_from_spec,
 )
-from kmea.sim.source import SimSource
 
 __all__ = [
     "DEFAULT_FLEET",
@@ -32,7 +31,6 @@ __all__ = [
     "Scene",
     "SimFrame",
     "SimRobot",
-    "SimSource",
     "Stationary",
     "apply_options",
     "available_scenes",

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kmea.vision.sources import Frame
+from kmea.sources.base import Frame
 
 __all__ = ["FrameTruth", "SimFrame"]
 
@@ -38,7 +38,7 @@ class FrameTruth:
 
 @dataclass
 class SimFrame(Frame):
-    """A rendered frame: a :class:`kmea.vision.sources.Frame` with its truth.
+    """A rendered frame: a :class:`kmea.sources.base.Frame` with its truth.
 
     index; timestamp = index / fps seconds (also ``t``); image: (H, W) uint8 greyscale;
     truth: :class:`FrameTruth` (also in ``meta["truth"]``).

@@ -50,9 +50,11 @@ def _err(msg: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from kmea.sources.base import SourceError
+    from kmea.sources.files import ImageFolderSource
+    from kmea.sources.registry import open_source
     from kmea.vision.calibration import BoardError, Calibrator, parse_board
     from kmea.vision.camera import FILESTORAGE_SUFFIXES, CameraError, save_camera
-    from kmea.vision.sources import ImageFolderSource, SourceError, open_source
 
     out = Path(args.out)
     if out.suffix.lower() not in (*FILESTORAGE_SUFFIXES, ".toml"):

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from kmea.vision.sources import Frame, FrameSource, SourceError
+from kmea.sources.base import Frame, FrameSource, SourceError
 
 __all__ = [
     "PICAMERA2_MISSING",

@@ -16,7 +16,7 @@ import numpy as np
 from kmea.sim.renderer import Renderer, SimFrame
 from kmea.sim.scene import Scene
 from kmea.sim.scenes import apply_options, scene_from_spec
-from kmea.vision.sources import FrameSource, SourceError
+from kmea.sources.base import FrameSource, SourceError
 
 __all__ = ["SimSource", "open_sim"]
 
@@ -130,7 +130,7 @@ def split_bump(spec: str) -> tuple[str, dict[str, float]]:
 
 
 def open_sim(rest: str, **options: Any) -> SimSource:
-    """The ``sim[:SCENE]`` source of :func:`kmea.vision.sources.open_source`."""
+    """The ``sim[:SCENE]`` source of :func:`kmea.sources.registry.open_source`."""
     spec = f"sim:{rest}" if rest else "sim"
     try:
         return SimSource(spec, **options)
