@@ -88,7 +88,7 @@ class LiveDaemon:
         assert reply is not None, f"no reply to {cmd}"
         return reply
 
-    def frames_flow(self, timeout: float = 5.0) -> bool:
+    def frames_flow(self, timeout: float = 30.0) -> bool:
         n = self.daemon.totals.frames
         end = time.monotonic() + timeout
         while time.monotonic() < end:
@@ -97,7 +97,7 @@ class LiveDaemon:
             time.sleep(0.02)
         return False
 
-    def wait(self, cond, timeout: float = 10.0) -> bool:
+    def wait(self, cond, timeout: float = 30.0) -> bool:
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if cond():
