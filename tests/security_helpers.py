@@ -69,7 +69,7 @@ class LiveDaemon:
                 self._req.connect(self.control)
         return self._req
 
-    def request(self, payload: bytes | list[bytes], timeout: float = 3.0) -> dict | None:
+    def request(self, payload: bytes | list[bytes], timeout: float = 15.0) -> dict | None:
         """The decoded reply, or None if none came within ``timeout`` (the REQ socket is
         then replaced, lazy-pirate style)."""
         req = self._socket()
