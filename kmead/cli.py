@@ -8,6 +8,7 @@ file or option.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import signal
 import sys
@@ -95,6 +96,27 @@ def _setup_logging(level: str, timestamps: bool | None = None) -> None:
     root.propagate = False
 
 
+@contextlib.contextmanager
+def stderr_logging(level: str, timestamps: bool | None = None):
+    """:func:`_setup_logging` for the length of one command, then the ``kmead`` logger as
+    it was: main() also runs inside other processes (tests, the benchmarks), where a
+    handler left behind would print every later in-process daemon's INFO lines on the
+    terminal."""
+    root = logging.getLogger("kmead")
+    level_before, propagate_before = root.level, root.propagate
+    before = [h for h in root.handlers if getattr(h, "_kmead", False)]
+    _setup_logging(level, timestamps)
+    try:
+        yield
+    finally:
+        for h in [h for h in root.handlers if getattr(h, "_kmead", False)]:
+            root.removeHandler(h)
+        for h in before:
+            root.addHandler(h)
+        root.setLevel(level_before)
+        root.propagate = propagate_before
+
+
 class _StderrHandler(logging.StreamHandler):
     """A stream handler on whatever ``sys.stderr`` is when a record is written: a handler
     holding the stderr of an earlier call (a test's captured stream, closed since) would
@@ -142,10 +164,17 @@ def main(argv: list[str] | None = None) -> int:
         from kmead.check import run_check
 
         return run_check(cfg)
-    from kmead.status_line import StatusReporter, stderr_is_journal
+    from kmead.status_line import stderr_is_journal
 
     journal = stderr_is_journal()
-    _setup_logging(cfg["log"]["level"], timestamps=not journal)
+    with stderr_logging(cfg["log"]["level"], timestamps=not journal):
+        return _serve(args, cfg, journal)
+
+
+def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
+    """The daemon's run, its UI or headless status line, and its summary."""
+    from kmead.status_line import StatusReporter
+
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
 
     from kmead.daemon import Daemon, StartupError

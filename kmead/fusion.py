@@ -548,10 +548,9 @@ def add_arguments(p: Any) -> None:
 
 def run(args: Any) -> int:
     """Run the fusion node; exit codes as kmead's (0 done, 1 runtime failure, 2 config)."""
-    import signal
     import sys
 
-    from kmead.cli import _run_with_ui, _setup_logging
+    from kmead.cli import stderr_logging
     from kmead.config import load_config
 
     if args.frames is not None and args.frames < 1:
@@ -568,7 +567,17 @@ def run(args: Any) -> int:
     except OSError as e:
         print(f"kmea fuse: {e}", file=sys.stderr)
         return 1
-    _setup_logging(cfg["log"]["level"])
+    with stderr_logging(cfg["log"]["level"]):
+        return _serve(node, args)
+
+
+def _serve(node: FusionNode, args: Any) -> int:
+    """The node's run (with the UI or headless), then its summary; closes the node."""
+    import signal
+    import sys
+
+    from kmead.cli import _run_with_ui
+
     print(f"kmea fuse: telemetry {node.telemetry.bound or 'off'}, control "
           f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()

@@ -38,7 +38,7 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
     ctx = zmq.Context.instance()
     pubs, eps = [], []
     for _ in range(cameras):
-        s = ctx.socket(zmq.PUB)
+        s = ctx.socket(zmq.XPUB)  # a PUB that also hears the node subscribe
         s.setsockopt(zmq.SNDHWM, 100000)
         eps.append(f"tcp://127.0.0.1:{s.bind_to_random_port('tcp://127.0.0.1')}")
         pubs.append(s)
@@ -77,14 +77,21 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         th = threading.Thread(target=listen, daemon=True)
         th.start()
         try:
-            time.sleep(2.0)  # start-up and ZeroMQ subscriptions
-            if proc.poll() is not None:
-                # A node that did not start (e.g. a configuration it refuses) would show as
-                # every message lost: say why instead.
-                err.seek(0)
-                lines = err.read().strip().splitlines() or ["(no output)"]
-                raise RuntimeError(f"the fusion node exited with {proc.returncode}: "
-                                   f"{lines[-1]}")
+            # Measure from the node's subscription on every input: a fixed start-up wait
+            # is too short on a loaded machine, and every message before it is lost.
+            deadline = time.monotonic() + 60.0
+            for s in pubs:
+                while not s.poll(100):
+                    if proc.poll() is not None:
+                        # A node that did not start (e.g. a configuration it refuses) would
+                        # show as every message lost: say why instead.
+                        err.seek(0)
+                        lines = err.read().strip().splitlines() or ["(no output)"]
+                        raise RuntimeError(f"the fusion node exited with {proc.returncode}: "
+                                           f"{lines[-1]}")
+                    if time.monotonic() > deadline:
+                        raise RuntimeError("the fusion node did not subscribe within 60 s")
+                s.recv()
             period = 1.0 / fps
             cpu0, w0 = _cpu_s(proc.pid), time.monotonic()
             sent = 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -24,3 +25,21 @@ def _own_config_home(tmp_path_factory, monkeypatch) -> None:
     """A plain kmead start reads the per-user overlay ($XDG_CONFIG_HOME/kmead/...): every
     test gets an empty config home, so a developer's saved settings never leak in."""
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path_factory.mktemp("config-home")))
+
+
+@pytest.fixture(autouse=True)
+def _no_kmead_logging_leak():
+    """Every test leaves the ``kmead`` logger's handlers as it found them. One left behind
+    (kmead's stderr log after an in-process ``main()``, a daemon never closed) keeps
+    writing: its lines then appear in pytest's progress output, from whichever test runs
+    next. The level a daemon sets (``log.level``) prints nothing by itself: it is only
+    put back."""
+    log = logging.getLogger("kmead")
+    before = (list(log.handlers), log.propagate)
+    level = log.level
+    yield
+    after = (list(log.handlers), log.propagate)
+    log.handlers[:] = before[0]
+    log.propagate = before[1]
+    log.setLevel(level)
+    assert after == before, f"the test left the 'kmead' logger changed: {before} -> {after}"

@@ -69,7 +69,7 @@ class LiveDaemon:
                 self._req.connect(self.control)
         return self._req
 
-    def request(self, payload: bytes | list[bytes], timeout: float = 3.0) -> dict | None:
+    def request(self, payload: bytes | list[bytes], timeout: float = 15.0) -> dict | None:
         """The decoded reply, or None if none came within ``timeout`` (the REQ socket is
         then replaced, lazy-pirate style)."""
         req = self._socket()
@@ -88,7 +88,7 @@ class LiveDaemon:
         assert reply is not None, f"no reply to {cmd}"
         return reply
 
-    def frames_flow(self, timeout: float = 5.0) -> bool:
+    def frames_flow(self, timeout: float = 30.0) -> bool:
         n = self.daemon.totals.frames
         end = time.monotonic() + timeout
         while time.monotonic() < end:
@@ -97,7 +97,7 @@ class LiveDaemon:
             time.sleep(0.02)
         return False
 
-    def wait(self, cond, timeout: float = 10.0) -> bool:
+    def wait(self, cond, timeout: float = 30.0) -> bool:
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if cond():

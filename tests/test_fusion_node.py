@@ -24,6 +24,9 @@ from kmead.kmea_cli import main as kmea_main
 from kmead.relay import datagram, parse_datagram
 
 SPEED = 0.01  # m/s: the robots stay where the test expects them for its ~20 s
+# A camera daemon in this busy process may stall for a second or two under load: stale only
+# after longer than that, so that the camera left running keeps its robot valid.
+STALE_S = 3.0
 
 
 def _daemon(cam: int, epoch: float, telemetry: str = "tcp://127.0.0.1:*") -> Daemon:
@@ -100,7 +103,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
         'network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"',
         f'robots=[{{name="amr1", markers=[40, 41], height=0.2, {dest}}}, '
         f'{{name="amr2", markers=[42], height=0.2, {dest}}}]',
-        "relay.extra_fields=true", "relay.stale_after_s=1.5", f'log.csv="{log}"',
+        "relay.extra_fields=true", f"relay.stale_after_s={STALE_S}", f'log.csv="{log}"',
         'log.level="warning"'])
     node = FusionNode(cfg, parse_inputs([d0.telemetry.bound, d1.telemetry.bound,
                                          f"junk={junk_ep}"]))
@@ -114,7 +117,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
         def both_valid(seen):
             return {m["name"] for _, m in seen if m["valid"]} == {"amr1", "amr2"} and \
                 sum(m["name"] == "amr1" for _, m in seen) > 10
-        seen = udp.wait(both_valid, 25.0)
+        seen = udp.wait(both_valid, 60.0)
         assert both_valid(seen), [m for _, m in seen][-3:]
         data, m = seen[-1]
         keys = [p.split("=")[0] for p in data.decode().split(";")]
@@ -126,7 +129,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
             assert abs(m["vx"]) < 0.5 and m["age"] == 0.0  # 0.01 m/s, 10 noisy fixes/s
         sources = {}
         expected = {"amr1": "cam0+cam1", "amr2": "cam1"}
-        end = time.monotonic() + 10
+        end = time.monotonic() + 60
         while time.monotonic() < end and sources != expected:
             if sub.poll(200):
                 body = P.decode(sub.recv_multipart())[1]
@@ -140,7 +143,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
                                                "x": "NaN", "y": 0.0, "theta": 0.0}),
                        P.encode("robot.ghost", {"name": "ghost", "valid": True})):
             junk.send_multipart(frames)
-        end = time.monotonic() + 5
+        end = time.monotonic() + 30
         while time.monotonic() < end and node.inputs[2].bad < 3:
             time.sleep(0.05)
         assert node.inputs[2].bad >= 3 and tn.is_alive()
@@ -148,19 +151,19 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
         # 3. Camera 1 stops: amr2 (only it saw) goes stale, amr1 stays valid on camera 0.
         _stop(*running.pop("d1"))
         t_stop = time.time()
-        # (1.5 s without a measurement: a daemon stalled by a busy machine is not "stopped")
+        # (STALE_S without a measurement: a daemon stalled by a busy machine is not "stopped")
         seen = udp.wait(lambda s: any(m["name"] == "amr2" and not m["valid"] for _, m in s),
-                        10.0)
+                        60.0)
         assert any(m["name"] == "amr2" and not m["valid"] for _, m in seen)
-        seen = udp.wait(lambda s: sum(m["name"] == "amr1" for _, m in s) > 5, 5.0)
+        seen = udp.wait(lambda s: sum(m["name"] == "amr1" for _, m in s) > 5, 60.0)
         amr1 = [m for _, m in seen if m["name"] == "amr1"]
         assert len(amr1) > 5 and all(m["valid"] for m in amr1), (amr1, node.status())
-        assert all(m["t"] > t_stop - 1.5 for m in amr1)
+        assert all(m["t"] > t_stop - STALE_S for m in amr1)
 
         # 4. It comes back on the same endpoint: amr2 is picked up again.
         d1 = _daemon(1, epoch, telemetry=node.inputs[1].endpoint)
         running["d1"] = (d1, _start(d1))
-        seen = udp.wait(lambda s: any(m["name"] == "amr2" and m["valid"] for _, m in s), 20.0)
+        seen = udp.wait(lambda s: any(m["name"] == "amr2" and m["valid"] for _, m in s), 60.0)
         assert any(m["name"] == "amr2" and m["valid"] for _, m in seen)
     finally:
         node.stop()

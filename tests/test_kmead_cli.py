@@ -1,12 +1,19 @@
-"""kmead's command-line shell: its stderr log."""
+"""kmead's command-line shell: its stderr log, and nothing of it left behind in-process."""
 
 from __future__ import annotations
 
 import io
 import logging
 import sys
+import threading
 
-from kmead.cli import _setup_logging
+import zmq
+
+from kmea import protocol as P
+from kmead import cli
+from kmead.kmea_cli import main as kmea_main
+
+NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""']
 
 
 def test_the_log_goes_to_the_current_stderr_not_a_closed_one(monkeypatch) -> None:
@@ -14,11 +21,60 @@ def test_the_log_goes_to_the_current_stderr_not_a_closed_one(monkeypatch) -> Non
     # record written after the stderr of an earlier call was closed must reach today's.
     first = io.StringIO()
     monkeypatch.setattr(sys, "stderr", first)
-    _setup_logging("info", timestamps=False)
-    log = logging.getLogger("kmead")
-    log.info("before")
-    first.close()
-    second = io.StringIO()
-    monkeypatch.setattr(sys, "stderr", second)
-    log.info("after")
+    with cli.stderr_logging("info", timestamps=False):
+        log = logging.getLogger("kmead")
+        log.info("before")
+        first.close()
+        second = io.StringIO()
+        monkeypatch.setattr(sys, "stderr", second)
+        log.info("after")
     assert second.getvalue() == "kmead: INFO: after\n"
+
+
+def _state() -> tuple:
+    log = logging.getLogger("kmead")
+    return list(log.handlers), log.level, log.propagate
+
+
+def _later_daemon_logs(capsys) -> str:
+    """What a daemon started later in this process would print on stderr at INFO."""
+    capsys.readouterr()
+    logging.getLogger("kmead.daemon").info("a later in-process daemon")
+    return capsys.readouterr().err
+
+
+def test_in_process_kmead_leaves_no_log_handler_behind(capsys) -> None:
+    before = _state()
+    assert cli.main(["--headless", "--frames", "1", "--status-every", "0",
+                     "--set", "source.width=320", "--set", "source.height=240", *NET]) == 0
+    assert "kmead: stopped" in capsys.readouterr().err  # it did run, with its stderr log
+    assert _state() == before
+    assert _later_daemon_logs(capsys) == ""
+
+
+def test_in_process_fusion_node_leaves_no_log_handler_behind(capsys) -> None:
+    ctx = zmq.Context.instance()
+    pub = ctx.socket(zmq.PUB)
+    ep = f"tcp://127.0.0.1:{pub.bind_to_random_port('tcp://127.0.0.1')}"
+    done = threading.Event()
+
+    def camera() -> None:  # a camera daemon's robot messages until the node has its one
+        k = 0
+        while not done.wait(0.05):
+            pub.send_multipart(P.encode("robot.amr1", {
+                "name": "amr1", "seq": k, "valid": True, "t": 100.0 + 0.1 * k,
+                "x": 0.5, "y": 0.3, "theta": 0.0, "sigma": 0.002}))
+            k += 1
+
+    before = _state()
+    t = threading.Thread(target=camera, daemon=True)
+    t.start()
+    try:
+        assert kmea_main(["fuse", "--input", ep, "--headless", "--frames", "1", *NET]) == 0
+    finally:
+        done.set()
+        t.join(timeout=10)
+        pub.close(linger=0)
+    assert "kmea fuse: 1 fused outputs" in capsys.readouterr().out
+    assert _state() == before
+    assert _later_daemon_logs(capsys) == ""

@@ -107,10 +107,11 @@ class _Sub:
             self.sock.setsockopt(zmq.SUBSCRIBE, t.encode())
         self.sock.connect(endpoint)
 
-    def collect(self, seconds: float) -> dict[str, list[dict]]:
+    def collect(self, until, timeout: float = 60.0) -> dict[str, list[dict]]:
+        """Messages by topic until ``until(got)`` holds (or ``timeout`` s passed)."""
         got: dict[str, list[dict]] = {}
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not until(got):
             if self.sock.poll(50):
                 topic, body = P.decode(self.sock.recv_multipart())
                 got.setdefault(topic, []).append(body)
@@ -145,9 +146,17 @@ def _cmd(ctx: zmq.Context, endpoint: str, cmd: str, **args: object) -> dict:
 def udp() -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     s.bind(("127.0.0.1", 0))
-    s.settimeout(5.0)
+    s.settimeout(30.0)
     yield s
     s.close()
+
+
+def _frames_after(daemon: Daemon, n: int, timeout: float = 60.0) -> bool:
+    """Waits until the daemon has processed ``n`` frames in all."""
+    end = time.monotonic() + timeout
+    while daemon.totals.frames < n and time.monotonic() < end:
+        time.sleep(0.05)
+    return daemon.totals.frames >= n
 
 
 def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socket) -> None:
@@ -167,9 +176,10 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
     ctrl = daemon.control.bound
     try:
         runner.start()
-        got = sub.collect(2.0)
+        topics = ("frame", "markers", "robots", "stats", "status", "robot.amr1")
+        got = sub.collect(lambda g: all(t in g for t in topics))
         # ---- telemetry: every topic of docs/protocol.md with its fields
-        for topic in ("frame", "markers", "robots", "stats", "status", "robot.amr1"):
+        for topic in topics:
             assert got.get(topic), f"no {topic!r} message"
         fr = got["frame"][-1]
         assert {"t", "frame", "source", "algorithm", "ok", "reason", "n_detected", "n_refs",
@@ -209,8 +219,9 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
             assert reply["ok"] is False and reply["error"], bad[:40]
         assert _request(ctx, ctrl, [b'{"v":2,"cmd":"ping"}', b"extra"])["ok"] is False
         assert _cmd(ctx, ctrl, "ping")["ok"]
-        events = sub.collect(0.5).get("event", [])
-        assert any("control request refused" in e["text"] for e in events)
+        def refused(g):
+            return any("control request refused" in e["text"] for e in g.get("event", []))
+        assert refused(sub.collect(refused))
 
         # ---- control: state, config, live algorithm switch visible in the CSV
         state = _cmd(ctx, ctrl, "get_state")
@@ -221,13 +232,14 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
         r = _cmd(ctx, ctrl, "set", key="estimator.algorithm", value="umeyama")
         assert r["ok"] and r["value"] == "umeyama"
         n_before = daemon.totals.frames
-        deadline = time.monotonic() + 10
-        while daemon.totals.frames < n_before + 3 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        assert _frames_after(daemon, n_before + 3)
         assert _cmd(ctx, ctrl, "set", key="filter.alpha", value=0.5)["ok"]
-        logs = sub.collect(0.5).get("log", [])  # the daemon's own log lines
-        assert any(m["text"] == "set filter.alpha = 0.5" and m["level"] == "info"
-                   and m["logger"] == "kmead" for m in logs), logs
+
+        def logged(g):  # the daemon's own log lines
+            return any(m["text"] == "set filter.alpha = 0.5" and m["level"] == "info"
+                       and m["logger"] == "kmead" for m in g.get("log", []))
+        got = sub.collect(logged)
+        assert logged(got), got.get("log")
         saved = _cmd(ctx, ctrl, "save_config")
         assert saved["ok"] and saved["path"] == str(tmp_path / "site.local.toml")
         assert _cmd(ctx, ctrl, "reset_stats")["ok"]
@@ -236,8 +248,9 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
         assert stopped["ok"] and stopped["path"] == str(out)
         assert _cmd(ctx, ctrl, "log_stop")["ok"] is False  # not logging any more
         second = tmp_path / "second.csv"
+        n_before = daemon.totals.frames
         assert _cmd(ctx, ctrl, "log_start", path="second.csv")["path"] == str(second)
-        time.sleep(0.3)
+        assert _frames_after(daemon, n_before + 2)  # rows for second.csv
     finally:
         daemon.stop()
         runner.join(timeout=20)

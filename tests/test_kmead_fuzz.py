@@ -164,7 +164,7 @@ def test_seeded_fuzzer_every_request_answered_and_the_daemon_keeps_working(
         for i in range(PER_KIND):
             payload = make(rng)
             t0 = time.perf_counter()
-            reply = live.request(payload, timeout=5.0)
+            reply = live.request(payload, timeout=15.0)  # a hang, not a busy machine
             slowest = max(slowest, time.perf_counter() - t0)
             c["sent"] += 1
             assert reply is not None, f"{kind} #{i}: no reply to {bytes(payload)[:80]!r}"

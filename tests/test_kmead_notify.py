@@ -12,7 +12,7 @@ import pytest
 from kmead.notify import Notifier, monotonic_alive, watchdog_interval
 
 
-def _recv_all(sock: socket.socket, n: int, timeout: float = 2.0) -> list[str]:
+def _recv_all(sock: socket.socket, n: int, timeout: float = 30.0) -> list[str]:
     sock.settimeout(timeout)
     return [sock.recv(4096).decode() for _ in range(n)]
 

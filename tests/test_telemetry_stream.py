@@ -118,7 +118,18 @@ def test_a_real_daemon_sends_what_the_recording_holds(tmp_path: Path) -> None:
         assert got.get("event"), "the subscriber never joined"
         daemon.run()
         replies = {cmd: _request(ctx, daemon.control.bound, cmd) for cmd in P.REPLY_TYPES}
-        time.sleep(0.3)  # the last queued messages and one more status
+        # The last queued messages (all sent before this event) and one more status.
+        daemon.telemetry.event("info", "end of the test's stream")
+        end = time.monotonic() + 60
+
+        def texts() -> list[str]:
+            return [e["text"] for e in list(got.get("event", []))]
+        while "end of the test's stream" not in texts() and time.monotonic() < end:
+            time.sleep(0.02)
+        n_status = len(got.get("status", []))
+        while len(got.get("status", [])) <= n_status and time.monotonic() < end:
+            time.sleep(0.02)
+        assert len(got.get("status", [])) > n_status, "no status after the run"
     finally:
         stop.set()
         reader.join()

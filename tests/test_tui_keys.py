@@ -37,7 +37,7 @@ def keyed(tmp_path: Path):
 
 async def test_operator_ui_connects_and_controls_viewer_ui_only_watches(keyed) -> None:
     d, keys = keyed
-    app = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=2.0, keys=keys),
+    app = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=10.0, keys=keys),
                   theme="textual-dark", ping_period=0.5)
     async with app.run_test(size=(80, 24)) as pilot:
         await _wait(pilot, lambda: app.connection_state == "connected", "operator connected")
@@ -46,7 +46,7 @@ async def test_operator_ui_connects_and_controls_viewer_ui_only_watches(keyed) -
         assert reply["ok"], reply
     assert d.daemon.cfg["filter"]["alpha"] == 0.7
 
-    viewer = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=2.0, keys=keys,
+    viewer = KmeaTui(DaemonClient(d.telemetry, d.control, timeout=10.0, keys=keys,
                                   client="wall"), theme="textual-dark", ping_period=0.5)
     async with viewer.run_test(size=(80, 24)) as pilot:
         await _wait(pilot, lambda: viewer.markers_body is not None, "viewer telemetry")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -30,9 +31,8 @@ def _last(topic: str) -> dict[str, Any]:
 
 
 async def _replayed(app: KmeaTui, pilot: Any) -> None:
-    for _ in range(500):
-        if app.replay_done and app.config_loaded:
-            break
+    end = time.monotonic() + 60  # a loaded machine replays slowly: wait, do not count
+    while time.monotonic() < end and not (app.replay_done and app.config_loaded):
         await pilot.pause(0.01)
     assert app.replay_done and app.config_loaded
     await pilot.pause(0.1)
@@ -40,9 +40,8 @@ async def _replayed(app: KmeaTui, pilot: Any) -> None:
 
 async def _post_markers(app: KmeaTui, pilot: Any, body: dict[str, Any]) -> None:
     app.post_message(TelemetryBatch({"markers": body}))
-    for _ in range(100):
-        if app.markers_body is body:
-            break
+    end = time.monotonic() + 30
+    while time.monotonic() < end and app.markers_body is not body:
         await pilot.pause(0.01)
     await pilot.pause(0.1)  # the screen's next refresh
 
