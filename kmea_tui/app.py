@@ -148,6 +148,7 @@ class KmeaTui(App[None]):
         # a quit would leave unsaved. Only the UI's own changes: it cannot know another
         # client's, and a key set back to its saved value still counts (it was not saved).
         self.unsaved: dict[str, object] = {}
+        self._robots_at = 0.0  # time.monotonic() when the last robots body arrived
         self._quit_after_save = False
 
     # -- layout ----------------------------------------------------------------------------
@@ -302,6 +303,8 @@ class KmeaTui(App[None]):
                     self._raw_bodies[topic] = frames
                 else:
                     continue
+                if topic == protocol.TOPIC_ROBOTS:
+                    self._robots_at = time.monotonic()
                 self._dirty.update(tabs)
             if msg.events:
                 self.query_one(LogPane).add_events(msg.events)
@@ -318,7 +321,7 @@ class KmeaTui(App[None]):
         if tab == "markers" and self.markers_body is not None:
             self.query_one(MarkersPane).update_markers(self.markers_body)
         elif tab == "robots" and self.robots_body is not None:
-            self.query_one(RobotsPane).update_robots(self.robots_body)
+            self._show_robots()
         elif tab == "stats" and self.stats_body is not None:
             self.query_one(StatsPane).update_stats(self.stats_body)
         elif tab == "map":
@@ -420,15 +423,24 @@ class KmeaTui(App[None]):
                                            read_only=self.role == "viewer")
             if frozen != self.frozen:
                 self._set_frozen(frozen)
+            elif frozen and self.query_one(TabbedContent).active == "robots":
+                self._show_robots()  # the ages keep growing while nothing arrives
+
+    def _show_robots(self) -> None:
+        """The Robots tab from the last body. Not live, each robot's age grows from its
+        last known fix on this machine's clock (the time since the body arrived), so a
+        technician sees how old the pose really is; the daemon's clock is not used (a
+        remote daemon's may differ, a replayed source's is the recording's)."""
+        if self.robots_body is not None:
+            self.query_one(RobotsPane).update_robots(
+                self.robots_body, since=time.monotonic() - self._robots_at)
 
     def _set_frozen(self, frozen: bool) -> None:
         """Grey the data and stop claiming it is live (or undo that)."""
         self.frozen = frozen
         self.screen.set_class(frozen, "-frozen")
-        robots = self.query_one(RobotsPane)
-        robots.frozen = frozen
-        if self.robots_body is not None:
-            robots.update_robots(self.robots_body)
+        self.query_one(RobotsPane).frozen = frozen
+        self._show_robots()
         self.query_one(CameraPane).set_dim(frozen)
 
     # -- control -------------------------------------------------------------------------------
@@ -618,8 +630,7 @@ class KmeaTui(App[None]):
 
     def on_live_table_sort_changed(self, event: LiveTable.SortChanged) -> None:
         # Robots and statistics summaries show the sort; re-render them from the last data.
-        if self.robots_body is not None:
-            self.query_one(RobotsPane).update_robots(self.robots_body)
+        self._show_robots()
 
 
 async def save_screenshots(recording: str | Path, out_dir: str | Path,

@@ -3,20 +3,46 @@ REAL kmead (subprocess on the simulated floor, loopback) or a recorded stream.""
 
 from __future__ import annotations
 
+import os
+import signal
+import socket
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from test_tui_daemon import Daemon, wait_for
 from textual.widgets import Input, TabbedContent
 
 from kmea_tui.app import KmeaTui
-from kmea_tui.client import DaemonClient
+from kmea_tui.client import DaemonClient, RecordingClient
 from kmea_tui.screens.quit_confirm import QuitScreen
+from kmea_tui.widgets.markers import COLUMNS as MARKER_COLUMNS
+from kmea_tui.widgets.markers import MarkersTable
+from kmea_tui.widgets.robots import RobotsTable
 
 
 @pytest.fixture(scope="module")
-def daemon(tmp_path_factory) -> Iterator[Daemon]:
-    d = Daemon(tmp_path_factory.mktemp("kmead-field"))
+def ports() -> Iterator[tuple[int, int]]:
+    """(a UDP port nobody listens on, a port this test listens on)."""
+    closed = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    closed.bind(("127.0.0.1", 0))
+    port = closed.getsockname()[1]
+    closed.close()
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    yield port, listener.getsockname()[1]
+    listener.close()
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory, ports) -> Iterator[Daemon]:
+    # The simulator's two robots: amr1 sends where nothing listens (like the default
+    # destinations on a first start), amr2 to a listener.
+    robots = ", ".join(
+        f'{{name="{n}", markers={m}, height=0.2, destinations=["udp:127.0.0.1:{p}"]}}'
+        for n, m, p in (("amr1", "[40, 41]", ports[0]), ("amr2", "[42]", ports[1])))
+    d = Daemon(tmp_path_factory.mktemp("kmead-field"),
+               extra=("--algorithm", "kmea", "--set", f"robots=[{robots}]"))
     yield d
     d.stop()
 
@@ -102,3 +128,101 @@ async def wait_for_file(path, text: str, timeout: float = 30.0) -> None:
             return
         await asyncio.sleep(0.1)
     raise AssertionError(f"{text!r} not in {path} after {timeout} s")
+
+
+RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
+
+
+async def _replayed(app: KmeaTui, pilot) -> None:
+    await wait_for(pilot, lambda: app.replay_done and app.config_loaded, "the replay")
+
+
+@pytest.mark.parametrize("presses", [["s"] * 8 + ["S"], ["S"], ["s", "s"]],
+                         ids=["LOO-reversed", "id-reversed", "det"])
+async def test_sort_indicator_stays_visible_at_80x24(presses: list[str]) -> None:
+    app = KmeaTui(RecordingClient(RECORDING), theme="textual-dark")
+    async with app.run_test(size=(80, 24)) as pilot:
+        await _replayed(app, pilot)
+        table = app.query_one(MarkersTable)
+        await pilot.press(*presses)
+        arrow = "▼" if table.sort_reverse else "▲"
+        # What is on screen (the header line as drawn, cropped to the terminal) shows
+        # which column sorts, and which way.
+        header = table.render_line(0).text
+        label = dict(MARKER_COLUMNS)[table.sort_column]
+        at = header.index(arrow)
+        assert at < 80 and label[:-1] in header[:at]
+        screen = app.export_screenshot()
+        assert arrow in screen
+
+
+def _row_line(table: RobotsTable, name: str) -> str:
+    """Robot ``name``'s row as drawn on screen (cropped to the terminal's width)."""
+    index = [table.row_key_at(i) for i in range(table.row_count)].index(name)
+    return table.render_line(index + 1 - int(table.scroll_y)).text
+
+
+def _cell(table: RobotsTable, name: str, column: str) -> str:
+    return str(table.get_cell(name, column)) if name in table.rows else ""
+
+
+async def test_loopback_destinations_readable_at_80x24() -> None:
+    app = KmeaTui(RecordingClient(RECORDING), theme="textual-dark")
+    async with app.run_test(size=(80, 24)) as pilot:
+        await _replayed(app, pilot)
+        await pilot.press("2")
+        table = app.query_one(RobotsTable)
+        await wait_for(pilot, lambda: table.row_count == 2, "two robots")
+        # The recording's destinations are udp:127.0.0.1:9001 and :9002; the port is
+        # what tells them apart, whole on screen.
+        for name, port in (("amr1", 9001), ("amr2", 9002)):
+            line = _row_line(table, name)
+            assert line.rstrip().endswith(f"  :{port}"), line  # not 127.0.0.1:90...
+
+
+async def test_a_destination_nobody_listens_on_says_so(daemon, ports) -> None:
+    closed, listening = ports
+    app = _app(daemon)
+    async with app.run_test(size=(80, 24)) as pilot:
+        await wait_for(pilot, lambda: app.connection_state == "connected", "connected")
+        await pilot.press("2")
+        table = app.query_one(RobotsTable)
+        # Refusals are explained, not shown as send failures (✗N in the sent column).
+        await wait_for(pilot, lambda: _cell(table, "amr1", "sent") == "no listener",
+                       "amr1: no listener")
+        line = _row_line(table, "amr1")
+        assert "no listener" in line and line.rstrip().endswith(f"  :{closed}"), line
+        # The robot whose receiver listens: its port only, no warning.
+        await wait_for(pilot, lambda: _cell(table, "amr2", "sent") not in ("", "0"),
+                       "amr2 sending")
+        assert _cell(table, "amr2", "destinations") == f":{listening}"
+        assert "✗" not in _cell(table, "amr2", "sent")
+
+
+def _age(table: RobotsTable, name: str) -> float:
+    try:
+        return float(_cell(table, name, "age_s"))
+    except ValueError:
+        return -1.0
+
+
+async def test_age_grows_while_the_daemon_is_silent(daemon) -> None:
+    app = _app(daemon)
+    async with app.run_test(size=(80, 24)) as pilot:
+        await wait_for(pilot, lambda: app.connection_state == "connected", "connected")
+        await pilot.press("2")
+        table = app.query_one(RobotsTable)
+        await wait_for(pilot, lambda: _cell(table, "amr2", "state") == "ok", "amr2 ok")
+        os.kill(daemon.proc.pid, signal.SIGSTOP)  # a hung daemon: nothing arrives
+        try:
+            await wait_for(pilot, lambda: app.frozen, "the data frozen")
+            first = _age(table, "amr2")
+            # The age of the last known fix keeps growing on the local clock.
+            await wait_for(pilot, lambda: _age(table, "amr2") >= first + 2.0,
+                           "amr2's age to grow by 2 s")
+            assert _cell(table, "amr2", "state") == "unknown"
+        finally:
+            os.kill(daemon.proc.pid, signal.SIGCONT)
+        await wait_for(pilot, lambda: app.connection_state == "connected", "live again")
+        await wait_for(pilot, lambda: _cell(table, "amr2", "state") == "ok"
+                       and _age(table, "amr2") < 1.0, "a fresh fix again")
