@@ -226,3 +226,56 @@ async def test_age_grows_while_the_daemon_is_silent(daemon) -> None:
         await wait_for(pilot, lambda: app.connection_state == "connected", "live again")
         await wait_for(pilot, lambda: _cell(table, "amr2", "state") == "ok"
                        and _age(table, "amr2") < 1.0, "a fresh fix again")
+
+
+def test_kmead_with_its_ui_says_it_is_starting_before_the_floor_is_built(tmp_path) -> None:
+    """``kmead --source sim`` on a terminal: the first thing on it says what is loading (the
+    simulated floor takes 15-20 s), then the UI takes over; q quits."""
+    import fcntl
+    import pty
+    import struct
+    import subprocess
+    import sys
+    import termios
+    import time
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    env = {**os.environ, "XDG_CONFIG_HOME": str(tmp_path / "config-home"),
+           "TERM": "xterm-256color"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "kmead.cli", "--source", "sim", "--free-ports",
+         "--set", "source.width=640", "--set", "source.height=480",
+         "--set", "source.fps=5"],
+        stdin=slave, stdout=slave, stderr=slave, cwd=tmp_path, env=env, close_fds=True)
+    os.close(slave)
+    out = b""
+
+    def read_until(pattern: bytes, timeout: float) -> bool:
+        nonlocal out
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and pattern not in out:
+            import select
+
+            if select.select([master], [], [], 0.2)[0]:
+                try:
+                    out += os.read(master, 65536)
+                except OSError:  # the child closed the terminal
+                    return pattern in out
+        return pattern in out
+
+    try:
+        assert read_until(b"kmead: starting (loading the map, building the simulated floor",
+                          60), out[-2000:]
+        # The line comes before anything of the UI (which needs the built daemon).
+        first_ui = out.find(b"\x1b[?1049h")  # the UI's alternate screen
+        assert first_ui == -1 or out.index(b"kmead: starting") < first_ui
+        assert read_until(b"connected", 90), out[-2000:]
+        os.write(master, b"q")
+        proc.wait(timeout=60)
+        assert proc.returncode == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
