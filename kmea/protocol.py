@@ -127,7 +127,15 @@ class _RobotRowExtra(TypedDict, total=False):
     """Optional fields of a ``robots`` row, sent by a fusion node (``kmea fuse``): the
     tracking filter's world velocity (m/s) and turn rate (rad/s), ``source`` (the cameras
     that saw the robot recently, "cam0+cam1") and ``sources`` (camera -> s since its last
-    measurement). A daemon sends the velocity in ``robot.<name>`` only."""
+    measurement). A daemon sends the velocity in ``robot.<name>`` only.
+
+    ``refused`` (the destinations whose datagrams the receiving host refused among the
+    robot's last messages: nothing listens on that port) and ``send_refused`` (how many of
+    ``send_errors`` were such refusals): added later, recordings before them lack
+    them."""
+
+    refused: list[str]
+    send_refused: int
 
     vx: float | None
     vy: float | None

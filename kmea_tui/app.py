@@ -28,6 +28,7 @@ from textual.widgets import Footer, HelpPanel, Input, Select, Static, TabbedCont
 from kmea import protocol
 from kmea_tui.client import DaemonClient, RecordingClient
 from kmea_tui.messages import ConnectionChanged, ControlReply, ControlRequest, TelemetryBatch
+from kmea_tui.screens.quit_confirm import QuitScreen
 from kmea_tui.widgets.camera_view import CameraFrame, CameraPane, FrameError, display_size
 from kmea_tui.widgets.config_form import ConfigPane
 from kmea_tui.widgets.floor_map import FloorMap, MapData, MapPane
@@ -143,6 +144,12 @@ class KmeaTui(App[None]):
         self.fusion_node = False  # the status says so: no markers, statistics or camera
         self._log_attached = False
         self._ui_ready = asyncio.Event()
+        # Keys this UI set live (the daemon accepted them) since its last save_config: what
+        # a quit would leave unsaved. Only the UI's own changes: it cannot know another
+        # client's, and a key set back to its saved value still counts (it was not saved).
+        self.unsaved: dict[str, object] = {}
+        self._robots_at = 0.0  # time.monotonic() when the last robots body arrived
+        self._quit_after_save = False
 
     # -- layout ----------------------------------------------------------------------------
     def compose(self) -> ComposeResult:
@@ -296,6 +303,8 @@ class KmeaTui(App[None]):
                     self._raw_bodies[topic] = frames
                 else:
                     continue
+                if topic == protocol.TOPIC_ROBOTS:
+                    self._robots_at = time.monotonic()
                 self._dirty.update(tabs)
             if msg.events:
                 self.query_one(LogPane).add_events(msg.events)
@@ -312,7 +321,7 @@ class KmeaTui(App[None]):
         if tab == "markers" and self.markers_body is not None:
             self.query_one(MarkersPane).update_markers(self.markers_body)
         elif tab == "robots" and self.robots_body is not None:
-            self.query_one(RobotsPane).update_robots(self.robots_body)
+            self._show_robots()
         elif tab == "stats" and self.stats_body is not None:
             self.query_one(StatsPane).update_stats(self.stats_body)
         elif tab == "map":
@@ -414,15 +423,24 @@ class KmeaTui(App[None]):
                                            read_only=self.role == "viewer")
             if frozen != self.frozen:
                 self._set_frozen(frozen)
+            elif frozen and self.query_one(TabbedContent).active == "robots":
+                self._show_robots()  # the ages keep growing while nothing arrives
+
+    def _show_robots(self) -> None:
+        """The Robots tab from the last body. Not live, each robot's age grows from its
+        last known fix on this machine's clock (the time since the body arrived), so a
+        technician sees how old the pose really is; the daemon's clock is not used (a
+        remote daemon's may differ, a replayed source's is the recording's)."""
+        if self.robots_body is not None:
+            self.query_one(RobotsPane).update_robots(
+                self.robots_body, since=time.monotonic() - self._robots_at)
 
     def _set_frozen(self, frozen: bool) -> None:
         """Grey the data and stop claiming it is live (or undo that)."""
         self.frozen = frozen
         self.screen.set_class(frozen, "-frozen")
-        robots = self.query_one(RobotsPane)
-        robots.frozen = frozen
-        if self.robots_body is not None:
-            robots.update_robots(self.robots_body)
+        self.query_one(RobotsPane).frozen = frozen
+        self._show_robots()
         self.query_one(CameraPane).set_dim(frozen)
 
     # -- control -------------------------------------------------------------------------------
@@ -491,6 +509,7 @@ class KmeaTui(App[None]):
             text = f"{args.get('key')} = {args.get('value')!r}"
             config_pane.show_reply(f"set {text}" if ok else f"set {text}: {error}", ok)
             if ok:
+                self.unsaved[str(args.get("key"))] = args.get("value")
                 self.control("get_config")
             else:
                 config_pane.revert(str(args.get("key", "")))
@@ -502,6 +521,13 @@ class KmeaTui(App[None]):
             config_pane.show_reply(f"saved to {where}" if ok else f"save: {error}", ok)
             self.notify(f"configuration saved to {where}" if ok else f"save failed: {error}",
                         severity="information" if ok else "error")
+            if ok:
+                # Keys still on trial ("held") are saved again by the daemon once their
+                # trial passes (or at its shutdown): nothing is left for the user to do.
+                self.unsaved.clear()
+                if self._quit_after_save:
+                    self.exit()
+            self._quit_after_save = False
             return
         if cmd in ("log_start", "log_stop", "record_start", "record_stop", "reload_map",
                    "reset_stats"):
@@ -513,7 +539,24 @@ class KmeaTui(App[None]):
             self.notify(text, severity="information" if ok else "error")
 
     # -- key actions -------------------------------------------------------------------------
+    async def action_quit(self) -> None:
+        """q / Ctrl+Q: quit at once, unless this UI's live changes were never saved: then
+        ask once (quit anyway, save and quit, cancel); q or Ctrl+Q again quits."""
+        if not self.unsaved or isinstance(self.screen, QuitScreen):
+            self.exit()
+            return
+        self.push_screen(QuitScreen(list(self.unsaved)), self._quit_answer)
+
+    def _quit_answer(self, answer: str | None) -> None:
+        if answer == "quit":
+            self.exit()
+        elif answer == "save":
+            self._quit_after_save = True  # quits on the save's reply, stays if it fails
+            self.control("save_config")
+
     def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        if isinstance(self.screen, QuitScreen):
+            return action == "quit"  # the question is open: no tab switching under it
         tab = self.query_one(TabbedContent).active if self.is_mounted else ""
         if action == "leave_field":
             return isinstance(self.focused, (Input, Select))
@@ -587,8 +630,7 @@ class KmeaTui(App[None]):
 
     def on_live_table_sort_changed(self, event: LiveTable.SortChanged) -> None:
         # Robots and statistics summaries show the sort; re-render them from the last data.
-        if self.robots_body is not None:
-            self.query_one(RobotsPane).update_robots(self.robots_body)
+        self._show_robots()
 
 
 async def save_screenshots(recording: str | Path, out_dir: str | Path,

@@ -101,7 +101,8 @@ def robots_body(res: FrameResult, tracks: Iterable[RobotTrack]) -> RobotsBody:
                     "valid": tr.name in res.robots,
                     "age_s": (res.timestamp - tr.last_seen) if seen else None,
                     "stale": tr.stale, "destinations": list(tr.destinations),
-                    "sent": tr.sent, "seq": tr.seq, "send_errors": tr.errors})
+                    "sent": tr.sent, "seq": tr.seq, "send_errors": tr.errors,
+                    "send_refused": tr.refused, "refused": tr.refused_now()})
     return {"t": res.timestamp, "frame": res.index, "robots": out}
 
 

@@ -138,6 +138,16 @@ def _port_hint(text: str) -> str:
             "Ctrl+C in its terminal), or start this one with --free-ports")
 
 
+def starting_what(spec: str) -> str:
+    """What a start with source ``spec`` spends its first seconds on, in a few words."""
+    kind = str(spec).partition(":")[0]
+    what = {"sim": "building the simulated floor, ~15 s",
+            "picamera": "opening the camera", "camera": "opening the camera",
+            "video": "opening the video", "images": "reading the images",
+            "replay": "opening the recording"}.get(kind, f"opening {spec}")
+    return f"loading the map, {what}"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.frames is not None and args.frames < 1:
@@ -181,6 +191,11 @@ def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
     from kmead.notify import Notifier, monotonic_alive
 
     notifier = Notifier()
+    if ui:
+        # The daemon is built before the UI can show anything (the simulator's floor takes
+        # 15-20 s on a Pi): say what is happening rather than leave the terminal blank.
+        print(f"kmead: starting ({starting_what(cfg['source']['spec'])})...",
+              file=sys.stderr, flush=True)
     try:
         daemon = Daemon(cfg, max_frames=args.frames)
     except StartupError as e:

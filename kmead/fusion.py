@@ -342,6 +342,7 @@ class FusionNode:
                         "age_s": (now - tr.last_seen) if seen else None,
                         "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
                         "seq": tr.seq, "send_errors": tr.errors,
+                        "send_refused": tr.refused, "refused": tr.refused_now(),
                         "source": "+".join(srcs),
                         "sources": {s: now - t for s, t in last.last.items()} if last else {},
                         "vx": st.vx if st else None, "vy": st.vy if st else None,

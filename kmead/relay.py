@@ -23,11 +23,15 @@ filter); sigma: 1-sigma position m (0 when unknown); age: s from the newest meas
 
 Each destination has its own connected UDP socket, so a destination that refuses (ICMP port
 unreachable, e.g. nothing listening) is reported by the kernel at the next send and counted
-in ``errors`` rather than ``sent``.
+in ``errors`` rather than ``sent``; such refusals are also counted in ``refused``, and
+:meth:`RobotTrack.refused_now` names the destinations refused among the last messages (the
+UI's "no listener": with nothing listening about every other send fails, the others go
+out and draw the next refusal).
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import socket
@@ -58,7 +62,21 @@ class RobotTrack:
     seq: int = 0
     sent: int = 0
     errors: int = 0
+    refused: int = 0  # of errors: refused by the destination (nothing listening)
+    refused_seq: dict[str, int] = field(default_factory=dict)  # destination -> seq
     extra: dict = field(default_factory=dict)
+
+    def refused_now(self) -> list[str]:
+        """Destinations refused among the last :data:`REFUSED_WINDOW` messages.
+
+        The kernel reports a refusal at the send after the datagram that drew it, so a
+        destination nobody listens on fails every other send; one that starts listening
+        leaves this list within a few messages."""
+        return [d for d in self.destinations
+                if d in self.refused_seq and self.seq - self.refused_seq[d] < REFUSED_WINDOW]
+
+
+REFUSED_WINDOW = 4
 
 
 EXTRA_FIELDS = ("vx", "vy", "omega", "sigma", "age")
@@ -171,6 +189,7 @@ class Relay:
         if self.extra_fields:
             extra = {"sigma": tr.sigma, **tr.extra} if valid else {}
         data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid, extra)
+        dests = dict(zip(tr.addrs, tr.destinations, strict=False))
         for addr in tr.addrs if addrs is None else addrs:
             s = self._sock(addr) if addr is not None else None
             if s is None:  # a host name that did not resolve at configuration time
@@ -179,10 +198,14 @@ class Relay:
             try:
                 s.send(data)
                 tr.sent += 1
-            except OSError:
+            except OSError as e:
                 # Refused (an earlier datagram drew ICMP port unreachable), no route, full
                 # buffer: count it, never stall the loop.
                 tr.errors += 1
+                if e.errno == errno.ECONNREFUSED:
+                    tr.refused += 1
+                    if (dest := dests.get(addr)) is not None:
+                        tr.refused_seq[dest] = tr.seq
         if publish:
             self._publish(tr, t, valid)
 

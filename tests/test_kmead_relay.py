@@ -119,6 +119,19 @@ def test_refused_destination_is_counted_as_errors() -> None:
         tr = relay.tracks["r"]
         assert tr.sent + tr.errors == 20
         assert tr.errors >= 9, (tr.sent, tr.errors)  # at least every other send refused
+        # Refusals, told apart from other errors: the UI says "no listener".
+        assert tr.refused == tr.errors
+        assert tr.refused_now() == [f"udp:127.0.0.1:{port}"]
+        # Someone starts listening: the destination is no longer refused.
+        listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        listener.bind(("127.0.0.1", port))
+        try:
+            for i in range(20, 30):
+                relay.update("r", float(i), 0.0, 0.0, 0.0)
+            assert tr.refused_now() == []
+            assert listener.recv(1024)
+        finally:
+            listener.close()
     finally:
         relay.close()
 

@@ -119,6 +119,9 @@ async def test_keyboard_escape_q_and_a_rejected_value(daemon: Daemon) -> None:
         await wait_for(pilot, lambda: "must be in [0.001, 1]" in str(
             app.query_one("#config-status").render()), "the daemon's refusal")
         assert alpha.value == current  # the field shows the value in force again
+        assert not alpha.has_focus  # Enter gave the keys back to the tab
+        alpha.focus()
+        await pilot.press("end")  # focus selects the text: typing would replace it
         # q, digits typed into the field are text ...
         await pilot.press("q", "1")
         assert alpha.value == current + "q1" and app.query_one(TabbedContent).active == "config"

@@ -217,12 +217,20 @@ class ConfigPane(VerticalScroll):
         if not isinstance(value, (int, float)) or isinstance(value, bool):
             self.show_reply(f"filter alpha must be a number, got {event.value!r}", False)
             self.revert("filter.alpha")
-            return
+            return  # nothing was applied: the field keeps the focus for a correction
         self._set("filter.alpha", float(value))
+        self._leave_field()
 
     @on(Input.Submitted, ".detector-option")
     def _detector_submitted(self, event: Input.Submitted) -> None:
         self._set(f"detector.{event.input.name}", parse_value(event.value))
+        self._leave_field()
+
+    def _leave_field(self) -> None:
+        # The value is on its way: back to the tab, as Escape does, so the digits switch
+        # tabs and q quits again instead of being typed into the field. (A refused value
+        # comes back into the field by itself, with the daemon's reason above.)
+        self.focus()
 
     @on(Button.Pressed, "#save")
     def action_save(self) -> None:

@@ -249,6 +249,8 @@ class LiveTable(ScrollView, can_focus=True):
     def _set_sort(self, column: str, reverse: bool) -> None:
         self.sort_column, self.sort_reverse = column, reverse
         self.apply_sort()
+        if self.is_mounted:
+            self.refresh(Region(0, 0, max(self.size.width, self.virtual_size.width), 1))
         self.post_message(self.SortChanged(self))
 
     def action_cycle_sort(self) -> None:
@@ -260,7 +262,22 @@ class LiveTable(ScrollView, can_focus=True):
 
     def sort_label(self) -> str:
         label = dict(self._columns).get(self.sort_column, self.sort_column)
-        return f"sort {label}{'▼' if self.sort_reverse else '▲'}"
+        return f"sort {label}{self._arrow()}"
+
+    def _arrow(self) -> str:
+        return "▼" if self.sort_reverse else "▲"
+
+    def header_label(self, key: str, label: str, width: int) -> str:
+        """A column's title in its header cell of ``width`` columns: the sort column's
+        ends in its arrow. Columns are as wide as their widest cell, often exactly their
+        title: the title loses its last letters rather than the arrow, which is what
+        a narrow (80x24) table must still show; widening the column instead would make
+        every column ever sorted wider for good (widths never shrink)."""
+        if key != self.sort_column:
+            return label
+        if cell_len(label) + 1 <= width:
+            return label + self._arrow()
+        return set_cell_size(label, max(0, width - 1)) + self._arrow()
 
     class SortChanged(Message):
         """The sort column or direction changed."""
@@ -388,10 +405,11 @@ class LiveTable(ScrollView, can_focus=True):
         return got
 
     def _header_strip(self, style: Style) -> Strip:
-        key = (style, tuple(self._widths), tuple(self._columns))
+        key = (style, tuple(self._widths), tuple(self._columns), self.sort_column,
+               self.sort_reverse)
         if self._header is None or self._header[0] != key:
-            segs = [s for (_, label), w in zip(self._columns, self._widths, strict=True)
-                    for s in self._cell_segments(label, w, style)]
+            segs = [s for (col, label), w in zip(self._columns, self._widths, strict=True)
+                    for s in self._cell_segments(self.header_label(col, label, w), w, style)]
             self._header = (key, Strip(segs))
         return self._header[1]
 

@@ -41,34 +41,88 @@ def _sort_value(raw: dict[str, Any], col: str) -> Any:
     return v if isinstance(v, (int, float)) else None
 
 
+def refused_now(r: dict[str, Any]) -> list[str]:
+    """The robot's destinations that refuse its datagrams now (the daemon's ``refused``)."""
+    dests, refused = r.get("destinations"), r.get("refused")
+    if not isinstance(dests, list) or not isinstance(refused, list):
+        return []
+    return [d for d in dests if d in refused]
+
+
 def sent_cell(r: dict[str, Any]) -> str | Text:
-    """Messages sent, with the failed sends (``send_errors``) when there are any."""
+    """Messages sent, with the failed sends (``send_errors``) when there are any.
+
+    A destination nobody listens on (the default ones on a first start) refuses every
+    datagram: the count would say "sent" although nothing arrives, and ✗N would look like a
+    fault of kmead. The cell says "no listener" instead (with several destinations, how
+    many of them: "no listener 1/2"; the destinations column shows which, in yellow).
+    Refusals (``send_refused``) are not counted as ✗ errors."""
     sent, errors = r.get("sent", DASH), r.get("send_errors")
+    refused = r.get("send_refused")
+    if isinstance(errors, int) and isinstance(refused, int):
+        errors -= refused
     if isinstance(errors, int) and errors > 0:
         return Text(f"{sent} ✗{errors}", style="bold yellow")
+    if nobody := refused_now(r):
+        n = len(r.get("destinations") or [])
+        return Text(NO_LISTENER + (f" {len(nobody)}/{n}" if len(nobody) < n else ""),
+                    style="yellow")
     return str(sent)
 
 
-def robot_cells(r: dict[str, Any], frozen: bool = False) -> list[str | Text]:
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+NO_LISTENER = "no listener"
+
+
+def destination_text(dest: str) -> str:
+    """``udp:127.0.0.1:9001`` as ``:9001``: on this machine only the port tells them apart,
+    and the full address does not fit at 80x24; other hosts keep ``host:port``."""
+    d = str(dest).removeprefix("udp:")  # UDP is the only kind of destination
+    host, sep, port = d.rpartition(":")
+    if sep and (host in LOOPBACK_HOSTS or host.startswith("127.")):
+        return f":{port}"
+    return d
+
+
+def destinations_cell(r: dict[str, Any]) -> str | Text:
+    """The destinations; those nobody listens on in yellow (see :func:`sent_cell`)."""
+    dests = r.get("destinations") or []
+    if not isinstance(dests, list):
+        return str(dests)
+    nobody = refused_now(r)
+    if not nobody:
+        return ", ".join(destination_text(d) for d in dests)
+    text = Text()
+    for i, d in enumerate(dests):
+        if i:
+            text.append(", ")
+        text.append(destination_text(d), style="yellow" if d in nobody else "")
+    return text
+
+
+def robot_cells(r: dict[str, Any], frozen: bool = False,
+                since: float = 0.0) -> list[str | Text]:
+    """One robot's row. ``since``: seconds since the body arrived, added to the age of a
+    robot's last fix while the data is not live (a frozen 0.0 would say "just seen")."""
     th = r.get("theta")
     markers = r.get("markers") or []
-    dests = r.get("destinations") or []
     state = robot_state(r, frozen)
+    age = r.get("age_s")
+    if frozen and isinstance(age, (int, float)):
+        age += since
     cells: list[str | Text] = [
         str(r.get("name", "?")),
         "+".join(map(str, markers)) if isinstance(markers, list) else str(markers),
         fmt(r.get("x")), fmt(r.get("y")),
         fmt(math.degrees(th), ".0f") if isinstance(th, (int, float)) else DASH,
         fmt(r.get("sigma"), ".1f", 1000.0),
-        fmt(r.get("age_s"), ".1f"),
+        fmt(age, ".0f" if isinstance(age, (int, float)) and age >= 100 else ".1f"),
         Text(state + (f" {src}" if (src := r.get("source")) and isinstance(src, str)
                        and not frozen else ""),
              style="bold red" if state == "STALE" else
              ("green" if state == "ok" else "bright_black" if frozen else "yellow")),
         sent_cell(r),
-        # UDP is the only kind of destination: the prefix costs columns at 80x24.
-        ", ".join(str(d).removeprefix("udp:") for d in dests)
-        if isinstance(dests, list) else str(dests),
+        destinations_cell(r),
     ]
     return cells
 
@@ -85,10 +139,11 @@ class RobotsPane(Vertical):
         yield Static("waiting for telemetry…", id="robots-summary", classes="summary")
         yield RobotsTable(id="robots-table")
 
-    def update_robots(self, body: dict[str, Any]) -> None:
+    def update_robots(self, body: dict[str, Any], since: float = 0.0) -> None:
+        """Show one ``robots`` body; ``since``: seconds since it arrived (see robot_cells)."""
         robots = [r for r in body.get("robots", []) if isinstance(r, dict) and "name" in r]
         table = self.query_one(RobotsTable)
-        table.sync({str(r["name"]): (r, robot_cells(r, self.frozen)) for r in robots})
+        table.sync({str(r["name"]): (r, robot_cells(r, self.frozen, since)) for r in robots})
         stale = sum(1 for r in robots if r.get("stale"))
         show_line(self.query_one("#robots-summary", Static), Text.assemble(
             ("NOT LIVE: last known " if self.frozen else "", "bold red"),
