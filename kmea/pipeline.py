@@ -647,9 +647,6 @@ class Pipeline:
                     if rejections is not None:
                         rejections[spec.name] = o.reason
                     continue
-                if o.retracted is not None and rejections is not None:
-                    # The previous frame's measurement was an outlier, found now: reported.
-                    rejections[spec.name] = o.reason
                 st = o.state
                 out[spec.name] = RobotFix(spec.name, st.x, st.y, st.theta, st.sigma,
                                           list(pose.markers_seen), st.vx, st.vy, st.omega,

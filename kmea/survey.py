@@ -178,7 +178,7 @@ def survey_frames(frames: Iterable[np.ndarray], world_map: MarkerMap, camera,
 
     progress(frame index, markers seen so far) is called after each frame.
     """
-    from kmea.estimators.unknown_plane import chi2_quantile
+    from kmea.chi2 import chi2_quantile
     from kmea.vision.detection import DetectorConfig, MarkerDetector
     from kmea.vision.marker_pose import estimate_marker_poses
 

@@ -45,11 +45,7 @@ LIVE_KEYS = {
     "filter.kind", "filter.model", "filter.accel_noise", "filter.turn_noise",
     "filter.gate_probability", "filter.reacquire_n", "filter.predict",
     "filter.manoeuvre_scale", "filter.manoeuvre_time_s", "filter.cruise_time_s",
-    "filter.robust_k", "filter.step_k", "filter.look_back", "filter.look_back_probability",
-    "filter.look_back_n", "filter.step_cumulative", "filter.confirm_probability",
-    "filter.reacquire_follow", "filter.max_speed", "filter.reacquire_skip_outlier",
-    "filter.outlier_mixture", "filter.outlier_probability", "filter.outlier_radius",
-    "filter.recover",
+    "filter.step_k", "filter.max_speed", "filter.outlier_probability", "filter.outlier_radius",
     "relay.stale_after_s", "relay.stale_repeat_s", "relay.extra_fields", "stats.window",
     "stats.loo", "stats.displaced_threshold", "stats.displaced_frames", "log.level",
 }

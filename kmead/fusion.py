@@ -297,9 +297,6 @@ class FusionNode:
             self.event("warning", f"robot {m.name}: measurement of {inp.label} rejected: "
                                   f"{out.reason}")
             return False
-        if out.retracted is not None:
-            self.rejected_events += 1
-            self.event("warning", f"robot {m.name}: {out.reason}")
         if out.kind == "reacquired":
             self.event("warning", f"robot {m.name}: re-acquired from {inp.label}: {out.reason}")
         self._output(m, t_recv)

@@ -451,8 +451,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
                  "track_refit_every": integer(1, 100000)},
     "estimator": {"algorithm": _algorithm, "unknown_plane": choice("auto", "floor", "free")},
     # Physical ranges: a length of 1e-300 m or a time of 1e-300 s is no setting anyone
-    # means, and it divides by zero or overflows inside the filter (outlier_radius = 1e-300
-    # once made every frame fail).
+    # means, and it divides by zero or overflows inside the filter.
     "filter": {"alpha": number(1e-3, 1),
                "reset_after_s": number(0.01, 3600, unit=" s"),
                "kind": choice("iir", "kalman"), "model": choice("cv", "ctrv"),
@@ -462,12 +461,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
                "manoeuvre_scale": number(1, 1e6),
                "manoeuvre_time_s": number(0.01, 3600, unit=" s"),
                "cruise_time_s": number(0.01, 3600, unit=" s"),
-               "robust_k": number(0.01, 1e9), "step_k": number(0.01, 1e9),
-               "look_back": _bool, "look_back_probability": _probability,
-               "look_back_n": integer(1, 10), "step_cumulative": _bool,
-               "confirm_probability": _probability, "reacquire_follow": _bool,
-               "reacquire_skip_outlier": _bool, "outlier_mixture": _bool, "recover": _bool,
-               "outlier_probability": _probability,
+               "step_k": number(0.01, 1e9), "outlier_probability": _probability,
                "outlier_radius": number(1e-4, 10, unit=" m"),
                "max_speed": number(1e-3, 100, unit=" m/s"),
                "predict": _bool},

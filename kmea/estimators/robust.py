@@ -47,6 +47,7 @@ from itertools import combinations
 
 import numpy as np
 
+from kmea.chi2 import chi2_quantile
 from kmea.estimators.base import (
     CameraIntrinsics,
     Estimate,
@@ -63,7 +64,7 @@ from kmea.estimators.common import (
 from kmea.estimators.corner_noise import SIGMA_FLOOR_PX, robust_sigma
 from kmea.estimators.kmea import kmea_align
 from kmea.estimators.umeyama import umeyama_batch
-from kmea.estimators.unknown_plane import check_mode, chi2_quantile
+from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import ray_plane_parameter
 from kmea.map_model import MarkerMap
 

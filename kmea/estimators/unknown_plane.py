@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kmea.chi2 import chi2_quantile
 from kmea.geometry import (
     check_distortion,
     intersect_rays_planes,
@@ -47,7 +48,7 @@ from kmea.geometry import (
 )
 from kmea.map_model import MarkerMap
 
-__all__ = ["MODES", "Plane", "PlaneChoice", "check_mode", "chi2_quantile", "infer", "map_planes",
+__all__ = ["MODES", "Plane", "PlaneChoice", "check_mode", "infer", "map_planes",
            "place_with_similarity"]
 
 MODES = ("auto", "floor", "free")
@@ -115,43 +116,6 @@ def map_planes(world_map: MarkerMap, angle_tol: float = 1e-3, offset_tol: float 
             continue
         out.append(Plane(m.rotation.copy(), m.position.copy(), f"plane {len(out) + 1}"))
     return ([_FLOOR] if floor else []) + out
-
-
-def _chi2_cdf(x: float, dof: int) -> float:
-    """Chi-square CDF: the regularized lower incomplete gamma P(dof/2, x/2) by its series."""
-    if x <= 0:
-        return 0.0
-    a, z = dof / 2.0, x / 2.0
-    term = 1.0 / a
-    total = term
-    n = 0
-    while term > 1e-17 * total and n < 1000:
-        n += 1
-        term *= z / (a + n)
-        total += term
-    return min(1.0, math.exp(a * math.log(z) - z - math.lgamma(a)) * total)
-
-
-def chi2_quantile(level: float, dof: int = 3) -> float:
-    """Quantile of the chi-square distribution with ``dof`` degrees of freedom (bisection
-    on the exact CDF; numpy only, no scipy)."""
-    p = float(level)
-    if not 0.0 < p < 1.0:
-        raise ValueError(f"chi2_quantile: level must be in (0, 1), got {level!r}")
-    if dof == 2:  # exact: the chi-square with 2 dof is an exponential
-        return -2.0 * math.log(1.0 - p)
-    lo, hi = 0.0, max(1.0, 4.0 * dof)
-    while _chi2_cdf(hi, dof) < p:
-        hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if _chi2_cdf(mid, dof) < p:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo < 1e-10 * hi:
-            break
-    return 0.5 * (lo + hi)
 
 
 def _square(length: float) -> np.ndarray:
