@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| {label} | {a['caused_big']}/{a['outliers']} | {a['caused_max_sig']:.1f} "
               f"| {a['pos'] * 1e3:.2f} | {a['head'] * 57.29578:.2f} | {a['false_rej']} "
               f"| {a['reacquired']}/{a['drives']} ({_slowest(rows[n])}) "
-              f"| {a['lag'] * 1e3:.0f} |")
+              f"| {abs(a['lag']) * 1e3:.0f} |")
 
 
 def _slowest(rows: list[dict]) -> str:
