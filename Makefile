@@ -65,6 +65,10 @@ test-current: $(STAMP)
 ifeq ($(BW_FOUND)$(BW_REQUIRED),)
 test-bookworm:
 	@echo "*** make: Bookworm stack SKIPPED: $(PY_BOOKWORM) not found; install Python 3.11 or run PY_BOOKWORM=/path/to/python3.11 make test-bookworm (CI: REQUIRE_BOOKWORM=1 make test) ***"
+else ifeq ($(BW_FOUND),)
+# Required but missing: fail at once, even beside a .venv-bookworm made earlier.
+test-bookworm:
+	@echo "make: $(PY_BOOKWORM) not found: the Bookworm stack needs Python 3.11 (install it, or PY_BOOKWORM=/path/to/python3.11)"; exit 1
 else
 test-bookworm: $(BW_STAMP)
 	@$(BW_BIN)/python $(STACK)

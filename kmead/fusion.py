@@ -187,7 +187,6 @@ class FusionNode:
         self.t0 = time.time()
         self.curve = None
         self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
-        logging.getLogger("kmead").addHandler(self.log_ring)
         net = cfg["network"]
         error, warning = exposure({"network.telemetry": net["telemetry"],
                                    "network.control": net["control"]},
@@ -216,6 +215,7 @@ class FusionNode:
         self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx, curve=self.curve)
         self._log_handler = TelemetryLogHandler(self.telemetry)
         logging.getLogger("kmead").addHandler(self._log_handler)
+        logging.getLogger("kmead").addHandler(self.log_ring)
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
                            cfg["relay"]["stale_repeat_s"], publish=self.publish,
                            extra_fields=cfg["relay"]["extra_fields"])
@@ -499,7 +499,8 @@ class FusionNode:
         if getattr(self, "_log_handler", None) is not None:
             logging.getLogger("kmead").removeHandler(self._log_handler)
             self._log_handler = None
-        logging.getLogger("kmead").removeHandler(self.log_ring)
+        if getattr(self, "log_ring", None) is not None:
+            logging.getLogger("kmead").removeHandler(self.log_ring)
         if getattr(self, "relay", None) is not None:
             try:  # robots must not keep following the last fused pose
                 self.relay.shutdown(time.time())
