@@ -345,3 +345,47 @@ def test_the_bounds_leave_real_cameras_alone(tmp_path: Path) -> None:
                                  [850.0, -120.0, 0.001, -0.002, 40.0, 851.0, -95.0, 60.0]))
     m = load_camera(path)
     assert m.fx == 410.0 and m.dist_coeffs[0] == 850.0
+
+
+def test_skew_that_opencv_would_ignore_is_refused(tmp_path: Path) -> None:
+    """cv2.projectPoints and solvePnP ignore K[0, 1]: a skew that moves the image's edge by
+    more than a pixel describes another camera than the one estimated with."""
+    path = tmp_path / "skew.toml"
+    path.write_text("width = 1640\nheight = 1232\nfx = 1357.0\nfy = 1357.0\ncx = 819.5\n"
+                    "cy = 615.5\nskew = 5.0\ndist_coeffs = [0, 0, 0, 0]\n")
+    with pytest.raises(CameraError, match=r"skew\.toml: skew 5 px would move the image's "
+                                          r"edge by 2\.27 px, and OpenCV ignores skew"):
+        load_camera(path)
+    path.write_text(path.read_text().replace("skew = 5.0", "skew = 0.5"))
+    assert load_camera(path).camera_matrix[0, 1] == 0.5  # 0.23 px: kept, as calibrated
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".json", ".xml"])
+def test_deep_nesting_is_one_line_not_a_crash(tmp_path: Path, suffix: str) -> None:
+    """OpenCV's parsers recurse per level: 60,000 levels (a 120-420 KB file) was a
+    segmentation fault, so the load runs in a child process."""
+    import subprocess
+    import sys
+
+    d = 60_000
+    path = tmp_path / f"deep{suffix}"
+    path.write_text({
+        ".yml": "%YAML:1.0\n---\ncamera_matrix: " + "[" * d + "]" * d + "\n",
+        ".json": '{"camera_matrix": ' + "[" * d + "]" * d + "}",
+        ".xml": '<?xml version="1.0"?>\n<opencv_storage><camera_matrix>' + "<_>" * d
+                + "</_>" * d + "</camera_matrix></opencv_storage>\n",
+    }[suffix])
+    code = ("import sys\nfrom kmea.vision.camera import CameraError, load_camera\n"
+            "try:\n    load_camera(sys.argv[1])\nexcept CameraError as e:\n    print(e)\n")
+    run = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-300:]
+    assert run.stdout.strip() == f"{path}: nested more than 32 levels deep: not a camera file"
+
+
+def test_a_camera_file_of_megabytes_is_refused(tmp_path: Path) -> None:
+    path = _fs_file(tmp_path / "big.yml", camera_matrix=K,
+                    distortion_coefficients=DIST.reshape(-1, 1))
+    path.write_text(path.read_text() + "padding: \"" + "x" * (1 << 20) + "\"\n")
+    with pytest.raises(CameraError, match=r"big\.yml: larger than 1 MB: not a camera file"):
+        load_camera(path)

@@ -38,6 +38,14 @@ MAX_FOCAL_SIDES = 100.0
 # (k1 ~ k4); 1e4 leaves that room, and anything beyond moves image points by more than any
 # lens (1e300 overflows and no pose is ever estimated).
 MAX_DISTORTION = 1e4
+# OpenCV's FileStorage parsers recurse per nesting level and overflow the stack (a
+# segmentation fault, no message) at some 50,000 levels; a camera file nests 2. The size
+# bound also bounds YAML's indentation nesting (a file of N levels is N^2 / 2 bytes).
+MAX_FILESTORAGE_NESTING = 32
+MAX_FILESTORAGE_BYTES = 1 << 20  # kmea calibrate writes under 2 KB
+# Skew is ignored by cv2.projectPoints and solvePnP, so a camera matrix whose skew would
+# move the image's edge by more than this many pixels describes another camera.
+MAX_IGNORED_SKEW_PX = 1.0
 
 
 class CameraError(ValueError):
@@ -240,6 +248,11 @@ def _build(K: np.ndarray, d: np.ndarray, w: int | None, h: int | None, source: s
     except CameraError as e:
         raise CameraError(f"{source}: {e}") from None
     _check_focal(model.camera_matrix, model.width, model.height, k_where)
+    shift = abs(model.camera_matrix[0, 1]) * model.height / (2.0 * model.fy)
+    if shift > MAX_IGNORED_SKEW_PX:
+        raise CameraError(f"{k_where}: skew {model.camera_matrix[0, 1]:g} px would move the "
+                          f"image's edge by {shift:.3g} px, and OpenCV ignores skew: "
+                          "calibrate without it (0)")
     return model
 
 
@@ -287,9 +300,36 @@ def _fs_node_array(node: object, where: str) -> np.ndarray:
     return _finite_array([_fs_number(node, where)], where)
 
 
+_OPEN_CLOSE = re.compile(r'"(?:[^"\\]|\\.)*"|[\[{]|[\]}]|<[A-Za-z_][^>]*?/>|<[A-Za-z_]|</')
+
+
+def _nesting(text: str) -> int:
+    """The deepest nesting of [ ], { } and XML elements outside JSON/YAML strings."""
+    depth = deepest = 0
+    for m in _OPEN_CLOSE.finditer(text):
+        tok = m.group()
+        if tok[0] in "[{" or (tok[0] == "<" and tok[1] != "/" and not tok.endswith("/>")):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif tok[0] in "]}" or tok == "</":
+            depth -= 1
+    return deepest
+
+
 def _load_filestorage(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
     import cv2
 
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_FILESTORAGE_BYTES + 1)
+    except OSError as e:
+        raise CameraError(f"{path}: cannot read: {e.strerror or e}") from None
+    if len(data) > MAX_FILESTORAGE_BYTES:
+        raise CameraError(f"{path}: larger than {MAX_FILESTORAGE_BYTES >> 20} MB: not a camera "
+                          "file")
+    if _nesting(data.decode("utf-8", "replace")) > MAX_FILESTORAGE_NESTING:
+        raise CameraError(f"{path}: nested more than {MAX_FILESTORAGE_NESTING} levels deep: not "
+                          "a camera file")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except Exception as e:  # cv2.error, surfacing as SystemError from the constructor
