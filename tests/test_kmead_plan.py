@@ -71,6 +71,11 @@ def _camera(name: str, text: str):
     return args
 
 
+def _deep(path: Path, option: str) -> list[str]:
+    path.write_text("a = " + "[" * 700 + "]" * 700 + "\n")
+    return [option, str(path)]
+
+
 _K = "[[1357.0, 0.0, 819.5], [0.0, 1357.0, 615.5], [0.0, 0.0, 1.0]]"
 _SIZE = "width = 1640\nheight = 1232\n"
 
@@ -110,6 +115,14 @@ REFUSALS = {
         "cam.json", '{"camera_matrix": [1357, 0, 819.5, 0, 1357, 615.5, 0, 0, "x"], '
                     '"dist_coeffs": [0, 0, 0, 0]}'),
     "camera file a list": _camera("cam.yml", "%YAML:1.0\n---\n- 1\n- 2\n"),
+    "camera skew 1e300": _camera("cam.toml", f"{_SIZE}fx = 1357.0\nfy = 1357.0\ncx = 819.5\n"
+                                             "cy = 615.5\nskew = 1e300\n"
+                                             "dist_coeffs = [0, 0, 0, 0]\n"),
+    # TOML nested 600 deep was a 3,002-line RecursionError; --set echoed 1,400 characters.
+    "--set nested 700 deep": lambda t: ["--set", "filter.alpha=" + "[" * 700 + "]" * 700],
+    "configuration nested 700 deep": lambda t: _deep(t / "c.toml", "--config"),
+    "map nested 700 deep": lambda t: _deep(t / "m.toml", "--map"),
+    "camera nested 700 deep": lambda t: _deep(t / "cam.toml", "--camera"),
 }
 
 

@@ -310,7 +310,7 @@ def test_marker_validation() -> None:
         Marker(3, np.zeros(3), np.diag([1.0, 1.0, -1.0]), 0.06)
     with pytest.raises(MapError, match="marker 3: position must be 3 finite"):
         Marker(3, [0.0, np.nan, 0.0], np.eye(3), 0.06)
-    with pytest.raises(MapError, match="marker 3: length must be 0.0001-10 m"):
+    with pytest.raises(MapError, match=r"marker 3: length must be 0\.0001-10 m"):
         Marker(3, [0.0, 0.0, 0.0], np.eye(3), 0.0)
     # The model holds the bounds too: maps from recordings and the survey pass no file.
     with pytest.raises(MapError, match=r"marker 3: position \[0.0, 1e\+200, 0.0\] m is beyond"):
