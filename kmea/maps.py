@@ -124,7 +124,8 @@ def _int(value: object, where: str, strict: bool = False) -> int:
     if v != int(v) or v < 0:
         raise MapError(f"{where}: expected a non-negative integer id, got {_short(value)}")
     if v > MAX_MARKER_ID:
-        raise MapError(f"{where}: {v:g} is beyond {MAX_MARKER_ID}, more markers than any "
+        shown = str(value) if isinstance(value, int) else f"{v:g}"  # (a huge int: _num refused it)
+        raise MapError(f"{where}: {shown} is beyond {MAX_MARKER_ID}, more markers than any "
                        "ArUco dictionary has")
     return int(v)
 
