@@ -111,6 +111,9 @@ REFUSALS = {
     "focal length 0.001 px": _camera(
         "cam.toml", f"{_SIZE}camera_matrix = [[1357.0, 0, 819.5], [0, 0.001, 615.5], [0, 0, 1]]"
                     "\ndist_coeffs = [0, 0, 0, 0]\n"),
+    "camera value not finite": _camera(
+        "cam.yml", "%YAML:1.0\n---\ncamera_matrix: [1357.0, 0, 819.5, 0, 1357.0, 615.5, 0, 0, 1]"
+                   "\ndistortion_coefficients: [0.1, .nan, 0, 0]\n"),
     "camera values not numbers": _camera(
         "cam.json", '{"camera_matrix": [1357, 0, 819.5, 0, 1357, 615.5, 0, 0, "x"], '
                     '"dist_coeffs": [0, 0, 0, 0]}'),
