@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["FILE_SUFFIXES", "PREDEFINED", "canonical_name", "check_dictionary_name",
-           "is_dictionary_file"]
+__all__ = ["FILE_SUFFIXES", "MAX_MARKER_ID", "PREDEFINED", "canonical_name",
+           "check_dictionary_name", "is_dictionary_file"]
 
 
 def _sizes() -> dict[str, int]:
@@ -26,6 +26,10 @@ def _sizes() -> dict[str, int]:
 # OpenCV's predefined ArUco dictionaries and their number of markers (valid ids 0..n-1).
 PREDEFINED: dict[str, int] = _sizes()
 _BY_KEY = {n.upper(): n for n in PREDEFINED}
+# The largest id a map or a robot may name: above every predefined dictionary (the
+# largest, DICT_APRILTAG_36h10, has 2320 markers), so an id beyond is a slip (1e20), not a
+# marker; the dictionary in use is checked against its own size where it is known.
+MAX_MARKER_ID = 4095
 
 FILE_SUFFIXES = (".yml", ".yaml", ".xml", ".json", ".gz")
 

@@ -11,17 +11,29 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kmea.aruco_names import PREDEFINED, is_dictionary_file
+from kmea.aruco_names import MAX_MARKER_ID, PREDEFINED, is_dictionary_file
 from kmea.geometry import marker_corners_local
 
-__all__ = ["DEFAULT_DICTIONARY", "MapError", "Marker", "MarkerMap", "check_map",
-           "check_spread"]
+__all__ = ["DEFAULT_DICTIONARY", "MAX_COORDINATE", "MAX_LENGTH", "MAX_MARKER_ID", "MIN_LENGTH",
+           "MapError", "Marker", "MarkerMap", "check_map", "check_spread"]
 
 #: The dictionary of a map that names none. RobotAtFactory 4.0's floor markers are
 #: DICT_5X5_50 codes (ids 0-49); DICT_5X5_100's first 50 codes are the same, and its wall
 #: markers (ids 50-65) need the larger dictionary, so every map reads DICT_5X5_100 unless
 #: it says otherwise.
 DEFAULT_DICTIONARY = "DICT_5X5_100"
+
+# Marker centres lie within 10 km of the world origin (m). The world frame is a venue's
+# (its origin a marker of the map), and no camera finds a marker that far: at the longest
+# focal length a camera file may have (100 image widths) a 6 cm marker is 10 px wide at
+# 1 km for a 1640 px image, a few km for the largest sensors. Beyond is a slip (1e308,
+# or metres scaled by 1e200: the squares overflow and every frame warns); a survey grid
+# (UTM) is to be shifted to the venue.
+MAX_COORDINATE = 1e4
+# A marker's side (m): the range of the configuration's detector.marker_length, from a
+# 0.1 mm print to a 10 m banner; 1e-300 or 1e300 leaves no pose to compute.
+MIN_LENGTH = 1e-4
+MAX_LENGTH = 10.0
 
 # A camera of this many pixels across that sees the whole map images each marker at
 # width * side / extent pixels; ArUco needs some 10 px, so a map spanning more than this
@@ -48,8 +60,9 @@ class Marker:
         rotation: (3, 3) marker2world rotation.
         length: side of the black square, metres.
 
-    Lists are accepted and stored as float arrays; a bad shape, a non-finite value, a
-    rotation that is not proper or a length <= 0 raises :class:`MapError`.
+    Lists are accepted and stored as float arrays; an id beyond MAX_MARKER_ID, a bad shape,
+    a non-finite value, a coordinate beyond MAX_COORDINATE, a rotation that is not proper
+    or a length outside MIN_LENGTH-MAX_LENGTH raises :class:`MapError`.
     """
 
     id: int
@@ -59,17 +72,23 @@ class Marker:
 
     def __post_init__(self) -> None:
         where = f"marker {self.id}"
-        if isinstance(self.id, bool) or not isinstance(self.id, (int, np.integer)) or self.id < 0:
-            raise MapError(f"marker id must be an integer >= 0, got {self.id!r}")
+        if isinstance(self.id, bool) or not isinstance(self.id, (int, np.integer)) \
+                or not 0 <= self.id <= MAX_MARKER_ID:
+            raise MapError(f"marker id must be an integer 0-{MAX_MARKER_ID}, got {self.id!r}")
         p = np.array(self.position, dtype=float)
         R = np.array(self.rotation, dtype=float)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
             raise MapError(f"{where}: position must be 3 finite numbers (m)")
+        if np.abs(p).max() > MAX_COORDINATE:
+            raise MapError(f"{where}: position {p.tolist()} m is beyond +-{MAX_COORDINATE:g} m "
+                           "of the origin (map positions are metres)")
         if R.shape != (3, 3) or not np.all(np.isfinite(R)) \
                 or np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
             raise MapError(f"{where}: rotation must be a proper 3x3 rotation matrix")
-        if isinstance(self.length, bool) or not (math.isfinite(self.length) and self.length > 0):
-            raise MapError(f"{where}: length must be > 0 m, got {self.length!r}")
+        if isinstance(self.length, bool) or not (math.isfinite(self.length)
+                                                 and MIN_LENGTH <= self.length <= MAX_LENGTH):
+            raise MapError(f"{where}: length must be {MIN_LENGTH:g}-{MAX_LENGTH:g} m, "
+                           f"got {self.length!r}")
         p.setflags(write=False)
         R.setflags(write=False)
         object.__setattr__(self, "id", int(self.id))

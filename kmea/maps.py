@@ -26,7 +26,18 @@ import tomli_w
 
 from kmea.aruco_names import check_dictionary_name, is_dictionary_file
 from kmea.geometry import euler_zyx_fixed_deg
-from kmea.map_model import DEFAULT_DICTIONARY, MapError, Marker, MarkerMap, check_map, check_spread
+from kmea.map_model import (
+    DEFAULT_DICTIONARY,
+    MAX_COORDINATE,
+    MAX_LENGTH,
+    MAX_MARKER_ID,
+    MIN_LENGTH,
+    MapError,
+    Marker,
+    MarkerMap,
+    check_map,
+    check_spread,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -67,6 +78,12 @@ def _check_dictionary(name: object, where: str, relative_to: Path | None = None)
 _MAP_KEYS = {"name", "dictionary", "default_length", "origin_id", "x_id", "y_id",
              "reference_length", "markers"}
 _MARKER_KEYS = {"id", "x", "y", "z", "rx_deg", "ry_deg", "rz_deg", "length"}
+# Rotations in files are degrees within one turn either way: that reaches every
+# orientation in both conventions people use ([0, 360) and (-180, 180]), and an angle
+# beyond is a slip (900 for 90.0) or garbage (1e300, which has no angle left in it).
+MAX_ANGLE_DEG = 360.0
+# The longest reference length a map can need: the diagonal of the cube of positions.
+MAX_REFERENCE_LENGTH = 2 * math.sqrt(3) * MAX_COORDINATE
 
 
 def _num(value: object, where: str, strict: bool = False) -> float:
@@ -80,9 +97,23 @@ def _num(value: object, where: str, strict: bool = False) -> float:
     try:
         v = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
-        raise MapError(f"{where}: expected a number, got {value!r}") from None
+        raise MapError(f"{where}: expected a number, got {_short(value)}") from None
+    except OverflowError:  # a TOML integer of hundreds of digits
+        raise MapError(f"{where}: value too large, got {_short(value)}") from None
     if not math.isfinite(v):
-        raise MapError(f"{where}: value must be finite, got {value!r}")
+        raise MapError(f"{where}: value must be finite, got {_short(value)}")
+    return v
+
+
+def _short(value: object) -> str:
+    """``repr`` cut to a line (a cell or a TOML integer can be thousands of characters)."""
+    r = repr(value) if not isinstance(value, int) or value.bit_length() < 200 else "<huge int>"
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
+def _within(v: float, lo: float, hi: float, where: str, unit: str, why: str = "") -> float:
+    if not lo <= v <= hi:
+        raise MapError(f"{where}: {v:g}{unit} is outside [{lo:g}, {hi:g}]{unit}{why}")
     return v
 
 
@@ -91,20 +122,28 @@ def _int(value: object, where: str, strict: bool = False) -> int:
         raise MapError(f"{where}: expected an integer id, got {value!r}")
     v = _num(value, where, strict)
     if v != int(v) or v < 0:
-        raise MapError(f"{where}: expected a non-negative integer id, got {value!r}")
+        raise MapError(f"{where}: expected a non-negative integer id, got {_short(value)}")
+    if v > MAX_MARKER_ID:
+        shown = str(value) if isinstance(value, int) else f"{v:g}"  # (a huge int: _num refused it)
+        raise MapError(f"{where}: {shown} is beyond {MAX_MARKER_ID}, more markers than any "
+                       "ArUco dictionary has")
     return int(v)
 
 
 def _make_marker(row: dict, where: str, default_length: float, strict: bool = False) -> Marker:
     mid = _int(row.get("id"), f"{where}: id", strict)
-    pos = np.array([_num(row.get(k), f"{where}: {k}", strict) for k in ("x", "y", "z")])
-    angles = [0.0 if row.get(k) in (None, "") else _num(row[k], f"{where}: {k}", strict)
+    pos = np.array([_within(_num(row.get(k), f"{where}: {k}", strict), -MAX_COORDINATE,
+                            MAX_COORDINATE, f"{where}: {k}", " m",
+                            " (positions are metres from the venue's origin)")
+                    for k in ("x", "y", "z")])
+    angles = [0.0 if row.get(k) in (None, "") else
+              _within(_num(row[k], f"{where}: {k}", strict), -MAX_ANGLE_DEG, MAX_ANGLE_DEG,
+                      f"{where}: {k}", " degrees", " (one turn either way)")
               for k in ("rx_deg", "ry_deg", "rz_deg")]
     raw_len = row.get("length")
     length = default_length if raw_len in ("", None) else _num(raw_len, f"{where}: length",
                                                                strict)
-    if length <= 0:
-        raise MapError(f"{where}: length must be > 0 m, got {length}")
+    _within(length, MIN_LENGTH, MAX_LENGTH, f"{where}: length", " m")
     return Marker(mid, pos, euler_zyx_fixed_deg(*angles), float(length))
 
 
@@ -170,8 +209,10 @@ def load_map(path: str | Path, dictionary: str = DEFAULT_DICTIONARY,
     if path.suffix.lower() == ".csv":
         dictionary = _check_dictionary(dictionary, f"{path}: dictionary")
         if isinstance(default_length, bool) or not (math.isfinite(default_length)
-                                                    and default_length > 0):
-            raise MapError(f"{path}: default marker length must be > 0 m, got {default_length!r}")
+                                                    and MIN_LENGTH <= default_length
+                                                    <= MAX_LENGTH):
+            raise MapError(f"{path}: default marker length must be {MIN_LENGTH:g}-"
+                           f"{MAX_LENGTH:g} m, got {default_length!r}")
         markers, wheres = _read_csv(path, default_length)
         return MarkerMap(markers, dictionary=dictionary, default_length=default_length,
                          name=path.stem, source=str(path), extra={"where": wheres})
@@ -207,9 +248,9 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
     unknown = set(data) - _MAP_KEYS
     if unknown:
         raise MapError(f"{source}: unknown key(s) {sorted(unknown)}")
-    default_length = _num(data.get("default_length", 0.06), f"{source}: default_length", True)
-    if default_length <= 0:
-        raise MapError(f"{source}: default_length must be > 0 m, got {default_length}")
+    default_length = _within(_num(data.get("default_length", 0.06),
+                                  f"{source}: default_length", True),
+                             MIN_LENGTH, MAX_LENGTH, f"{source}: default_length", " m")
     folder = Path(source).parent if Path(source).is_file() else None
     dictionary = _check_dictionary(data.get("dictionary", DEFAULT_DICTIONARY),
                                    f"{source}: dictionary", folder)
@@ -242,9 +283,9 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
     if len(set(anchors.values())) < 3 and any(k in data for k in anchors):
         raise MapError(f"{source}: origin_id, x_id and y_id must be three different markers")
     ref = data.get("reference_length")
-    ref = None if ref is None else _num(ref, f"{source}: reference_length", True)
-    if ref is not None and ref <= 0:
-        raise MapError(f"{source}: reference_length must be > 0 m, got {ref}")
+    if ref is not None:
+        ref = _within(_num(ref, f"{source}: reference_length", True), MIN_LENGTH,
+                      MAX_REFERENCE_LENGTH, f"{source}: reference_length", " m")
     return MarkerMap(markers, dictionary=dictionary, default_length=default_length,
                      reference_length=ref, name=name, source=source, extra={"where": wheres},
                      **anchors)

@@ -115,7 +115,9 @@ def parse_set(item: str) -> tuple[str, Any]:
     raw = raw.strip()
     value = parse_toml_value(raw)
     if value == raw and isinstance(value, str) and raw.startswith(("[", "{", '"', "'")):
-        raise ConfigError(f"--set {key}: value {raw!r} is not valid TOML")
+        # Cut: the value can be kilobytes (a 700-deep array), the line is one line to read.
+        shown = repr(raw) if len(raw) <= 80 else repr(raw[:60]) + f" ... ({len(raw)} characters)"
+        raise ConfigError(f"--set {key}: value {shown} is not valid TOML")
     return key, value
 
 

@@ -19,6 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from kmea.aruco_names import MAX_MARKER_ID
+
 __all__ = [
     "DETECTOR_PARAMETERS",
     "MAX_DESTINATIONS",
@@ -43,7 +45,6 @@ Check = Callable[[Any, str, bool], Any]
 
 MAX_ROBOTS = 64
 MAX_DESTINATIONS = 8
-MAX_MARKER_ID = 4095  # above every predefined dictionary; the daemon checks the actual one
 MAX_TEXT = 4096  # file names, endpoints, source specs
 MAX_THRESHOLD_PASSES = 12  # adaptive-threshold windows a frame (OpenCV's default: 3)
 
@@ -513,15 +514,18 @@ def validate_setting(key: Any, value: Any, where: str, remote: bool = False) -> 
 def check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, height: int,
                      where: str) -> None:
     """A pinhole model that can belong to a ``width`` x ``height`` image (pixels): focal
-    lengths > 0 and below 100 image widths, the principal point inside the image."""
+    lengths within the bounds camera files are held to (kmea.vision.camera), the principal
+    point inside the image."""
+    from kmea.vision.camera import MAX_FOCAL_SIDES, MIN_FOCAL_SIDES
+
     vals = (fx, fy, cx, cy)
     if not all(math.isfinite(float(v)) for v in vals):
         raise ConfigError(f"{where}: non-finite camera intrinsics {vals}")
     if width <= 0 or height <= 0:
         raise ConfigError(f"{where}: image size must be positive, got {width}x{height}")
-    big = 100 * max(width, height)
-    if not (0 < fx <= big and 0 < fy <= big):
-        raise ConfigError(f"{where}: focal lengths must be in (0, {big}] px for a "
+    lo, hi = MIN_FOCAL_SIDES * max(width, height), MAX_FOCAL_SIDES * max(width, height)
+    if not (lo <= fx <= hi and lo <= fy <= hi):
+        raise ConfigError(f"{where}: focal lengths must be in [{lo:g}, {hi:g}] px for a "
                           f"{width}x{height} image, got fx={fx:g}, fy={fy:g}")
     if not (0 <= cx <= width and 0 <= cy <= height):
         raise ConfigError(f"{where}: principal point ({cx:g}, {cy:g}) px is outside the "

@@ -214,3 +214,178 @@ def test_model_validation_message() -> None:
     with pytest.raises(CameraError, match="distortion_coefficients"):
         CameraModel(K, np.zeros(3), 640, 480)
     assert math.isclose(_model().intrinsics.camera_matrix[0, 0], 612.5)
+
+
+# ---------------------------------------------------------------- plain lists (issue 30)
+
+PLAIN_K = "[1357.0, 0, 819.5, 0, 1357.0, 615.5, 0, 0, 1]"
+NESTED_K = "[[1357.0, 0, 819.5], [0, 1357.0, 615.5], [0, 0, 1]]"
+PLAIN_D = "[0.12, -0.25, 0, 0, 0.1]"
+PLAIN_FILES = {
+    "flat.json": f'{{"camera_matrix": {PLAIN_K}, "distortion_coefficients": {PLAIN_D}, '
+                 '"image_width": 1640, "image_height": 1232}',
+    # The TOML names, as someone writing JSON by analogy would: a size key ignored would
+    # leave the size guessed and the intrinsics unscaled.
+    "nested.json": f'{{"camera_matrix": {NESTED_K}, "dist_coeffs": {PLAIN_D}, '
+                   '"width": 1640, "height": 1232}',
+    "flat.yml": f"%YAML:1.0\n---\ncamera_matrix: {PLAIN_K}\n"
+                f"distortion_coefficients: {PLAIN_D}\nimage_width: 1640\nimage_height: 1232\n",
+    "nested.yaml": f"%YAML:1.0\n---\nimage_width: 1640\nimage_height: 1232\n"
+                   f"camera_matrix: {NESTED_K}\ndist_coeffs: {PLAIN_D}\n",
+    "plain.xml": '<?xml version="1.0"?>\n<opencv_storage>\n<image_width>1640</image_width>\n'
+                 "<image_height>1232</image_height>\n"
+                 "<camera_matrix>1357.0 0 819.5 0 1357.0 615.5 0 0 1</camera_matrix>\n"
+                 "<distortion_coefficients>0.12 -0.25 0 0 0.1</distortion_coefficients>\n"
+                 "</opencv_storage>\n",
+    "flat.toml": f"width = 1640\nheight = 1232\ncamera_matrix = {PLAIN_K}\n"
+                 f"dist_coeffs = {PLAIN_D}\n",
+}
+
+
+@pytest.mark.parametrize("name", sorted(PLAIN_FILES))
+def test_plain_lists_load_as_the_matrix_form(tmp_path: Path, name: str) -> None:
+    """docs/camera.md accepts a plain list instead of an !!opencv-matrix; OpenCV 5's
+    FileNode.mat() asserts isMap() on a list, which was a cv2.error traceback."""
+    reference = tmp_path / "reference.yml"
+    save_camera(pi_camera_v2(), reference)  # the !!opencv-matrix form
+    assert "!!opencv-matrix" in reference.read_text()
+    toml = tmp_path / "reference.toml"
+    save_camera(pi_camera_v2(), toml)
+    path = tmp_path / name
+    path.write_text(PLAIN_FILES[name])
+    m = load_camera(path)
+    for ref in (load_camera(reference), load_camera(toml)):
+        np.testing.assert_array_equal(m.camera_matrix, ref.camera_matrix)
+        np.testing.assert_array_equal(m.dist_coeffs, ref.dist_coeffs)
+        assert (m.width, m.height, m.size_known) == (ref.width, ref.height, True)
+
+
+BAD_PLAIN = {
+    # FileNode.real() of a string is DBL_MAX, not an error: once read as 1.8e308.
+    "string.json": ('{"camera_matrix": [1357, 0, 819.5, 0, 1357, 615.5, 0, 0, "one"], '
+                    f'"dist_coeffs": {PLAIN_D}}}', "camera_matrix: expected numbers"),
+    "string_row.json": ('{"camera_matrix": [[1357, 0, 819.5], [0, 1357, "615"], [0, 0, 1]], '
+                        f'"dist_coeffs": {PLAIN_D}}}', "camera_matrix: expected numbers"),
+    "ragged.yml": (f"%YAML:1.0\n---\ncamera_matrix: [[1357, 0, 819.5], [0, 1357], [0, 0, 1]]\n"
+                   f"dist_coeffs: {PLAIN_D}\n", "camera_matrix: expected a list of numbers or "
+                                                "of rows"),
+    "map.json": (f'{{"camera_matrix": {{"fx": 1357}}, "dist_coeffs": {PLAIN_D}}}',
+                 "camera_matrix: expected a matrix"),
+    "eight.json": (f'{{"camera_matrix": [1357, 0, 819.5, 0, 1357, 615.5, 0, 0], '
+                   f'"dist_coeffs": {PLAIN_D}}}', "camera_matrix: expected a 3x3 matrix"),
+    "top_list.yml": ("%YAML:1.0\n---\n- 1\n- 2\n", "expected keys (camera_matrix"),
+    "both.json": (f'{{"camera_matrix": {PLAIN_K}, "dist_coeffs": {PLAIN_D}, '
+                  f'"distortion_coefficients": {PLAIN_D}}}',
+                  "'distortion_coefficients' and 'dist_coeffs' are the same key"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_PLAIN))
+def test_bad_plain_lists_name_file_and_key(tmp_path: Path, name: str) -> None:
+    text, expect = BAD_PLAIN[name]
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(CameraError) as e:
+        load_camera(path)
+    msg = str(e.value)
+    assert msg.startswith(f"{path}: ") and expect in msg and "\n" not in msg, msg
+
+
+# ---------------------------------------------------------------- physical bounds (issue 30)
+
+def _toml_camera(K: list, dist: list, size: tuple[int, int] | None = (1640, 1232)) -> str:
+    head = f"width = {size[0]}\nheight = {size[1]}\n" if size else ""
+    return head + f"camera_matrix = {K}\ndist_coeffs = {dist}\n"
+
+
+GOOD_K = [[1357.0, 0.0, 819.5], [0.0, 1357.0, 615.5], [0.0, 0.0, 1.0]]
+BAD_BOUNDS = {
+    # Each loaded and then left every frame "not estimated" with exit 0.
+    "k1_huge": (_toml_camera(GOOD_K, [1e300, -0.25, 0, 0, 0.1]),
+                "dist_coeffs: k1 = 1e+300 is beyond +-10000: no lens distorts that much"),
+    "k6_large": (_toml_camera(GOOD_K, [0.1, 0, 0, 0, 0, 0, 0, -2e4]),
+                 "dist_coeffs: k6 = -20000 is beyond +-10000"),
+    "fy_tiny": (_toml_camera([[1357.0, 0, 819.5], [0, 0.001, 615.5], [0, 0, 1]], [0, 0, 0, 0]),
+                "camera_matrix: fy = 0.001 px is outside [164, 164000] px, 0.1 to 100 times "
+                "the 1640x1232 image's larger side"),
+    "fx_huge": (_toml_camera([[1e7, 0, 819.5], [0, 1357.0, 615.5], [0, 0, 1]], [0, 0, 0, 0]),
+                "camera_matrix: fx = 1e+07 px is outside [164, 164000] px"),
+    # Without a size, against the one guessed from the principal point (1640x1232).
+    "fx_tiny_no_size": (_toml_camera([[100.0, 0, 819.5], [0, 100.0, 615.5], [0, 0, 1]],
+                                     [0, 0, 0, 0], None),
+                        "camera_matrix: fx = 100 px is outside [164, 164000] px"),
+    "fy_convenience": ("fx = 1357.0\nfy = 1.0\ncx = 819.5\ncy = 615.5\ndist_coeffs = [0, 0, 0, 0]\n"
+                       "width = 1640\nheight = 1232\n", "fy = 1 px is outside [164, 164000] px"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_BOUNDS))
+def test_physically_impossible_cameras_are_refused(tmp_path: Path, case: str) -> None:
+    text, expect = BAD_BOUNDS[case]
+    path = tmp_path / f"{case}.toml"
+    path.write_text(text)
+    with pytest.raises(CameraError) as e:
+        load_camera(path)
+    msg = str(e.value)
+    assert msg.startswith(f"{path}: ") and expect in msg and "\n" not in msg, msg
+
+
+def test_bounds_hold_for_filestorage_files_too(tmp_path: Path) -> None:
+    path = _fs_file(tmp_path / "cam.json", camera_matrix=K,
+                    distortion_coefficients=np.array([[0.1], [1e300], [0], [0], [0]]))
+    with pytest.raises(CameraError, match=r"cam\.json: distortion_coefficients: k2 = 1e\+300"):
+        load_camera(path)
+
+
+def test_the_bounds_leave_real_cameras_alone(tmp_path: Path) -> None:
+    """A wide lens (fx a quarter of the width: 127 degrees across) with a rational model whose
+    numerator and denominator nearly cancel, as such calibrations come out."""
+    path = tmp_path / "wide.toml"
+    path.write_text(_toml_camera([[410.0, 0, 819.5], [0, 410.0, 615.5], [0, 0, 1]],
+                                 [850.0, -120.0, 0.001, -0.002, 40.0, 851.0, -95.0, 60.0]))
+    m = load_camera(path)
+    assert m.fx == 410.0 and m.dist_coeffs[0] == 850.0
+
+
+def test_skew_that_opencv_would_ignore_is_refused(tmp_path: Path) -> None:
+    """cv2.projectPoints and solvePnP ignore K[0, 1]: a skew that moves the image's edge by
+    more than a pixel describes another camera than the one estimated with."""
+    path = tmp_path / "skew.toml"
+    path.write_text("width = 1640\nheight = 1232\nfx = 1357.0\nfy = 1357.0\ncx = 819.5\n"
+                    "cy = 615.5\nskew = 5.0\ndist_coeffs = [0, 0, 0, 0]\n")
+    with pytest.raises(CameraError, match=r"skew\.toml: skew 5 px would move the image's "
+                                          r"edge by 2\.27 px, and OpenCV ignores skew"):
+        load_camera(path)
+    path.write_text(path.read_text().replace("skew = 5.0", "skew = 0.5"))
+    assert load_camera(path).camera_matrix[0, 1] == 0.5  # 0.23 px: kept, as calibrated
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".json", ".xml"])
+def test_deep_nesting_is_one_line_not_a_crash(tmp_path: Path, suffix: str) -> None:
+    """OpenCV's parsers recurse per level: 60,000 levels (a 120-420 KB file) was a
+    segmentation fault, so the load runs in a child process."""
+    import subprocess
+    import sys
+
+    d = 60_000
+    path = tmp_path / f"deep{suffix}"
+    path.write_text({
+        ".yml": "%YAML:1.0\n---\ncamera_matrix: " + "[" * d + "]" * d + "\n",
+        ".json": '{"camera_matrix": ' + "[" * d + "]" * d + "}",
+        ".xml": '<?xml version="1.0"?>\n<opencv_storage><camera_matrix>' + "<_>" * d
+                + "</_>" * d + "</camera_matrix></opencv_storage>\n",
+    }[suffix])
+    code = ("import sys\nfrom kmea.vision.camera import CameraError, load_camera\n"
+            "try:\n    load_camera(sys.argv[1])\nexcept CameraError as e:\n    print(e)\n")
+    run = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-300:]
+    assert run.stdout.strip() == f"{path}: nested more than 32 levels deep: not a camera file"
+
+
+def test_a_camera_file_of_megabytes_is_refused(tmp_path: Path) -> None:
+    path = _fs_file(tmp_path / "big.yml", camera_matrix=K,
+                    distortion_coefficients=DIST.reshape(-1, 1))
+    path.write_text(path.read_text() + "padding: \"" + "x" * (1 << 20) + "\"\n")
+    with pytest.raises(CameraError, match=r"big\.yml: larger than 1 MB: not a camera file"):
+        load_camera(path)

@@ -45,6 +45,40 @@ def _bad_map(tmp: Path) -> list[str]:
     return ["--map", str(p)]
 
 
+def _map_row(row: str, name: str = "m.csv"):
+    """A CSV map of the three anchors and one more marker ``row``."""
+    def args(tmp: Path) -> list[str]:
+        p = tmp / name
+        p.write_text("id,x,y,z,rx_deg,ry_deg,rz_deg,length\n13,0,0,0,,,,\n16,0.695,0,0,,,,\n"
+                     f"4,0,0.355,0,,,,\n{row}\n")
+        return ["--map", str(p)]
+    return args
+
+
+def _toml_map(text: str):
+    def args(tmp: Path) -> list[str]:
+        p = tmp / "m.toml"
+        p.write_text(text)
+        return ["--map", str(p)]
+    return args
+
+
+def _camera(name: str, text: str):
+    def args(tmp: Path) -> list[str]:
+        p = tmp / name
+        p.write_text(text)
+        return ["--camera", str(p)]
+    return args
+
+
+def _deep(path: Path, option: str) -> list[str]:
+    path.write_text("a = " + "[" * 700 + "]" * 700 + "\n")
+    return [option, str(path)]
+
+
+_K = "[[1357.0, 0.0, 819.5], [0.0, 1357.0, 615.5], [0.0, 0.0, 1.0]]"
+_SIZE = "width = 1640\nheight = 1232\n"
+
 # name -> arguments (a function of a temporary folder); each is a configuration problem.
 REFUSALS = {
     "reachable telemetry without keys": lambda t: [
@@ -61,6 +95,37 @@ REFUSALS = {
     "unwritable log": lambda t: ["--log", "/proc/kmead-test.csv"],
     "log and recording the same file": _same_outputs,
     "missing key directory": _missing_keys,
+    # Issue 30: files accepted although broken (numpy warnings on every frame, or every
+    # frame "not estimated" with exit 0), and tracebacks.
+    "marker at 1e308 m": _map_row("5,1e308,0,0,,,,"),
+    "map scaled by 1e200": _toml_map("[[markers]]\nid = 13\nx = 0.0\ny = 0.0\nz = 0.0\n"
+                                     "[[markers]]\nid = 16\nx = 0.695e200\ny = 0.0\nz = 0.0\n"
+                                     "[[markers]]\nid = 4\nx = 0.0\ny = 0.355e200\nz = 0.0\n"),
+    "marker angle 1e300 degrees": _map_row("5,0.3,0.3,0,1e300,,,"),
+    "marker id 1e20": _map_row("100000000000000000000,0.3,0.3,0,,,,"),
+    "marker length 1e300 m": _map_row("5,0.3,0.3,0,,,,1e300"),
+    "map id of 400 digits": _toml_map("[[markers]]\nid = 1" + "0" * 400
+                                      + "\nx = 0.0\ny = 0.0\nz = 0.0\n"),
+    "distortion 1e300": _camera("cam.toml", f"{_SIZE}camera_matrix = {_K}\n"
+                                            "dist_coeffs = [1e300, -0.25, 0, 0, 0.1]\n"),
+    "focal length 0.001 px": _camera(
+        "cam.toml", f"{_SIZE}camera_matrix = [[1357.0, 0, 819.5], [0, 0.001, 615.5], [0, 0, 1]]"
+                    "\ndist_coeffs = [0, 0, 0, 0]\n"),
+    "camera value not finite": _camera(
+        "cam.yml", "%YAML:1.0\n---\ncamera_matrix: [1357.0, 0, 819.5, 0, 1357.0, 615.5, 0, 0, 1]"
+                   "\ndistortion_coefficients: [0.1, .nan, 0, 0]\n"),
+    "camera values not numbers": _camera(
+        "cam.json", '{"camera_matrix": [1357, 0, 819.5, 0, 1357, 615.5, 0, 0, "x"], '
+                    '"dist_coeffs": [0, 0, 0, 0]}'),
+    "camera file a list": _camera("cam.yml", "%YAML:1.0\n---\n- 1\n- 2\n"),
+    "camera skew 1e300": _camera("cam.toml", f"{_SIZE}fx = 1357.0\nfy = 1357.0\ncx = 819.5\n"
+                                             "cy = 615.5\nskew = 1e300\n"
+                                             "dist_coeffs = [0, 0, 0, 0]\n"),
+    # TOML nested 600 deep was a 3,002-line RecursionError; --set echoed 1,400 characters.
+    "--set nested 700 deep": lambda t: ["--set", "filter.alpha=" + "[" * 700 + "]" * 700],
+    "configuration nested 700 deep": lambda t: _deep(t / "c.toml", "--config"),
+    "map nested 700 deep": lambda t: _deep(t / "m.toml", "--map"),
+    "camera nested 700 deep": lambda t: _deep(t / "cam.toml", "--camera"),
 }
 
 
@@ -103,6 +168,19 @@ def test_image_folder_with_one_decodable_image_passes(tmp_path, capsys):
     cv2.imwrite(str(d / "b.png"), np.full((48, 64), 128, np.uint8))
     code, err = _run(["--source", f"images:{d}", *SMALL, *NET, "--check"], capsys)
     assert code == 0, err
+
+
+def test_a_camera_file_of_plain_lists_starts(tmp_path, capsys):
+    """docs/camera.md accepts plain lists in a JSON or YAML camera file; under OpenCV 5 this
+    was a cv2.error traceback at --check and at start."""
+    cam = tmp_path / "cam.json"
+    cam.write_text('{"camera_matrix": [1357.0, 0, 819.5, 0, 1357.0, 615.5, 0, 0, 1], '
+                   '"dist_coeffs": [0.12, -0.25, 0, 0, 0.1], "width": 1640, "height": 1232}')
+    args = ["--camera", str(cam), "--source", "sim", *NET]
+    code, err = _run([*args, "--check"], capsys)
+    assert code == 0, err
+    code, err = _run([*args, "--headless", "--frames", "1"], capsys)
+    assert code == 0 and "Traceback" not in err, err
 
 
 def test_markers_all_at_one_point_refused_at_check_and_start(tmp_path, capsys):

@@ -232,7 +232,7 @@ def test_map_id_outside_the_dictionary_is_named_in_a_warning(tmp_path: Path,
 
     doc = map_to_dict(default_map())
     rows = doc["markers"]
-    rows.append({**rows[-1], "id": 99999999999999, "x": 0.5, "y": 0.5})
+    rows.append({**rows[-1], "id": 2000, "x": 0.5, "y": 0.5})  # DICT_5X5_100: ids 0-99
     import tomli_w
 
     m = tmp_path / "floor.toml"
@@ -240,7 +240,14 @@ def test_map_id_outside_the_dictionary_is_named_in_a_warning(tmp_path: Path,
     assert cli.main(["--headless", "--frames", "2", "--map", str(m), *SMALL, *NET,
                      "--set", "source.fps=0"]) == 0
     err = capsys.readouterr().err
-    assert "99999999999999" in err and "can never be detected" in err
+    assert "2000" in err and "can never be detected" in err
+    # An id beyond every dictionary is a slip, not a marker: refused, not warned (issue 30).
+    rows[-1]["id"] = 99999999999999
+    m.write_text(tomli_w.dumps(doc))
+    assert cli.main(["--headless", "--frames", "2", "--map", str(m), *SMALL, *NET,
+                     "--set", "source.fps=0"]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert str(m) in line and "id: 99999999999999 is beyond 4095" in line, line
 
 
 # ----------------------------------------------------------------------------- robots are told

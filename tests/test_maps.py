@@ -204,13 +204,28 @@ BAD_CSV = [
     ("id,x,y,z\n1,0,0,0\n2,abc,0,0\n", "line 3: x: expected a number, got 'abc'"),
     ("id,x,y,z\n1,0,nan,0\n", "line 2: y: value must be finite, got 'nan'"),
     ("id,x,y,z\n1,0,0,inf\n", "line 2: z: value must be finite, got 'inf'"),
-    ("id,x,y,z,length\n1,0,0,0,0\n", "line 2: length must be > 0 m, got 0.0"),
-    ("id,x,y,z,length\n1,0,0,0,-0.1\n", "line 2: length must be > 0 m, got -0.1"),
+    ("id,x,y,z,length\n1,0,0,0,0\n", "line 2: length: 0 m is outside [0.0001, 10] m"),
+    ("id,x,y,z,length\n1,0,0,0,-0.1\n", "line 2: length: -0.1 m is outside [0.0001, 10] m"),
     ("id,x,y,z\n1.5,0,0,0\n", "line 2: id: expected a non-negative integer id, got '1.5'"),
     ("id,x,y,z\n-1,0,0,0\n", "line 2: id: expected a non-negative integer id, got '-1'"),
     ("id,x,y,z\n1,0,0,0,9\n", "line 2: more values than columns"),
     ("id,x,y,z\n1,0,0\n", "line 2: z: missing value"),
     ("id,x,y,z\n", "no markers"),
+    # Physical bounds (issue 30: each was accepted and warned on every frame, or never
+    # estimated): positions within 10 km, one turn of angle, ids a dictionary can have.
+    ("id,x,y,z\n1,1e308,0,0\n", "line 2: x: 1e+308 m is outside [-10000, 10000] m "
+                                 "(positions are metres from the venue's origin)"),
+    ("id,x,y,z\n1,0,0.355e200,0\n", "line 2: y: 3.55e+199 m is outside [-10000, 10000] m "
+                                     "(positions are metres from the venue's origin)"),
+    ("id,x,y,z,rx_deg\n1,0,0,0,1e300\n",
+     "line 2: rx_deg: 1e+300 degrees is outside [-360, 360] degrees (one turn either way)"),
+    ("id,x,y,z\n100000000000000000000,0,0,0\n",
+     "line 2: id: 1e+20 is beyond 4095, more markers than any ArUco dictionary has"),
+    ("id,x,y,z\n1e20,0,0,0\n",
+     "line 2: id: 1e+20 is beyond 4095, more markers than any ArUco dictionary has"),
+    ("id,x,y,z,length\n1,0,0,0,1e300\n", "line 2: length: 1e+300 m is outside [0.0001, 10] m"),
+    ("id,x,y,z,length\n1,0,0,0,1e-300\n",
+     "line 2: length: 1e-300 m is outside [0.0001, 10] m"),
     ("", "line 1: missing column 'id'"),
 ]
 
@@ -244,16 +259,29 @@ BAD_TOML = [
      "markers[0] (line 1): x: value must be finite, got -inf"),
     (HEAD.replace("id = 1", "id = 1.0"),
      "markers[0] (line 1): id: expected an integer id, got 1.0"),
-    (HEAD + "length = 0\n", "markers[0] (line 1): length must be > 0 m, got 0.0"),
-    ("default_length = 0\n" + HEAD, "default_length must be > 0 m, got 0.0"),
+    (HEAD + "length = 0\n", "markers[0] (line 1): length: 0 m is outside [0.0001, 10] m"),
+    ("default_length = 0\n" + HEAD, "default_length: 0 m is outside [0.0001, 10] m"),
     ('dictionary = "DICT_5X5_51"\n' + HEAD,
      "dictionary: unknown ArUco dictionary 'DICT_5X5_51' (e.g. DICT_5X5_50, DICT_5X5_100, "
      "DICT_4X4_50; or a .yml/.json dictionary file)"),
     ("origin_id = 7\n" + HEAD, "origin_id: marker 7 is not in the map"),
-    ("reference_length = -2\n" + HEAD, "reference_length must be > 0 m, got -2.0"),
+    ("reference_length = -2\n" + HEAD, "reference_length: -2 m is outside [0.0001, 34641] m"),
     ("name = 3\n" + HEAD, "name must be a string, got 3"),
     ("markers = []\n", "markers: expected a non-empty array of tables [[markers]]"),
     ("x = = 1\n", "invalid TOML: Invalid value (at line 1, column 5)"),
+    (HEAD.replace("z = 0", "z = -2e4"), "markers[0] (line 1): z: -20000 m is outside "
+     "[-10000, 10000] m (positions are metres from the venue's origin)"),
+    (HEAD + "rz_deg = -400.0\n", "markers[0] (line 1): rz_deg: -400 degrees is outside "
+     "[-360, 360] degrees (one turn either way)"),
+    (HEAD.replace("id = 1", "id = 4096"), "markers[0] (line 1): id: 4096 is beyond 4095, "
+     "more markers than any ArUco dictionary has"),
+    # An integer of 400 digits once overflowed float() into a traceback.
+    (HEAD.replace("id = 1", "id = 1" + "0" * 400),
+     "markers[0] (line 1): id: value too large, got <huge int>"),
+    (HEAD.replace("x = 0", "x = 1" + "0" * 400),
+     "markers[0] (line 1): x: value too large, got <huge int>"),
+    ("reference_length = 1e300\n" + HEAD,
+     "reference_length: 1e+300 m is outside [0.0001, 34641] m"),
 ]
 
 
@@ -282,8 +310,13 @@ def test_marker_validation() -> None:
         Marker(3, np.zeros(3), np.diag([1.0, 1.0, -1.0]), 0.06)
     with pytest.raises(MapError, match="marker 3: position must be 3 finite"):
         Marker(3, [0.0, np.nan, 0.0], np.eye(3), 0.06)
-    with pytest.raises(MapError, match="marker 3: length must be > 0 m"):
+    with pytest.raises(MapError, match=r"marker 3: length must be 0\.0001-10 m"):
         Marker(3, [0.0, 0.0, 0.0], np.eye(3), 0.0)
+    # The model holds the bounds too: maps from recordings and the survey pass no file.
+    with pytest.raises(MapError, match=r"marker 3: position \[0.0, 1e\+200, 0.0\] m is beyond"):
+        Marker(3, [0.0, 1e200, 0.0], np.eye(3), 0.06)
+    with pytest.raises(MapError, match="marker id must be an integer 0-4095, got 4096"):
+        Marker(4096, [0.0, 0.0, 0.0], np.eye(3), 0.06)
     mk = Marker(3, [0, 0, 1], np.eye(3).tolist(), 0.06)
     assert mk.position.dtype == float and mk.position.tolist() == [0, 0, 1]
     with pytest.raises(ValueError, match="read-only"):

@@ -27,6 +27,26 @@ __all__ = ["CameraError", "CameraModel", "load_camera", "model_for_frame", "pi_c
 
 FILESTORAGE_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
 
+# Focal lengths, in units of the image's larger side. Below 1/10 the field of view across
+# that side would exceed 2 atan(5) = 157 degrees, more than a pinhole model with OpenCV
+# distortion can describe (a 180-degree fisheye images at f = side / pi, three times
+# more); above 100 it would be under 0.6 degrees, a telescope, not a localization camera.
+MIN_FOCAL_SIDES = 0.1
+MAX_FOCAL_SIDES = 100.0
+# Distortion coefficients, in magnitude. Calibrations of wide lenses with the rational
+# model reach hundreds to a few thousands, numerator and denominator nearly cancelling
+# (k1 ~ k4); 1e4 leaves that room, and anything beyond moves image points by more than any
+# lens (1e300 overflows and no pose is ever estimated).
+MAX_DISTORTION = 1e4
+# OpenCV's FileStorage parsers recurse per nesting level and overflow the stack (a
+# segmentation fault, no message) at some 50,000 levels; a camera file nests 2. The size
+# bound also bounds YAML's indentation nesting (a file of N levels is N^2 / 2 bytes).
+MAX_FILESTORAGE_NESTING = 32
+MAX_FILESTORAGE_BYTES = 1 << 20  # kmea calibrate writes under 2 KB
+# Skew is ignored by cv2.projectPoints and solvePnP, so a camera matrix whose skew would
+# move the image's edge by more than this many pixels describes another camera.
+MAX_IGNORED_SKEW_PX = 1.0
+
 
 class CameraError(ValueError):
     """A camera file or model is invalid; the message names the file and key."""
@@ -137,10 +157,12 @@ def model_for_frame(model: CameraModel, width: int, height: int) -> CameraModel:
 
 # Accepted spellings, first one written. The second ones are from OpenCV's older
 # calibration sample (out_camera_data.xml).
+# The last ones are the TOML names, which a hand-written JSON or YAML file may well use: a
+# size key ignored would have the size guessed and the intrinsics never scaled.
 _K_KEYS = ("camera_matrix", "Camera_Matrix")
-_D_KEYS = ("distortion_coefficients", "Distortion_Coefficients")
-_W_KEYS = ("image_width", "image_Width")
-_H_KEYS = ("image_height", "image_Height")
+_D_KEYS = ("distortion_coefficients", "Distortion_Coefficients", "dist_coeffs")
+_W_KEYS = ("image_width", "image_Width", "width")
+_H_KEYS = ("image_height", "image_Height", "height")
 
 _TOML_KEYS = {"camera_matrix", "dist_coeffs", "width", "height", "fx", "fy", "cx", "cy",
               "skew", "meta"}
@@ -157,6 +179,8 @@ def _finite_array(value: object, where: str) -> np.ndarray:
 
 
 def _check_K(K: np.ndarray, where: str) -> np.ndarray:
+    if K.shape == (9,):  # written row by row as one list
+        K = K.reshape(3, 3)
     if K.shape != (3, 3):
         raise CameraError(f"{where}: expected a 3x3 matrix, got shape {K.shape}")
     if K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -167,11 +191,30 @@ def _check_K(K: np.ndarray, where: str) -> np.ndarray:
     return K
 
 
+_DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",
+               "tx", "ty")
+
+
 def _check_dist(d: np.ndarray, where: str) -> np.ndarray:
     d = d.reshape(-1)
     if d.size not in (4, 5, 8, 12, 14):
         raise CameraError(f"{where}: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
+    big = np.nonzero(np.abs(d) > MAX_DISTORTION)[0]
+    if big.size:
+        i = int(big[0])
+        raise CameraError(f"{where}: {_DIST_NAMES[i]} = {d[i]:g} is beyond +-{MAX_DISTORTION:g}: "
+                          "no lens distorts that much")
     return d
+
+
+def _check_focal(K: np.ndarray, width: int, height: int, where: str) -> None:
+    side = max(width, height)
+    lo, hi = MIN_FOCAL_SIDES * side, MAX_FOCAL_SIDES * side
+    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not lo <= f <= hi:
+            raise CameraError(f"{where}: {name} = {f:g} px is outside [{lo:g}, {hi:g}] px, "
+                              f"{MIN_FOCAL_SIDES:g} to {MAX_FOCAL_SIDES:g} times the "
+                              f"{width}x{height} image's larger side")
 
 
 def _size(value: object, where: str) -> int:
@@ -187,7 +230,9 @@ def _size(value: object, where: str) -> int:
 
 
 def _build(K: np.ndarray, d: np.ndarray, w: int | None, h: int | None, source: str,
-           image_size: tuple[int, int] | None) -> CameraModel:
+           image_size: tuple[int, int] | None, k_where: str) -> CameraModel:
+    """The model; ``k_where`` names the camera matrix's key for a focal length that cannot
+    belong to the image (the file's size, the caller's, else the guessed one)."""
     known = w is not None and h is not None
     if not known:
         if image_size is not None:
@@ -199,9 +244,16 @@ def _build(K: np.ndarray, d: np.ndarray, w: int | None, h: int | None, source: s
             w = max(1, round(2.0 * (K[0, 2] + 0.5)))
             h = max(1, round(2.0 * (K[1, 2] + 0.5)))
     try:
-        return CameraModel(K, d, int(w), int(h), size_known=known)  # type: ignore[arg-type]
+        model = CameraModel(K, d, int(w), int(h), size_known=known)  # type: ignore[arg-type]
     except CameraError as e:
         raise CameraError(f"{source}: {e}") from None
+    _check_focal(model.camera_matrix, model.width, model.height, k_where)
+    shift = abs(model.camera_matrix[0, 1]) * model.height / (2.0 * model.fy)
+    if shift > MAX_IGNORED_SKEW_PX:
+        raise CameraError(f"{k_where}: skew {model.camera_matrix[0, 1]:g} px would move the "
+                          f"image's edge by {shift:.3g} px, and OpenCV ignores skew: "
+                          "calibrate without it (0)")
+    return model
 
 
 def _fs_error(exc: BaseException) -> str:
@@ -214,66 +266,120 @@ def _fs_error(exc: BaseException) -> str:
     return text.splitlines()[-1] if text else type(exc).__name__
 
 
+def _fs_number(node: object, where: str) -> float:
+    # real() of a string or a map is DBL_MAX or 0, not an error: ask what the node is first.
+    if not (node.isReal() or node.isInt()):  # type: ignore[attr-defined]
+        raise CameraError(f"{where}: expected numbers")
+    return float(node.real())  # type: ignore[attr-defined]
+
+
 def _fs_node_array(node: object, where: str) -> np.ndarray:
-    mat = node.mat()  # type: ignore[attr-defined]
-    if mat is None:
-        if node.isSeq():  # type: ignore[attr-defined]
-            vals = []
-            for i in range(node.size()):  # type: ignore[attr-defined]
-                item = node.at(i)  # type: ignore[attr-defined]
-                if item.isSeq():
-                    vals.append([item.at(j).real() for j in range(item.size())])
-                elif item.isReal() or item.isInt():
-                    vals.append(item.real())
-                else:
-                    raise CameraError(f"{where}: expected numbers")
-            return _finite_array(vals, where)
-        if node.isReal() or node.isInt():  # type: ignore[attr-defined]
-            return _finite_array([node.real()], where)  # type: ignore[attr-defined]
-        raise CameraError(f"{where}: expected a matrix (!!opencv-matrix) or a list of numbers")
-    return _finite_array(mat, where)
+    """An ``!!opencv-matrix``, a plain list of numbers or a list of rows of numbers."""
+    if node.isMap():  # type: ignore[attr-defined]
+        try:
+            mat = node.mat()  # type: ignore[attr-defined]
+        except Exception:  # cv2.error: a map that is no !!opencv-matrix
+            mat = None
+        if mat is None:
+            raise CameraError(f"{where}: expected a matrix (!!opencv-matrix) or a list of "
+                              "numbers")
+        return _finite_array(mat, where)
+    if node.isSeq():  # type: ignore[attr-defined]
+        vals: list = []
+        for i in range(node.size()):  # type: ignore[attr-defined]
+            item = node.at(i)  # type: ignore[attr-defined]
+            if item.isSeq():
+                vals.append([_fs_number(item.at(j), where) for j in range(item.size())])
+            else:
+                vals.append(_fs_number(item, where))
+        if any(isinstance(v, list) for v in vals) and not all(isinstance(v, list) and
+                                                              len(v) == len(vals[0])
+                                                              for v in vals):
+            raise CameraError(f"{where}: expected a list of numbers or of rows of equal length")
+        return _finite_array(vals, where)
+    return _finite_array([_fs_number(node, where)], where)
+
+
+_OPEN_CLOSE = re.compile(r'"(?:[^"\\]|\\.)*"|[\[{]|[\]}]|<[A-Za-z_][^>]*?/>|<[A-Za-z_]|</')
+
+
+def _nesting(text: str) -> int:
+    """The deepest nesting of [ ], { } and XML elements outside JSON/YAML strings."""
+    depth = deepest = 0
+    for m in _OPEN_CLOSE.finditer(text):
+        tok = m.group()
+        if tok[0] in "[{" or (tok[0] == "<" and tok[1] != "/" and not tok.endswith("/>")):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif tok[0] in "]}" or tok == "</":
+            depth -= 1
+    return deepest
 
 
 def _load_filestorage(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
     import cv2
 
     try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_FILESTORAGE_BYTES + 1)
+    except OSError as e:
+        raise CameraError(f"{path}: cannot read: {e.strerror or e}") from None
+    if len(data) > MAX_FILESTORAGE_BYTES:
+        raise CameraError(f"{path}: larger than {MAX_FILESTORAGE_BYTES >> 20} MB: not a camera "
+                          "file")
+    if _nesting(data.decode("utf-8", "replace")) > MAX_FILESTORAGE_NESTING:
+        raise CameraError(f"{path}: nested more than {MAX_FILESTORAGE_NESTING} levels deep: not "
+                          "a camera file")
+    try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except Exception as e:  # cv2.error, surfacing as SystemError from the constructor
         raise CameraError(f"{path}: not a valid OpenCV FileStorage file: {_fs_error(e)}") from None
-    if not fs.isOpened():
-        raise CameraError(f"{path}: cannot open as an OpenCV FileStorage file")
     try:
-        def node(keys: tuple[str, ...]) -> tuple[str, object | None]:
-            for k in keys:
-                n = fs.getNode(k)
-                if not n.empty() and not n.isNone():
-                    return k, n
-            return keys[0], None
-
-        kk, kn = node(_K_KEYS)
-        if kn is None:
-            raise CameraError(f"{path}: missing key {kk!r} (or {_K_KEYS[1]!r})")
-        K = _check_K(_fs_node_array(kn, f"{path}: {kk}"), f"{path}: {kk}")
-        dk, dn = node(_D_KEYS)
-        if dn is None:
-            raise CameraError(f"{path}: missing key {dk!r} (or {_D_KEYS[1]!r})")
-        d = _check_dist(_fs_node_array(dn, f"{path}: {dk}"), f"{path}: {dk}")
-        wk, wn = node(_W_KEYS)
-        hk, hn = node(_H_KEYS)
-        if (wn is None) != (hn is None):
-            missing = wk if wn is None else hk
-            raise CameraError(f"{path}: missing key {missing!r} (give both image size keys or "
-                              f"neither)")
-        w = h = None
-        if wn is not None and hn is not None:
-            if not ((wn.isInt() or wn.isReal()) and (hn.isInt() or hn.isReal())):  # type: ignore[attr-defined]
-                raise CameraError(f"{path}: {wk}/{hk}: expected positive integers")
-            w = _size(wn.real(), f"{path}: {wk}")  # type: ignore[attr-defined]
-            h = _size(hn.real(), f"{path}: {hk}")  # type: ignore[attr-defined]
+        return _read_filestorage(fs, path, image_size)
+    except cv2.error as e:  # a node of an unexpected kind: still one line naming the file
+        raise CameraError(f"{path}: cannot read: {_fs_error(e)}") from None
     finally:
         fs.release()
-    return _build(K, d, w, h, str(path), image_size)
+
+
+def _read_filestorage(fs: object, path: Path, image_size: tuple[int, int] | None
+                      ) -> CameraModel:
+    if not fs.isOpened():  # type: ignore[attr-defined]
+        raise CameraError(f"{path}: cannot open as an OpenCV FileStorage file")
+    if not fs.root().isMap():  # type: ignore[attr-defined]
+        raise CameraError(f"{path}: expected keys (camera_matrix, distortion_coefficients), "
+                          "got a top-level list or value")
+
+    def node(keys: tuple[str, ...]) -> tuple[str, object | None]:
+        found = [(k, n) for k in keys
+                 for n in [fs.getNode(k)]  # type: ignore[attr-defined]
+                 if not n.empty() and not n.isNone()]
+        if len(found) > 1:
+            raise CameraError(f"{path}: {found[0][0]!r} and {found[1][0]!r} are the same key: "
+                              "give one")
+        return found[0] if found else (keys[0], None)
+
+    kk, kn = node(_K_KEYS)
+    if kn is None:
+        raise CameraError(f"{path}: missing key {kk!r} (or {_K_KEYS[1]!r})")
+    K = _check_K(_fs_node_array(kn, f"{path}: {kk}"), f"{path}: {kk}")
+    dk, dn = node(_D_KEYS)
+    if dn is None:
+        raise CameraError(f"{path}: missing key {dk!r} (or {_D_KEYS[1]!r})")
+    d = _check_dist(_fs_node_array(dn, f"{path}: {dk}"), f"{path}: {dk}")
+    wk, wn = node(_W_KEYS)
+    hk, hn = node(_H_KEYS)
+    if (wn is None) != (hn is None):
+        missing = wk if wn is None else hk
+        raise CameraError(f"{path}: missing key {missing!r} (give both image size keys or "
+                          f"neither)")
+    w = h = None
+    if wn is not None and hn is not None:
+        if not ((wn.isInt() or wn.isReal()) and (hn.isInt() or hn.isReal())):  # type: ignore[attr-defined]
+            raise CameraError(f"{path}: {wk}/{hk}: expected positive integers")
+        w = _size(wn.real(), f"{path}: {wk}")  # type: ignore[attr-defined]
+        h = _size(hn.real(), f"{path}: {hk}")  # type: ignore[attr-defined]
+    return _build(K, d, w, h, str(path), image_size, f"{path}: {kk}")
 
 
 def _load_toml(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
@@ -321,7 +427,8 @@ def _load_toml(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
         h = _size(data["height"], f"{path}: height")
     if "meta" in data and not isinstance(data["meta"], dict):
         raise CameraError(f"{path}: meta: expected a table")
-    return _build(K, d, w, h, str(path), image_size)
+    k_where = f"{path}: camera_matrix" if "camera_matrix" in data else str(path)
+    return _build(K, d, w, h, str(path), image_size, k_where)
 
 
 def load_camera(path: str | Path, image_size: tuple[int, int] | None = None) -> CameraModel:
