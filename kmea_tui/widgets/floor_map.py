@@ -69,8 +69,9 @@ class FloorMap(Widget):
         # The daemon's map extent (status ``map.extent``: xmin, xmax, ymin, ymax, m): the
         # outline before any marker estimate, and all of it on a fusion node.
         self.outline: tuple[float, ...] | None = None
-        # Grows to every robot position seen, so no robot is drawn off the floor (and the
-        # outline does not follow a moving robot back and forth).
+        # Grows to every robot position seen outside the outline, so no robot is drawn off
+        # the floor (and the outline does not follow a moving robot back and forth; robots
+        # on the floor never change it, whichever telemetry the UI happened to draw).
         self._robots_extent: tuple[float, float, float, float] | None = None
         self.magnification: float | None = None
         self._auto_mag = 100.0
@@ -83,10 +84,11 @@ class FloorMap(Widget):
         """Show ``data``, repainting only the lines that differ from what is shown (robots
         move a few lines a frame; the floor stays put)."""
         self.data = data
+        x0, x1, y0, y1 = self.extent()
         for r in data.robots:
             x, y = _num(r.get("x")), _num(r.get("y"))
-            if x is None or y is None:
-                continue
+            if x is None or y is None or (x0 <= x <= x1 and y0 <= y <= y1):
+                continue  # drawn already: the outline stays as the map and markers make it
             e = self._robots_extent or (x, x, y, y)
             self._robots_extent = (min(e[0], x), max(e[1], x), min(e[2], y), max(e[3], y))
         self._update_auto_magnification()
@@ -123,7 +125,7 @@ class FloorMap(Widget):
 
     def extent(self) -> tuple[float, float, float, float]:
         """The world rectangle drawn as the outline (m): the markers' extent (else the
-        map's, from the status) and every robot position seen, plus a margin."""
+        map's, from the status) and every robot position seen outside it, plus a margin."""
         xs, ys = [], []
         for e in (self.outline, self._robots_extent):
             if e is not None and len(e) == 4:
