@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import threading
+import time
 import weakref
 
 from kmead.gc_pacing import GcPacing
@@ -52,10 +53,12 @@ def test_a_live_daemon_collects_only_between_frames():
     scene = scene_from_spec("sim:default", width=820)
     src = SimSource(scene, frames=20)
     frames = [src.read() for _ in range(20)]
+    # The 20 frames served again and again, in real time, until the run has what it checks
+    # (a loaded machine drops frames of a live source: wait for events, not a count).
     register_source("gctest", lambda rest, **o: SimSource(scene, realtime=True,
-                                                          rendered=frames, fps=20))
+                                                          rendered=frames * 300, fps=20))
     d = Daemon(load_config(None, ["source.spec=gctest", 'network.telemetry=""',
-                                  'network.control=""']), max_frames=18)
+                                  'network.control=""']))
     assert d.live
     where: list[bool] = []
     idle = threading.local()
@@ -79,15 +82,27 @@ def test_a_live_daemon_collects_only_between_frames():
             for _ in range(200):
                 _Node()
 
+    def enough() -> None:  # stop once 10 frames and a paced collection happened (60 s at most)
+        end = time.monotonic() + 60
+        while time.monotonic() < end and not stop.is_set():
+            pacing = d.gc_pacing
+            if d.totals.frames >= 10 and pacing is not None and pacing.collections >= 1:
+                break
+            stop.wait(0.05)
+        d.stop()
+
     GcPacing.idle = paced
     gc.callbacks.append(seen)
     t = threading.Thread(target=litter)
+    w = threading.Thread(target=enough)
     t.start()
+    w.start()
     try:
         d.run()
     finally:
         stop.set()
         t.join()
+        w.join()
         gc.callbacks.remove(seen)
         GcPacing.idle = orig
         d.close()
