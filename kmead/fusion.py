@@ -37,10 +37,11 @@ from kmead.bodies import map_info
 from kmead.config import Config, ConfigError
 from kmead.csvlog import CsvLog, row
 from kmead.files import DataDir
-from kmead.keys import CurveServer, KeysError, exposure
+from kmead.keys import CurveServer, KeysError
 from kmead.log_ring import LogRing
+from kmead.plan import network_exposure
 from kmead.relay import Relay
-from kmead.startup import configured_map
+from kmead.startup import StartupError, configured_map
 from kmead.telemetry import Telemetry, TelemetryLogHandler
 
 log = logging.getLogger("kmead.fusion")
@@ -188,13 +189,12 @@ class FusionNode:
         self.curve = None
         self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
         net = cfg["network"]
-        error, warning = exposure({"network.telemetry": net["telemetry"],
-                                   "network.control": net["control"]},
-                                  net["keys"], net["insecure"])
-        if error:
-            raise ConfigError(error)
-        if warning:
-            log.warning("%s", warning)
+        try:
+            warnings = network_exposure(cfg)
+        except StartupError as e:
+            raise ConfigError(str(e)) from None
+        for w in warnings:
+            log.warning("%s", w)
         # A keyed node has its own context: one ZAP handler per context (kmead.keys).
         self._own_ctx = zmq.Context() if net["keys"] else None
         self.ctx = self._own_ctx or context or zmq.Context.instance()

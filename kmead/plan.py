@@ -74,7 +74,7 @@ def plan_startup(cfg: Config) -> StartupPlan:
         raise StartupError(problem)
     _pipeline_settings(cfg, preview, world_map)
     _outputs(cfg)
-    warnings += _network(cfg)
+    warnings += network_exposure(cfg)
     if cfg.data.get("foxglove", {}).get("enabled"):
         try:
             import foxglove  # noqa: F401
@@ -288,9 +288,11 @@ def _outputs(cfg: Config) -> None:
             raise StartupError(f"key 'log.{key}': cannot write {p}")
 
 
-def _network(cfg: Config) -> list[str]:
+def network_exposure(cfg: Config) -> list[str]:
     """Keys (CURVE on both sockets) or loopback only, or an explicit insecure = true; the
-    key directory is read as start-up reads it."""
+    key directory is read as start-up reads it. The warnings (a reachable insecure socket);
+    :class:`StartupError` when the sockets may not be opened so. The daemon (through
+    :func:`plan_startup`) and the fusion node judge their sockets with it."""
     from kmead.keys import KeyRing, KeysError, exposure
 
     net = cfg["network"]
