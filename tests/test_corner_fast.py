@@ -10,6 +10,7 @@ them, and a cache that outlives its fit must be caught.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,7 +18,8 @@ from synth_corners import observe, robot_marker, scenario1
 
 from kmea.estimators.base import CameraIntrinsics, check_observations
 from kmea.estimators.corner_noise import corner_outliers, square_pose
-from kmea.estimators.corners import CornerPnP
+from kmea.estimators.corner_pnp import CornerPnP, uncertainty
+from kmea.estimators.corner_pnp.placement import corner_sigma
 from kmea.geometry import (
     distort,
     distort_jacobian,
@@ -147,7 +149,7 @@ def ref_place(est: CornerPnP, fit, obs: dict, ids, heights):
     lengths = np.array([obs[i].length for i in ids])
     centres, Rw = ref_square_pose(P, F[::4], lengths)
     drop, _, _ = ref_corner_outliers(fit.R, fit.t, fit.K, fit.d, uv.reshape(-1, 4, 2), centres,
-                                     Rw, lengths, est._corner_sigma(fit), est._corner_q)
+                                     Rw, lengths, corner_sigma(fit), est._placing.corner_q)
     sel = np.flatnonzero(drop >= 0)
     if sel.size:
         keep = np.ones((sel.size, 4), bool)
@@ -249,14 +251,14 @@ def test_a_cache_that_outlives_its_fit_is_caught(monkeypatch):
     """The comparison above fails when the per-fit constants are not renewed with the fit:
     the constants of the first fit reused for every later one."""
     stale: list = []
-    real = CornerPnP._consts
+    real = uncertainty.fit_consts
 
     def never_renewed(fit):
         if not stale:
             stale.append(real(fit))
         return stale[0]
 
-    monkeypatch.setattr(CornerPnP, "_consts", staticmethod(never_renewed))
+    monkeypatch.setattr(uncertainty, "fit_consts", never_renewed)
     sc, frames = _frames()
     mismatches, _, _ = _run(CornerPnP(warm_start=True), sc, frames)
     assert all(not m for m in mismatches[:4])  # the first fit: its own constants
@@ -269,18 +271,18 @@ def test_fit_constants_are_renewed_when_the_fit_changes():
     est.estimate(frames[0], sc.map, camera=_camera(sc),
                  plane_heights=dict.fromkeys(ROBOTS, HEIGHT))
     fit = est._warm.fit
-    c = est._consts(fit)
-    assert est._consts(fit) is c  # cached
-    fit.R = rotvec_to_matrix(np.array([0.0, 0.0, 1e-3])) @ fit.R  # a field replaced
-    c2 = est._consts(fit)
-    assert c2 is not c
+    c = uncertainty.fit_consts(fit)
+    assert uncertainty.fit_consts(fit) is c  # cached
+    fit = replace(fit, R=rotvec_to_matrix(np.array([0.0, 0.0, 1e-3])) @ fit.R)  # a new fit
+    c2 = uncertainty.fit_consts(fit)
+    assert c2 is not c and c2.version == fit.version != c.version
     np.testing.assert_allclose(c2.C, -fit.R.T @ fit.t, rtol=0, atol=1e-15)
     obs = {o.id: o for o in frames[0]}
     uv = np.concatenate([np.asarray(obs[i].corners, float).reshape(4, 2) for i in ROBOTS])
     xy = undistort(uv, fit.K, fit.d)
     F = np.repeat(np.eye(3)[None], 12, axis=0)
     O = np.repeat(np.array([[0.0, 0.0, HEIGHT]]), 12, axis=0)
-    sig, P = est._sigmas(fit, xy, F, O)
+    sig, P = uncertainty.marker_sigmas(fit, xy, F, O)
     np.testing.assert_allclose(sig, ref_sigmas(fit, xy, F, O), rtol=1e-9, atol=0)
     np.testing.assert_allclose(P, ref_intersect(fit.R, fit.t, xy, F, O), rtol=0, atol=1e-12)
 
@@ -403,7 +405,7 @@ def test_warm_path_reuses_the_fit_for_equal_camera_numbers_and_refits_for_others
     K[0, 2] += 2.0
     cam = CameraIntrinsics(K, sc.camera.dist_coeffs, sc.camera.width, sc.camera.height)
     e = est.estimate(frames[1], sc.map, camera=cam, plane_heights=heights)
-    assert e.ok and est._warm.fit is not fit and est._warm.key[1] == K.tobytes()
+    assert e.ok and est._warm.fit is not fit and est._warm.camera[0] == K.tobytes()
 
 
 def test_warm_path_still_refuses_bad_observations_with_the_same_error():

@@ -16,7 +16,7 @@ from kmea.estimators.corner_noise import (
     robust_sigma,
     square_pose,
 )
-from kmea.estimators.corners import CornerPnP
+from kmea.estimators.corner_pnp import CornerPnP
 from kmea.estimators.robust import KMEARobust
 from kmea.estimators.unknown_plane import chi2_quantile
 from kmea.geometry import marker_corners_local

@@ -304,7 +304,7 @@ def test_robots_are_sent_before_the_floor_is_refitted(default_frames):
 
 
 def test_corner_pnp_warm_start_gives_the_fresh_solve(default_frames):
-    from kmea.estimators.corners import CornerPnP
+    from kmea.estimators.corner_pnp import CornerPnP
 
     frames, src = default_frames
     p = _tracked_pipeline(src, "corner-pnp")
@@ -349,7 +349,7 @@ def _refits(src, frames, **settings) -> tuple[list[int], list]:
 
 
 def test_floor_refits_are_paced_and_new_floor_markers_placed_meanwhile():
-    from kmea.estimators.corners import CornerPnP
+    from kmea.estimators.corner_pnp import CornerPnP
 
     frames, src = _frames("sim:default", 46)
     every, paced = _refits(src, frames, refit_every=1)
@@ -545,10 +545,12 @@ def test_half_resolution_discovery_uses_one_window_sized_for_the_markers(pi_fram
     assert seen >= 100 and lost <= 0.02 * seen, (seen, lost)
 
 
-def test_a_refit_keeps_the_intrinsics_model_unless_the_references_changed_much(pi_frames):
+def test_a_refit_keeps_the_intrinsics_model_unless_the_references_changed_much(pi_frames,
+                                                                               monkeypatch):
     from dataclasses import replace
 
-    from kmea.estimators.corners import CornerPnP
+    from kmea.estimators.corner_pnp import CornerPnP
+    from kmea.estimators.corner_pnp import estimator as estimator_mod
 
     frames, src = pi_frames
     p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=(), tracking=False))
@@ -559,8 +561,9 @@ def test_a_refit_keeps_the_intrinsics_model_unless_the_references_changed_much(p
     est = CornerPnP()
     est.warm_start = True
     tested = []
-    orig = est._select
-    est._select = lambda *a, **k: (tested.append(1), orig(*a, **k))[1]
+    orig = estimator_mod.select_model
+    monkeypatch.setattr(estimator_mod, "select_model",
+                        lambda *a, **k: (tested.append(1), orig(*a, **k))[1])
     intr = src.camera.intrinsics
 
     def nudged(obs):  # one more averaged look: every reference's corners move a little
@@ -654,7 +657,7 @@ def test_robots_are_placed_from_their_corners_before_any_pose(default_frames, mo
     """With the floor of the last camera fit, corner-pnp places the robots from their corners
     and the relay runs before the frame's markers are posed; the fixes equal those of the
     full path (placements from the same fit) to 1e-9."""
-    from kmea.estimators.corners import CornerPnP
+    from kmea.estimators.corner_pnp import CornerPnP
 
     frames, src = default_frames
 
@@ -692,18 +695,18 @@ def test_robots_are_placed_from_their_corners_before_any_pose(default_frames, mo
 def test_the_robots_placed_early_are_not_placed_again(default_frames, monkeypatch):
     """The frame's estimate takes the placements made from the robots' corners before the
     relay (same fit, same corners): one placement of the robots per frame, not two."""
-    from kmea.estimators.corners import CornerPnP
+    from kmea.estimators.corner_pnp import estimator as estimator_mod
 
     frames, src = default_frames
     p = _tracked_pipeline(src, "corner-pnp")
     calls: list[set] = []
-    orig = CornerPnP._markers
+    orig = estimator_mod.place_markers
 
-    def spy(self, fit, obs, *a, only=None, **k):
+    def spy(s, planes, fit, obs, *a, only=None, **k):
         calls.append(set(obs if only is None else only))
-        return orig(self, fit, obs, *a, only=only, **k)
+        return orig(s, planes, fit, obs, *a, only=only, **k)
 
-    monkeypatch.setattr(CornerPnP, "_markers", spy)
+    monkeypatch.setattr(estimator_mod, "place_markers", spy)
     once = 0
     for f in frames[:16]:
         calls.clear()

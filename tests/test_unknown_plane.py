@@ -8,7 +8,7 @@ import pytest
 from synth_corners import observe, robot_marker, scenario1
 
 from kmea.estimators import get
-from kmea.estimators.corners import CornerPnP
+from kmea.estimators.corner_pnp import CornerPnP
 from kmea.estimators.unknown_plane import chi2_quantile, map_planes
 from kmea.maps import Marker, default_map
 

@@ -35,7 +35,7 @@ _REGISTRY: dict[str, str] = {
     "lmea-printed": "kmea.estimators.lmea:LMEAPrinted",
     "umeyama": "kmea.estimators.umeyama:Umeyama",
     "kmea-robust": "kmea.estimators.robust:KMEARobust",
-    "corner-pnp": "kmea.estimators.corners:CornerPnP",
+    "corner-pnp": "kmea.estimators.corner_pnp:CornerPnP",
 }
 
 

@@ -109,7 +109,7 @@ def apply_similarity(observations: Sequence[MarkerObservation], scale: float, R:
     Rc = np.array([o.marker2cam_R for o in observations], dtype=float).reshape(-1, 3, 3)
     Pw = scale * P @ R.T + t
     Rw = R @ Rc  # (N, 3, 3): R broadcast over the stack
-    yaw = yaw_of(Rw)
+    yaw = np.asarray(yaw_of(Rw))  # (N,)
     return {o.id: MarkerEstimate(o.id, Pw[i], Rw[i], float(yaw[i]))
             for i, o in enumerate(observations)}
 

@@ -111,7 +111,7 @@ class LMEA(EstimatorBase):
         if B_cam is None or B_map is None:
             return Estimate.failed(self.name, "anchors are coincident or collinear")
         dc = np.linalg.norm(cam[1] - cam[0])
-        scale = np.linalg.norm(world[1] - world[0]) / dc
+        scale = float(np.linalg.norm(world[1] - world[0]) / dc)
         # p_world = world_o + B_map @ B_cam^T @ (scale * (p_cam - cam_o))
         R = B_map @ B_cam.T
         t = world[0] - scale * (R @ cam[0])

@@ -221,7 +221,7 @@ class KMEARobust(EstimatorBase):
                         else "within their noise level")
                 raise ValueError(f"no consensus: {int(inl.sum())} of {n} references agree "
                                  f"{rule} ({problem})")
-            sel = [ids[i] for i in np.flatnonzero(inl)]
+            sel = [ids[i] for i in np.flatnonzero(inl).tolist()]
             model = kmea_align(P[inl], Q[inl], sel, origin_id)
             r = residuals(np.array([model[0]]), model[1][None], model[2][None])[0]
             th = rescale(r, model[0])

@@ -4,7 +4,7 @@ Minimises ``cost(r(x)) + |r_prior(x)|^2`` over a state ``x`` that the caller upd
 manifold (rotations, multipliers, ...): the caller gives the residuals and their Jacobian
 in the local increment, the update ``x (+) delta``, the IRLS weights of the robust loss and
 its cost. Marquardt's damping scales the diagonal of the Gauss-Newton matrix. Used by
-``corner-pnp`` (:mod:`kmea.estimators.corners`) for the camera pose and intrinsics.
+``corner-pnp`` (:mod:`kmea.estimators.corner_pnp`) for the camera pose and intrinsics.
 """
 
 from __future__ import annotations

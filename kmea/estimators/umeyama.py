@@ -41,10 +41,8 @@ def umeyama_batch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
     """
     P = np.asarray(P, dtype=float)
     Q = np.asarray(Q, dtype=float)
-    if w is None:
-        w = np.ones(P.shape[:2])
-    w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    wc = w[:, :, None]
+    weights = np.ones(P.shape[:2]) if w is None else np.asarray(w, dtype=float)
+    wc = (weights / np.maximum(weights.sum(axis=1, keepdims=True), 1e-300))[:, :, None]
     mp = (wc * P).sum(axis=1)
     mq = (wc * Q).sum(axis=1)
     Pc = P - mp[:, None, :]

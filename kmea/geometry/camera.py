@@ -13,6 +13,8 @@ simulator's lens (``kmea.sim.lens``) call it. Numpy only; the tests compare it w
 
 from __future__ import annotations
 
+from typing import Literal, overload
+
 import numpy as np
 
 __all__ = [
@@ -95,7 +97,13 @@ def distort_xy(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray,
     return xd, yd
 
 
-def distort(xy: np.ndarray, d: np.ndarray, jac: bool = False):
+@overload
+def distort(xy: np.ndarray, d: np.ndarray, jac: Literal[False] = False) -> np.ndarray: ...
+@overload
+def distort(xy: np.ndarray, d: np.ndarray, jac: Literal[True]
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+def distort(xy: np.ndarray, d: np.ndarray, jac: bool = False
+            ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Distort normalised points xy (N, 2) with coefficients ``d`` (14,).
 
     Returns xd (N, 2); with ``jac`` also d xd / d xy (N, 2, 2) and d xd / d k1 (N, 2).
@@ -114,7 +122,14 @@ def distort(xy: np.ndarray, d: np.ndarray, jac: bool = False):
     return out, J, dk1
 
 
-def project(Pc: np.ndarray, K: np.ndarray, d: np.ndarray, jac: bool = False):
+@overload
+def project(Pc: np.ndarray, K: np.ndarray, d: np.ndarray, jac: Literal[False] = False
+            ) -> np.ndarray: ...
+@overload
+def project(Pc: np.ndarray, K: np.ndarray, d: np.ndarray, jac: Literal[True]
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
+def project(Pc: np.ndarray, K: np.ndarray, d: np.ndarray, jac: bool = False
+            ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Pixels (N, 2) of camera-frame points Pc (N, 3) (metres, z > 0), camera matrix K (3, 3)
     and distortion d (14,).
 
