@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from kmea import estimators
-from kmea.estimators.base import Estimate, MarkerObservation
+from kmea.estimators.base import Estimate, MarkerObservation, PlacesOnPlanes, WarmStart
 from kmea.filters import PoseFilter
 from kmea.geometry import wrap_angle
 from kmea.maps import MarkerMap
@@ -235,7 +235,8 @@ class MarkerObserver:
         ``world2cam_R``: the consensus rotation when known (see estimate_marker_poses)."""
         from kmea.vision.marker_pose import estimate_marker_poses
 
-        extra = {} if self.default_length is None else {"default_length": self.default_length}
+        extra: dict[str, Any] = ({} if self.default_length is None
+                                 else {"default_length": self.default_length})
         obs, diag = estimate_marker_poses(ids, corners, self.camera, self.lengths,
                                           self.world_map, world2cam_R=world2cam_R, **extra)
         # Shallow: nothing mutates it, and dataclasses.asdict (deep) cost ~30 us a frame.
@@ -303,8 +304,8 @@ class Pipeline:
         self._refit_age = 0
         self.inc_loo.reset()
         self.inc_loo.every = max(1, int(self.settings.loo_every))
-        est = getattr(self, "estimator", None)
-        if hasattr(est, "reset_warm"):
+        est = getattr(self, "estimator", None)  # (None while __init__ builds the pipeline)
+        if isinstance(est, WarmStart):
             est.warm_start = self.settings.tracking
             est.reset_warm()
 
@@ -330,15 +331,14 @@ class Pipeline:
         """Build estimator ``name`` with the configured ``unknown_plane``."""
         self.estimator = estimators.get(name, unknown_plane=self.settings.unknown_plane)
         self.algorithm = name
-        if hasattr(self.estimator, "warm_start"):
+        if isinstance(self.estimator, WarmStart):
             # Tracking (a fixed live camera): the camera fit starts from the previous one.
             self.estimator.warm_start = self.settings.tracking
         if hasattr(self, "inc_loo"):
             self.inc_loo.reset()
         # A floor reference averaged once more keeps its pose when the estimator fits the
         # corners (see IncrementalPoses).
-        self.inc_poses.reuse_px = REUSE_PX if getattr(self.estimator, "fits_corners",
-                                                      False) else 0.0
+        self.inc_poses.reuse_px = REUSE_PX if self.estimator.fits_corners else 0.0
 
     def close(self) -> None:
         """Stop the detector's background thread, if it has one."""
@@ -416,9 +416,11 @@ class Pipeline:
         if on_robots is not None:
             relay = on_robots
 
-            def on_robots(t: float, fixes: dict[str, RobotFix]) -> None:
+            def relay_and_signal(t: float, fixes: dict[str, RobotFix]) -> None:
                 relay(t, fixes)
                 self.robots_sent.set()  # the background detection may run now
+
+            on_robots = relay_and_signal
         if inp.observations is None:
             if inp.image is None:
                 raise ValueError(f"frame {inp.index}: no image")
@@ -451,7 +453,7 @@ class Pipeline:
                 elif changed:
                     self._refit_age = 0
                 if (self.robot_specs and self._floor_obs
-                        and hasattr(self.estimator, "place_on_planes")):
+                        and isinstance(self.estimator, PlacesOnPlanes)):
                     # The floor of the last camera fit: the robots are placed from their
                     # corners with that fit and sent before any pose is computed; their
                     # observations come from those placements (no IPPE pose for them).
@@ -549,16 +551,19 @@ class Pipeline:
         sel = [k for k, m in enumerate(ids.tolist()) if m not in fixed]
         if not sel:
             return None, None
+        est = self.estimator
+        if not isinstance(est, PlacesOnPlanes):
+            return None, None
         mids = [int(ids[k]) for k in sel]
         lengths = [self.robot_lengths.get(m, self.settings.marker_length) for m in mids]
-        placed = self.estimator.place_on_planes(mids, corners[sel], lengths, self.world_map,
-                                                self.plane_heights)
+        placed = est.place_on_planes(mids, corners[sel], lengths, self.world_map,
+                                     self.plane_heights)
         if placed is None:
             return None, None
         fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections)
         if on_robots is not None:
             on_robots(t, fixes)
-        return fixes, self.estimator.placed_observations(placed, mids, corners[sel], lengths)
+        return fixes, est.placed_observations(placed, mids, corners[sel], lengths)
 
     def _last_floor(self, ids: np.ndarray, corners: np.ndarray
                     ) -> tuple[np.ndarray, tuple[int, ...]]:

@@ -207,9 +207,11 @@ class EstimateWithLoo:
 
 @runtime_checkable
 class Estimator(Protocol):
-    """What every estimator provides."""
+    """What every estimator provides (optional abilities: :class:`WarmStart`,
+    :class:`PlacesOnPlanes`)."""
 
     name: str
+    fits_corners: bool  # see EstimatorBase
 
     def estimate(
         self,
@@ -238,6 +240,36 @@ class Estimator(Protocol):
     ) -> EstimateWithLoo:
         """``estimate`` and the leave-one-out positions/errors of ``loo_ids`` (default
         :func:`loo_candidates`), as defined in the module docstring."""
+        ...
+
+
+@runtime_checkable
+class WarmStart(Protocol):
+    """An estimator that can start from its previous call's fit (a fixed live camera)."""
+
+    warm_start: bool
+
+    def reset_warm(self) -> None:
+        """Forget the previous fit (the view changed: the next call solves afresh)."""
+        ...
+
+
+@runtime_checkable
+class PlacesOnPlanes(Protocol):
+    """An estimator that places markers of known plane height with its last camera fit,
+    before (and without) the frame's estimate: a fixed camera's robots, sent first."""
+
+    def place_on_planes(self, ids: Sequence[int], corners: np.ndarray,
+                        lengths: Sequence[float], world_map: MarkerMap,
+                        plane_heights: Mapping[int, float]
+                        ) -> dict[int, MarkerEstimate] | None:
+        """World poses of ``ids`` from their corners (n, 4, 2) px; None without a fit."""
+        ...
+
+    def placed_observations(self, placed: Mapping[int, MarkerEstimate], ids: Sequence[int],
+                            corners: np.ndarray, lengths: Sequence[float]
+                            ) -> dict[int, MarkerObservation]:
+        """Camera-frame observations of the markers :meth:`place_on_planes` placed."""
         ...
 
 
@@ -283,6 +315,9 @@ class EstimatorBase:
     :meth:`_loo_positions`."""
 
     name: str
+    # The fit reads the references' corners (their poses only seed it): a reference's pose
+    # may be reused while its corners move a little (kmea.incremental).
+    fits_corners: bool = False
 
     def estimate(self, observations, world_map, exclude=(), camera=None,
                  plane_heights=None) -> Estimate:  # pragma: no cover - every subclass has one
