@@ -32,6 +32,8 @@ for run in $(seq "$MAX"); do
     else
         streak=0
         grep -E '^(FAILED|ERROR) ' "$log" | sed 's/^/    /'
+        kept="${KEEP_DIR:-/tmp}/suite-under-load-run$run.log"
+        cp "$log" "$kept" && echo "    log: $kept"
     fi
     rm -f "$log"
     if [ $streak -ge "$WANT" ]; then

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import zmq
+from deadlines import JOIN
 
 from kmea import protocol as P
 from kmead.config import load_config
@@ -112,6 +113,6 @@ class LiveDaemon:
         if self._req is not None:
             self._req.close(0)
         self.daemon.stop()
-        self.thread.join(timeout=20)
+        self.thread.join(timeout=JOIN)
         self.daemon.close()
         self.ctx.term()

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import zmq
+from deadlines import DEADLINE, JOIN
 
 from kmea import protocol as P
 from kmea.sim.scenes import get_scene
@@ -46,7 +47,7 @@ def _start(d: Daemon) -> threading.Thread:
 
 def _stop(d: Daemon, t: threading.Thread) -> None:
     d.stop()
-    t.join(timeout=10)
+    t.join(timeout=JOIN)
     d.close()
 
 
@@ -129,7 +130,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
             assert abs(m["vx"]) < 0.5 and m["age"] == 0.0  # 0.01 m/s, 10 noisy fixes/s
         sources = {}
         expected = {"amr1": "cam0+cam1", "amr2": "cam1"}
-        end = time.monotonic() + 60
+        end = time.monotonic() + DEADLINE
         while time.monotonic() < end and sources != expected:
             if sub.poll(200):
                 body = P.decode(sub.recv_multipart())[1]
@@ -143,7 +144,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
                                                "x": "NaN", "y": 0.0, "theta": 0.0}),
                        P.encode("robot.ghost", {"name": "ghost", "valid": True})):
             junk.send_multipart(frames)
-        end = time.monotonic() + 30
+        end = time.monotonic() + DEADLINE
         while time.monotonic() < end and node.inputs[2].bad < 3:
             time.sleep(0.05)
         assert node.inputs[2].bad >= 3 and tn.is_alive()
@@ -167,7 +168,7 @@ def _fused_stop_and_return(d0: Daemon, d1: Daemon, epoch: float, running: dict,
         assert any(m["name"] == "amr2" and m["valid"] for _, m in seen)
     finally:
         node.stop()
-        tn.join(timeout=10)
+        tn.join(timeout=JOIN)
         status = node.status()
         robots_body = node.robots_body()
         node.close()
@@ -262,7 +263,7 @@ async def test_tui_connects_to_the_fusion_node_and_shows_the_cameras() -> None:
         async with app.run_test(size=(100, 30)) as pilot:
             robots = app.query_one(RobotsTable)
             await pilot.press("2")  # the UI repaints the visible tab only
-            end = time.monotonic() + 20
+            end = time.monotonic() + DEADLINE
             state = ""
             while time.monotonic() < end:
                 if "amr2" in robots.raw:
@@ -274,7 +275,7 @@ async def test_tui_connects_to_the_fusion_node_and_shows_the_cameras() -> None:
             assert app.connection_state == "connected"
     finally:
         node.stop()
-        tn.join(timeout=10)
+        tn.join(timeout=JOIN)
         node.close()
         _stop(d1, t1)
 
@@ -311,7 +312,7 @@ def test_frames_n_stops_at_exactly_n_outputs_with_messages_queued() -> None:
             tn.join(timeout=60)
             stuck = tn.is_alive()
             node.stop()
-            tn.join(timeout=10)
+            tn.join(timeout=JOIN)
             assert not stuck, [(i.received, i.bad, i.measurements) for i in node.inputs]
             assert node.outputs == 5
             assert sum(i.received for i in node.inputs) == 5  # the rest are left unread

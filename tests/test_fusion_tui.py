@@ -8,6 +8,8 @@ import threading
 import time
 from pathlib import Path
 
+from deadlines import JOIN
+
 from kmea.maps import save_map_toml
 from kmea.sim.scenes import get_scene
 from kmea_tui.app import KmeaTui
@@ -60,7 +62,7 @@ async def test_fusion_node_ui_opens_on_robots_and_draws_its_map(tmp_path: Path) 
             assert (await app.client.request("get_log", limit=5))["ok"] is True
     finally:
         node.stop()
-        tn.join(timeout=10)
+        tn.join(timeout=JOIN)
         node.close()
 
 

@@ -8,6 +8,7 @@ import sys
 import threading
 
 import zmq
+from deadlines import JOIN
 
 from kmea import protocol as P
 from kmead import cli
@@ -73,7 +74,7 @@ def test_in_process_fusion_node_leaves_no_log_handler_behind(capsys) -> None:
         assert kmea_main(["fuse", "--input", ep, "--headless", "--frames", "1", *NET]) == 0
     finally:
         done.set()
-        t.join(timeout=10)
+        t.join(timeout=JOIN)
         pub.close(linger=0)
     assert "kmea fuse: 1 fused outputs" in capsys.readouterr().out
     assert _state() == before

@@ -22,6 +22,7 @@ import fakepi
 import numpy as np
 import pytest
 import zmq
+from deadlines import DEADLINE, JOIN
 
 from kmea import protocol as P
 from kmea.maps import default_map
@@ -253,7 +254,7 @@ def test_live_daemon_telemetry_udp_and_control(tmp_path: Path, udp: socket.socke
         assert _frames_after(daemon, n_before + 2)  # rows for second.csv
     finally:
         daemon.stop()
-        runner.join(timeout=20)
+        runner.join(timeout=JOIN)
         daemon.close()
         sub.close()
         ctx.term()
@@ -345,12 +346,12 @@ def test_sigterm_flushes_and_summarises_sigkill_leaves_whole_rows(tmp_path: Path
     try:
         _wait_rows(out_term, p1)
         p1.send_signal(signal.SIGTERM)
-        stdout, stderr = p1.communicate(timeout=20)
+        stdout, stderr = p1.communicate(timeout=DEADLINE)
         assert p1.returncode == 0, stderr
         assert "kmead summary" in stdout and "robots tracked" in stdout
         _wait_rows(out_kill, p2)
         p2.send_signal(signal.SIGKILL)
-        p2.communicate(timeout=20)
+        p2.communicate(timeout=DEADLINE)
     finally:
         for p in (p1, p2):
             if p.poll() is None:

@@ -20,14 +20,13 @@ from pathlib import Path
 
 import pytest
 import zmq
+from deadlines import DEADLINE
 from security_helpers import LiveDaemon, robots_toml, udp_listener
 
 from kmea import protocol as P
 from kmea import wholewrite
 from kmead.csvlog import COLUMNS, HEADER
 from kmead.relay import parse_datagram
-
-DEADLINE = 30.0
 
 
 class Disk:

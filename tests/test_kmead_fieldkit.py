@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pytest
 import zmq
+from deadlines import DEADLINE
 
 from kmea import protocol as P
 from kmea_tui import cli as tui_cli
@@ -137,7 +138,7 @@ def test_headless_status_lines_notify_datagrams_and_final_line(tmp_path):
         r = _run(["--headless", "--frames", "25", "--status-every", "0.3", *SMALL,
                   "--set", "source.fps=10", *NET], tmp_path,
                  env={"NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "400000"})
-        end = time.monotonic() + 30  # the reader may still be behind: STOPPING is the last
+        end = time.monotonic() + DEADLINE  # the reader may still be behind: STOPPING is the last
         while time.monotonic() < end and not any(g.startswith("STOPPING=1") for g in grams):
             time.sleep(0.05)
     finally:
@@ -181,7 +182,7 @@ def test_sigterm_announces_stopped_on_telemetry(tmp_path):
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
     try:
-        end = time.monotonic() + 60
+        end = time.monotonic() + DEADLINE
         while not (m := re.search(r"telemetry (tcp://\S+),", err.read_text())):
             assert time.monotonic() < end and proc.poll() is None, err.read_text()
             time.sleep(0.05)

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import pytest
 import zmq
+from deadlines import DEADLINE
 from security_helpers import LiveDaemon, robots_toml, udp_listener
 
 from kmea import protocol as P
@@ -288,13 +289,13 @@ def test_every_robot_gets_valid0_at_shutdown(tmp_path: Path, how: str) -> None:
     p = _spawn(tmp_path, port, *extra)
     try:
         got: list[dict] = []
-        end = time.monotonic() + 60
+        end = time.monotonic() + DEADLINE
         while time.monotonic() < end and not any(m["valid"] for m in got):
             got += _datagrams(u, 0.2)
         assert any(m["valid"] for m in got), p.stderr.read() if p.poll() is not None else ""
         if how != "end of frames":
             p.send_signal(getattr(signal, how))
-        _, err = p.communicate(timeout=30)
+        _, err = p.communicate(timeout=DEADLINE)
         assert p.returncode == 0, err
         assert "Traceback" not in err
         got += _datagrams(u, 0.5)
@@ -384,7 +385,7 @@ def test_a_live_change_that_breaks_the_pipeline_is_rolled_back_and_never_saved(
         assert d.wait(lambda: d.daemon.cfg["detector"]["dictionary"] == "")
         assert d.cmd("get_config")["config"]["detector"]["dictionary"] == ""
         texts = []
-        end = time.monotonic() + 30
+        end = time.monotonic() + DEADLINE
         while time.monotonic() < end and not any("rolled back" in t for t in texts):
             if sub.poll(100):
                 texts.append(P.decode(sub.recv_multipart())[1]["text"])

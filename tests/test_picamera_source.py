@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from deadlines import JOIN
 from fakepi import forget, install
 
 from kmea.sources.base import SourceError
@@ -275,6 +276,6 @@ def test_close_from_another_thread_while_a_read_waits(rig) -> None:
     t.start()
     time.sleep(0.05)
     src.close()
-    t.join(timeout=5)
+    t.join(timeout=JOIN)
     assert not t.is_alive() and out == [None]
     assert len(rig.instances) == 1 and not rig.instances[0].is_open

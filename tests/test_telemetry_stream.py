@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import zmq
+from deadlines import DEADLINE
 
 from kmea import protocol as P
 from kmead.config import load_config
@@ -120,7 +121,7 @@ def test_a_real_daemon_sends_what_the_recording_holds(tmp_path: Path) -> None:
         replies = {cmd: _request(ctx, daemon.control.bound, cmd) for cmd in P.REPLY_TYPES}
         # The last queued messages (all sent before this event) and one more status.
         daemon.telemetry.event("info", "end of the test's stream")
-        end = time.monotonic() + 60
+        end = time.monotonic() + DEADLINE
 
         def texts() -> list[str]:
             return [e["text"] for e in list(got.get("event", []))]

@@ -15,6 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from deadlines import JOIN
 
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 from kmea.sources.sim import SimSource
@@ -427,7 +428,7 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
         runner.join(timeout=60)
     finally:
         d.stop()
-        runner.join(timeout=5)
+        runner.join(timeout=JOIN)
         d.close()
         logging.getLogger("kmead").removeHandler(caught)
     assert len(results) >= 8  # live: newest frame wins, a loaded machine drops some
@@ -489,7 +490,7 @@ def test_live_frame_time_is_the_sensor_timestamp():
         runner.join(timeout=60)
     finally:
         d.stop()
-        runner.join(timeout=5)
+        runner.join(timeout=JOIN)
         d.close()
     assert results
     for r in results:

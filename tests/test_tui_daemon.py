@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from deadlines import JOIN
 from textual.widgets import Select
 
 from kmea_tui.app import KmeaTui
@@ -67,7 +68,7 @@ class Daemon:
         if self.proc.poll() is None:
             self.proc.terminate()
             try:
-                self.proc.wait(timeout=20)
+                self.proc.wait(timeout=JOIN)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()

@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from deadlines import DEADLINE
 from test_tui_daemon import Daemon, wait_for
 from textual.widgets import Input, TabbedContent
 
@@ -278,7 +279,7 @@ def test_kmead_with_its_ui_says_it_is_starting_before_the_floor_is_built(tmp_pat
         while proc.poll() is None and time.monotonic() < end:
             os.write(master, b"q")
             read_until(b"\x00never", 3.0)  # drain the pty (the UI blocks on a full one)
-        assert proc.wait(timeout=10) == 0
+        assert proc.wait(timeout=DEADLINE) == 0
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from deadlines import DEADLINE
 from test_tui_daemon import Daemon, wait_for
 from textual.widgets import Input, RichLog, TabbedContent
 
@@ -156,7 +157,7 @@ def _camera_app() -> KmeaTui:
 
 async def _show_thumbnail(pilot) -> None:
     app = pilot.app
-    end = time.monotonic() + 60  # a loaded machine replays slowly: wait, do not count
+    end = time.monotonic() + DEADLINE  # a loaded machine replays slowly: wait, do not count
     while time.monotonic() < end and not (app.replay_done and app.config_loaded):
         await pilot.pause(0.01)
     await pilot.press("7")

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from deadlines import DEADLINE
 from rich.style import Style
 from rich.text import Text
 
@@ -31,7 +32,7 @@ def _last(topic: str) -> dict[str, Any]:
 
 
 async def _replayed(app: KmeaTui, pilot: Any) -> None:
-    end = time.monotonic() + 60  # a loaded machine replays slowly: wait, do not count
+    end = time.monotonic() + DEADLINE  # a loaded machine replays slowly: wait, do not count
     while time.monotonic() < end and not (app.replay_done and app.config_loaded):
         await pilot.pause(0.01)
     assert app.replay_done and app.config_loaded
@@ -40,7 +41,7 @@ async def _replayed(app: KmeaTui, pilot: Any) -> None:
 
 async def _post_markers(app: KmeaTui, pilot: Any, body: dict[str, Any]) -> None:
     app.post_message(TelemetryBatch({"markers": body}))
-    end = time.monotonic() + 30
+    end = time.monotonic() + DEADLINE
     while time.monotonic() < end and app.markers_body is not body:
         await pilot.pause(0.01)
     await pilot.pause(0.1)  # the screen's next refresh

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from deadlines import DEADLINE
 
 from kmea_tui.app import TABS, KmeaTui
 from kmea_tui.client import RecordingClient
@@ -22,7 +23,7 @@ KEYS = {tab: str(i + 1) for i, (tab, _) in enumerate(TABS)}
 
 async def _until_replayed(pilot) -> None:
     app = pilot.app
-    end = time.monotonic() + 60  # a loaded machine replays slowly: wait, do not count
+    end = time.monotonic() + DEADLINE  # a loaded machine replays slowly: wait, do not count
     while time.monotonic() < end and not (app.replay_done and app.config_loaded):
         await pilot.pause(0.01)
     assert app.replay_done and app.config_loaded

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import zmq
 import zmq.asyncio
+from deadlines import DEADLINE
 
 from kmea import protocol
 from kmea_tui.app import KmeaTui
@@ -96,7 +97,7 @@ async def test_fast_stream_is_coalesced_and_tables_update_in_place() -> None:
 
             # The last frame shows up once the burst is over.
             last = n_frames
-            end = time.monotonic() + 60
+            end = time.monotonic() + DEADLINE
             while time.monotonic() < end and not (
                     (app.frame or {}).get("frame") == last
                     and (app.markers_body or {}).get("frame") == last):

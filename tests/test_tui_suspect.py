@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from deadlines import DEADLINE
 from rich.style import Style
 
 from kmea_tui.app import KmeaTui
@@ -98,7 +99,7 @@ def test_map_draws_suspect_label_without_error_vector() -> None:
 
 
 async def _replayed(app: KmeaTui, pilot) -> None:
-    end = time.monotonic() + 60  # a loaded machine replays slowly: wait, do not count
+    end = time.monotonic() + DEADLINE  # a loaded machine replays slowly: wait, do not count
     while time.monotonic() < end and not (app.replay_done and app.config_loaded):
         await pilot.pause(0.01)
     assert app.replay_done and app.config_loaded
@@ -147,7 +148,7 @@ async def test_suspect_marker_flagged_in_table_summary_map_and_help() -> None:
         for m in body["markers"]:
             m["suspect"] = False
         app.post_message(TelemetryBatch({"markers": body}))
-        end = time.monotonic() + 30
+        end = time.monotonic() + DEADLINE
         while time.monotonic() < end and "S" in str(table.get_cell("25", "flags")):
             await pilot.pause(0.01)
         assert "S" not in str(table.get_cell("25", "flags"))
