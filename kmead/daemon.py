@@ -686,7 +686,7 @@ class Daemon:
     def snapshot(self, overlay: bool = False) -> dict:
         """Save the last frame as PNG in the data directory (kmead's working directory)."""
         from kmea.vision.overlay import focus_measure
-        from kmead.snapshot import save_snapshot
+        from kmead.snapshot import Limits, save_snapshot
 
         with self.lock:  # between two frames: take the image and what to draw on it
             res, image = self.last_result, self.last_image
@@ -698,8 +698,10 @@ class Daemon:
         if overlay and image is not None and image.ndim == 2:
             focus = focus_measure(image, [m.corners for m in marks if m.kind != "expected"])
         # PNG encoding (tens of ms at full size) happens outside the lock.
+        lg = self.cfg["log"]
+        limits = Limits(lg["snapshots_max"], lg["snapshots_max_mb"], lg["min_free_mb"])
         path = save_snapshot(image, res.index if res else -1, self.data_dir.root, marks, focus,
-                             overlay)
+                             overlay, limits)
         log.info("snapshot saved: %s", path)
         return {"path": str(path), "frame": res.index if res else None, "overlay": overlay}
 

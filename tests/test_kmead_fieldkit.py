@@ -233,11 +233,15 @@ def test_port_in_use_names_the_likely_cause_and_the_way_out(tmp_path):
 @pytest.fixture
 def running(tmp_path, monkeypatch):
     """A daemon on the simulator (one covered map marker) in a thread, with a REQ and a SUB."""
+    yield from _running(tmp_path, monkeypatch)
+
+
+def _running(tmp_path, monkeypatch, *extra: str):
     monkeypatch.chdir(tmp_path)  # the data directory: snapshots land here
     cfg = load_config(None, ['source.spec="sim:default?covered=4"', "source.width=640",
                              "source.height=480", "source.fps=8",
                              'network.telemetry="tcp://127.0.0.1:*"',
-                             'network.control="tcp://127.0.0.1:*"'])
+                             'network.control="tcp://127.0.0.1:*"', *extra])
     d = Daemon(cfg)
     t = threading.Thread(target=d.run, daemon=True)
     t.start()
@@ -333,6 +337,30 @@ def test_snapshot_full_resolution_png_with_and_without_overlay(running, tmp_path
     green = (b[:, :, 1] > 150) & (b[:, :, 0] < 80) & (b[:, :, 2] < 80)
     assert green.sum() > 100  # outlines drawn
     assert not ask(cmd="snapshot", overlay="yes")["ok"]
+
+
+@pytest.fixture
+def limited(tmp_path, monkeypatch):
+    """The same daemon with room for two snapshots or 1 MB of them."""
+    yield from _running(tmp_path, monkeypatch, "log.snapshots_max=2", "log.snapshots_max_mb=1")
+
+
+def test_snapshots_pile_up_to_their_limits_then_a_request_is_refused(limited, tmp_path):
+    # Any client, a viewer too, may take snapshots: 36 of 1-2.7 MB were once all accepted.
+    _d, ask, sub = limited
+    sub.setsockopt(zmq.SUBSCRIBE, b"frame")
+    assert _collect(sub, "frame", 60.0)
+    assert ask(cmd="snapshot")["ok"] and ask(cmd="snapshot")["ok"]
+    third = ask(cmd="snapshot")
+    assert not third["ok"] and "log.snapshots_max = 2" in third["error"], third
+    assert len(list(tmp_path.glob("snapshot-*.png"))) == 2
+    # The bytes: one snapshot file of 1 MB (someone else's, or an old big one) fills it.
+    for p in tmp_path.glob("snapshot-*.png"):
+        p.unlink()
+    (tmp_path / "snapshot-old.png").write_bytes(b"\0" * 1_000_000)
+    full = ask(cmd="snapshot")
+    assert not full["ok"] and "log.snapshots_max_mb = 1 MB" in full["error"], full
+    assert "\n" not in full["error"]
 
 
 def test_log_ring_sent_on_request(running):
