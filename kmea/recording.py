@@ -9,11 +9,16 @@ in ``.zst`` (:mod:`kmea.recfile`: whole lines survive a kill):
    configuration; ``part`` (2, 3 ...) and ``previous`` (the file before it) when the
    recording was cut into parts (each part replays alone);
 2. one line per frame ``{"frame", "t", "ids", "corners", "markers", "diag"[, "truth"]}``:
-   ``markers`` holds every per-marker pose (both IPPE solutions, reprojection errors, and
-   ``ambiguous``, ``flipped``, ``suspect`` when true); ``truth`` is the simulator's ground
-   truth when known. A marker's ``corners`` are left out when they are the detection's
-   (``corners`` of the first detection with its id): they always were, and they were a
-   fifth of a version 1 frame. Version 1 (every marker's corners, every flag) still reads.
+   ``markers`` holds every per-marker pose (``R``, ``t``, the reprojection errors of both
+   IPPE solutions, and ``ambiguous``, ``flipped``, ``suspect`` when true); ``truth`` is the
+   simulator's ground truth when known.
+
+Version 2 keeps what a replay reads and nothing twice: a marker's ``corners`` are left out
+when they are its detection's (``corners`` of the first detection with its id: they always
+were; a fifth of a version 1 frame), and the other IPPE solution's pose (``alt_R``,
+``alt_t``: 40 % of a compressed frame) is not written, since no stage after the pose reads
+it (a replay reproduces the run's rows without it). Version 1 files (every marker's corners,
+both solutions, every flag) still read.
 
 Floats are written with Python's shortest round-trip repr, so replaying with the same
 settings reproduces the recorded run's estimates exactly. NaN is written as ``null``.
@@ -96,9 +101,11 @@ def map_from_json(d: dict) -> MarkerMap:
 def obs_to_json(o: MarkerObservation, detected: np.ndarray | None = None) -> dict:
     """A marker's observation; ``detected``: the corners of its detection, which its own
     are not repeated when equal to (format version 2)."""
+    # Not the other IPPE solution's pose (alt_R, alt_t): nothing after the pose stage reads
+    # it, and its twelve full-precision floats were 40 % of a compressed frame.
     d = {"id": int(o.id), "R": _arr(o.marker2cam_R), "t": _arr(o.marker2cam_t),
-         "length": float(o.length), "reproj": _num(o.reproj_error), "alt_R": _arr(o.alt_R),
-         "alt_t": _arr(o.alt_t), "alt_reproj": _num(o.alt_reproj_error)}
+         "length": float(o.length), "reproj": _num(o.reproj_error),
+         "alt_reproj": _num(o.alt_reproj_error)}
     if detected is None or o.corners is None or not np.array_equal(
             np.asarray(o.corners, dtype=float).reshape(-1), detected.reshape(-1)):
         d["corners"] = _arr(o.corners)

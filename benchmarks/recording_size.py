@@ -1,0 +1,169 @@
+"""What a recording costs: bytes a frame, bytes an hour at 30 frames/s, CPU a frame written.
+
+    .venv/bin/python benchmarks/recording_size.py [--frames N] [--candidates]
+
+The same frames are written in every format (like with like). They come from real kmead
+runs on the simulated floor (820x616, 35 markers, two robots), read back exactly from a
+recording, in two cases:
+
+- ``fast path``: the daemon's default on a live source (``detector.tracking``): a fixed
+  marker keeps its observation between the floor's refits, so most of a frame repeats the
+  last one;
+- ``every frame new``: ``detector.tracking = false``: every corner and every pose is
+  measured afresh, every number changes (the worst case for compression).
+
+Formats: ``v1`` is the first format's writer (every marker's corners and flags, plain JSON
+lines: what ``--record run.jsonl`` wrote before format version 2); ``v2 plain`` and ``v2
+.zst`` are :class:`kmea.recording.Recorder` today (``run.jsonl`` and ``run.jsonl.zst``).
+``--candidates`` adds what was measured to choose: gzip (stdlib zlib, a sync flush every
+frame) and MCAP chunks (the ``mcap`` package, zstd and lz4, 1 MB chunks: durable only when a
+chunk closes). CPU is ``time.process_time`` of encoding, compressing and writing every frame
+to a real file, divided by the frames (the median of ``--runs`` runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import zlib
+from collections.abc import Callable
+from pathlib import Path
+
+from kmea.jsonsafe import to_jsonable
+from kmea.recording import Recorder, _arr, _num
+from kmea.sources.replay import ReplaySource
+
+FPS = 30.0
+CASES = {"fast path": [], "every frame new": ["--set", "detector.tracking=false"]}
+
+
+def record(tmp: Path, name: str, frames: int, extra: list[str]) -> Path:
+    """A plain recording of ``frames`` frames of a real kmead run on the simulator."""
+    path = tmp / f"{name.replace(' ', '-')}.jsonl"
+    cmd = [sys.executable, "-m", "kmead.cli", "--headless", "--free-ports", "--frames",
+           str(frames), "--record", str(path), *extra]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return path
+
+
+def load(path: Path) -> tuple[Path, list[tuple]]:
+    src = ReplaySource(path)
+    frames = []
+    for f in src:
+        ids, corners, obs, diag = f.meta["replay"]
+        frames.append((f.index, f.timestamp, ids, corners, obs, diag, f.meta.get("truth")))
+    src.close()
+    return path, frames
+
+
+def v1_line(index, t, ids, corners, obs, diag, truth) -> bytes:
+    """A frame as format version 1 wrote it (kmea/recording.py before version 2)."""
+    line = {"frame": int(index), "t": float(t), "ids": [int(i) for i in ids],
+            "corners": [_arr(c) for c in corners],
+            "markers": [{"id": int(o.id), "R": _arr(o.marker2cam_R), "t": _arr(o.marker2cam_t),
+                         "corners": _arr(o.corners), "length": float(o.length),
+                         "reproj": _num(o.reproj_error), "alt_R": _arr(o.alt_R),
+                         "alt_t": _arr(o.alt_t), "alt_reproj": _num(o.alt_reproj_error),
+                         "ambiguous": bool(o.ambiguous), "flipped": bool(o.flipped),
+                         "suspect": bool(o.suspect)} for o in obs],
+            "diag": to_jsonable(diag)}
+    if truth is not None:
+        line["truth"] = to_jsonable(truth)
+    return (json.dumps(line, separators=(",", ":"), allow_nan=False) + "\n").encode()
+
+
+def write_v1(out: Path, src: Path, frames: list[tuple]) -> None:
+    with open(out, "wb", buffering=0) as f:
+        f.write(src.open("rb").readline())
+        for fr in frames:
+            f.write(v1_line(*fr))
+
+
+def write_recorder(out: Path, src: Path, frames: list[tuple]) -> None:
+    rs = ReplaySource(src)
+    rec = Recorder(out, rs.camera, rs.world_map, "sim", rs.header["config"])
+    rs.close()
+    for fr in frames:
+        rec.write_frame(*fr)
+    rec.close()
+
+
+def write_gzip(out: Path, src: Path, frames: list[tuple]) -> None:
+    from kmea.recording import frame_to_json
+
+    z = zlib.compressobj(6, zlib.DEFLATED, 31)
+    with open(out, "wb", buffering=0) as f:
+        for fr in frames:
+            line = json.dumps(frame_to_json(*fr), separators=(",", ":")).encode() + b"\n"
+            f.write(z.compress(line) + z.flush(zlib.Z_SYNC_FLUSH))
+        f.write(z.flush())
+
+
+def write_mcap(kind: str) -> Callable[[Path, Path, list[tuple]], None]:
+    def write(out: Path, src: Path, frames: list[tuple]) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        from kmea.recording import frame_to_json
+
+        with open(out, "wb") as f:
+            w = Writer(f, chunk_size=1 << 20, compression=getattr(CompressionType, kind))
+            w.start("kmead-recording", "kmea")
+            schema = w.register_schema("kmead.Frame", "jsonschema", b"{}")
+            ch = w.register_channel("/frames", "json", schema)
+            for fr in frames:
+                ns = int(fr[1] * 1e9)
+                w.add_message(ch, log_time=ns, publish_time=ns, data=json.dumps(
+                    frame_to_json(*fr), separators=(",", ":")).encode())
+            w.finish()
+    return write
+
+
+def measure(write, src: Path, frames: list[tuple], out: Path, runs: int) -> tuple[float, float]:
+    """(bytes a frame, CPU ms a frame) of writing ``frames`` to ``out``."""
+    cpu = []
+    for _ in range(runs):
+        out.unlink(missing_ok=True)
+        t0 = time.process_time()
+        write(out, src, frames)
+        cpu.append((time.process_time() - t0) / len(frames) * 1e3)
+    header = len(src.open("rb").readline())  # the same header in every format, once a file
+    return (out.stat().st_size - header) / len(frames), statistics.median(cpu)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--candidates", action="store_true",
+                    help="also gzip and MCAP (zstd, lz4), the formats measured to choose")
+    args = ap.parse_args(argv)
+    formats: dict[str, tuple[str, Callable]] = {
+        "v1 (before)": (".jsonl", write_v1), "v2 plain": (".jsonl", write_recorder),
+        "v2 .zst (now)": (".jsonl.zst", write_recorder)}
+    if args.candidates:
+        formats.update({"v2 gzip": (".jsonl.gz", write_gzip),
+                        "v2 MCAP zstd": (".mcap", write_mcap("ZSTD")),
+                        "v2 MCAP lz4": (".mcap", write_mcap("LZ4"))})
+    print(f"{args.frames} frames of the simulated floor (820x616), written {args.runs} times; "
+          f"hour = {FPS:g} frames/s x 3600 s")
+    print(f"{'frames':16} {'format':15} {'bytes/frame':>11} {'GB/hour':>8} {'CPU ms/frame':>12}")
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        for case, extra in CASES.items():
+            src, frames = load(record(tmp, case, args.frames, extra))
+            markers = statistics.mean(len(f[4]) for f in frames)
+            for name, (suffix, write) in formats.items():
+                per, cpu = measure(write, src, frames, tmp / f"out{suffix}", args.runs)
+                print(f"{case:16} {name:15} {per:11.0f} {per * FPS * 3600 / 1e9:8.3f} "
+                      f"{cpu:12.2f}")
+            print(f"{'':16} ({markers:.1f} markers a frame)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
