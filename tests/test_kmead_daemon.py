@@ -96,7 +96,7 @@ def test_sim_run_logs_csv_close_to_truth_and_replays_exactly(tmp_path: Path,
     frame0 = json.loads(rec.read_text().splitlines()[1])
     assert {"frame", "t", "ids", "corners", "markers", "truth"} <= set(frame0)
     # Format version 2: what a replay reads (no repeated corners, no second IPPE pose).
-    assert {"R", "t", "length", "reproj", "alt_reproj"} == set(frame0["markers"][0])
+    assert {"id", "R", "t", "length", "reproj", "alt_reproj"} == set(frame0["markers"][0])
 
 
 class _Sub:
