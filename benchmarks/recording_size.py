@@ -2,9 +2,9 @@
 
     .venv/bin/python benchmarks/recording_size.py [--frames N] [--candidates]
 
-The same frames are written in every format (like with like). They come from real kmead
-runs on the simulated floor (820x616, 35 markers, two robots), read back exactly from a
-recording, in two cases:
+The same frames are written in every format (like with like): what a real daemon (in this
+process, on the simulated floor: 1640x1232, 35-40 markers, two robots) hands its recorder,
+in two cases:
 
 - ``fast path``: the daemon's default on a live source (``detector.tracking``): a fixed
   marker keeps its observation between the floor's refits, so most of a frame repeats the
@@ -25,40 +25,55 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 import zlib
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any, NamedTuple
 
 from kmea.jsonsafe import to_jsonable
 from kmea.recording import Recorder, _arr, _num
-from kmea.sources.replay import ReplaySource
+from kmead.config import load_config
+from kmead.daemon import Daemon
+from kmead.outputs import truth_record
 
 FPS = 30.0
-CASES = {"fast path": [], "every frame new": ["--set", "detector.tracking=false"]}
+CASES = {"fast path": [], "every frame new": ["detector.tracking=false"]}
 
 
-def record(tmp: Path, name: str, frames: int, extra: list[str]) -> Path:
-    """A plain recording of ``frames`` frames of a real kmead run on the simulator."""
-    path = tmp / f"{name.replace(' ', '-')}.jsonl"
-    cmd = [sys.executable, "-m", "kmead.cli", "--headless", "--free-ports", "--frames",
-           str(frames), "--record", str(path), *extra]
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return path
+class Run(NamedTuple):
+    frames: list[tuple]
+    camera: Any
+    world_map: Any
+    config: dict
 
 
-def load(path: Path) -> tuple[Path, list[tuple]]:
-    src = ReplaySource(path)
-    frames = []
-    for f in src:
-        ids, corners, obs, diag = f.meta["replay"]
-        frames.append((f.index, f.timestamp, ids, corners, obs, diag, f.meta.get("truth")))
-    src.close()
-    return path, frames
+def capture(frames: int, extra: list[str]) -> tuple[list[tuple], Any, Any, dict]:
+    """The frames a real daemon (in this process, on the simulator) hands its recorder:
+    (frames, camera, map, configuration). Each frame as ``Recorder.write_frame`` takes it."""
+    logging.getLogger("kmead").setLevel(logging.WARNING)
+    cfg = load_config(None, [*extra, 'network.telemetry="tcp://127.0.0.1:*"',
+                             'network.control="tcp://127.0.0.1:*"'])
+    d = Daemon(cfg, max_frames=frames)
+    got: list[tuple] = []
+    outputs = d._outputs
+
+    def grab(res: Any) -> None:
+        truth = res.meta.get("truth")
+        got.append((res.index, res.timestamp, res.ids, res.corners, list(res.observations),
+                    dict(res.diagnostics), truth_record(truth) if truth is not None else None))
+        outputs(res)
+
+    d._outputs = grab
+    try:
+        d.run()
+    finally:
+        d.close()
+    return got, d.pipeline.camera, d.world_map, cfg.to_dict()
 
 
 def v1_line(index, t, ids, corners, obs, diag, truth) -> bytes:
@@ -77,35 +92,40 @@ def v1_line(index, t, ids, corners, obs, diag, truth) -> bytes:
     return (json.dumps(line, separators=(",", ":"), allow_nan=False) + "\n").encode()
 
 
-def write_v1(out: Path, src: Path, frames: list[tuple]) -> None:
+def write_v1(out: Path, run: Run) -> int:
+    header = Recorder(out, run.camera, run.world_map, "sim", run.config)  # its header line
+    header.close()
+    head = out.read_bytes().replace(b'"version":2', b'"version":1')
     with open(out, "wb", buffering=0) as f:
-        f.write(src.open("rb").readline())
-        for fr in frames:
+        f.write(head)
+        for fr in run.frames:
             f.write(v1_line(*fr))
+    return len(head)
 
 
-def write_recorder(out: Path, src: Path, frames: list[tuple]) -> None:
-    rs = ReplaySource(src)
-    rec = Recorder(out, rs.camera, rs.world_map, "sim", rs.header["config"])
-    rs.close()
-    for fr in frames:
+def write_recorder(out: Path, run: Run) -> int:
+    rec = Recorder(out, run.camera, run.world_map, "sim", run.config)
+    head = rec.bytes
+    for fr in run.frames:
         rec.write_frame(*fr)
     rec.close()
+    return head
 
 
-def write_gzip(out: Path, src: Path, frames: list[tuple]) -> None:
+def write_gzip(out: Path, run: Run) -> int:
     from kmea.recording import frame_to_json
 
     z = zlib.compressobj(6, zlib.DEFLATED, 31)
     with open(out, "wb", buffering=0) as f:
-        for fr in frames:
+        for fr in run.frames:
             line = json.dumps(frame_to_json(*fr), separators=(",", ":")).encode() + b"\n"
             f.write(z.compress(line) + z.flush(zlib.Z_SYNC_FLUSH))
         f.write(z.flush())
+    return 0  # no header written
 
 
-def write_mcap(kind: str) -> Callable[[Path, Path, list[tuple]], None]:
-    def write(out: Path, src: Path, frames: list[tuple]) -> None:
+def write_mcap(kind: str) -> Callable[[Path, Run], int]:
+    def write(out: Path, run: Run) -> int:
         from mcap.writer import CompressionType, Writer
 
         from kmea.recording import frame_to_json
@@ -115,24 +135,25 @@ def write_mcap(kind: str) -> Callable[[Path, Path, list[tuple]], None]:
             w.start("kmead-recording", "kmea")
             schema = w.register_schema("kmead.Frame", "jsonschema", b"{}")
             ch = w.register_channel("/frames", "json", schema)
-            for fr in frames:
+            for fr in run.frames:
                 ns = int(fr[1] * 1e9)
                 w.add_message(ch, log_time=ns, publish_time=ns, data=json.dumps(
                     frame_to_json(*fr), separators=(",", ":")).encode())
             w.finish()
+        return 0  # no header written
     return write
 
 
-def measure(write, src: Path, frames: list[tuple], out: Path, runs: int) -> tuple[float, float]:
-    """(bytes a frame, CPU ms a frame) of writing ``frames`` to ``out``."""
+def measure(write, run: Run, out: Path, runs: int) -> tuple[float, float]:
+    """(bytes a frame, CPU ms a frame) of writing the run's frames to ``out``; the header
+    (once a file, about 8 KB) is not counted."""
     cpu = []
     for _ in range(runs):
         out.unlink(missing_ok=True)
         t0 = time.process_time()
-        write(out, src, frames)
-        cpu.append((time.process_time() - t0) / len(frames) * 1e3)
-    header = len(src.open("rb").readline())  # the same header in every format, once a file
-    return (out.stat().st_size - header) / len(frames), statistics.median(cpu)
+        head = write(out, run)
+        cpu.append((time.process_time() - t0) / len(run.frames) * 1e3)
+    return (out.stat().st_size - head) / len(run.frames), statistics.median(cpu)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -149,16 +170,16 @@ def main(argv: list[str] | None = None) -> int:
         formats.update({"v2 gzip": (".jsonl.gz", write_gzip),
                         "v2 MCAP zstd": (".mcap", write_mcap("ZSTD")),
                         "v2 MCAP lz4": (".mcap", write_mcap("LZ4"))})
-    print(f"{args.frames} frames of the simulated floor (820x616), written {args.runs} times; "
+    print(f"{args.frames} frames of the simulated floor (1640x1232), written {args.runs} times; "
           f"hour = {FPS:g} frames/s x 3600 s")
     print(f"{'frames':16} {'format':15} {'bytes/frame':>11} {'GB/hour':>8} {'CPU ms/frame':>12}")
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         for case, extra in CASES.items():
-            src, frames = load(record(tmp, case, args.frames, extra))
-            markers = statistics.mean(len(f[4]) for f in frames)
+            run = Run(*capture(args.frames, extra))
+            markers = statistics.mean(len(f[4]) for f in run.frames)
             for name, (suffix, write) in formats.items():
-                per, cpu = measure(write, src, frames, tmp / f"out{suffix}", args.runs)
+                per, cpu = measure(write, run, tmp / f"out{suffix}", args.runs)
                 print(f"{case:16} {name:15} {per:11.0f} {per * FPS * 3600 / 1e9:8.3f} "
                       f"{cpu:12.2f}")
             print(f"{'':16} ({markers:.1f} markers a frame)")
