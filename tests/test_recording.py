@@ -9,6 +9,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -115,7 +116,7 @@ def test_a_compressed_recording_cut_at_any_byte_replays_its_whole_frames(
             _same_observations(a.meta["replay"][2], b.meta["replay"][2])
     # Cut inside the header: not a recording, one line naming the file.
     cut.write_bytes(data[:ends[0] // 2])
-    with pytest.raises(SourceError, match="cut.jsonl.zst: line 1"):
+    with pytest.raises(SourceError, match=r"cut\.jsonl\.zst: line 1"):
         ReplaySource(cut)
 
 
@@ -125,7 +126,6 @@ def test_a_killed_daemon_leaves_a_compressed_recording_that_replays(tmp_path: Pa
                           *SMALL[:4], "--set", "source.fps=15", *NET], cwd=tmp_path,
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        import time
         end = time.monotonic() + 60
         while time.monotonic() < end:
             if rec.exists() and rec.stat().st_size > 4000:
@@ -186,7 +186,7 @@ def test_the_daemon_cuts_a_recording_into_parts_that_each_replay(tmp_path: Path)
                      "--set", "detector.tracking=false", "--set", "log.record_part_mb=1",
                      *NET]) == 0
     assert (tmp_path / "run-part2.jsonl").read_text() == "someone else's file\n"
-    parts = [rec] + sorted(tmp_path.glob("run-part[3-9].jsonl"))
+    parts = [rec, *sorted(tmp_path.glob("run-part[3-9].jsonl"))]
     assert len(parts) >= 2
     indices = []
     for k, part in enumerate(parts):
