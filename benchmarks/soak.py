@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 import signal
 import socket
 import subprocess
@@ -46,6 +47,7 @@ class RobotStats:
     gaps: int = 0  # places where seq jumped
     out_of_order: int = 0  # seq not above the last one
     longest_s: float = 0.0  # longest time between two datagrams (arrival clock)
+    longest_at: float = 0.0  # when that silence ended (arrival clock)
     last_seq: int | None = None
     last_t: float | None = None
 
@@ -58,8 +60,8 @@ class RobotStats:
                 self.missing += seq - self.last_seq - 1
             elif seq <= self.last_seq:
                 self.out_of_order += 1
-        if self.last_t is not None:
-            self.longest_s = max(self.longest_s, arrival - self.last_t)
+        if self.last_t is not None and arrival - self.last_t > self.longest_s:
+            self.longest_s, self.longest_at = arrival - self.last_t, arrival
         self.last_seq = seq if self.last_seq is None else max(seq, self.last_seq)
         self.last_t = arrival
 
@@ -94,6 +96,19 @@ def rss_kb(status_text: str) -> int | None:
         if line.startswith("VmRSS:"):
             return int(line.split()[1])
     return None
+
+
+def summary_counts(text: str) -> dict[str, int]:
+    """Frames, dropped and bad frames from kmead's exit summary (its stdout); {} without."""
+    m = re.search(r"kmead summary: (\d+) frames", text)
+    if not m:
+        return {}
+    out = {"frames": int(m.group(1))}
+    for key in ("dropped", "bad"):
+        k = re.search(rf"{key} frames: (\d+)", text)
+        if k:
+            out[key] = int(k.group(1))
+    return out
 
 
 def per_hour(n_bytes: int, seconds: float) -> float:
@@ -213,17 +228,19 @@ def soak(args: argparse.Namespace, d: Path) -> int:
         ctx.term()
         out.close()
         err.close()
-    report(d, elapsed, code, samples, status, listener, topics)
+    report(d, elapsed, code, samples, status, listener, topics, t0)
     return 0 if code == 0 else 1
 
 
 def report(d: Path, elapsed: float, code: int, samples: list[tuple[float, int | None]],
-           status: dict, listener: Listener, topics: dict[str, int]) -> None:
+           status: dict, listener: Listener, topics: dict[str, int], t0: float) -> None:
     log_b, rec_b = _sizes(d)
-    frames = status.get("frames", 0)
+    counts = summary_counts((d / "kmead.out").read_text())
+    frames = counts.get("frames", status.get("frames", 0))
     rss = [r for _, r in samples if r]
     print(f"\nsoak: {elapsed / 60:.1f} min, kmead exit code {code}, {frames} frames "
-          f"({frames / elapsed:.1f}/s) at the last status")
+          f"({frames / elapsed:.1f}/s; dropped {counts.get('dropped', '?')}, bad "
+          f"{counts.get('bad', '?')}: kmead's summary)")
     if rss:
         later = rss[1:] or rss
         print(f"RSS: first sample {rss[0] / 1024:.1f} MB, last {rss[-1] / 1024:.1f} MB, max "
@@ -232,7 +249,8 @@ def report(d: Path, elapsed: float, code: int, samples: list[tuple[float, int | 
     for name, r in sorted(listener.robots.items()):
         print(f"robot {name}: {r.count} datagrams ({r.valid} valid) for {frames} frames; seq "
               f"gaps {r.gaps} ({r.missing} missing), out of order {r.out_of_order}; longest "
-              f"silence {r.longest_s * 1e3:.0f} ms")
+              f"silence {r.longest_s * 1e3:.0f} ms (ending {(r.longest_at - t0) / 60:.2f} min "
+              "in)")
     if listener.bad:
         print(f"unparsable datagrams: {listener.bad}")
     print(f"written: CSV log {log_b / 1e6:.1f} MB ({per_hour(log_b, elapsed) / 1e6:.0f} MB/h), "

@@ -29,7 +29,14 @@ def test_seq_gaps_missing_reordering_and_the_longest_silence() -> None:
     assert (r.count, r.valid) == (8, 7)
     assert (r.gaps, r.missing) == (2, 3)  # 4; 7 and 8 (8 came later, out of order)
     assert r.out_of_order == 1
-    assert r.longest_s == pytest.approx(0.334)
+    assert r.longest_s == pytest.approx(0.334) and r.longest_at == 0.5
+
+
+def test_the_exit_summary_gives_frames_dropped_and_bad() -> None:
+    text = ("kmead summary: 1678 frames in 116.1 s (14.4 frames/s), source sim, algorithm x\n"
+            "  dropped frames: 11, bad frames: 0, not estimated: 0\n")
+    assert soak.summary_counts(text) == {"frames": 1678, "dropped": 11, "bad": 0}
+    assert soak.summary_counts("kmead: key 'x': bad\n") == {}
 
 
 def test_rss_from_proc_status_text_and_from_this_process() -> None:
