@@ -152,7 +152,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        description="Turn a kmead recording (--record) into an MCAP file "
                                    "for Foxglove: map, detections, and with --csv the "
                                    "estimated markers and robots.")
-    m.add_argument("recording", metavar="RECORDING", help="kmead recording (JSON lines)")
+    m.add_argument("recording", metavar="RECORDING",
+                   help="kmead recording (run.jsonl, or run.jsonl.zst compressed)")
     m.add_argument("--csv", metavar="FILE", help="the CSV log (--log) of the same run")
     m.add_argument("--out", metavar="FILE.mcap", required=True, help="output file")
     m.add_argument("--force", action="store_true", help="overwrite FILE.mcap")
