@@ -87,12 +87,20 @@ class LineWriter:
 
 def read_lines(f: Any) -> Iterator[bytes]:
     """The lines of the binary file ``f`` (plain or zstd, told by its first bytes), each
-    with its ``\n``; a last line without one is a cut line (a kill): yielded as it is, so
-    the caller can say so. ``RecordingBytesError`` for corrupt compressed data, after the
-    lines before it."""
+    with its newline; a last line without one is a cut line (a kill), yielded as it is so
+    the caller can say so (``b""`` for a compressed stream cut between two lines).
+    ``RecordingBytesError`` for corrupt compressed data, after the lines before it."""
     first = f.read(_READ_CHUNK)
     chunks = _chunks(f, first)
-    yield from _split(_unzstd(chunks) if first.startswith(ZSTD_MAGIC) else chunks)
+    if not first.startswith(ZSTD_MAGIC):
+        yield from _split(chunks)
+        return
+    ended = [True]
+    last = b"\n"
+    for last in _split(_unzstd(chunks, ended)):
+        yield last
+    if not ended[0] and last.endswith(b"\n"):
+        yield b""  # cut between two blocks: whole lines, but the stream has no end mark
 
 
 def _chunks(f: Any, first: bytes) -> Iterator[bytes]:
@@ -102,10 +110,12 @@ def _chunks(f: Any, first: bytes) -> Iterator[bytes]:
         data = f.read(_READ_CHUNK)
 
 
-def _unzstd(chunks: Iterator[bytes]) -> Iterator[bytes]:
-    """Decompressed pieces; a stream cut short ends quietly after its last whole block."""
+def _unzstd(chunks: Iterator[bytes], ended: list[bool]) -> Iterator[bytes]:
+    """Decompressed pieces; a stream cut short ends quietly after its last whole block
+    (``ended[0]`` is then False)."""
     d = zstandard.ZstdDecompressor().decompressobj()
     for chunk in chunks:
+        ended[0] = False
         # Small pieces in: a corrupt block loses only the lines of its piece (one call
         # that raises returns nothing of what it decoded before the bad block).
         for i in range(0, len(chunk), _IN_PIECE):
@@ -119,6 +129,7 @@ def _unzstd(chunks: Iterator[bytes]) -> Iterator[bytes]:
                 if d.eof:  # a stream ended; another may follow (files joined with cat)
                     data = d.unused_data
                     d = zstandard.ZstdDecompressor().decompressobj()
+                    ended[0] = not data
 
 
 def _split(pieces: Iterator[bytes]) -> Iterator[bytes]:

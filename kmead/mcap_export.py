@@ -175,8 +175,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {s.frames} frames, {total} messages on {len(s.messages)} "
           f"channels ({', '.join(sorted(s.messages))})")
     if s.truncated:
-        print(f"kmea export mcap: warning: {args.recording} ends with a partial line "
-              "(a recording cut by a kill); exported the whole frames", file=sys.stderr)
+        print(f"kmea export mcap: warning: {args.recording} ends with a partial line or "
+              "without its end (a recording cut by a kill); exported the whole frames",
+              file=sys.stderr)
     if s.bad_lines:
         print(f"kmea export mcap: warning: {s.bad_lines} unreadable frame lines skipped",
               file=sys.stderr)

@@ -107,7 +107,8 @@ def test_a_compressed_recording_cut_at_any_byte_replays_its_whole_frames(
         if not ends[0] <= n <= len(data):
             continue
         cut.write_bytes(data[:n])
-        got, _ = _replayed(cut)
+        got, truncated = _replayed(cut)
+        assert truncated == (n < len(data)), n  # a cut is said, even between two frames
         flushed = sum(1 for e in ends[1:] if e <= n)
         assert len(got) >= flushed, f"cut at {n}: {len(got)} frames, {flushed} flushed"
         for a, b in zip(got, full, strict=False):

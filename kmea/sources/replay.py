@@ -73,9 +73,11 @@ class ReplaySource(FrameSource):
             return None
         if not text.endswith(b"\n"):  # a recording cut by a kill: the last line is partial
             self.truncated = True
+            what = (f"line {self._line} is partial" if text else
+                    f"the compressed stream ends after line {self._line - 1} without its end")
             logging.getLogger("kmead").warning(
-                "%s: line %d is partial (a recording cut short?); replay ends at frame %d",
-                self.path.name, self._line, self._count)
+                "%s: %s (a recording cut short?); replay ends at frame %d", self.path.name,
+                what, self._count)
             return None
         where = f"{self.path.name}: line {self._line}"
         try:
