@@ -378,7 +378,7 @@ class Daemon:
         self.recorder.mode = mode
         self.output_errors["record"] = None
         log.info("recording started: %s%s", self.recorder.path, "" if self.recorder.compressed
-                 else " (plain JSON lines, about 30 times larger than a name ending .zst)")
+                 else " (plain JSON lines: 3 to 25 times the size of a name ending .zst)")
         return self.recorder
 
     def _new_recorder(self, path: str | Path, part: int = 1,
