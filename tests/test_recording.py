@@ -211,3 +211,25 @@ def test_part_limits_are_off_or_physical(tmp_path: Path) -> None:
         with pytest.raises(ConfigError) as e:
             load_config(None, [bad])
         assert bad.split("=")[0] in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_part_is_due_by_size_or_by_age(tmp_path: Path, frames) -> None:
+    """log.record_part_mb / _min against a real recorder (its bytes on disk, its start)."""
+    from types import SimpleNamespace
+
+    from kmead.daemon import Daemon
+
+    _, camera, world_map = frames
+    rec = Recorder(tmp_path / "run.jsonl.zst", camera, world_map, "sim", {})
+    try:
+        d = SimpleNamespace(recorder=rec, cfg={"log": {"record_part_mb": 1.0,
+                                                       "record_part_min": 1.0}})
+        assert Daemon._part_due(d) is None
+        rec.started -= 61.0  # as if started a minute and a second ago
+        assert Daemon._part_due(d) == "log.record_part_min = 1 min reached"
+        d.cfg["log"]["record_part_min"] = 0.0  # off
+        assert Daemon._part_due(d) is None
+        d.cfg["log"]["record_part_mb"] = rec.bytes / 1e6  # its size now
+        assert Daemon._part_due(d) == f"log.record_part_mb = {rec.bytes / 1e6:g} MB reached"
+    finally:
+        rec.close()
