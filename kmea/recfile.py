@@ -115,12 +115,12 @@ def _unzstd(chunks: Iterator[bytes], ended: list[bool]) -> Iterator[bytes]:
     (``ended[0]`` is then False)."""
     d = zstandard.ZstdDecompressor().decompressobj()
     for chunk in chunks:
-        ended[0] = False
         # Small pieces in: a corrupt block loses only the lines of its piece (one call
         # that raises returns nothing of what it decoded before the bad block).
         for i in range(0, len(chunk), _IN_PIECE):
             data = chunk[i:i + _IN_PIECE]
             while data:
+                ended[0] = False
                 try:
                     yield d.decompress(data)
                 except zstandard.ZstdError as e:
@@ -129,7 +129,7 @@ def _unzstd(chunks: Iterator[bytes], ended: list[bool]) -> Iterator[bytes]:
                 if d.eof:  # a stream ended; another may follow (files joined with cat)
                     data = d.unused_data
                     d = zstandard.ZstdDecompressor().decompressobj()
-                    ended[0] = not data
+                    ended[0] = True
 
 
 def _split(pieces: Iterator[bytes]) -> Iterator[bytes]:
