@@ -144,7 +144,8 @@ def test_a_killed_daemon_leaves_a_compressed_recording_that_replays(tmp_path: Pa
             p.communicate()
     got, _ = _replayed(rec)
     assert len(got) >= 20 and all("replay" in f.meta for f in got)
-    assert [f.index for f in got] == list(range(got[0].index, got[0].index + len(got)))
+    index = [f.index for f in got]  # a live source may skip frames when the CPU is busy
+    assert index == sorted(set(index))
 
 
 def test_a_version_1_recording_still_replays_to_its_rows(tmp_path: Path) -> None:
