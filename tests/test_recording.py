@@ -234,3 +234,31 @@ def test_a_part_is_due_by_size_or_by_age(tmp_path: Path, frames) -> None:
         assert Daemon._part_due(d) == f"log.record_part_mb = {rec.bytes / 1e6:g} MB reached"
     finally:
         rec.close()
+
+
+def test_a_full_disk_leaves_a_compressed_recording_of_whole_frames(
+        tmp_path: Path, frames, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The write that fills the disk is cut back to the last whole frame; the recording
+    then stops, closed without its end mark, and replays every frame it counted."""
+    from test_kmead_faults import Disk, FullingFile
+
+    from kmea import wholewrite
+
+    disk = Disk(0)
+    real_open = wholewrite.open_output
+    monkeypatch.setattr(wholewrite, "open_output",
+                        lambda path, append=False: FullingFile(real_open(path, append), disk))
+    results, camera, world_map = frames
+    path = tmp_path / "run.jsonl.zst"
+    disk.free = 10**9
+    rec = Recorder(path, camera, world_map, "sim", {})
+    disk.free = 2 * (rec.bytes + 1000)  # room for a frame or so more, never all six
+    with pytest.raises(OSError):
+        for r in results:
+            rec.write_frame(r.index, r.timestamp, r.ids, r.corners, r.observations,
+                            r.diagnostics)
+    rec.close()
+    assert disk.partial_writes == 1 and path.stat().st_size == rec.bytes
+    got, truncated = _replayed(path)
+    assert truncated and len(got) == rec.frames < len(results)
+    assert [f.index for f in got] == [r.index for r in results[:rec.frames]]
