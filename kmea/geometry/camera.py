@@ -79,6 +79,8 @@ def distortion_problem(K: np.ndarray, d: np.ndarray, width: int, height: int) ->
     there it may exceed the undistorted radius by at most ``MAX_DISTORTION_STRETCH``."""
     K = np.asarray(K, dtype=float)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (-0.5 < cx < width - 0.5 and -0.5 < cy < height - 0.5):
+        return None  # no rays to follow: the principal point's own check names that
     phi = np.linspace(0.0, 2 * np.pi, _RAYS, endpoint=False)
     ux, uy = np.cos(phi), np.sin(phi)
     # The border along each ray, in distorted normalised coordinates.
