@@ -450,3 +450,19 @@ def test_truncated_replay_ends_with_a_warning(tmp_path, capsys):
     cap = capsys.readouterr()
     assert "3 frames" in cap.out
     assert "line 5 is partial (a recording cut short?); replay ends at frame 3" in cap.err
+
+
+def test_a_snapshot_is_refused_below_the_data_directorys_free_space_floor(tmp_path):
+    from kmead.files import free_bytes
+    from kmead.snapshot import Limits, SnapshotError, check_room
+
+    free = free_bytes(tmp_path)
+    if free is None:
+        pytest.skip("no statvfs here")
+    check_room(tmp_path, Limits(min_free_mb=1.0), 1000)  # plenty of room
+    floor = (free + 10**9) / 1e6  # a floor above what this disk has free
+    with pytest.raises(SnapshotError) as e:
+        check_room(tmp_path, Limits(min_free_mb=floor), 1000)
+    assert f"below log.min_free_mb = {floor:g} MB" in str(e.value)
+    with pytest.raises(SnapshotError, match=r"snapshots are off \(log.snapshots_max = 0\)"):
+        check_room(tmp_path, Limits(max_count=0), 0)
