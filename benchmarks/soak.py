@@ -1,22 +1,23 @@
-"""A venue day in miniature: a real kmead with everything attached, for a given time.
+"""Soak: a real kmead for a given time with everything a venue day has, and what it did.
 
-Runs ``kmead --headless`` (default source: the simulated floor at its configured pace) with
-a CSV log, a recording and the two default robots sending their datagrams to real UDP
-listeners on loopback, one ZeroMQ subscriber that reads everything (the terminal UI's
-load) and ``--idle`` subscribers that never read (a stuck client must not grow the daemon).
-Every ``--every`` seconds it prints the daemon's RSS, frames, datagrams and bytes written;
-at the end (SIGINT to the daemon, as Ctrl-C) the figures: RSS over time, datagrams vs
-frames, ``seq`` gaps, the longest gap between two datagrams of a robot, bytes per hour of
-the log and the recording, and the daemon's exit code. Prints figures; no asserts.
+    .venv/bin/python benchmarks/soak.py --minutes 60 [--idle 10] [--every 60] [--source sim]
 
-    .venv/bin/python benchmarks/soak.py --minutes 60
-    .venv/bin/python benchmarks/soak.py --minutes 2 --set source.width=820 --set source.height=616
+One ``kmead --headless`` process (the simulated floor by default, two robots) with a CSV log
+and a compressed recording, its robots' datagrams going to a real UDP listener here, a real
+ZeroMQ subscriber that reads every telemetry topic (the terminal UI's part) and ``--idle``
+subscribers that connect and never read (a UI left open on a frozen laptop). Printed every
+``--every`` seconds: the daemon's RSS, frames, datagrams, the files' sizes; at the end: RSS
+over the run, datagrams against frames, ``seq`` gaps per robot, the longest silence between
+two datagrams of a robot, and the bytes written per hour by the log and by the recording.
+
+``--minutes 2`` is a smoke run; the figures worth quoting come from an hour (the first
+minutes include start-up: compare RSS from the second sample on).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
+import contextlib
 import re
 import signal
 import socket
@@ -31,254 +32,231 @@ from pathlib import Path
 import zmq
 
 from kmea import protocol as P
+from kmead.relay import parse_datagram
 
-ROBOTS = (("amr1", "[40, 41]", "separation = 0.10\n"), ("amr2", "[42]", ""))
+ROBOTS = {"amr1": "[40, 41]", "amr2": "[42]"}  # the simulated floor's robots
 
 
 @dataclass
-class RobotCount:
-    """What one robot's UDP listener saw."""
+class RobotStats:
+    """The datagrams of one robot, in arrival order: counts, ``seq`` gaps, longest silence."""
 
-    datagrams: int = 0
+    count: int = 0
     valid: int = 0
-    gaps: int = 0  # missing seq numbers
-    repeats: int = 0  # seq not increasing
-    longest_gap_s: float = 0.0  # between two valid datagrams
+    missing: int = 0  # seq numbers skipped (a gap of k missing datagrams adds k)
+    gaps: int = 0  # places where seq jumped
+    out_of_order: int = 0  # seq not above the last one
+    longest_s: float = 0.0  # longest time between two datagrams (arrival clock)
+    longest_at: float = 0.0  # when that silence ended (arrival clock)
     last_seq: int | None = None
-    last_t: float | None = None  # monotonic arrival of the last valid datagram
-    bad: int = 0  # datagrams that did not parse
+    last_t: float | None = None
 
-    def take(self, data: bytes, now: float) -> None:
-        fields = parse_datagram(data)
-        if fields is None or "seq" not in fields:
-            self.bad += 1
-            return
-        seq = int(fields["seq"])
-        self.datagrams += 1
-        self.valid += fields.get("valid") == "1"
+    def add(self, seq: int, valid: bool, arrival: float) -> None:
+        self.count += 1
+        self.valid += valid
         if self.last_seq is not None:
             if seq > self.last_seq + 1:
-                self.gaps += seq - self.last_seq - 1
+                self.gaps += 1
+                self.missing += seq - self.last_seq - 1
             elif seq <= self.last_seq:
-                self.repeats += 1
-        self.last_seq = seq
-        if fields.get("valid") != "1":  # the stop message, or stale: not a gap in service
-            return
-        if self.last_t is not None:
-            self.longest_gap_s = max(self.longest_gap_s, now - self.last_t)
-        self.last_t = now
-
-
-def parse_datagram(data: bytes) -> dict[str, str] | None:
-    """``name=amr1;seq=17;...`` -> {"name": "amr1", "seq": "17", ...}; None if not that form."""
-    try:
-        text = data.decode("ascii")
-    except UnicodeDecodeError:
-        return None
-    out: dict[str, str] = {}
-    for part in text.split(";"):
-        key, sep, value = part.partition("=")
-        if not sep or not key:
-            return None
-        out[key] = value
-    return out
-
-
-def rss_mb(pid: int) -> float | None:
-    """Resident set size of a process in MB (10^6 bytes), from /proc; None if gone."""
-    try:
-        status = Path(f"/proc/{pid}/status").read_text()
-    except OSError:
-        return None
-    m = re.search(r"^VmRSS:\s+(\d+) kB", status, re.MULTILINE)
-    return int(m.group(1)) * 1024 / 1e6 if m else None
+                self.out_of_order += 1
+        if self.last_t is not None and arrival - self.last_t > self.longest_s:
+            self.longest_s, self.longest_at = arrival - self.last_t, arrival
+        self.last_seq = seq if self.last_seq is None else max(seq, self.last_seq)
+        self.last_t = arrival
 
 
 @dataclass
 class Listener:
-    """A UDP listener on a free loopback port, counting in a thread."""
+    """Counts every datagram per robot on a real UDP socket (its own thread)."""
 
-    name: str
-    count: RobotCount = field(default_factory=RobotCount)
-    sock: socket.socket = field(default_factory=lambda: socket.socket(socket.AF_INET,
-                                                                      socket.SOCK_DGRAM))
+    sock: socket.socket
+    robots: dict[str, RobotStats] = field(default_factory=dict)
+    bad: int = 0
 
-    def __post_init__(self) -> None:
-        self.sock.bind(("127.0.0.1", 0))
+    def run(self, stop: threading.Event) -> None:
         self.sock.settimeout(0.2)
-        self.port = self.sock.getsockname()[1]
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        while not self.stop.is_set():
+        while not stop.is_set():
             try:
-                data = self.sock.recv(65536)
+                data = self.sock.recv(2048)
             except TimeoutError:
                 continue
-            except OSError:
-                return
-            self.count.take(data, time.monotonic())
+            now = time.monotonic()
+            try:
+                d = parse_datagram(data)
+            except (KeyError, ValueError, UnicodeDecodeError):
+                self.bad += 1
+                continue
+            self.robots.setdefault(d["name"], RobotStats()).add(d["seq"], d["valid"], now)
 
 
-def site_config(ports: dict[str, int]) -> str:
-    """The default robots, each sending to its listener (``[[robots]]`` replaces the list)."""
-    out = []
-    for name, markers, extra in ROBOTS:
-        out.append(f'[[robots]]\nname = "{name}"\nmarkers = {markers}\nheight = 0.20\n'
-                   f'length = 0.06\n{extra}destinations = ["udp:127.0.0.1:{ports[name]}"]\n')
-    return "\n".join(out)
+def rss_kb(status_text: str) -> int | None:
+    """VmRSS (kB) from the text of /proc/PID/status; None when absent (process gone)."""
+    for line in status_text.splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return None
 
 
-def connectable(endpoint: str) -> str:
-    return endpoint.replace("://0.0.0.0:", "://127.0.0.1:").replace("://*:", "://127.0.0.1:")
+def summary_counts(text: str) -> dict[str, int]:
+    """Frames, dropped and bad frames from kmead's exit summary (its stdout); {} without."""
+    m = re.search(r"kmead summary: (\d+) frames", text)
+    if not m:
+        return {}
+    out = {"frames": int(m.group(1))}
+    for key in ("dropped", "bad"):
+        k = re.search(rf"{key} frames: (\d+)", text)
+        if k:
+            out[key] = int(k.group(1))
+    return out
+
+
+def per_hour(n_bytes: int, seconds: float) -> float:
+    return n_bytes / seconds * 3600 if seconds > 0 else 0.0
+
+
+def _free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _site(udp_port: int, telemetry: str, control: str) -> str:
+    robots = "".join(f'\n[[robots]]\nname = "{n}"\nmarkers = {m}\nheight = 0.0\n'
+                     f'destinations = ["udp:127.0.0.1:{udp_port}"]\n' for n, m in ROBOTS.items())
+    return (f'[network]\ntelemetry = "{telemetry}"\ncontrol = "{control}"\n'
+            f"{robots}")
+
+
+def _sizes(d: Path) -> tuple[int, int]:
+    """Bytes of the CSV log and of every part of the recording."""
+    log = sum(p.stat().st_size for p in d.glob("run*.csv"))
+    rec = sum(p.stat().st_size for p in d.glob("run*.jsonl.zst"))
+    return log, rec
+
+
+def _rss(pid: int) -> int | None:
+    try:
+        return rss_kb(Path(f"/proc/{pid}/status").read_text())
+    except OSError:
+        return None
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=60.0)
-    ap.add_argument("--every", type=float, default=60.0, help="seconds between sample lines")
     ap.add_argument("--idle", type=int, default=10, help="subscribers that never read")
+    ap.add_argument("--every", type=float, default=60.0, help="seconds between samples")
     ap.add_argument("--source", default="sim")
-    ap.add_argument("--record-name", default="recording.jsonl",
-                    help="recording file name (its suffix chooses the format)")
-    ap.add_argument("--dir", help="keep the log and recording here (default: a temp dir)")
-    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    ap.add_argument("--dir", help="where the files go (default: a temporary directory)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="passed to kmead")
     args = ap.parse_args(argv)
+    with contextlib.ExitStack() as stack:
+        d = Path(args.dir) if args.dir else Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        d.mkdir(parents=True, exist_ok=True)
+        return soak(args, d)
 
-    workdir = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="kmea-soak-"))
-    workdir.mkdir(parents=True, exist_ok=True)
-    listeners = {name: Listener(name) for name, _, _ in ROBOTS}
-    site = workdir / "soak.toml"
-    site.write_text(site_config({n: li.port for n, li in listeners.items()}))
-    log_path, rec_path = workdir / "log.csv", workdir / args.record_name
-    cmd = [sys.executable, "-m", "kmead.cli", "--config", str(site), "--headless",
-           "--free-ports", "--status-every", "0", "--source", args.source,
-           "--log", str(log_path), "--record", str(rec_path)]
-    for s in args.set:
-        cmd += ["--set", s]
-    env = {**os.environ, "XDG_CONFIG_HOME": str(workdir / "home")}
-    proc = subprocess.Popen(cmd, cwd=workdir, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
-    stderr: list[str] = []
-    reader = threading.Thread(target=lambda: stderr.extend(proc.stderr or []), daemon=True)
-    reader.start()
 
-    deadline = time.monotonic() + 120.0
-    endpoint = None
-    while endpoint is None and time.monotonic() < deadline and proc.poll() is None:
-        endpoint = next((m.group(1) for line in list(stderr)
-                         if (m := re.search(r"telemetry (tcp://\S+?),", line))), None)
-        time.sleep(0.05)
-    if endpoint is None:
-        proc.kill()
-        print("soak: kmead did not start:\n" + "".join(stderr[-20:]), file=sys.stderr)
-        return 1
-
+def soak(args: argparse.Namespace, d: Path) -> int:
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.bind(("127.0.0.1", 0))
+    udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    telemetry = f"tcp://127.0.0.1:{_free_port()}"
+    control = f"tcp://127.0.0.1:{_free_port()}"
+    (d / "site.toml").write_text(_site(udp.getsockname()[1], telemetry, control))
+    cmd = [sys.executable, "-m", "kmead.cli", "--config", str(d / "site.toml"), "--headless",
+           "--source", args.source, "--log", str(d / "run.csv"),
+           "--record", str(d / "run.jsonl.zst"), "--status-every", "30",
+           *[x for kv in args.set for x in ("--set", kv)]]
+    out = open(d / "kmead.out", "w")  # noqa: SIM115 - closed below
+    err = open(d / "kmead.err", "w")  # noqa: SIM115 - closed below
+    proc = subprocess.Popen(cmd, cwd=d, stdout=out, stderr=err)
+    stop = threading.Event()
+    listener = Listener(udp)
+    threading.Thread(target=listener.run, args=(stop,), daemon=True).start()
     ctx = zmq.Context()
     ui = ctx.socket(zmq.SUB)
     ui.setsockopt(zmq.SUBSCRIBE, b"")
-    ui.connect(connectable(endpoint))
+    ui.connect(telemetry)
     idle = []
     for _ in range(args.idle):
         s = ctx.socket(zmq.SUB)
         s.setsockopt(zmq.SUBSCRIBE, b"")
-        s.setsockopt(zmq.RCVHWM, 1000)
-        s.connect(connectable(endpoint))
+        s.connect(telemetry)
         idle.append(s)
-
-    ui_state = {"frames": 0, "last_frame": None, "dropped": 0, "messages": 0}
-    ui_stop = threading.Event()
-
-    def read_ui() -> None:
-        poller = zmq.Poller()
-        poller.register(ui, zmq.POLLIN)
-        while not ui_stop.is_set():
-            if not poller.poll(200):
-                continue
-            parts = ui.recv_multipart()
-            ui_state["messages"] += 1
-            try:
-                topic, body = P.decode(parts)
-            except Exception:  # a soak counts, it does not judge the protocol
-                continue
-            if topic == P.TOPIC_FRAME:
-                ui_state["frames"] += 1
-                ui_state["last_frame"] = body["frame"]
-                ui_state["dropped"] = body["dropped"]
-
-    ui_thread = threading.Thread(target=read_ui, daemon=True)
-    ui_thread.start()
-
-    def size(p: Path) -> int:
-        # rotated parts share the stem and the suffix (soak.csv, soak-2.csv, ...)
-        return sum(f.stat().st_size for f in p.parent.glob(f"{p.stem}*{p.suffix}")
-                   if f.is_file())
-
+    topics: dict[str, int] = {}
+    status: dict = {}
     t0 = time.monotonic()
-    end = t0 + args.minutes * 60.0
-    samples: list[tuple[float, float | None]] = []
-    print("  min   RSS MB   frames  datagrams(amr1/amr2)  log MB  recording MB", flush=True)
-    next_sample = t0
-    while proc.poll() is None and time.monotonic() < end:
-        now = time.monotonic()
-        if now >= next_sample:
-            rss = rss_mb(proc.pid)
-            samples.append(((now - t0) / 60.0, rss))
-            c = [listeners[n].count.datagrams for n, _, _ in ROBOTS]
-            print(f"{(now - t0) / 60:5.1f}  {rss or 0:7.1f}  {ui_state['frames']:7d}  "
-                  f"{c[0]:9d}/{c[1]:<9d}  {size(log_path) / 1e6:8.1f}  "
-                  f"{size(rec_path) / 1e6:10.1f}", flush=True)
-            next_sample += args.every
-        time.sleep(min(1.0, max(0.05, next_sample - time.monotonic())))
-    elapsed = time.monotonic() - t0
-    samples.append((elapsed / 60.0, rss_mb(proc.pid)))
-    early_exit = proc.poll()
-    if early_exit is None:
-        proc.send_signal(signal.SIGINT)
+    end = t0 + args.minutes * 60
+    next_sample = t0 + args.every
+    samples: list[tuple[float, int | None]] = []
+    print(f"soak: kmead pid {proc.pid}, {args.minutes:g} min, files in {d}; "
+          f"{args.idle} idle subscribers", flush=True)
+    print(f"{'min':>6} {'RSS MB':>7} {'frames':>7} {'datagrams':>9} {'log MB':>7} "
+          f"{'rec MB':>7}", flush=True)
     try:
-        rc = proc.wait(60.0)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        rc = proc.wait()
-    time.sleep(0.5)  # the last datagrams (valid=0 at stop) reach the listeners
-    ui_stop.set()
-    for li in listeners.values():
-        li.stop.set()
-    ui_thread.join(2.0)
-    for s in [ui, *idle]:
-        s.close(0)
-    ctx.term()
+        while time.monotonic() < end and proc.poll() is None:
+            if ui.poll(100):
+                topic, body = P.decode(ui.recv_multipart())
+                topics[topic] = topics.get(topic, 0) + 1
+                if topic == P.TOPIC_STATUS:
+                    status = body
+            now = time.monotonic()
+            if now >= next_sample or now >= end:
+                next_sample += args.every
+                rss = _rss(proc.pid)
+                samples.append(((now - t0) / 60, rss))
+                log_b, rec_b = _sizes(d)
+                n = sum(r.count for r in listener.robots.values())
+                print(f"{(now - t0) / 60:6.1f} {(rss or 0) / 1024:7.1f} "
+                      f"{status.get('frames', 0):7d} {n:9d} {log_b / 1e6:7.1f} "
+                      f"{rec_b / 1e6:7.1f}", flush=True)
+    finally:
+        elapsed = time.monotonic() - t0
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            code = proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            code = proc.wait()
+        time.sleep(0.5)  # the last datagrams (valid=0 at stop)
+        stop.set()
+        for s in (ui, *idle):
+            s.close(linger=0)
+        ctx.term()
+        out.close()
+        err.close()
+    report(d, elapsed, code, samples, status, listener, topics, t0)
+    return 0 if code == 0 else 1
 
-    hours = elapsed / 3600.0
-    frames = (ui_state["last_frame"] or 0) + 1 if ui_state["last_frame"] is not None else 0
-    print(f"\nsoak: {elapsed / 60:.1f} min, source {args.source}, {args.idle} idle subscribers,"
-          f" kmead exit {rc}" + (" (exited before the end)" if early_exit is not None else ""))
-    print(f"frames: {frames} processed (telemetry frame index), {ui_state['frames']} frame "
-          f"messages read by the UI subscriber, {ui_state['dropped']} dropped by capture, "
-          f"{frames / elapsed:.1f} frames/s")
-    for name, li in listeners.items():
-        c = li.count
-        per_frame = c.datagrams / max(frames, 1)
-        print(f"{name}: {c.datagrams} datagrams ({c.valid} valid, {per_frame:.3f} per frame)"
-              f", seq gaps {c.gaps}, out of order {c.repeats}, unparsable {c.bad}, "
-              f"longest gap between valid datagrams {c.longest_gap_s * 1e3:.0f} ms")
-    rss = [r for _, r in samples if r is not None]
+
+def report(d: Path, elapsed: float, code: int, samples: list[tuple[float, int | None]],
+           status: dict, listener: Listener, topics: dict[str, int], t0: float) -> None:
+    log_b, rec_b = _sizes(d)
+    counts = summary_counts((d / "kmead.out").read_text())
+    frames = counts.get("frames", status.get("frames", 0))
+    rss = [r for _, r in samples if r]
+    print(f"\nsoak: {elapsed / 60:.1f} min, kmead exit code {code}, {frames} frames "
+          f"({frames / elapsed:.1f}/s; dropped {counts.get('dropped', '?')}, bad "
+          f"{counts.get('bad', '?')}: kmead's summary)")
     if rss:
-        after5 = [r for m, r in samples if r is not None and m >= 5.0]
-        print("RSS MB: start {:.1f}, max {:.1f}, end {:.1f}{}".format(
-            rss[0], max(rss), rss[-1],
-            f", growth after minute 5: {after5[-1] - after5[0]:+.1f}" if len(after5) > 1 else ""))
-    for label, p in (("CSV log", log_path), ("recording", rec_path)):
-        b = size(p)
-        print(f"{label}: {b / 1e6:.1f} MB in {elapsed / 60:.1f} min = {b / hours / 1e9:.3f} GB/hour"
-              f" ({b / max(frames, 1) / 1e3:.2f} KB/frame)")
-    print(f"files in {workdir}")
-    tail = [line for line in stderr if "Traceback" in line or "ERROR" in line]
-    if tail:
-        print(f"kmead errors on stderr: {len(tail)}; first: {tail[0].strip()}")
-    return 0
+        later = rss[1:] or rss
+        print(f"RSS: first sample {rss[0] / 1024:.1f} MB, last {rss[-1] / 1024:.1f} MB, max "
+              f"{max(rss) / 1024:.1f} MB; from the second sample on {min(later) / 1024:.1f}-"
+              f"{max(later) / 1024:.1f} MB")
+    for name, r in sorted(listener.robots.items()):
+        print(f"robot {name}: {r.count} datagrams ({r.valid} valid) for {frames} frames; seq "
+              f"gaps {r.gaps} ({r.missing} missing), out of order {r.out_of_order}; longest "
+              f"silence {r.longest_s * 1e3:.0f} ms (ending {(r.longest_at - t0) / 60:.2f} min "
+              "in)")
+    if listener.bad:
+        print(f"unparsable datagrams: {listener.bad}")
+    print(f"written: CSV log {log_b / 1e6:.1f} MB ({per_hour(log_b, elapsed) / 1e6:.0f} MB/h), "
+          f"recording {rec_b / 1e6:.1f} MB ({per_hour(rec_b, elapsed) / 1e6:.0f} MB/h, "
+          f"{len(list(d.glob('run*.jsonl.zst')))} part(s))")
+    print("UI subscriber received: " + ", ".join(f"{t} {n}" for t, n in sorted(topics.items())))
 
 
 if __name__ == "__main__":

@@ -268,7 +268,7 @@ class ControlServer:
             if name is None and d.cfg["log"]["record"]:
                 r = d.start_recording(d.cfg["log"]["record"], keep=True)
             else:
-                r = d.start_recording(name or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl"),
+                r = d.start_recording(name or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl.zst"),
                                       remote=True)
         return {"path": str(r.path), "mode": r.mode}
 

@@ -37,7 +37,7 @@ from kmead.capture import Capture, CaptureEnded, open_feed
 from kmead.config import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
 from kmead.control import ControlServer
 from kmead.csvlog import CsvLog, ends_whole, has_header
-from kmead.files import DataDir, FileRefused, low_space, same_file
+from kmead.files import DataDir, FileRefused, low_space, next_part, same_file, split_suffix
 from kmead.gc_pacing import GcPacing
 from kmead.log_ring import LogRing
 from kmead.outputs import RunTotals, csv_lines, truth_record
@@ -321,11 +321,12 @@ class Daemon:
                 return path, "append"
         except OSError:
             pass  # unreadable: never written over, a new name instead
+        base, suffix = split_suffix(p)
         for n in range(2, 10000):
-            other = p.with_name(f"{p.stem}-{n}{p.suffix}")
+            other = f"{base}-{n}{suffix}"
             if not os.path.lexists(other):
-                return str(other), "new name"
-        raise ValueError(f"{kind}: {p.stem}-2{p.suffix} to -9999 all exist; give a path")
+                return other, "new name"
+        raise ValueError(f"{kind}: {base}-2{suffix} to -9999 all exist; give a path")
 
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
         """Start the CSV log. keep: an existing file is never truncated (a restart over
@@ -370,17 +371,48 @@ class Daemon:
             path, mode = self._keep_existing(path, "record")
         path = self._output_path(path, "record", self.csv, remote)
         try:
-            self.recorder = Recorder(path, self.pipeline.camera, self.world_map,
-                                     self.source_spec, self.cfg.to_dict(),
-                                     fast_path=self.pipeline.settings.tracking)
+            self.recorder = self._new_recorder(path)
         except OSError as e:
             self._forget_created(path, remote)
             raise ValueError(f"record: cannot write {path}: {e.strerror or e}") from None
         self.recorder.mode = mode
         self.output_errors["record"] = None
-        self.totals.record_paths.append(str(self.recorder.path))
-        log.info("recording started: %s", self.recorder.path)
+        log.info("recording started: %s%s", self.recorder.path, "" if self.recorder.compressed
+                 else " (plain JSON lines: 3 to 25 times the size of a name ending .zst)")
         return self.recorder
+
+    def _new_recorder(self, path: str | Path, part: int = 1,
+                      previous: str | None = None) -> Recorder:
+        r = Recorder(path, self.pipeline.camera, self.world_map, self.source_spec,
+                     self.cfg.to_dict(), fast_path=self.pipeline.settings.tracking, part=part,
+                     previous=previous)
+        self.totals.record_paths.append(str(r.path))
+        return r
+
+    def _part_due(self) -> str | None:
+        """Why the recording must go on in a new part (log.record_part_mb/_min), or None."""
+        r, lg = self.recorder, self.cfg["log"]
+        if lg["record_part_mb"] and r.bytes >= lg["record_part_mb"] * 1e6:
+            return f"log.record_part_mb = {lg['record_part_mb']:g} MB reached"
+        if lg["record_part_min"] and time.monotonic() - r.started >= lg["record_part_min"] * 60:
+            return f"log.record_part_min = {lg['record_part_min']:g} min reached"
+        return None
+
+    def _next_part(self, why: str) -> None:
+        """Close this part and go on in a new file (a new name: nothing is written over);
+        each part has its own header and replays alone."""
+        old = self.recorder
+        try:
+            path, part = next_part(old.path, old.part + 1)
+            new = self._new_recorder(path, part, previous=old.path.name)
+        except OSError as e:
+            self._output_failed("record", e)
+            return
+        new.mode = old.mode
+        old.close()
+        self.recorder = new
+        log.info("recording: part %d in %s (%s; %s kept, %d frames)", part, path, why,
+                 old.path.name, old.frames)
 
     def stop_recording(self) -> dict:
         if self.recorder is None:
@@ -388,7 +420,7 @@ class Daemon:
         r, self.recorder = self.recorder, None
         r.close()
         log.info("recording stopped: %s (%d frames)", r.path, r.frames)
-        return {"path": str(r.path), "frames": r.frames, "bytes": r.bytes}
+        return {"path": str(r.path), "frames": r.frames, "bytes": r.bytes, "part": r.part}
 
     # ------------------------------------------------------------------ live settings
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
@@ -654,7 +686,7 @@ class Daemon:
     def snapshot(self, overlay: bool = False) -> dict:
         """Save the last frame as PNG in the data directory (kmead's working directory)."""
         from kmea.vision.overlay import focus_measure
-        from kmead.snapshot import save_snapshot
+        from kmead.snapshot import Limits, save_snapshot
 
         with self.lock:  # between two frames: take the image and what to draw on it
             res, image = self.last_result, self.last_image
@@ -666,8 +698,10 @@ class Daemon:
         if overlay and image is not None and image.ndim == 2:
             focus = focus_measure(image, [m.corners for m in marks if m.kind != "expected"])
         # PNG encoding (tens of ms at full size) happens outside the lock.
+        lg = self.cfg["log"]
+        limits = Limits(lg["snapshots_max"], lg["snapshots_max_mb"], lg["min_free_mb"])
         path = save_snapshot(image, res.index if res else -1, self.data_dir.root, marks, focus,
-                             overlay)
+                             overlay, limits)
         log.info("snapshot saved: %s", path)
         return {"path": str(path), "frame": res.index if res else None, "overlay": overlay}
 
@@ -701,6 +735,10 @@ class Daemon:
                                           truth_record(truth) if truth is not None else None)
             except OSError as e:
                 self._output_failed("record", e)
+            else:
+                why = self._part_due()
+                if why:
+                    self._next_part(why)
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
                                                           self.monitor.get))

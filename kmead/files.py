@@ -2,7 +2,8 @@
 
 A name that arrives over the network (``log_start``, ``record_start``) must be a plain file
 name: letters, digits, ``.``, ``_`` and ``-``, not starting with a dot, with the suffix of
-its kind (``.csv`` for the CSV log, ``.jsonl`` for a recording). It names a new file directly
+its kind (``.csv`` for the CSV log; ``.jsonl.zst``, compressed, or ``.jsonl`` for a
+recording). It names a new file directly
 inside the data directory: never an absolute path, ``..``, a sub-directory, an existing file
 or a symlink (dangling or not), and never the file the other output is writing. The file is
 created with ``O_CREAT | O_EXCL | O_NOFOLLOW``, so the check and the creation are one step.
@@ -18,16 +19,45 @@ import re
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SUFFIXES", "DataDir", "FileRefused", "free_bytes", "low_space", "same_file"]
+__all__ = ["SUFFIXES", "DataDir", "FileRefused", "free_bytes", "low_space", "next_part",
+           "same_file", "split_suffix"]
 
 
 class FileRefused(ValueError):
     """A file name a control request may not use; the message says why, in one line."""
 
 
-# kind -> required suffix
-SUFFIXES = {"log": ".csv", "record": ".jsonl"}
+# kind -> the suffixes a name may end with (the first is the one kmead's own names use)
+SUFFIXES = {"log": (".csv",), "record": (".jsonl.zst", ".jsonl")}
 _NAME_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$")
+
+
+def split_suffix(path: str | Path) -> tuple[str, str]:
+    """(the path without its suffix, the suffix), a compound one kept whole:
+    ``run.jsonl.zst`` -> (``run``, ``.jsonl.zst``), so a new name goes before it."""
+    p = str(path)
+    for suffix in (*SUFFIXES["record"], *SUFFIXES["log"]):
+        if p.endswith(suffix) and len(p) > len(suffix):
+            return p[:-len(suffix)], suffix
+    stem, dot, ext = p.rpartition(".")
+    return (stem, dot + ext) if dot and "/" not in ext and stem else (p, "")
+
+
+def next_part(path: str | Path, part: int) -> tuple[Path, int]:
+    """A new, empty file for part ``part`` (or the first free later one) of the recording
+    ``path``, created exclusively (nothing is ever written over): ``run.jsonl.zst`` ->
+    ``run-part2.jsonl.zst``. (its path, its part number); OSError when it cannot be made."""
+    base, suffix = split_suffix(path)
+    base = re.sub(r"-part\d+$", "", base)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    for k in range(part, part + 10000):
+        p = Path(f"{base}-part{k}{suffix}")
+        try:
+            os.close(os.open(p, flags, 0o644))
+        except FileExistsError:
+            continue
+        return p, k
+    raise OSError(f"{base}-part{part}{suffix} to -part{part + 9999}: all exist")
 
 
 def same_file(a: str | Path, b: str | Path) -> bool:
@@ -85,7 +115,7 @@ class DataDir:
     def check_name(self, name: Any, kind: str) -> Path:
         """The path of a new file ``name`` of ``kind`` ("log" or "record") in the directory;
         :class:`FileRefused` naming the rule it breaks."""
-        suffix = SUFFIXES[kind]
+        suffixes = SUFFIXES[kind]
         if not isinstance(name, str) or not name:
             raise FileRefused(f"{kind} file: expected a file name, got {type(name).__name__}")
         shown = name if len(name) <= 60 else name[:57] + "..."
@@ -97,8 +127,9 @@ class DataDir:
         if not _NAME_RE.match(name):
             raise FileRefused(f"{kind} file {shown!r}: use letters, digits, '.', '_' and '-' "
                               "(not starting with '.'), at most 128 characters")
-        if not name.endswith(suffix) or name == suffix:
-            raise FileRefused(f"{kind} file {shown!r}: the name must end with {suffix}")
+        if not any(name.endswith(x) and name != x for x in suffixes):
+            raise FileRefused(f"{kind} file {shown!r}: the name must end with "
+                              f"{' or '.join(suffixes)}")
         path = self.root / name
         if os.path.lexists(path):
             raise FileRefused(f"{kind} file {shown!r}: already exists in {self.root}; "

@@ -152,7 +152,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        description="Turn a kmead recording (--record) into an MCAP file "
                                    "for Foxglove: map, detections, and with --csv the "
                                    "estimated markers and robots.")
-    m.add_argument("recording", metavar="RECORDING", help="kmead recording (JSON lines)")
+    m.add_argument("recording", metavar="RECORDING",
+                   help="kmead recording (run.jsonl, or run.jsonl.zst compressed)")
     m.add_argument("--csv", metavar="FILE", help="the CSV log (--log) of the same run")
     m.add_argument("--out", metavar="FILE.mcap", required=True, help="output file")
     m.add_argument("--force", action="store_true", help="overwrite FILE.mcap")
@@ -174,8 +175,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {s.frames} frames, {total} messages on {len(s.messages)} "
           f"channels ({', '.join(sorted(s.messages))})")
     if s.truncated:
-        print(f"kmea export mcap: warning: {args.recording} ends with a partial line "
-              "(a recording cut by a kill); exported the whole frames", file=sys.stderr)
+        print(f"kmea export mcap: warning: {args.recording} ends with a partial line or "
+              "without its end (a recording cut by a kill); exported the whole frames",
+              file=sys.stderr)
     if s.bad_lines:
         print(f"kmea export mcap: warning: {s.bad_lines} unreadable frame lines skipped",
               file=sys.stderr)

@@ -116,6 +116,23 @@ def number(lo: float, hi: float, lo_open: bool = False, unit: str = "") -> Check
     return check
 
 
+def off_or_number(lo: float, hi: float, unit: str = "") -> Check:
+    """0 (off) or a finite float in [lo, hi]: a limit that is either off or means something
+    (a recording part of 0.001 MB would be a new file every frame)."""
+    inner = number(lo, hi, unit=unit)
+
+    def check(v: Any, where: str, remote: bool = False) -> float:
+        x = _real(v, where)
+        if x == 0:
+            return 0.0
+        try:
+            return inner(v, where, remote)
+        except ConfigError:
+            raise ConfigError(f"{where}: must be 0 (off) or in [{lo:g}, {hi:g}]{unit}, "
+                              f"got {_short(v)}") from None
+    return check
+
+
 def integer(lo: int, hi: int) -> Check:
     """An integer (not a bool, not a float) in [lo, hi]."""
     def check(v: Any, where: str, remote: bool = False) -> int:
@@ -477,7 +494,11 @@ SCHEMA: dict[str, dict[str, Check]] = {
                 "keys": _str, "insecure": _bool},
     "log": {"csv": _str, "record": _str, "dir": _str,
             "level": choice("debug", "info", "warning", "error"),
-            "min_free_mb": number(0, 1e7, unit=" MB")},
+            "snapshots_max": integer(0, 100000),
+            "snapshots_max_mb": number(1, 1e6, unit=" MB"),
+            "min_free_mb": number(0, 1e7, unit=" MB"),
+            "record_part_mb": off_or_number(1, 1e6, unit=" MB"),
+            "record_part_min": off_or_number(1, 7 * 24 * 60, unit=" min")},
     "foxglove": {"enabled": _bool, "host": _str, "port": integer(0, 65535),
                  "image_hz": number(0, 60, unit=" images/s")},
 }

@@ -305,6 +305,14 @@ BAD_BOUNDS = {
                 "dist_coeffs: k1 = 1e+300 is beyond +-10000: no lens distorts that much"),
     "k6_large": (_toml_camera(GOOD_K, [0.1, 0, 0, 0, 0, 0, 0, -2e4]),
                  "dist_coeffs: k6 = -20000 is beyond +-10000"),
+    # Within +-1e4 but no lens: every frame failed in OpenCV's SQPnP (the whole image
+    # undistorts to 4.6 degrees, every marker to a point).
+    "k1_9000": (_toml_camera(GOOD_K, [9000, 0, 0, 0, 0]),
+                "dist_coeffs: the distortion pushes the image's border 15 times out from "
+                "where the pinhole puts it (at most 3)"),
+    # Barrel that turns back before the image's edge: its corners have no direction.
+    "k1_folds": (_toml_camera(GOOD_K, [-5, 0, 0, 0, 0]),
+                 "dist_coeffs: the distortion folds over inside the image"),
     "fy_tiny": (_toml_camera([[1357.0, 0, 819.5], [0, 0.001, 615.5], [0, 0, 1]], [0, 0, 0, 0]),
                 "camera_matrix: fy = 0.001 px is outside [164, 164000] px, 0.1 to 100 times "
                 "the 1640x1232 image's larger side"),

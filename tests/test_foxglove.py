@@ -128,6 +128,21 @@ def test_mcap_export_reads_back_with_channels_and_counts(recorded, tmp_path):
     assert len(entities) == 1 + len(default_map())
 
 
+def test_mcap_export_reads_a_compressed_recording_whole_and_cut(tmp_path, capsys):
+    rec, log = tmp_path / "rec.jsonl.zst", tmp_path / "out.csv"
+    assert cli.main(["--source", "sim", "--headless", "--frames", "6", "--record",
+                     str(rec), "--log", str(log), *FAST, *NET]) == 0
+    s = export_mcap(rec, tmp_path / "whole.mcap", log)
+    assert s.frames == 6 and not s.truncated and s.bad_lines == 0
+    _, msgs = _read_mcap(tmp_path / "whole.mcap")
+    assert sum(1 for t, _, _ in msgs if t == "/camera/annotations") == 6
+    # What a kill leaves: the bytes up to somewhere inside the last frame.
+    cut = tmp_path / "cut.jsonl.zst"
+    cut.write_bytes(rec.read_bytes()[:-40])
+    s = export_mcap(cut, tmp_path / "cut.mcap", log)
+    assert s.frames == 5 and s.truncated
+
+
 def test_export_cli_one_line_errors_and_warning(recorded, tmp_path, capsys):
     rec, log = recorded
     out = tmp_path / "a.mcap"

@@ -96,8 +96,8 @@ def test_sim_run_logs_csv_close_to_truth_and_replays_exactly(tmp_path: Path,
     assert head["format"] == "kmead-recording" and head["camera"]["width"] == 640
     frame0 = json.loads(rec.read_text().splitlines()[1])
     assert {"frame", "t", "ids", "corners", "markers", "truth"} <= set(frame0)
-    assert {"R", "t", "alt_R", "alt_t", "reproj", "alt_reproj", "ambiguous", "flipped"} <= set(
-        frame0["markers"][0])
+    # Format version 2: what a replay reads (no repeated corners, no second IPPE pose).
+    assert {"id", "R", "t", "length", "reproj", "alt_reproj"} == set(frame0["markers"][0])
 
 
 class _Sub:

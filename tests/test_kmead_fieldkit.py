@@ -234,11 +234,15 @@ def test_port_in_use_names_the_likely_cause_and_the_way_out(tmp_path):
 @pytest.fixture
 def running(tmp_path, monkeypatch):
     """A daemon on the simulator (one covered map marker) in a thread, with a REQ and a SUB."""
+    yield from _running(tmp_path, monkeypatch)
+
+
+def _running(tmp_path, monkeypatch, *extra: str):
     monkeypatch.chdir(tmp_path)  # the data directory: snapshots land here
     cfg = load_config(None, ['source.spec="sim:default?covered=4"', "source.width=640",
                              "source.height=480", "source.fps=8",
                              'network.telemetry="tcp://127.0.0.1:*"',
-                             'network.control="tcp://127.0.0.1:*"'])
+                             'network.control="tcp://127.0.0.1:*"', *extra])
     d = Daemon(cfg)
     t = threading.Thread(target=d.run, daemon=True)
     t.start()
@@ -336,6 +340,30 @@ def test_snapshot_full_resolution_png_with_and_without_overlay(running, tmp_path
     assert not ask(cmd="snapshot", overlay="yes")["ok"]
 
 
+@pytest.fixture
+def limited(tmp_path, monkeypatch):
+    """The same daemon with room for two snapshots or 1 MB of them."""
+    yield from _running(tmp_path, monkeypatch, "log.snapshots_max=2", "log.snapshots_max_mb=1")
+
+
+def test_snapshots_pile_up_to_their_limits_then_a_request_is_refused(limited, tmp_path):
+    # Any client, a viewer too, may take snapshots: 36 of 1-2.7 MB were once all accepted.
+    _d, ask, sub = limited
+    sub.setsockopt(zmq.SUBSCRIBE, b"frame")
+    assert _collect(sub, "frame", 60.0)
+    assert ask(cmd="snapshot")["ok"] and ask(cmd="snapshot")["ok"]
+    third = ask(cmd="snapshot")
+    assert not third["ok"] and "log.snapshots_max = 2" in third["error"], third
+    assert len(list(tmp_path.glob("snapshot-*.png"))) == 2
+    # The bytes: one snapshot file of 1 MB (someone else's, or an old big one) fills it.
+    for p in tmp_path.glob("snapshot-*.png"):
+        p.unlink()
+    (tmp_path / "snapshot-old.png").write_bytes(b"\0" * 1_000_000)
+    full = ask(cmd="snapshot")
+    assert not full["ok"] and "log.snapshots_max_mb = 1 MB" in full["error"], full
+    assert "\n" not in full["error"]
+
+
 def test_log_ring_sent_on_request(running):
     _d, ask, sub = running
     sub.setsockopt(zmq.SUBSCRIBE, b"frame")
@@ -423,3 +451,19 @@ def test_truncated_replay_ends_with_a_warning(tmp_path, capsys):
     cap = capsys.readouterr()
     assert "3 frames" in cap.out
     assert "line 5 is partial (a recording cut short?); replay ends at frame 3" in cap.err
+
+
+def test_a_snapshot_is_refused_below_the_data_directorys_free_space_floor(tmp_path):
+    from kmead.files import free_bytes
+    from kmead.snapshot import Limits, SnapshotError, check_room
+
+    free = free_bytes(tmp_path)
+    if free is None:
+        pytest.skip("no statvfs here")
+    check_room(tmp_path, Limits(min_free_mb=1.0), 1000)  # plenty of room
+    floor = (free + 10**9) / 1e6  # a floor above what this disk has free
+    with pytest.raises(SnapshotError) as e:
+        check_room(tmp_path, Limits(min_free_mb=floor), 1000)
+    assert f"below log.min_free_mb = {floor:g} MB" in str(e.value)
+    with pytest.raises(SnapshotError, match=r"snapshots are off \(log.snapshots_max = 0\)"):
+        check_room(tmp_path, Limits(max_count=0), 0)

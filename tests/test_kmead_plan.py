@@ -108,6 +108,8 @@ REFUSALS = {
                                       + "\nx = 0.0\ny = 0.0\nz = 0.0\n"),
     "distortion 1e300": _camera("cam.toml", f"{_SIZE}camera_matrix = {_K}\n"
                                             "dist_coeffs = [1e300, -0.25, 0, 0, 0.1]\n"),
+    "distortion k1 = 9000": _camera("cam.toml", f"{_SIZE}camera_matrix = {_K}\n"
+                                                "dist_coeffs = [9000, 0, 0, 0, 0]\n"),
     "focal length 0.001 px": _camera(
         "cam.toml", f"{_SIZE}camera_matrix = [[1357.0, 0, 819.5], [0, 0.001, 615.5], [0, 0, 1]]"
                     "\ndist_coeffs = [0, 0, 0, 0]\n"),

@@ -18,12 +18,14 @@ from typing import Literal, overload
 import numpy as np
 
 __all__ = [
+    "MAX_DISTORTION_STRETCH",
     "check_camera_matrix",
     "check_distortion",
     "distort",
     "distort_jacobian",
     "distort_jacobian_entries",
     "distort_xy",
+    "distortion_problem",
     "project",
     "project_jac_pc",
     "project_world",
@@ -57,6 +59,67 @@ def check_camera_matrix(K: np.ndarray) -> np.ndarray:
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise ValueError("camera matrix: fx and fy must be > 0")
     return K
+
+
+# How far a lens's distortion may push the image's border out from where the pinhole would
+# put it (distorted radius / undistorted radius at the border). Real lenses stay near 1:
+# pincushion a few per cent above it, wide and fisheye lenses below (a 157-degree view at
+# the border is 0.3). k1 = 9000 at f = 1357 px puts the Pi camera's border 15 times out: the
+# whole image would be 4.6 degrees wide, and every marker collapses to a point (OpenCV's
+# SQPnP then refuses every frame).
+MAX_DISTORTION_STRETCH = 3.0
+# Directions from the principal point and undistorted angles (to 89.5 degrees) sampled.
+_RAYS = 32
+_ANGLES = np.tan(np.radians(np.linspace(0.0, 89.5, 1500)))[1:]
+
+
+def distortion_problem(K: np.ndarray, d: np.ndarray, width: int, height: int) -> str | None:
+    """Why the distortion ``d`` (14,) cannot describe a lens on this image, in one phrase,
+    or None. Along rays from the principal point the distorted radius must grow with the
+    undistorted one until it reaches the image's border (else two directions meet in one
+    pixel, or the border has no direction at all: undistortion has no answer there), and
+    there it may exceed the undistorted radius by at most ``MAX_DISTORTION_STRETCH``."""
+    K = np.asarray(K, dtype=float)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (-0.5 < cx < width - 0.5 and -0.5 < cy < height - 0.5):
+        return None  # no rays to follow: the principal point's own check names that
+    phi = np.linspace(0.0, 2 * np.pi, _RAYS, endpoint=False)
+    ux, uy = np.cos(phi), np.sin(phi)
+    # The border along each ray, in distorted normalised coordinates.
+    with np.errstate(divide="ignore"):
+        tx = np.where(ux > 0, (width - 0.5 - cx) / fx, (-0.5 - cx) / fx) / ux
+        ty = np.where(uy > 0, (height - 0.5 - cy) / fy, (-0.5 - cy) / fy) / uy
+    border = np.minimum(np.where(np.abs(ux) > 1e-12, tx, np.inf),
+                        np.where(np.abs(uy) > 1e-12, ty, np.inf))[:, None]  # (rays, 1)
+    r = _ANGLES[None, :]
+    with np.errstate(over="ignore", invalid="ignore"):
+        xd, yd = distort_xy(ux[:, None] * r, uy[:, None] * r, check_distortion(d))
+        s = xd * ux[:, None] + yd * uy[:, None]  # the distorted radius along each ray
+    s = np.where(np.isfinite(s), s, -np.inf)
+    inside = s < border
+    # The first sample at or past the border (past the last if the ray never reaches it).
+    reach = np.where(inside.all(axis=1), r.shape[1], np.argmin(inside, axis=1))
+    for i in range(_RAYS):
+        n = int(reach[i])
+        path = s[i, :n + 1] if n < r.shape[1] else s[i]
+        if np.any(np.diff(np.concatenate(([0.0], path))) <= 0):
+            return (f"the distortion folds over inside the image ({np.degrees(phi[i]):.0f} "
+                    "degrees from the principal point: two directions would meet in one "
+                    "pixel, and undistortion has no answer there)")
+        if n >= r.shape[1]:
+            return (f"the distortion never reaches the image's border {np.degrees(phi[i]):.0f} "
+                    "degrees from the principal point (no direction images there)")
+        # The undistorted radius of the border, between the samples either side of it.
+        r0, s0 = (r[0, n - 1], s[i, n - 1]) if n else (0.0, 0.0)
+        rb = r0 + (border[i, 0] - s0) * (r[0, n] - r0) / (s[i, n] - s0)
+        stretch = float(border[i, 0] / rb)
+        if stretch > MAX_DISTORTION_STRETCH:
+            view = 2 * np.degrees(np.arctan(rb))
+            return (f"the distortion pushes the image's border {stretch:.2g} times out from "
+                    f"where the pinhole puts it (at most {MAX_DISTORTION_STRETCH:g}): the "
+                    f"image would see only {view:.2g} degrees across that way, and every "
+                    "marker would shrink to a point")
+    return None
 
 
 def distort_xy(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,6 @@
 """``replay:FILE``: a recording (:mod:`kmea.recording`) as a frame source: its detections
-and poses, no images."""
+and poses, no images. Plain or compressed, version 1 or 2; a recording cut by a kill (or
+one part of a recording cut into parts) replays up to its last whole line."""
 
 from __future__ import annotations
 
@@ -9,15 +10,13 @@ import math
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from kmea.recording import (
     RecordingError,
     camera_from_json,
+    frame_from_json,
+    iter_lines,
     map_from_json,
-    obs_from_json,
     read_header,
-    unnum,
 )
 from kmea.sources.base import Frame, FrameSource, SourceError
 
@@ -47,43 +46,53 @@ class ReplaySource(FrameSource):
         except (KeyError, TypeError, ValueError) as e:
             raise SourceError(f"{self.path}: line 1: bad recording header: {e}") from None
         self.size = (self.camera.width, self.camera.height)
-        self._f = open(self.path, encoding="utf-8")  # noqa: SIM115 - closed in close()
-        self._f.readline()
-        self._line = 1
+        self._lines = iter_lines(self.path)
+        self._line = 0
         self._count = 0
         self.truncated = False  # the last line was partial (a recording cut by a kill)
+        try:
+            self._next()  # the header
+        except SourceError:
+            self._lines.close()
+            raise
+
+    def _next(self) -> bytes | None:
+        try:
+            self._line, text = next(self._lines)
+        except StopIteration:
+            return None
+        except (RecordingError, OSError) as e:
+            raise SourceError(str(e)) from None
+        return text
 
     def read(self) -> Frame | None:
         if self._closed:
             return None
-        text = self._f.readline()
-        if not text:
+        text = self._next()
+        if text is None:
             return None
-        self._line += 1
-        if not text.endswith("\n"):  # a recording cut by a kill: the last line is partial
+        if not text.endswith(b"\n"):  # a recording cut by a kill: the last line is partial
             self.truncated = True
+            what = (f"line {self._line} is partial" if text else
+                    f"the compressed stream ends after line {self._line - 1} without its end")
             logging.getLogger("kmead").warning(
-                "%s: line %d is partial (a recording cut short?); replay ends at frame %d",
-                self.path.name, self._line, self._count)
+                "%s: %s (a recording cut short?); replay ends at frame %d", self.path.name,
+                what, self._count)
             return None
         where = f"{self.path.name}: line {self._line}"
         try:
-            d = json.loads(text)
-            ids = np.array(d["ids"], dtype=np.int64)
-            corners = np.array([[unnum(x) for x in c] for c in d["corners"]],
-                               dtype=float).reshape(-1, 4, 2)
-            obs = [obs_from_json(m) for m in d["markers"]]
-            frame = Frame(int(d["frame"]), float(d["t"]), None,
-                          {"replay": (ids, corners, obs, d.get("diag") or {}),
-                           "truth": d.get("truth")})
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+            index, t, ids, corners, obs, diag, truth = frame_from_json(json.loads(text))
+            frame = Frame(index, t, None, {"replay": (ids, corners, obs, diag),
+                                           "truth": truth})
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError,
+                ValueError) as e:
             frame = Frame(self._count, math.nan, None, {"error": f"{where}: bad frame: {e}"})
         self._count += 1
         return frame
 
     def close(self) -> None:
         if not self._closed:
-            self._f.close()
+            self._lines.close()
         super().close()
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from kmea.estimators.base import CameraIntrinsics
+from kmea.geometry.camera import check_distortion, distortion_problem
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -230,9 +231,10 @@ def _size(value: object, where: str) -> int:
 
 
 def _build(K: np.ndarray, d: np.ndarray, w: int | None, h: int | None, source: str,
-           image_size: tuple[int, int] | None, k_where: str) -> CameraModel:
+           image_size: tuple[int, int] | None, k_where: str, d_where: str) -> CameraModel:
     """The model; ``k_where`` names the camera matrix's key for a focal length that cannot
-    belong to the image (the file's size, the caller's, else the guessed one)."""
+    belong to the image (the file's size, the caller's, else the guessed one), ``d_where``
+    the distortion's for a distortion no lens has on it."""
     known = w is not None and h is not None
     if not known:
         if image_size is not None:
@@ -253,6 +255,13 @@ def _build(K: np.ndarray, d: np.ndarray, w: int | None, h: int | None, source: s
         raise CameraError(f"{k_where}: skew {model.camera_matrix[0, 1]:g} px would move the "
                           f"image's edge by {shift:.3g} px, and OpenCV ignores skew: "
                           "calibrate without it (0)")
+    try:
+        problem = distortion_problem(model.camera_matrix, check_distortion(model.dist_coeffs),
+                                     model.width, model.height)
+    except ValueError as e:  # a tilted sensor (tauX, tauY), which no stage models
+        problem = str(e)
+    if problem:
+        raise CameraError(f"{d_where}: {problem}")
     return model
 
 
@@ -379,7 +388,7 @@ def _read_filestorage(fs: object, path: Path, image_size: tuple[int, int] | None
             raise CameraError(f"{path}: {wk}/{hk}: expected positive integers")
         w = _size(wn.real(), f"{path}: {wk}")  # type: ignore[attr-defined]
         h = _size(hn.real(), f"{path}: {hk}")  # type: ignore[attr-defined]
-    return _build(K, d, w, h, str(path), image_size, f"{path}: {kk}")
+    return _build(K, d, w, h, str(path), image_size, f"{path}: {kk}", f"{path}: {dk}")
 
 
 def _load_toml(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
@@ -428,7 +437,7 @@ def _load_toml(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
     if "meta" in data and not isinstance(data["meta"], dict):
         raise CameraError(f"{path}: meta: expected a table")
     k_where = f"{path}: camera_matrix" if "camera_matrix" in data else str(path)
-    return _build(K, d, w, h, str(path), image_size, k_where)
+    return _build(K, d, w, h, str(path), image_size, k_where, f"{path}: dist_coeffs")
 
 
 def load_camera(path: str | Path, image_size: tuple[int, int] | None = None) -> CameraModel:
