@@ -29,7 +29,7 @@ def _run(spec: str, n: int):
     from kmea.sources.sim import SimSource
 
     src = SimSource(spec, frames=n)
-    frames = [src.read() for _ in range(n)]
+    frames = src.take(n)
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
         robots=tuple(src.scene.robot_specs()), tracking=True))
     out = []

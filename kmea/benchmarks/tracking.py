@@ -287,6 +287,7 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig, skip: np.ndarray | None = N
             continue
         o = trk.update("r", t, ms.z[k, 0], ms.z[k, 1], ms.z[k, 2], float(ms.sigma[k]))
         st = trk.predict("r", t)
+        assert st is not None  # just updated
         out[k] = (st.x, st.y, st.theta)
         sig[k] = st.sigma
         cov[k] = st.cov[:2, :2]
@@ -412,18 +413,25 @@ def drive_metrics(mset: MotionSet, filt: str, param: float | TrackerConfig,
     (:func:`outlier_effect`), and with the outlier measurements left out for the outliers'
     own jumps and the oracle's."""
     rows = []
-    run_f = run_iir if filt == "iir" else run_kalman
+
+    def run_f(ms: Measurements, skip: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+        if filt == "iir":
+            assert not isinstance(param, TrackerConfig), "the IIR filter takes alpha"
+            return run_iir(ms, param, skip)
+        assert isinstance(param, TrackerConfig), "the tracking filter takes a TrackerConfig"
+        return run_kalman(ms, param, skip)
+
     for seed in mset.seeds:
         tr = trajectory(seed, mset.duration, mset.max_speed, mset.max_turn, mset.max_accel,
                         mset.stops)
         ms = make_measurements(tr, seed, mset.fps, mset.sigma, outliers, burst=mset.burst,
                                manoeuvre_outliers=mset.manoeuvre_outliers,
                                stop_outliers=mset.stop_outliers)
-        out, info = run_f(ms, param)
+        out, info = run_f(ms)
         clean = dropped = dropped_sigma = None
         if outliers > 0:
-            clean, _ = run_f(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0), param)
-            dropped, dinfo = run_f(ms, param, ms.outlier)
+            clean, _ = run_f(make_measurements(tr, seed, mset.fps, mset.sigma, 0.0))
+            dropped, dinfo = run_f(ms, ms.outlier)
             dropped_sigma = dinfo["sigma"]
         rows.append(metrics(tr, ms, out, info, clean, dropped, dropped_sigma))
     return rows
@@ -620,8 +628,8 @@ def drive_rows(mset: MotionSet, seed: int) -> list[tuple[float, float, float, fl
     ms = make_measurements(tr, seed, mset.fps, mset.sigma, 0.05, burst=mset.burst,
                            manoeuvre_outliers=mset.manoeuvre_outliers,
                            stop_outliers=mset.stop_outliers)
-    return [(float(ms.t[k]), *map(float, ms.z[k]), float(ms.sigma[k]))
-            for k in range(len(ms.t))]
+    return [(float(ms.t[k]), float(ms.z[k, 0]), float(ms.z[k, 1]), float(ms.z[k, 2]),
+             float(ms.sigma[k])) for k in range(len(ms.t))]
 
 
 def update_cost(cfg: TrackerConfig = TUNED, tracker: type = Tracker,

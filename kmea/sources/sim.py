@@ -81,6 +81,16 @@ class SimSource(FrameSource):
         self._next = self.start
         self._t0: float | None = None
 
+    def take(self, n: int) -> list[SimFrame]:
+        """The next ``n`` frames (``ValueError`` when the scene ends before)."""
+        out = []
+        for _ in range(n):
+            f = self.read()
+            if f is None:
+                raise ValueError(f"the simulator ended after {len(out)} of {n} frames")
+            out.append(f)
+        return out
+
     def read(self) -> SimFrame | None:
         if self._closed:
             return None
