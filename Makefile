@@ -2,6 +2,8 @@
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
+# Type checking in `make lint` (pyproject's [tool.pyright]: basic); PYRIGHT= skips it.
+PYRIGHT ?= $(BIN)/pyright
 # On a Raspberry Pi the venv keeps the apt numpy picamera2 is built for: pip installs with
 # constraints/<codename>.txt (README, On the Raspberry Pi). Elsewhere: none (today's stack).
 ON_PI := $(shell grep -qs 'Raspberry Pi' /proc/device-tree/model && echo yes)
@@ -77,6 +79,7 @@ endif
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(if $(PYRIGHT),$(PYRIGHT))
 
 bench: $(STAMP)
 	$(BIN)/kmea bench
