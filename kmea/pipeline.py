@@ -16,6 +16,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Mapping
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -255,7 +256,11 @@ class Pipeline:
     """
 
     def __init__(self, camera: CameraModel, world_map: MarkerMap,
-                 settings: PipelineSettings | None = None) -> None:
+                 settings: PipelineSettings | None = None,
+                 executor: Executor | None = None) -> None:
+        """executor: where a tracking detector's background detection runs (the caller's,
+        e.g. the daemon's one low-priority thread); None: in the frame path itself."""
+        self.executor = executor
         self.base_camera = camera
         self.camera = camera
         self.world_map = world_map
@@ -320,7 +325,8 @@ class Pipeline:
             robot_ids = {m for r in s.robots for m in r.markers}
             static = frozenset(set(self.world_map.markers) - robot_ids)
             return TrackingDetector(self.detector_config, TrackingConfig(
-                full_every=s.track_full_every, static_ids=static), gate=self.robots_sent)
+                full_every=s.track_full_every, static_ids=static), executor=self.executor,
+                gate=self.robots_sent)
         return new_detector(self.detector_config, s.fast, s.fast_window, s.full_every)
 
     @property
@@ -341,10 +347,11 @@ class Pipeline:
         self.inc_poses.reuse_px = REUSE_PX if self.estimator.fits_corners else 0.0
 
     def close(self) -> None:
-        """Stop the detector's background thread, if it has one."""
+        """No more background detections (one waiting for the gate goes at once)."""
         close = getattr(self.observer.detector, "close", None)
         if close is not None:
             close()
+        self.robots_sent.set()
 
     def configure_filter(self) -> None:
         s = self.settings

@@ -20,6 +20,7 @@ import math
 import os
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -154,8 +155,12 @@ class Daemon:
             self.data_dir = DataDir(cfg["log"]["dir"])
         except FileRefused as e:
             raise StartupError(f"key 'log.dir': {e}") from None
+        # The tracking detector's background detection: one thread of the daemon's (the
+        # library starts none), started on first use.
+        self.discovery = ThreadPoolExecutor(1, thread_name_prefix="kmead-discover")
         try:
-            self.pipeline = Pipeline(camera, self.world_map, self._settings())
+            self.pipeline = Pipeline(camera, self.world_map, self._settings(),
+                                     executor=self.discovery)
         except ValueError as e:  # detector parameters, dictionary, algorithm options
             raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
         self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
@@ -937,6 +942,9 @@ class Daemon:
                 self.control = None
             if getattr(self, "pipeline", None) is not None:
                 self.pipeline.close()
+            if getattr(self, "discovery", None) is not None:
+                # A detection under way finishes on its own (it holds nothing of ours).
+                self.discovery.shutdown(wait=False, cancel_futures=True)
             if self.capture is not None:
                 self.capture.close()
             elif getattr(self, "source", None) is not None:

@@ -6,6 +6,7 @@ bit for bit:
     PYTHONPATH=CHECKOUT .venv/bin/python scripts/fixed_camera_digest.py
 """
 import hashlib
+import inspect
 
 import numpy as np
 
@@ -26,8 +27,12 @@ for algo in ("kmea", "corner-pnp"):
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
         robots=tuple(src.scene.robot_specs()), tracking=True, algorithm=algo))
     p.observer.detector.close()
+    # The background detection in the calling thread: executor=None (background=False
+    # before the executor came from the caller).
+    sync = ({"executor": None} if "executor" in inspect.signature(TrackingDetector).parameters
+            else {"background": False})
     p.observer.detector = TrackingDetector(DetectorConfig(src.world_map.dictionary),
-                                           TrackingConfig(static_ids=static), background=False)
+                                           TrackingConfig(static_ids=static), **sync)
     h = hashlib.sha256()
     n = 0
     for f in frames:

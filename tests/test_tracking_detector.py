@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -41,10 +43,10 @@ def _static_ids(src: SimSource) -> frozenset[int]:
 
 
 def _tracker(src: SimSource, **kw) -> TrackingDetector:
-    # background=False: the background detection runs in the calling thread, so the
+    # No executor: the background detection runs in the calling thread, so the
     # frame at which a discovery is merged is deterministic.
     return TrackingDetector(DetectorConfig(src.world_map.dictionary),
-                            TrackingConfig(static_ids=_static_ids(src), **kw), background=False)
+                            TrackingConfig(static_ids=_static_ids(src), **kw))
 
 
 def _tracked_pipeline(src: SimSource, algorithm: str | None = None, **tracker) -> Pipeline:
@@ -598,23 +600,42 @@ def test_background_detection_waits_for_the_frames_robots(default_frames, monkey
     monkeypatch.setattr(tracking_detector, "GATE_WAIT_S", 60.0)  # a slow machine: no timeout
     frames, src = default_frames
     gate = threading.Event()
+    pool = ThreadPoolExecutor(1, thread_name_prefix="test-discover")
     tracker = TrackingDetector(DetectorConfig(src.world_map.dictionary),
-                               TrackingConfig(static_ids=_static_ids(src)), gate=gate)
+                               TrackingConfig(static_ids=_static_ids(src)), executor=pool,
+                               gate=gate)
     try:
         for f in frames:
             tracker.detect(f.image)  # clears the gate: this frame's path is running
-            if tracker._busy:
+            if tracker._draining:
                 break
-        assert tracker._busy and not gate.is_set()
+        assert tracker._draining and not gate.is_set()
         time.sleep(0.1)
-        assert tracker._busy and tracker._result is None  # held back by the gate
+        assert tracker._draining and tracker._result is None  # held back by the gate
         gate.set()
         t0 = time.monotonic()
-        while tracker._busy and time.monotonic() - t0 < 60.0:
+        while tracker._draining and time.monotonic() - t0 < DEADLINE:
             time.sleep(0.01)
-        assert not tracker._busy and tracker._result is not None
+        assert not tracker._draining and tracker._result is not None
     finally:
         tracker.close()
+        pool.shutdown(wait=True)
+
+
+def test_the_library_starts_no_thread(default_frames):
+    """Without an executor the background detection runs in the calling thread: a tracked
+    pipeline over frames with discoveries leaves the process's threads as they were."""
+    frames, src = default_frames
+    before = set(threading.enumerate())
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(
+        robots=tuple(src.scene.robot_specs()), tracking=True))
+    try:
+        for f in frames[:8]:
+            p.process(FrameInput(f.index, f.timestamp, f.image))
+        assert p.detector.background >= 1  # a background detection ran, in this thread
+        assert set(threading.enumerate()) == before
+    finally:
+        p.close()
 
 
 def test_the_pipeline_opens_the_gate_once_the_robots_are_known(default_frames):

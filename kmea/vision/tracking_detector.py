@@ -25,10 +25,11 @@ per frame:
   in a small region around the prediction (``cv2.aruco.ArucoDetector`` on a crop), in a
   wider one when the first misses. A moving marker lost there triggers one full detection in
   the same frame (a robot visible in the frame keeps its pose for the frame).
-- **new markers**: a full detection runs in the background (its own low-priority thread)
-  every ``full_every`` frames and whenever a tracked marker is lost; what it finds that is
-  not tracked is checked in the current frame (a moving one detected around where it was
-  found) and reported from then on. At 30 frames/s, ``full_every`` = 6 reports a marker
+- **new markers**: a full detection runs in the background (on the executor the caller
+  gives, e.g. the daemon's one low-priority thread; without one, in the calling thread:
+  the library starts no thread) every ``full_every`` frames and whenever a tracked marker
+  is lost; what it finds that is not tracked is checked in the current frame (a moving one
+  detected around where it was found) and reported from then on. At 30 frames/s, ``full_every`` = 6 reports a marker
   entering the view within 0.2 s plus one background detection.
 
 Stateful: one instance per live source, called on consecutive frames. For file sources
@@ -44,6 +45,7 @@ import math
 import os
 import threading
 from collections.abc import Collection
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import cv2
@@ -277,10 +279,13 @@ class TrackingDetector:
     """
 
     def __init__(self, config: DetectorConfig, tracking: TrackingConfig | None = None,
-                 background: bool = True, gate: threading.Event | None = None) -> None:
+                 executor: Executor | None = None, gate: threading.Event | None = None
+                 ) -> None:
+        """executor: where the background detection runs (one job at a time; the caller
+        owns it and shuts it down); None: in the calling thread, within ``detect``."""
         self.config = config
         # Set by the pipeline once a frame's robots are sent, cleared when the next frame's
-        # detection starts: the background detection waits for it (see _worker).
+        # detection starts: the background detection waits for it (see _drain).
         self.gate = gate
         self.settings = tracking or TrackingConfig()
         self.full_detector = MarkerDetector(config)
@@ -288,7 +293,10 @@ class TrackingDetector:
         self.dictionary = self.full_detector.dictionary
         self._codes: dict[int, np.ndarray] = {}
         self._floor: _FloorCheck | None = None
-        self._tuned: dict[int, MarkerDetector] = {}  # the detection thread's (see _worker)
+        self._tuned: dict[int, MarkerDetector] = {}  # the calling thread's (see _drain)
+        # The executor's (one task at a time: _drain runs alone).
+        self._worker_det: MarkerDetector | None = None
+        self._worker_tuned: dict[int, MarkerDetector] = {}
         self._half_ok = False
         self._side = 0.0  # median marker side (px) of the last full detection
         self.tracks: dict[int, _Track] = {}
@@ -302,27 +310,29 @@ class TrackingDetector:
         self.shape_px: collections.deque[float] = collections.deque(maxlen=512)
         self._since_full = 0
         self._want_full = True
-        self._use_thread = background
-        self._job: tuple[int, np.ndarray] | None = None
-        self._result: tuple[int, Detections] | None = None
-        self._busy = False
+        self._executor = executor
+        self._job: tuple[int, np.ndarray, bool, int] | None = None
+        self._result: tuple[int, Detections, bool] | None = None
+        self._draining = False  # a _drain task is queued or running on the executor
         self._cond = threading.Condition()
-        self._thread: threading.Thread | None = None
         self._closed = False
 
     # ------------------------------------------------------------------ background detection
-    def _worker(self) -> None:
+    def _drain(self) -> None:
+        """The executor's task: run the queued job, and the next one queued meanwhile, until
+        none is left (newest wins: a job replaced before it started is dropped)."""
         with contextlib.suppress(OSError, AttributeError):
             # Below the frame path: on one core the tracked frames preempt discovery (nice 5:
             # a third of the frame path's share; at nice 10 a loaded machine starved it).
+            # The executor's thread keeps it: the caller's executor is for this work.
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 5)
-        det = MarkerDetector(self.config)
-        tuned: dict[int, MarkerDetector] = {}
+        if self._worker_det is None:
+            self._worker_det = MarkerDetector(self.config)
+        det, tuned = self._worker_det, self._worker_tuned
         while True:
             with self._cond:
-                while self._job is None and not self._closed:
-                    self._cond.wait()
-                if self._closed:
+                if self._job is None or self._closed:
+                    self._draining = False
                     return
                 frame_no, image, half, win = self._job
                 self._job = None
@@ -337,7 +347,6 @@ class TrackingDetector:
             except Exception:  # a frame the detector cannot digest: no result
                 d = None
             with self._cond:
-                self._busy = False
                 if d is not None:
                     self._result = (frame_no, d, half)
 
@@ -375,18 +384,22 @@ class TrackingDetector:
         # ones are the same markers on the same floor; the full-resolution looks keep all
         # three windows for anything else).
         win = max(3, round(self._side / 10.0) | 1) if half and self._side > 0 else 0
-        if not self._use_thread:
+        if self._executor is None:
             det = self._tuned_detector(self._tuned, win) if win else self.full_detector
             self._result = (self.frame, self._discover(det, image, half), half)
             return
         with self._cond:
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._worker, daemon=True,
-                                                name="kmea-discover")
-                self._thread.start()
+            if self._closed:
+                return
             self._job = (self.frame, image, half, win)
-            self._busy = True
-            self._cond.notify()
+            if self._draining:
+                return  # the running task takes it next
+            self._draining = True
+        try:
+            self._executor.submit(self._drain)
+        except RuntimeError:  # the executor was shut down (the daemon stops): no discovery
+            with self._cond:
+                self._draining = False
 
     def _take_result(self) -> tuple[int, Detections, bool] | None:
         with self._cond:
@@ -394,15 +407,11 @@ class TrackingDetector:
         return r
 
     def close(self) -> None:
+        """No more background detections (a queued one is dropped; one running finishes on
+        the caller's executor, whose owner waits for it)."""
         with self._cond:
             self._closed = True
-            self._cond.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-
-    def __del__(self) -> None:  # the worker thread must not outlive its detector
-        with contextlib.suppress(Exception):
-            self.close()
+            self._job = None
 
     # ------------------------------------------------------------------ helpers
     def _code(self, mid: int) -> np.ndarray:
