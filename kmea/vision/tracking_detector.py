@@ -29,8 +29,9 @@ per frame:
   gives, e.g. the daemon's one low-priority thread; without one, in the calling thread:
   the library starts no thread) every ``full_every`` frames and whenever a tracked marker
   is lost; what it finds that is not tracked is checked in the current frame (a moving one
-  detected around where it was found) and reported from then on. At 30 frames/s, ``full_every`` = 6 reports a marker
-  entering the view within 0.2 s plus one background detection.
+  detected around where it was found) and reported from then on. At 30 frames/s,
+  ``full_every`` = 6 reports a marker entering the view within 0.2 s plus one background
+  detection.
 
 Stateful: one instance per live source, called on consecutive frames. For file sources
 (frame-exact, reproducible results) the pipeline keeps full detection on every frame.
