@@ -24,9 +24,9 @@ import numpy as np
 from kmea import estimators
 from kmea.estimators.base import Estimate, MarkerObservation
 from kmea.filters import PoseFilter
-from kmea.geometry import wrap_angle
+from kmea.geometry import marker_corners_local, wrap_angle
 from kmea.maps import MarkerMap
-from kmea.robots import RobotSpec, robot_pose
+from kmea.robots import RobotSpec, robot_pose, robot_time
 from kmea.tracking import Tracker, TrackerConfig
 from kmea.vision.camera import CameraModel
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector
@@ -73,6 +73,9 @@ class RobotFix:
 
     With the tracking filter: vx, vy (world velocity, m/s), omega (turn rate, rad/s), and
     raw, the measurement before filtering (x, y, theta, sigma), which a fusion node fuses.
+    t: the instant the pose stands for (s, the frame timestamps' clock): its markers'
+    mid-exposure when the source gives the frame's timing (``meta["timing"]``,
+    :class:`kmea.timing.FrameTiming`), else the frame's timestamp.
     """
 
     name: str
@@ -85,6 +88,7 @@ class RobotFix:
     vy: float | None = None
     omega: float | None = None
     raw: tuple[float, float, float, float | None] | None = None
+    t: float | None = None
 
 
 @dataclass
@@ -270,6 +274,8 @@ class Pipeline:
         self._floor_obs: list[MarkerObservation] = []  # last frame's fixed markers (tracking)
         self._floor_cache: tuple | None = None  # see _floor_rows
         self._refit_age = 0  # frames since the floor's camera fit was last updated (tracking)
+        self._times: dict[int, float] = {}  # this frame's robot markers' times (process)
+        self._rates: dict[int, tuple[float, float]] = {}  # and their row time gradients
         self.inc_loo = IncrementalLoo(self.settings.loo_every)
         self.configure(self.settings)
 
@@ -413,6 +419,7 @@ class Pipeline:
         mode = "full"
         incremental = self.settings.tracking
         deferred: tuple[int, ...] = ()
+        self._times, self._rates = {}, {}
         if on_robots is not None:
             relay = on_robots
 
@@ -437,6 +444,7 @@ class Pipeline:
                 events, restart, mode = det.events, det.restart, det.mode
             else:
                 ids, corners = det
+            self._times = self.observation_times(inp, ids, corners)
             if restart:  # the view changed: estimation starts again
                 self.reset_incremental()
                 self.configure_filter()
@@ -478,6 +486,7 @@ class Pipeline:
             corners = np.asarray(inp.corners if inp.corners is not None
                                  else np.zeros((0, 4, 2)), dtype=float)
             obs, diag = list(inp.observations), dict(inp.diagnostics)
+            self._times = self.observation_times(inp, ids, corners)
             t2 = time.perf_counter()
         intr = self.camera.intrinsics
         both = None
@@ -498,7 +507,7 @@ class Pipeline:
         if early is not None:
             robots = early  # sent already, before the floor's update
         else:
-            robots = self.robot_fixes(est, inp.timestamp, rejections)
+            robots = self.robot_fixes(est, inp.timestamp, rejections, self._times)
             if on_robots is not None:
                 on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
         if incremental and not deferred:
@@ -555,7 +564,8 @@ class Pipeline:
                                                 self.plane_heights)
         if placed is None:
             return None, None
-        fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections)
+        fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections,
+                                 self._times)
         if on_robots is not None:
             on_robots(t, fixes)
         return fixes, self.estimator.placed_observations(placed, mids, corners[sel], lengths)
@@ -627,22 +637,62 @@ class Pipeline:
             return None, None
         if not est.ok:
             return None, None
-        fixes = self.robot_fixes(est, t, rejections)
+        fixes = self.robot_fixes(est, t, rejections, self._times)
         on_robots(t, fixes)
         return fixes, {o.id: o for o in obs if o.id not in fixed}
 
+    def observation_times(self, inp: FrameInput, ids: np.ndarray, corners: np.ndarray
+                          ) -> dict[int, float]:
+        """Robot marker id -> the instant it was seen (s): the mid-exposure of its rows (the
+        mean row of its corners), from the frame's timing (``inp.meta["timing"]``) as an
+        offset from the frame's timestamp (a live source may restamp frames with the unix
+        time; the offset stays). Empty without a timing: every marker at the timestamp."""
+        timing = inp.meta.get("timing") if inp.meta else None
+        self._rates = {}
+        if timing is None or not self.robot_lengths or len(ids) == 0:
+            return {}
+        out = {}
+        for k, m in enumerate(np.asarray(ids).tolist()):
+            if m in self.robot_lengths:
+                rows = np.asarray(corners[k], dtype=float)[:, 1]
+                out[int(m)] = inp.timestamp + timing.row_time(float(rows.mean())) - timing.t_read0
+                if timing.line_s > 0:
+                    # rows against the marker's own x, y (m): the time gradient over it, s/m
+                    local = marker_corners_local(self.robot_lengths[m])[:, :2]
+                    a = np.linalg.lstsq(np.column_stack([local, np.ones(4)]), rows,
+                                        rcond=None)[0]
+                    self._rates[int(m)] = (float(a[0]) * timing.line_s,
+                                           float(a[1]) * timing.line_s)
+        return out
+
     def robot_fixes(self, est: Estimate, t: float,
-                    rejections: dict[str, str] | None = None) -> dict[str, RobotFix]:
+                    rejections: dict[str, str] | None = None,
+                    times: Mapping[int, float] | None = None) -> dict[str, RobotFix]:
         """Robot poses from the raw marker estimates (kmea.robots), then filtered per robot
         (the IIR filter, or the tracking filter: a measurement it rejects gives no fix this
-        frame, and its reason goes to ``rejections``)."""
+        frame, and its reason goes to ``rejections``).
+
+        Each robot's measurement is at its own markers' time (``times``, id -> s: in
+        :meth:`process`, :meth:`observation_times` of the frame; else ``t``); the tracking
+        filter runs on those times, and its velocity and turn rate bring a pair seen in two
+        rows to one instant (kmea.robots)."""
         out: dict[str, RobotFix] = {}
+        times = times or {}
+        rates = self._rates if times is self._times else {}
         for spec in self.robot_specs:
-            pose = robot_pose(spec, est.markers)
+            motion = None
+            if self.tracker is not None and times:
+                seen = tuple(m for m in spec.markers if m in est.markers)
+                tm = robot_time(spec, seen, times) if seen else None
+                st = self.tracker.predict(spec.name, tm) if tm is not None else None
+                if st is not None:
+                    motion = (st.vx, st.vy, st.omega)
+            pose = robot_pose(spec, est.markers, times, motion, rates)
             if pose is None:
                 continue
+            tp = t if pose.t is None else pose.t
             if self.tracker is not None:
-                o = self.tracker.update(spec.name, t, pose.x, pose.y, pose.theta, pose.sigma)
+                o = self.tracker.update(spec.name, tp, pose.x, pose.y, pose.theta, pose.sigma)
                 if not o.accepted or o.state is None:
                     if rejections is not None:
                         rejections[spec.name] = o.reason
@@ -650,10 +700,10 @@ class Pipeline:
                 st = o.state
                 out[spec.name] = RobotFix(spec.name, st.x, st.y, st.theta, st.sigma,
                                           list(pose.markers_seen), st.vx, st.vy, st.omega,
-                                          (pose.x, pose.y, pose.theta, pose.sigma))
+                                          (pose.x, pose.y, pose.theta, pose.sigma), tp)
                 continue
-            p, th = self.filter.update(("robot", spec.name), t,
+            p, th = self.filter.update(("robot", spec.name), tp,
                                        np.array([pose.x, pose.y, pose.z]), pose.theta)
             out[spec.name] = RobotFix(spec.name, float(p[0]), float(p[1]), float(th),
-                                      pose.sigma, list(pose.markers_seen))
+                                      pose.sigma, list(pose.markers_seen), t=tp)
         return out

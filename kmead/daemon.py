@@ -735,7 +735,10 @@ class Daemon:
         predict = self.cfg["filter"]["predict"] and self.live and tracker is not None
         for fix in fixes.values():
             extra = None
-            t_fix, x, y, th, sigma = t, fix.x, fix.y, fix.theta, fix.sigma
+            # The pose's own instant: its markers' mid-exposure when the source gives the
+            # frame's timing (kmea.timing), else the frame's time.
+            t_pose = t if fix.t is None else fix.t
+            t_fix, x, y, th, sigma = t_pose, fix.x, fix.y, fix.theta, fix.sigma
             if fix.vx is not None:
                 extra = {"vx": fix.vx, "vy": fix.vy, "omega": fix.omega, "age": 0.0}
                 if fix.raw is not None:  # the measurement itself, for a fusion node
@@ -744,9 +747,9 @@ class Daemon:
                 if predict:
                     now = time.time()
                     st = tracker.predict(fix.name, now)
-                    if st is not None and now >= t:
+                    if st is not None and now >= t_pose:
                         t_fix, x, y, th, sigma = now, st.x, st.y, st.theta, st.sigma
-                        extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t)
+                        extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t_pose)
             # Every datagram first: a telemetry body wakes the telemetry thread, which
             # would take the GIL from the next robot's datagram.
             self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False)
