@@ -32,8 +32,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["IMX219_LINE_S", "IMX219_MODES", "IMX219_VBLANK_MIN", "FrameTiming",
-           "blur_m", "imx219_line_time", "imx219_mode_for"]
+__all__ = ["BLUR_WARN_M", "IMX219_LINE_S", "IMX219_MODES", "IMX219_VBLANK_MIN", "FrameTiming",
+           "blur_m", "blur_warning", "imx219_line_time", "imx219_mode_for"]
 
 #: IMX219 line length (pixel clocks) and pixel rate (Hz), Linux drivers/media/i2c/imx219.c.
 IMX219_LINE_PCLK = 3448
@@ -119,3 +119,22 @@ def blur_m(speed_m_s: float, exposure_s: float) -> float:
     """How far a marker moving at ``speed_m_s`` travels during ``exposure_s``: the length
     of its smear, metres."""
     return abs(speed_m_s) * max(exposure_s, 0.0)
+
+
+#: Smear (m) of a robot at its top speed above which kmead warns and ``kmea doctor`` says
+#: FIX: on the tuning motion scenes (docs/motion.md) 60 mm markers at 1.5 m/s are found in
+#: every frame up to 3 ms of exposure (4.5 mm), and start to be lost beyond.
+BLUR_WARN_M = 0.0045
+
+
+def blur_warning(exposure_s: float, speed_m_s: float) -> str | None:
+    """One line when an exposure of ``exposure_s`` smears a robot at ``speed_m_s`` by more
+    than :data:`BLUR_WARN_M`, else None."""
+    b = blur_m(speed_m_s, exposure_s)
+    if b <= BLUR_WARN_M:
+        return None
+    return (f"camera exposure {exposure_s * 1e3:.1f} ms: a robot at {speed_m_s:g} m/s "
+            f"(filter.max_speed) smears by {b * 1e3:.1f} mm, more than "
+            f"{BLUR_WARN_M * 1e3:g} mm: moving robots' markers blur and may be lost; set "
+            f"camera.max_exposure_ms to at most {BLUR_WARN_M / speed_m_s * 1e3:.1f} "
+            f"(docs/motion.md)")

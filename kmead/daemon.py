@@ -31,6 +31,7 @@ from kmea.moved import MovedMonitor
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
 from kmea.recording import Recorder
 from kmea.sources.replay import ReplaySource
+from kmea.timing import blur_warning
 from kmead import bodies
 from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
@@ -98,6 +99,7 @@ class Daemon:
         self.displaced: dict[int, float] = {}
         self._last_stats_pub = 0.0
         self._last_status_pub = 0.0
+        self._blur_warned = False
         self._t_capture = 0.0
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
@@ -567,6 +569,18 @@ class Daemon:
         if self.telemetry is not None:
             self.telemetry.event(level, text)
 
+    def _check_blur(self, meta: dict) -> None:
+        """Warn once when the camera's exposure smears a robot at ``filter.max_speed`` by
+        more than :data:`kmea.timing.BLUR_WARN_M` (docs/motion.md)."""
+        timing = meta.get("timing")
+        if timing is None or timing.exact or timing.exposure_s <= 0:
+            return  # files, the simulator: nothing a setting can change
+        self._blur_warned = True
+        speed = float(self.cfg["filter"]["max_speed"])
+        msg = blur_warning(timing.exposure_s, speed)
+        if msg:
+            self.event("warning", msg)
+
     # ------------------------------------------------------------------ per frame
     def _frame_input(self, frame, capture_ms: float, t_cap: float) -> FrameInput:
         ts = frame.timestamp
@@ -598,6 +612,8 @@ class Daemon:
                                   "; skipped")
             return None
         inp = self._frame_input(frame, capture_ms, t_cap)
+        if not self._blur_warned:
+            self._check_blur(frame.meta)
         self._t_capture = inp.t_capture
         if detections is not None:
             inp.detections, inp.detect_ms = detections, detect_ms

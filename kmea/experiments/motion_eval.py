@@ -22,9 +22,9 @@ from kmea.sim.renderer import Renderer
 
 __all__ = ["CaseResult", "Errors", "evaluate_case", "rms"]
 
-#: Frames at the start of a run left out of the figures: the tracking filter's first
-#: measurements (its velocity is unknown until the second).
-WARMUP = 3
+#: Frames at the start of a run left out of the figures (a third of a second): the
+#: tracking filter's first measurements, before it knows the velocity.
+WARMUP = 10
 
 
 @dataclass
