@@ -11,7 +11,8 @@ markers give, before the tracking filter), "filter" = the tracking filter's outp
 the datagram carries); both stamped with the pose's own time (its markers' mid-exposure)
 and compared with the truth then; "no time" = the same measurement stamped with the frame's
 timestamp (the sensor timestamp: row 0 read out), as before issue 27. Heading "turning":
-robot-frames on the half circles (3 rad/s).
+robot-frames on the half circles (3 rad/s). Last column: the one-marker robot's measured
+heading with and without the correction of its square's rolling-shutter skew.
 """
 
 from __future__ import annotations
@@ -54,12 +55,15 @@ def row(label: str, rs: list[CaseResult]) -> str:
             f"| {_fmt(rms(cat('timed', 'pos')))} "
             f"| {_fmt(rms(raw_head), deg)} "
             f"| {_fmt(rms(raw_head[turning]) if turning.any() else math.nan, deg)} "
-            f"| {_fmt(rms(filt_head), deg)} |")
+            f"| {_fmt(rms(filt_head), deg)} "
+            f"| {_fmt(rms(cat('timed', 'single_head')), deg)} / "
+            f"{_fmt(rms(cat('noskew', 'single_head')), deg)} |")
 
 
 HEADER = ("| case | posed / visible | meas. pos RMSE mm | no time: pos RMSE mm "
           "| filter pos RMSE mm | meas. heading RMSE deg | turning (3 rad/s) deg "
-          "| filter heading deg |\n|---|---|---|---|---|---|---|---|")
+          "| filter heading deg | one marker: heading deg, skew corrected / not "
+          "|\n|---|---|---|---|---|---|---|---|---|")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,8 +5,9 @@ Every frame is rendered once and run through two pipelines (the daemon's default
 file source: full detection, corner-pnp, the tracking filter): ``timed`` gets the frame's
 timing (``meta["timing"]``, as the simulator and the Pi camera give it), so each robot's
 pose is stamped with its markers' mid-exposure; ``frame`` gets none, as before issue 27:
-every pose stamped with the frame's timestamp (the instant row 0 is read out). Each pose is
-compared with the truth at the time it claims.
+every pose stamped with the frame's timestamp (the instant row 0 is read out); ``noskew``
+is ``timed`` without the single marker's skew correction. Each pose is compared with the
+truth at the time it claims.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ class Errors:
     raw_pos: list[float] = field(default_factory=list)
     raw_head: list[float] = field(default_factory=list)
     turning: list[bool] = field(default_factory=list)
+    single_head: list[float] = field(default_factory=list)  # raw, one-marker robot (amr2)
     visible: int = 0
     posed: int = 0
 
@@ -48,7 +50,17 @@ class CaseResult:
     frames: int
     timed: Errors
     frame: Errors
+    noskew: Errors
     seconds: float = 0.0
+
+
+class _NoSkew(Pipeline):
+    """The timed pipeline without the single marker's skew correction (its figure)."""
+
+    def observation_times(self, inp, ids, corners):  # type: ignore[no-untyped-def]
+        out = super().observation_times(inp, ids, corners)
+        self._rates = {}
+        return out
 
 
 def rms(v: list[float] | np.ndarray) -> float:
@@ -69,16 +81,17 @@ def evaluate_case(case: MotionCase, frames: int, start: int = 0) -> CaseResult:
     renderer = Renderer(scene)
     specs = tuple(scene.robot_specs())
     settings = PipelineSettings(robots=specs, filter_kind="kalman", loo=False)
-    pipes = {k: Pipeline(scene.camera, scene.effective_map(), settings)
-             for k in ("timed", "frame")}
-    errs = {"timed": Errors(), "frame": Errors()}
+    pipes = {k: (_NoSkew if k == "noskew" else Pipeline)(scene.camera, scene.effective_map(),
+                                                          settings)
+             for k in ("timed", "frame", "noskew")}
+    errs = {k: Errors() for k in pipes}
     paths = {r.name: r.path for r in scene.robots}
     for k in range(frames):
         i = start + k
         f = renderer.render(i)
         truth = f.truth
         for variant, p in pipes.items():
-            meta = {"timing": truth.timing} if variant == "timed" else {}
+            meta = {} if variant == "frame" else {"timing": truth.timing}
             res = p.process(FrameInput(i, f.timestamp, f.image, meta=meta))
             if k < WARMUP:
                 continue
@@ -98,8 +111,11 @@ def evaluate_case(case: MotionCase, frames: int, start: int = 0) -> CaseResult:
                 if fix.raw is not None:
                     e.raw_pos.append(math.hypot(fix.raw[0] - x, fix.raw[1] - y))
                     e.raw_head.append(_wrap(fix.raw[2] - th))
+                    if len(spec.markers) == 1:
+                        e.single_head.append(_wrap(fix.raw[2] - th))
                 rate = getattr(paths[spec.name], "turn_rate", None)
                 e.turning.append(bool(rate is not None and abs(rate(t)) > 0.5 * case.omega))
     for p in pipes.values():
         p.close()
-    return CaseResult(case, frames, errs["timed"], errs["frame"], time.perf_counter() - t0)
+    return CaseResult(case, frames, errs["timed"], errs["frame"], errs["noskew"],
+                      time.perf_counter() - t0)

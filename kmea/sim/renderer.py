@@ -765,7 +765,16 @@ class Renderer:
             for r in sc.robots:
                 if any(m in rc for m in r.markers):
                     rolled = self._rolling_corners(r, timing)
-                    rc.update({m: c for m, c in rolled.items() if m in rc})
+                    W, H = self.width, self.height
+                    for m, c in rolled.items():
+                        if m not in rc:
+                            continue
+                        # seen at its rows' time it may lie across the image's edge
+                        if ((c >= -0.5).all() and (c[:, 0] <= W - 0.5).all()
+                                and (c[:, 1] <= H - 0.5).all()):
+                            rc[m] = c
+                        else:
+                            del rc[m]
         corners = {m: c.copy() for m, c in self._truth_corners.items()}
         corners.update(rc)
         dyn = [q for obj in self.dynamic_quads(t) for q in obj if q.occludes]
@@ -773,7 +782,7 @@ class Renderer:
         visible = {m for m, h in zip(self._truth_open, self._hidden(self._truth_probes, dyn),
                                      strict=True) if not h}
         visible |= {m for m, h in zip(rids, self._hidden(rPc, statics + dyn), strict=True)
-                    if not h}
+                    if not h and m in rc}
         return FrameTruth(self.cam2world.copy(), markers, lengths, corners, visible, robots, t,
                           timing, {r.name: r.path for r in sc.robots})
 
