@@ -760,6 +760,7 @@ class Daemon:
                 if fix.raw is not None:  # the measurement itself, for a fusion node
                     extra["raw"] = dict(zip(("x", "y", "theta", "sigma"), fix.raw,
                                             strict=True))
+                    extra["raw"]["t"] = t_pose  # its own instant, also when t is predicted
                 if predict:
                     now = time.time()
                     st = tracker.predict(fix.name, now)
