@@ -23,6 +23,9 @@ from kmea.sim.renderer import Renderer
 
 __all__ = ["CaseResult", "Errors", "evaluate_case", "rms"]
 
+#: Frames (0.2 s) after a robot (re)appears before its filtered pose counts as settled.
+SETTLE = 6
+
 #: Frames at the start of a run left out of the figures (a third of a second): the
 #: tracking filter's first measurements, before it knows the velocity.
 WARMUP = 10
@@ -40,6 +43,9 @@ class Errors:
     raw_head: list[float] = field(default_factory=list)
     turning: list[bool] = field(default_factory=list)
     single_head: list[float] = field(default_factory=list)  # raw, one-marker robot (amr2)
+    # the filter's output SETTLE frames or more into a run of frames with a pose (a robot
+    # entering the view starts a new track, which learns its velocity over a few frames)
+    settled: list[bool] = field(default_factory=list)
     visible: int = 0
     posed: int = 0
 
@@ -86,6 +92,7 @@ def evaluate_case(case: MotionCase, frames: int, start: int = 0) -> CaseResult:
              for k in ("timed", "frame", "noskew")}
     errs = {k: Errors() for k in pipes}
     paths = {r.name: r.path for r in scene.robots}
+    runs = {(v, s.name): 0 for v in pipes for s in specs}  # consecutive frames with a pose
     for k in range(frames):
         i = start + k
         f = renderer.render(i)
@@ -93,6 +100,9 @@ def evaluate_case(case: MotionCase, frames: int, start: int = 0) -> CaseResult:
         for variant, p in pipes.items():
             meta = {} if variant == "frame" else {"timing": truth.timing}
             res = p.process(FrameInput(i, f.timestamp, f.image, meta=meta))
+            for spec in specs:
+                key = (variant, spec.name)
+                runs[key] = runs[key] + 1 if spec.name in res.robots else 0
             if k < WARMUP:
                 continue
             e = errs[variant]
@@ -104,6 +114,7 @@ def evaluate_case(case: MotionCase, frames: int, start: int = 0) -> CaseResult:
                 if fix is None:
                     continue
                 e.posed += 1
+                e.settled.append(runs[(variant, spec.name)] > SETTLE)
                 t = f.timestamp if fix.t is None else fix.t
                 x, y, th = truth.robot_at(spec.name, t)
                 e.pos.append(math.hypot(fix.x - x, fix.y - y))
