@@ -655,7 +655,7 @@ class Pipeline:
         for k, m in enumerate(np.asarray(ids).tolist()):
             if m in self.robot_lengths:
                 rows = np.asarray(corners[k], dtype=float)[:, 1]
-                out[int(m)] = inp.timestamp + timing.row_time(float(rows.mean())) - timing.t_read0
+                out[int(m)] = inp.timestamp + timing.row_offset(float(rows.mean()))
                 if timing.line_s > 0:
                     # rows against the marker's own x, y (m): the time gradient over it, s/m
                     local = marker_corners_local(self.robot_lengths[m])[:, :2]

@@ -100,7 +100,12 @@ class FrameTiming:
 
     def row_time(self, v: float) -> float:
         """Mid-exposure instant of image row ``v`` (pixels, fractional), seconds."""
-        return self.t_read0 + v * self.line_s - 0.5 * self.exposure_s
+        return self.t_read0 + self.row_offset(v)
+
+    def row_offset(self, v: float) -> float:
+        """Mid-exposure of image row ``v`` after ``t_read0``, s (exactly 0 without a
+        rolling shutter and exposure)."""
+        return v * self.line_s - 0.5 * self.exposure_s
 
     def rows_time(self, vs: list[float] | tuple[float, ...]) -> float:
         """Mid-exposure instant of a set of rows (their mean row), seconds."""

@@ -158,3 +158,18 @@ def test_skew_yaw_is_half_the_shear_of_the_drawn_square() -> None:
         first = skew_yaw(yaw, tuple(g_local), tuple(v))
         # first order: what is left is ~1 % of it (0.01 deg of the 0.9 deg at 1.5 m/s)
         assert abs(err - first) < 0.03 * abs(first) + 1e-6
+
+
+def test_without_exposure_or_rolling_shutter_poses_keep_the_frame_time() -> None:
+    """The default simulated floor (no exposure, no line time): the frame's timing is all
+    zeros and every robot's time is the frame's timestamp, bit for bit (outputs as before)."""
+    from kmea.sources.sim import SimSource
+
+    src = SimSource("sim:default?width=640&height=480", frames=3)
+    p = Pipeline(src.camera, src.world_map,
+                 PipelineSettings(robots=tuple(src.scene.robot_specs()), filter_kind="kalman",
+                                  loo=False))
+    for f in src:
+        res = p.process(FrameInput(f.index, 1.7e9 + f.timestamp, f.image, meta=f.meta))
+        assert res.robots and all(fix.t == 1.7e9 + f.timestamp for fix in res.robots.values())
+    p.close()
