@@ -684,7 +684,10 @@ class Pipeline:
             if self.tracker is not None and times:
                 seen = tuple(m for m in spec.markers if m in est.markers)
                 tm = robot_time(spec, seen, times) if seen else None
-                st = self.tracker.predict(spec.name, tm) if tm is not None else None
+                # the motion matters for a pair seen at two instants and a skewed square
+                need = tm is not None and (any(m in rates for m in seen) or (
+                    len(seen) == 2 and times[seen[0]] != times[seen[1]]))
+                st = self.tracker.predict(spec.name, tm) if need else None
                 if st is not None:
                     motion = (st.vx, st.vy, st.omega)
             pose = robot_pose(spec, est.markers, times, motion, rates)
