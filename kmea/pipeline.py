@@ -24,7 +24,7 @@ import numpy as np
 from kmea import estimators
 from kmea.estimators.base import Estimate, MarkerObservation
 from kmea.filters import PoseFilter
-from kmea.geometry import marker_corners_local, wrap_angle
+from kmea.geometry import wrap_angle
 from kmea.maps import MarkerMap
 from kmea.robots import RobotSpec, robot_pose, robot_time
 from kmea.tracking import Tracker, TrackerConfig
@@ -657,12 +657,12 @@ class Pipeline:
                 rows = np.asarray(corners[k], dtype=float)[:, 1]
                 out[int(m)] = inp.timestamp + timing.row_offset(float(rows.mean()))
                 if timing.line_s > 0:
-                    # rows against the marker's own x, y (m): the time gradient over it, s/m
-                    local = marker_corners_local(self.robot_lengths[m])[:, :2]
-                    a = np.linalg.lstsq(np.column_stack([local, np.ones(4)]), rows,
-                                        rcond=None)[0]
-                    self._rates[int(m)] = (float(a[0]) * timing.line_s,
-                                           float(a[1]) * timing.line_s)
+                    # The time gradient over the marker (s/m along its own x, y): the least
+                    # squares fit of its corner rows against its corners (TL, TR, BR, BL at
+                    # (-h, h), (h, h), (h, -h), (-h, -h)), in closed form.
+                    k = timing.line_s / (2.0 * self.robot_lengths[m])
+                    v0, v1, v2, v3 = rows.tolist()
+                    self._rates[int(m)] = ((v1 + v2 - v0 - v3) * k, (v0 + v1 - v2 - v3) * k)
         return out
 
     def robot_fixes(self, est: Estimate, t: float,
