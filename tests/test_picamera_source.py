@@ -141,6 +141,16 @@ def test_frame_timing_from_the_request_metadata(rig) -> None:
     assert (tm.t_read0, tm.exposure_s, tm.exact) == (f.timestamp, 0.002, False)
     assert tm.line_s == pytest.approx(2 * IMX219_LINE_S, rel=1e-3)
     assert imx219_line_time(1640, 1232) == pytest.approx(IMX219_LINE_S, rel=1e-3)
+    # kmea.timing's mode figures are the ones the camera lists (kmea doctor shows them)
+    import fakecam_rig
+
+    from kmea.timing import IMX219_MODES
+
+    listed = {m["size"]: (m["fps"], *m["crop_limits"][2:]) for m in fakecam_rig.IMX219_MODES}
+    assert listed == IMX219_MODES
+    for (w, h), (fps, _, _) in IMX219_MODES.items():
+        if (w, h) != (640, 480):  # its own line length: not a full-field mode
+            assert 1 / (fps * (h + 32)) == pytest.approx(IMX219_LINE_S, rel=2e-3)
     assert tm.row_time(308) == pytest.approx(f.timestamp + 308 * tm.line_s - 0.001)
     assert f.meta["exposure_time_us"] == 2000
     assert f.meta["analogue_gain"] == pytest.approx(rig.light_exposure_us / 2000)
