@@ -27,7 +27,7 @@ from kmea.estimators.base import Estimate, MarkerObservation, PlacesOnPlanes, Wa
 from kmea.filters import PoseFilter
 from kmea.geometry import wrap_angle
 from kmea.maps import MarkerMap
-from kmea.robots import RobotSpec, robot_pose
+from kmea.robots import RobotSpec, robot_pose, robot_time
 from kmea.tracking import Tracker, TrackerConfig
 from kmea.vision.camera import CameraModel
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector
@@ -74,6 +74,9 @@ class RobotFix:
 
     With the tracking filter: vx, vy (world velocity, m/s), omega (turn rate, rad/s), and
     raw, the measurement before filtering (x, y, theta, sigma), which a fusion node fuses.
+    t: the instant the pose stands for (s, the frame timestamps' clock): its markers'
+    mid-exposure when the source gives the frame's timing (``meta["timing"]``,
+    :class:`kmea.timing.FrameTiming`), else the frame's timestamp.
     """
 
     name: str
@@ -86,6 +89,7 @@ class RobotFix:
     vy: float | None = None
     omega: float | None = None
     raw: tuple[float, float, float, float | None] | None = None
+    t: float | None = None
 
 
 @dataclass
@@ -276,6 +280,8 @@ class Pipeline:
         self._floor_obs: list[MarkerObservation] = []  # last frame's fixed markers (tracking)
         self._floor_cache: tuple | None = None  # see _floor_rows
         self._refit_age = 0  # frames since the floor's camera fit was last updated (tracking)
+        self._times: dict[int, float] = {}  # this frame's robot markers' times (process)
+        self._rates: dict[int, tuple[float, float]] = {}  # and their row time gradients
         self.inc_loo = IncrementalLoo(self.settings.loo_every)
         self.configure(self.settings)
 
@@ -420,6 +426,7 @@ class Pipeline:
         mode = "full"
         incremental = self.settings.tracking
         deferred: tuple[int, ...] = ()
+        self._times, self._rates = {}, {}
         if on_robots is not None:
             relay = on_robots
 
@@ -446,6 +453,7 @@ class Pipeline:
                 events, restart, mode = det.events, det.restart, det.mode
             else:
                 ids, corners = det
+            self._times = self.observation_times(inp, ids, corners)
             if restart:  # the view changed: estimation starts again
                 self.reset_incremental()
                 self.configure_filter()
@@ -487,6 +495,7 @@ class Pipeline:
             corners = np.asarray(inp.corners if inp.corners is not None
                                  else np.zeros((0, 4, 2)), dtype=float)
             obs, diag = list(inp.observations), dict(inp.diagnostics)
+            self._times = self.observation_times(inp, ids, corners)
             t2 = time.perf_counter()
         intr = self.camera.intrinsics
         both = None
@@ -507,7 +516,7 @@ class Pipeline:
         if early is not None:
             robots = early  # sent already, before the floor's update
         else:
-            robots = self.robot_fixes(est, inp.timestamp, rejections)
+            robots = self.robot_fixes(est, inp.timestamp, rejections, self._times)
             if on_robots is not None:
                 on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
         if incremental and not deferred:
@@ -567,7 +576,8 @@ class Pipeline:
                                      self.plane_heights)
         if placed is None:
             return None, None
-        fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections)
+        fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections,
+                                 self._times)
         if on_robots is not None:
             on_robots(t, fixes)
         return fixes, est.placed_observations(placed, mids, corners[sel], lengths)
@@ -639,22 +649,65 @@ class Pipeline:
             return None, None
         if not est.ok:
             return None, None
-        fixes = self.robot_fixes(est, t, rejections)
+        fixes = self.robot_fixes(est, t, rejections, self._times)
         on_robots(t, fixes)
         return fixes, {o.id: o for o in obs if o.id not in fixed}
 
+    def observation_times(self, inp: FrameInput, ids: np.ndarray, corners: np.ndarray
+                          ) -> dict[int, float]:
+        """Robot marker id -> the instant it was seen (s): the mid-exposure of its rows (the
+        mean row of its corners), from the frame's timing (``inp.meta["timing"]``) as an
+        offset from the frame's timestamp (a live source may restamp frames with the unix
+        time; the offset stays). Empty without a timing: every marker at the timestamp."""
+        timing = inp.meta.get("timing") if inp.meta else None
+        self._rates = {}
+        if timing is None or not self.robot_lengths or len(ids) == 0:
+            return {}
+        out = {}
+        for k, m in enumerate(np.asarray(ids).tolist()):
+            if m in self.robot_lengths:
+                rows = np.asarray(corners[k], dtype=float)[:, 1]
+                out[int(m)] = inp.timestamp + timing.row_offset(float(rows.mean()))
+                if timing.line_s > 0:
+                    # The time gradient over the marker (s/m along its own x, y): the least
+                    # squares fit of its corner rows against its corners (TL, TR, BR, BL at
+                    # (-h, h), (h, h), (h, -h), (-h, -h)), in closed form.
+                    k = timing.line_s / (2.0 * self.robot_lengths[m])
+                    v0, v1, v2, v3 = rows.tolist()
+                    self._rates[int(m)] = ((v1 + v2 - v0 - v3) * k, (v0 + v1 - v2 - v3) * k)
+        return out
+
     def robot_fixes(self, est: Estimate, t: float,
-                    rejections: dict[str, str] | None = None) -> dict[str, RobotFix]:
+                    rejections: dict[str, str] | None = None,
+                    times: Mapping[int, float] | None = None) -> dict[str, RobotFix]:
         """Robot poses from the raw marker estimates (kmea.robots), then filtered per robot
         (the IIR filter, or the tracking filter: a measurement it rejects gives no fix this
-        frame, and its reason goes to ``rejections``)."""
+        frame, and its reason goes to ``rejections``).
+
+        Each robot's measurement is at its own markers' time (``times``, id -> s: in
+        :meth:`process`, :meth:`observation_times` of the frame; else ``t``); the tracking
+        filter runs on those times, and its velocity and turn rate bring a pair seen in two
+        rows to one instant (kmea.robots)."""
         out: dict[str, RobotFix] = {}
+        times = times or {}
+        rates = self._rates if times is self._times else {}
         for spec in self.robot_specs:
-            pose = robot_pose(spec, est.markers)
+            motion = None
+            if self.tracker is not None and times:
+                seen = tuple(m for m in spec.markers if m in est.markers)
+                tm = robot_time(spec, seen, times) if seen else None
+                # the motion matters for a pair seen at two instants and a skewed square
+                need = tm is not None and (any(m in rates for m in seen) or (
+                    len(seen) == 2 and times[seen[0]] != times[seen[1]]))
+                st = self.tracker.predict(spec.name, tm) if need else None
+                if st is not None:
+                    motion = (st.vx, st.vy, st.omega)
+            pose = robot_pose(spec, est.markers, times, motion, rates)
             if pose is None:
                 continue
+            tp = t if pose.t is None else pose.t
             if self.tracker is not None:
-                o = self.tracker.update(spec.name, t, pose.x, pose.y, pose.theta, pose.sigma)
+                o = self.tracker.update(spec.name, tp, pose.x, pose.y, pose.theta, pose.sigma)
                 if not o.accepted or o.state is None:
                     if rejections is not None:
                         rejections[spec.name] = o.reason
@@ -662,10 +715,10 @@ class Pipeline:
                 st = o.state
                 out[spec.name] = RobotFix(spec.name, st.x, st.y, st.theta, st.sigma,
                                           list(pose.markers_seen), st.vx, st.vy, st.omega,
-                                          (pose.x, pose.y, pose.theta, pose.sigma))
+                                          (pose.x, pose.y, pose.theta, pose.sigma), tp)
                 continue
-            p, th = self.filter.update(("robot", spec.name), t,
+            p, th = self.filter.update(("robot", spec.name), tp,
                                        np.array([pose.x, pose.y, pose.z]), pose.theta)
             out[spec.name] = RobotFix(spec.name, float(p[0]), float(p[1]), float(th),
-                                      pose.sigma, list(pose.markers_seen))
+                                      pose.sigma, list(pose.markers_seen), t=tp)
         return out

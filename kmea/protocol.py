@@ -170,7 +170,15 @@ class RobotsBody(TypedDict):
     robots: list[RobotRow]
 
 
-class RawMeasurement(TypedDict):
+class _RawMeasurementTime(TypedDict, total=False):
+    """t: the instant the measurement stands for (s; its markers' mid-exposure), also with
+    ``filter.predict`` on, when the message's own ``t`` is the send time (since issue 27;
+    older recordings lack it)."""
+
+    t: float
+
+
+class RawMeasurement(_RawMeasurementTime):
     """A robot measurement before the tracking filter (m, rad; sigma m or None)."""
 
     x: float

@@ -12,6 +12,22 @@ pointing to the robot's forward.
   gives right - left = (0, -0.1), rotated +90 deg -> (0.1, 0): theta = 0, facing +x.
 - Pair with one marker seen: that marker's position and yaw, with the known offset d to the
   side: centre = left - d * (-sin theta, cos theta) or right + d * (-sin theta, cos theta).
+
+Time (a rolling shutter sees each marker at its own rows' instant, :mod:`kmea.timing`): a
+robot's measurement is at the mean of its markers' times. A pair seen in different rows
+is two looks at two instants: the midpoint of the two positions is the robot's centre at
+the mean time whatever the velocity (for a motion straight over that millisecond or two),
+but the vector between them has the robot's travel in it (at 1.5 m/s, 1 ms between the
+rows is 1.5 mm over the 0.10 m separation: 0.9 deg of heading). Given the robot's motion
+(the tracking filter's velocity and turn rate at that time), each marker is moved to the
+mean time before the heading is taken; without it (first fix, IIR filter) it is not.
+
+A single marker is itself seen over its rows: a square moving at v is drawn as a
+parallelogram (a point p of it is seen dt = g . (p - centre) later, g the marker's row time
+gradient, s/m), whose fitted yaw is off by half the shear, (v_y g_x - v_x g_y) / 2: at
+1.5 m/s across the rows of an 820x616 IMX219 frame, 0.96 deg. Given the motion and g
+(``rates``), that is taken off the marker's yaw. Its centre is seen at its mean time and
+needs nothing.
 """
 
 from __future__ import annotations
@@ -27,7 +43,7 @@ from kmea.estimators.base import MarkerEstimate
 from kmea.geometry import wrap_angle
 
 __all__ = ["ROBOT_DEFAULTS", "RobotPose", "RobotSpec", "check_robot_spec", "robot_from_table",
-           "robot_pose"]
+           "robot_pose", "robot_time", "skew_yaw"]
 
 
 # What a robot table may leave out (m). One place: the daemon's configuration, the
@@ -150,7 +166,8 @@ class RobotPose:
     sigma: 1-sigma position uncertainty (m) or None: for one marker, that marker's own sigma
     (from estimators that give one, e.g. corner-pnp); for a pair seen whole, the larger of
     the midpoint's propagated sigma hypot(sigma_l, sigma_r) / 2 (when both markers have one)
-    and the pair's consistency |measured separation - spec separation|.
+    and the pair's consistency |measured separation - spec separation|. t: the instant the
+    pose stands for (s; the mean of its markers' times), or None when they were not given.
     """
 
     name: str
@@ -160,21 +177,59 @@ class RobotPose:
     z: float
     markers_seen: tuple[int, ...]
     sigma: float | None = None
+    t: float | None = None
 
 
 def _left_dir(theta: float) -> np.ndarray:
     return np.array([-math.sin(theta), math.cos(theta)])
 
 
-def robot_pose(spec: RobotSpec, estimates: Mapping[int, MarkerEstimate]) -> RobotPose | None:
+def robot_time(spec: RobotSpec, seen: tuple[int, ...],
+               times: Mapping[int, float] | None) -> float | None:
+    """The instant a measurement from markers ``seen`` stands for: their times' mean (s)."""
+    if not times or any(m not in times for m in seen):
+        return None
+    return float(sum(times[m] for m in seen) / len(seen))
+
+
+def skew_yaw(yaw: float, rate_local: tuple[float, float], v: tuple[float, float]) -> float:
+    """The yaw error (rad) of a marker at ``yaw`` moving at ``v`` (world m/s) whose points
+    are seen later by ``rate_local`` (s/m along its own x and y axes): half the shear of the
+    parallelogram it is drawn as (module docstring)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    gx = c * rate_local[0] - s * rate_local[1]
+    gy = s * rate_local[0] + c * rate_local[1]
+    return 0.5 * (v[1] * gx - v[0] * gy)
+
+
+def robot_pose(spec: RobotSpec, estimates: Mapping[int, MarkerEstimate],
+               times: Mapping[int, float] | None = None,
+               motion: tuple[float, float, float] | None = None,
+               rates: Mapping[int, tuple[float, float]] | None = None) -> RobotPose | None:
     """Pose of ``spec``'s robot from marker world estimates (id -> MarkerEstimate), or None
-    when none of its markers was estimated."""
+    when none of its markers was estimated.
+
+    times: marker id -> the instant it was seen (s); the pose's ``t`` is their mean.
+    motion: (vx, vy, omega) (m/s, rad/s) of the robot near that time: a pair seen at two
+    instants is brought to the mean one before its heading is taken; rates: marker id ->
+    its row time gradient (s/m along its own x, y): a single marker's yaw loses its skew
+    (module docstring)."""
     seen = tuple(m for m in spec.markers if m in estimates)
     if not seen:
         return None
+    t = robot_time(spec, seen, times)
     if len(seen) == 2:
         pl = np.asarray(estimates[spec.markers[0]].position, dtype=float)
         pr = np.asarray(estimates[spec.markers[1]].position, dtype=float)
+        if t is not None and motion is not None and times is not None:
+            vx, vy, om = motion
+            c = (pl[:2] + pr[:2]) / 2.0
+            pl, pr = pl.copy(), pr.copy()
+            for p, m in ((pl, spec.markers[0]), (pr, spec.markers[1])):
+                dt = t - times[m]
+                r = p[:2] - c  # the marker's velocity: the centre's plus omega x r
+                p[0] += (vx - om * r[1]) * dt
+                p[1] += (vy + om * r[0]) * dt
         v = pr[:2] - pl[:2]
         mid = (pl + pr) / 2.0
         # Heading: (right - left) rotated +90 deg CCW, i.e. (-vy, vx).
@@ -185,14 +240,19 @@ def robot_pose(spec: RobotSpec, estimates: Mapping[int, MarkerEstimate]) -> Robo
         if sl is not None and sr is not None:
             sigma = max(sigma, math.hypot(sl, sr) / 2.0)
         return RobotPose(spec.name, float(mid[0]), float(mid[1]), float(wrap_angle(theta)),
-                         float(mid[2]), seen, sigma)
+                         float(mid[2]), seen, sigma, t)
     mid_ = seen[0]
     me = estimates[mid_]
     p = np.asarray(me.position, dtype=float)
     theta = float(me.yaw)
+    d = spec.separation / 2.0 if spec.is_pair else 0.0
+    side = (1.0 if mid_ == spec.markers[0] else -1.0) if spec.is_pair else 0.0
+    if motion is not None and rates is not None and mid_ in rates:
+        vx, vy, om = motion
+        r = side * d * _left_dir(theta)  # the marker from the robot's centre
+        theta -= skew_yaw(theta, rates[mid_], (vx - om * r[1], vy + om * r[0]))
     xy = p[:2].copy()
     if spec.is_pair:
-        d = spec.separation / 2.0
-        xy += -d * _left_dir(theta) if mid_ == spec.markers[0] else d * _left_dir(theta)
+        xy -= side * d * _left_dir(theta)
     return RobotPose(spec.name, float(xy[0]), float(xy[1]), float(wrap_angle(theta)),
-                     float(p[2]), seen, me.sigma)
+                     float(p[2]), seen, me.sigma, t)

@@ -32,6 +32,7 @@ from kmea.moved import MovedMonitor
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
 from kmea.recording import Recorder
 from kmea.sources.replay import ReplaySource
+from kmea.timing import blur_warning
 from kmead import bodies
 from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
@@ -99,6 +100,7 @@ class Daemon:
         self.displaced: dict[int, float] = {}
         self._last_stats_pub = 0.0
         self._last_status_pub = 0.0
+        self._blur_warned = False
         self._t_capture = 0.0
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
@@ -604,6 +606,18 @@ class Daemon:
         if self.telemetry is not None:
             self.telemetry.event(level, text)
 
+    def _check_blur(self, meta: dict) -> None:
+        """Warn once when the camera's exposure smears a robot at ``filter.max_speed`` by
+        more than :data:`kmea.timing.BLUR_WARN_M` (docs/motion.md)."""
+        timing = meta.get("timing")
+        if timing is None or timing.exact or timing.exposure_s <= 0:
+            return  # files, the simulator: nothing a setting can change
+        self._blur_warned = True
+        speed = float(self.cfg["filter"]["max_speed"])
+        msg = blur_warning(timing.exposure_s, speed)
+        if msg:
+            self.event("warning", msg)
+
     # ------------------------------------------------------------------ per frame
     def _frame_input(self, frame, capture_ms: float, t_cap: float) -> FrameInput:
         ts = frame.timestamp
@@ -635,6 +649,8 @@ class Daemon:
                                   "; skipped")
             return None
         inp = self._frame_input(frame, capture_ms, t_cap)
+        if not self._blur_warned:
+            self._check_blur(frame.meta)
         self._t_capture = inp.t_capture
         if detections is not None:
             inp.detections, inp.detect_ms = detections, detect_ms
@@ -778,18 +794,22 @@ class Daemon:
         predict = self.cfg["filter"]["predict"] and self.live and tracker is not None
         for fix in fixes.values():
             extra = None
-            t_fix, x, y, th, sigma = t, fix.x, fix.y, fix.theta, fix.sigma
+            # The pose's own instant: its markers' mid-exposure when the source gives the
+            # frame's timing (kmea.timing), else the frame's time.
+            t_pose = t if fix.t is None else fix.t
+            t_fix, x, y, th, sigma = t_pose, fix.x, fix.y, fix.theta, fix.sigma
             if fix.vx is not None:
                 extra = {"vx": fix.vx, "vy": fix.vy, "omega": fix.omega, "age": 0.0}
                 if fix.raw is not None:  # the measurement itself, for a fusion node
                     extra["raw"] = dict(zip(("x", "y", "theta", "sigma"), fix.raw,
                                             strict=True))
+                    extra["raw"]["t"] = t_pose  # its own instant, also when t is predicted
                 if predict:
                     now = time.time()
                     st = tracker.predict(fix.name, now)
-                    if st is not None and now >= t:
+                    if st is not None and now >= t_pose:
                         t_fix, x, y, th, sigma = now, st.x, st.y, st.theta, st.sigma
-                        extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t)
+                        extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t_pose)
             # Every datagram first: a telemetry body wakes the telemetry thread, which
             # would take the GIL from the next robot's datagram.
             self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False)

@@ -285,6 +285,29 @@ class Doctor:
         self.add(True, "camera file", f"{cam} ({model.width}x{model.height}, "
                  f"fx {model.fx:.0f} px)")
 
+    def check_motion(self, cfg: Any) -> None:
+        """The smear of a robot at 1.5 m/s at the configured exposure (kmea.timing)."""
+        from kmea.timing import BLUR_WARN_M, blur_m
+
+        ms = float(cfg["camera"]["max_exposure_ms"])
+        fps = float(cfg["source"]["fps"]) or 30.0
+        if ms > 0:
+            exp, what = min(ms * 1e-3, 1.0 / fps), f"camera.max_exposure_ms = {ms:g}"
+        else:
+            exp, what = 1.0 / fps, "camera.max_exposure_ms = 0: auto exposure, up to a frame"
+        b = blur_m(1.5, exp)
+        pi = cfg["source"]["spec"].split("?")[0].split(":")[0] == "picamera"
+        text = (f"exposure {exp * 1e3:.1f} ms ({what}): a robot at 1.5 m/s smears by "
+                f"{b * 1e3:.1f} mm")
+        if b <= BLUR_WARN_M:
+            self.add(True, "motion blur", text)
+        elif not pi:
+            self.add(True, "motion blur", f"{text} (applies to the picamera source only)")
+        else:
+            self.add(False, "motion blur", f"{text}, more than {BLUR_WARN_M * 1e3:g} mm: markers "
+                     f"of moving robots blur and are lost; set camera.max_exposure_ms = 2 "
+                     f"(docs/motion.md)")
+
     def check_ports(self, cfg: Any) -> None:
         for key in ("telemetry", "control"):
             ep = cfg["network"][key]
@@ -350,6 +373,7 @@ class Doctor:
         if cfg is not None:
             self.check_ports(cfg)
             self.check_files(cfg)
+            self.check_motion(cfg)
         self.check_disk(cfg)
         return self.results
 

@@ -58,7 +58,8 @@ def csv_lines(res: FrameResult, world_map: MarkerMap,
         lines.append(row(i, t, alg, "marker", mid, p[0], p[1], p[2], yaw, err, nref))
     for name, fix in res.robots.items():
         z = robot_heights.get(name)
-        lines.append(row(i, t, alg, "robot", name, fix.x, fix.y, z, fix.theta, None, nref))
+        tr = t if fix.t is None else fix.t  # the pose's own instant (its markers' rows)
+        lines.append(row(i, tr, alg, "robot", name, fix.x, fix.y, z, fix.theta, None, nref))
     for mid, d in sorted(est.rejected.items()):
         me = res.markers.get(mid)
         p = me[0] if me is not None else (None, None, None)

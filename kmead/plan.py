@@ -81,10 +81,22 @@ def plan_startup(cfg: Config) -> StartupPlan:
         except ImportError:
             raise StartupError("key 'foxglove.enabled': the foxglove extra is not installed "
                                "(pip install 'kmea[foxglove]')") from None
+    if prefix == "picamera":
+        _exposure(cfg)
     if prefix in ("picamera", "camera"):
         warnings.append(f"source: {spec} is a live camera: not opened by --check "
                         "(opened at start)")
     return StartupPlan(world_map, camera, preview, prefix, warnings)
+
+
+def _exposure(cfg: Config) -> None:
+    """camera.max_exposure_ms must fit in a frame at source.fps (the Pi camera's default 30
+    frames/s when 0): the camera could not honour it."""
+    ms = float(cfg["camera"]["max_exposure_ms"])
+    fps = float(cfg["source"]["fps"]) or 30.0
+    if ms > 1e3 / fps:
+        raise StartupError(f"key 'camera.max_exposure_ms': {ms:g} ms is longer than a frame "
+                           f"at {fps:g} frames/s (source.fps: {1e3 / fps:.1f} ms)")
 
 
 # ---------------------------------------------------------------------- files

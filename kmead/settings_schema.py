@@ -457,7 +457,7 @@ def validate_robots(rows: Any, where: str, remote: bool = False) -> list[dict]:
 SCHEMA: dict[str, dict[str, Check]] = {
     "source": {"spec": _source_spec, "fps": number(0, 240, unit=" frames/s"),
                "width": integer(0, 16384), "height": integer(0, 16384)},
-    "camera": {"file": _str},
+    "camera": {"file": _str, "max_exposure_ms": number(0, 1000, unit=" ms")},
     "map": {"file": _str},
     "detector": {"dictionary": _dictionary,
                  "marker_length": number(1e-4, 10, unit=" m"),

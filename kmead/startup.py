@@ -34,6 +34,8 @@ def source_options(cfg: Config, prefix: str) -> dict[str, Any]:
         opts.update(width=s["width"], height=s["height"])
     if prefix in ("camera", "picamera") and s["fps"]:
         opts["fps"] = s["fps"]
+    if prefix == "picamera" and cfg["camera"]["max_exposure_ms"]:
+        opts["max_exposure_ms"] = cfg["camera"]["max_exposure_ms"]
     if prefix in ("images", "video", "camera"):
         opts["gray"] = True  # detection works on grey: convert once at decode time
     return opts

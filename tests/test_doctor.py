@@ -89,6 +89,26 @@ def test_doctor_with_the_fake_camera_lists_modes(rig, tmp_path: Path) -> None:
     assert not any(i.is_open for i in rig.instances)  # opened for the modes, then closed
 
 
+def test_doctor_reports_the_blur_at_1_5_m_s(rig, tmp_path: Path) -> None:
+    """The smear of a robot at 1.5 m/s for the configured exposure: OK at the default
+    2 ms, FIX with the camera's auto exposure (up to a frame, 33 ms at 30 frames/s)."""
+    body = '[source]\nspec = "picamera"\n' + NET_ANY
+    doc = Doctor(config=_config(tmp_path, body), codename=None, groups=lambda: [44],
+                 dev=tmp_path, board=PI4)
+    doc.run_all()
+    assert _lines(doc, "motion blur") == [
+        "OK   motion blur: exposure 2.0 ms (camera.max_exposure_ms = 2): a robot at 1.5 m/s "
+        "smears by 3.0 mm"]
+    body = '[source]\nspec = "picamera"\n[camera]\nmax_exposure_ms = 0\n' + NET_ANY
+    doc = Doctor(config=_config(tmp_path, body), codename=None, groups=lambda: [44],
+                 dev=tmp_path, board=PI4)
+    doc.run_all()
+    assert _lines(doc, "motion blur") == [
+        "FIX  motion blur: exposure 33.3 ms (camera.max_exposure_ms = 0: auto exposure, up to "
+        "a frame): a robot at 1.5 m/s smears by 50.0 mm, more than 4.5 mm: markers of moving "
+        "robots blur and are lost; set camera.max_exposure_ms = 2 (docs/motion.md)"]
+
+
 def test_doctor_camera_busy_and_missing(rig, tmp_path: Path) -> None:
     cfg = _config(tmp_path, NET_ANY)
     rig.busy = True

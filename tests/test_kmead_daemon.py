@@ -390,6 +390,38 @@ def test_picamera_source_through_the_daemon(tmp_path: Path, monkeypatch: pytest.
         stamps = sorted({float(r["timestamp"]) for r in rows})
         # each frame's time is the start of its readout, 5 s before it reached the daemon
         assert t0 - 5.5 < stamps[0] and stamps[-1] < t1 - 4.5
+        # a robot's row is at its markers' mid-exposure: its rows' readout (18.9 us a sensor
+        # row, 2 a row at 640x480... of the 1640x1232 mode: 48.5 us) less half the 2 ms
+        # exposure (camera.max_exposure_ms) after the frame's time (its markers' rows)
+        frame_t = {r["frame"]: float(r["timestamp"]) for r in rows if r["kind"] == "marker"}
+        for r in rows:
+            if r["kind"] == "robot":
+                dt = float(r["timestamp"]) - frame_t[r["frame"]]
+                assert -0.001 < dt < 480 * 48.5e-6 - 0.001, r
+                assert dt != 0.0
+    finally:
+        fakepi.forget()
+
+
+def test_long_exposure_warns_once_with_the_figure(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture) -> None:
+    """camera.max_exposure_ms = 0: the camera's auto exposure (8 ms on the fake rig) smears a
+    robot at filter.max_speed (1.5 m/s) by 12 mm: one warning saying so and what to set."""
+    frames, scene = _render(1)
+    rig = fakepi.install(monkeypatch).rig
+    try:
+        rig.scene = lambda n, w, h: frames[0]
+        cam = tmp_path / "pi.yml"
+        save_camera(scene.camera, cam)
+        code = cli.main(["--source", "picamera", "--camera", str(cam), *SMALL, "--frames", "4",
+                         "--headless", "--set", "camera.max_exposure_ms=0", *NET])
+        err = capsys.readouterr().err
+        assert code == 0, err
+        warn = ("camera exposure 8.0 ms: a robot at 1.5 m/s (filter.max_speed) smears by "
+                "12.0 mm, more than 4.5 mm: moving robots' markers blur and may be lost; set "
+                "camera.max_exposure_ms to at most 3.0 (docs/motion.md)")
+        assert err.count(warn) == 1, err
     finally:
         fakepi.forget()
 

@@ -95,6 +95,8 @@ REFUSALS = {
     "unwritable log": lambda t: ["--log", "/proc/kmead-test.csv"],
     "log and recording the same file": _same_outputs,
     "missing key directory": _missing_keys,
+    "Pi camera exposure longer than a frame": lambda t: [
+        "--source", "picamera", "--set", "camera.max_exposure_ms=40"],
     # Issue 30: files accepted although broken (numpy warnings on every frame, or every
     # frame "not estimated" with exit 0), and tracebacks.
     "marker at 1e308 m": _map_row("5,1e308,0,0,,,,"),

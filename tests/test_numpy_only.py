@@ -17,13 +17,13 @@ ROOT = Path(__file__).resolve().parent.parent
 PKG = ROOT / "kmea"
 ALGORITHM_FILES = sorted(
     [PKG / "map_model.py", PKG / "aruco_names.py", PKG / "metrics.py", PKG / "chi2.py",
-     PKG / "filters.py", PKG / "fusion.py", PKG / "robots.py",
+     PKG / "filters.py", PKG / "fusion.py", PKG / "robots.py", PKG / "timing.py",
      *(PKG / "tracking").glob("*.py"), *(PKG / "estimators").glob("*.py"),
      *(PKG / "geometry").glob("*.py")]
 )
 ALGORITHM_MODULES = {"kmea", "kmea.map_model", "kmea.aruco_names", "kmea.chi2",
                      "kmea.metrics", "kmea.filters", "kmea.tracking", "kmea.fusion",
-                     "kmea.robots", "kmea.estimators", "kmea.geometry"} | {
+                     "kmea.robots", "kmea.timing", "kmea.estimators", "kmea.geometry"} | {
     f"kmea.{pkg}.{p.stem}" for pkg in ("estimators", "geometry", "tracking")
     for p in (PKG / pkg).glob("*.py") if p.stem != "__init__"}
 BACKPORTS: set[str] = set()

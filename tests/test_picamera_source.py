@@ -127,6 +127,50 @@ def test_sensor_timestamp_becomes_unix_time_of_readout_start(rig) -> None:
     assert f.meta["frame_duration_us"] == 10000
 
 
+def test_frame_timing_from_the_request_metadata(rig) -> None:
+    """meta["timing"]: row 0 read out at SensorTimestamp after ExposureTime us of exposure
+    (picamera2 examples/timestamp_capture.py: exposure start = SensorTimestamp - 1000 *
+    ExposureTime), one IMX219 line (3448 / 182.4 MHz, imx219.c) per sensor row: two per row
+    of 820x616 from the 1640x1232 mode. max_exposure_ms is asked as ExposureTime; the AGC
+    makes up the light with analogue gain."""
+    from kmea.timing import IMX219_LINE_S, imx219_line_time
+
+    with open_source("picamera?width=820&height=616&fps=30&max_exposure_ms=2") as src:
+        f = src.read()
+    assert rig.instances[-1].camera_config["controls"]["ExposureTime"] == 2000
+    tm = f.meta["timing"]
+    assert (tm.t_read0, tm.exposure_s, tm.exact) == (f.timestamp, 0.002, False)
+    assert tm.line_s == pytest.approx(2 * IMX219_LINE_S, rel=1e-3)
+    assert imx219_line_time(1640, 1232) == pytest.approx(IMX219_LINE_S, rel=1e-3)
+    # kmea.timing's mode figures are the ones the camera lists (kmea doctor shows them)
+    import fakecam_rig
+
+    from kmea.timing import IMX219_MODES
+
+    listed = {m["size"]: (m["fps"], *m["crop_limits"][2:]) for m in fakecam_rig.IMX219_MODES}
+    assert listed == IMX219_MODES
+    for (w, h), (fps, _, _) in IMX219_MODES.items():
+        if (w, h) != (640, 480):  # its own line length: not a full-field mode
+            assert 1 / (fps * (h + 32)) == pytest.approx(IMX219_LINE_S, rel=2e-3)
+    assert tm.row_time(308) == pytest.approx(f.timestamp + 308 * tm.line_s - 0.001)
+    assert f.meta["exposure_time_us"] == 2000
+    assert f.meta["analogue_gain"] == pytest.approx(rig.light_exposure_us / 2000)
+    # the whole readout (1232 sensor rows) lies between the timestamp and the arrival
+    assert time.time() - f.timestamp > 1232 * IMX219_LINE_S
+
+
+def test_auto_exposure_and_bad_exposure(rig) -> None:
+    """0 (the default) leaves the exposure to the AGC: no ExposureTime control, the frame
+    says what it used; an exposure longer than a frame is refused in one line."""
+    with open_source("picamera?width=320&height=240&fps=30") as src:
+        f = src.read()
+    assert "ExposureTime" not in rig.instances[-1].camera_config["controls"]
+    assert f.meta["timing"].exposure_s == pytest.approx(rig.exposure_us * 1e-6)
+    with pytest.raises(SourceError, match=r"^picamera: max_exposure_ms must be in \[0, "
+                                          r"33.3333\] ms .*got 40"):
+        open_source("picamera?fps=30&max_exposure_ms=40")
+
+
 def test_monotonic_to_unix_conversion() -> None:
     from kmea.sources.picamera import monotonic_to_unix_ns
 

@@ -15,7 +15,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["CrossingPath", "LoopPath", "Path", "Stationary", "WallClock"]
+__all__ = ["CrossingPath", "LoopPath", "Path", "StadiumPath", "Stationary", "WallClock"]
 
 Pose2D = tuple[float, float, float]
 
@@ -169,3 +169,60 @@ class WallClock:
 
     def pose(self, t: float) -> Pose2D | None:
         return self.path.pose(time.time() - self.epoch)
+
+
+@dataclass(frozen=True)
+class StadiumPath:
+    """A stadium driven at constant ``speed`` m/s: two straights of ``length`` m joined by
+    half circles of ``radius`` m (turn rate speed / radius rad/s there), exact in closed
+    form (heading and turn rate have no discretisation error: truth for heading RMSE).
+
+    center: (x, y) m; axis: direction of the straights, rad (0: along world x, pi/2: along
+    y); phase: metres along the loop at t = 0; ccw: counter-clockwise (else clockwise).
+    Starts at the beginning of the first straight (on the right of the axis for ccw).
+    """
+
+    center: Sequence[float]
+    length: float
+    radius: float
+    speed: float
+    axis: float = 0.0
+    phase: float = 0.0
+    ccw: bool = True
+
+    def __post_init__(self) -> None:
+        if not (self.length >= 0 and self.radius > 0 and math.isfinite(self.speed)):
+            raise ValueError(f"StadiumPath: need length >= 0 m, radius > 0 m, finite speed; "
+                             f"got {self.length!r}, {self.radius!r}, {self.speed!r}")
+
+    @property
+    def perimeter(self) -> float:
+        return 2.0 * self.length + 2.0 * math.pi * self.radius
+
+    def turn_rate(self, t: float) -> float:
+        """rad/s at ``t``: 0 on the straights, +-speed / radius on the half circles."""
+        s = (self.phase + self.speed * t) % self.perimeter
+        L, arc = self.length, math.pi * self.radius
+        on_arc = L <= s < L + arc or s >= 2 * L + arc
+        w = self.speed / self.radius if on_arc else 0.0
+        return w if self.ccw else -w
+
+    def pose(self, t: float) -> Pose2D:
+        s = (self.phase + self.speed * t) % self.perimeter
+        L, R, arc = self.length, self.radius, math.pi * self.radius
+        sign = 1.0 if self.ccw else -1.0
+        # Local frame: straights along +x at y = -sign R (outbound) and back at +sign R.
+        if s < L:
+            x, y, th = -L / 2 + s, -sign * R, 0.0
+        elif s < L + arc:
+            a = (s - L) / R
+            x, y, th = L / 2 + R * math.sin(a), -sign * R * math.cos(a), sign * a
+        elif s < 2 * L + arc:
+            x, y, th = L / 2 - (s - L - arc), sign * R, math.pi
+        else:
+            a = (s - 2 * L - arc) / R
+            x, y, th = -L / 2 - R * math.sin(a), sign * R * math.cos(a), math.pi + sign * a
+        c, sn = math.cos(self.axis), math.sin(self.axis)
+        cx, cy = float(self.center[0]), float(self.center[1])
+        th += self.axis
+        return (cx + c * x - sn * y, cy + sn * x + c * y, math.atan2(math.sin(th), math.cos(th)))

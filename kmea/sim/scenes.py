@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ import numpy as np
 from kmea.maps import MarkerMap, default_map
 from kmea.sim.motion import CrossingPath, LoopPath, WallClock
 from kmea.sim.scene import Effects, Occluder, Scene, SimRobot, look_at, pose_matrix
+from kmea.timing import imx219_line_time
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
 __all__ = [
@@ -199,8 +201,8 @@ def _wide(opts: dict[str, Any]) -> Scene:
 
 # ---------------------------------------------------------------------------- registry
 
-def _effects(opts: dict[str, Any]) -> Effects:
-    e = _effects_update(Effects(), opts)
+def _effects(opts: dict[str, Any], height: int) -> Effects:
+    e = _effects_update(Effects(), opts, height)
     occ = opts.pop("occluders", [])
     if isinstance(occ, str):
         occ = [occ]
@@ -242,7 +244,7 @@ def _build(name: str, cam2world: Callable[[CameraModel], np.ndarray], robots: bo
     enter_at = opts.pop("enter_at", None)
     if enter_at is not None:
         fleet.append(entering_robot(float(enter_at)))
-    effects = _effects(opts)
+    effects = _effects(opts, camera.height)
     raised = opts.pop("raised", None)
     overrides = dict(opts.pop("overrides", {}) or {})
     if raised:
@@ -358,7 +360,8 @@ def describe(scene: Scene) -> Mapping[str, Any]:
 
 
 _SIMPLE = {"width", "height", "fps", "seed", "noise", "noise_sigma", "blur", "blur_sigma",
-           "exposure", "vignetting", "gradient"}
+           "exposure", "vignetting", "gradient", "exposure_ms", "line_us", "light_ms",
+           "rolling"}
 
 
 def apply_options(scene: Scene, **options: Any) -> Scene:
@@ -387,13 +390,12 @@ def apply_options(scene: Scene, **options: Any) -> Scene:
     if "seed" in opts:
         changes["seed"] = int(opts.pop("seed"))
     eff = scene.effects
-    e = Effects(eff.noise_sigma, eff.blur_sigma, eff.exposure, eff.vignetting, eff.gradient,
-                list(eff.occluders))
-    changes["effects"] = _effects_update(e, opts)
+    e = replace(eff, occluders=list(eff.occluders))
+    changes["effects"] = _effects_update(e, opts, camera.height)
     return scene.with_(**changes)
 
 
-def _effects_update(e: Effects, opts: dict[str, Any]) -> Effects:
+def _effects_update(e: Effects, opts: dict[str, Any], height: int) -> Effects:
     keys = {"noise": "noise_sigma", "noise_sigma": "noise_sigma", "blur": "blur_sigma",
             "blur_sigma": "blur_sigma", "exposure": "exposure", "vignetting": "vignetting"}
     for k, field_name in keys.items():
@@ -402,5 +404,18 @@ def _effects_update(e: Effects, opts: dict[str, Any]) -> Effects:
     if "gradient" in opts:
         g = opts.pop("gradient")
         e.gradient = (float(g), 0.0) if isinstance(g, (int, float)) else tuple(g)
+    # Time: exposure_ms, light_ms (ms), line_us (us per image row) or rolling=1 (the
+    # IMX219's line time at this image height, kmea.timing).
+    if "exposure_ms" in opts:
+        e.exposure_time_s = float(opts.pop("exposure_ms")) * 1e-3
+    if "light_ms" in opts:
+        e.light_exposure_s = float(opts.pop("light_ms")) * 1e-3
+    if "line_us" in opts:
+        e.line_time_s = float(opts.pop("line_us")) * 1e-6
+    if "rolling" in opts:
+        on = opts.pop("rolling")
+        if on not in (0, 1, True, False):
+            raise ValueError(f"scene option rolling: 0 or 1, got {on!r}")
+        e.line_time_s = imx219_line_time(round(height * 1640 / 1232), height) if on else 0.0
     e.__post_init__()
     return e

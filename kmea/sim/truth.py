@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from kmea.sources.base import Frame
+from kmea.timing import FrameTiming
 
 __all__ = ["FrameTruth", "SimFrame"]
 
@@ -20,7 +22,12 @@ class FrameTruth:
     lengths: id -> marker side, m. corners: id -> (4, 2) exact pixel corners (TL, TR, BR, BL,
     lens distortion included) of the markers in front of the camera, facing it, whose four
     corners lie inside the image. visible: ids of ``corners`` that nothing hides (corners and
-    centre unoccluded). robots: name -> true (x, y, theta), m and rad. t: seconds.
+    centre unoccluded). robots: name -> true (x, y, theta), m and rad, at ``t``. t: seconds
+    (the frame's timestamp: the instant row 0 is read out). timing: when each row was
+    exposed (:class:`kmea.timing.FrameTiming`, exact). paths: robot name -> its path, so
+    :meth:`robot_at` gives the truth at any instant (a pose's own time). With exposure or a
+    rolling shutter the ``corners`` of robot markers are where each corner was at its own
+    row's mid-exposure (what a perfect detector of the smeared image would find).
     """
 
     cam2world: np.ndarray
@@ -30,6 +37,15 @@ class FrameTruth:
     visible: set[int]
     robots: dict[str, tuple[float, float, float]]
     t: float = 0.0
+    timing: FrameTiming | None = None
+    paths: Mapping[str, object] = field(default_factory=dict, repr=False)
+
+    def robot_at(self, name: str, t: float) -> tuple[float, float, float]:
+        """True (x, y, theta) of robot ``name`` at ``t`` seconds (m, rad)."""
+        p = self.paths[name].pose(t)  # type: ignore[attr-defined]
+        if p is None:
+            raise ValueError(f"robot {name!r}: absent at t = {t} s")
+        return (float(p[0]), float(p[1]), float(p[2]))
 
     def marker2cam(self, mid: int) -> np.ndarray:
         """(4, 4) true marker2cam of marker ``mid`` (what a perfect PnP would give)."""

@@ -28,7 +28,19 @@ What picamera2 does that this module handles (references are to raspberrypi/pica
 - **Timestamps.** ``SensorTimestamp`` is nanoseconds on CLOCK_MONOTONIC at the start of the
   frame's readout (examples/timestamp_capture.py compares it with ``time.monotonic_ns()``).
   :attr:`Frame.timestamp` is that instant as unix time (seconds); ``meta`` keeps the raw value,
-  ``exposure_time_us`` and ``frame_duration_us``.
+  ``exposure_time_us`` and ``frame_duration_us``, ``analogue_gain``.
+- **When each row was seen.** Row 0 is read out at ``SensorTimestamp`` after ``ExposureTime``
+  us of exposure (picamera2 computes the exposure start as ``SensorTimestamp - 1000 *
+  ExposureTime``); each later row ends one line time later (:mod:`kmea.timing`: 18.90 us
+  per IMX219 sensor row). ``meta["timing"]`` is that :class:`kmea.timing.FrameTiming`; for
+  another sensor the line time is not known here and is left 0 (a global shutter).
+- **Exposure.** ``max_exposure_ms`` > 0 sets ``ExposureTime`` to it: libcamera's Raspberry Pi
+  AGC then keeps that exposure and makes up the light with analogue gain (and noise). The
+  AGC has no "longest exposure" control short of a custom exposure mode in the tuning file,
+  so the exposure is that figure, not at most it; 0 leaves exposure and gain to the AGC
+  (indoors 10-30 ms: a robot at 1.5 m/s smears by 15-45 mm). The frame rate is asked as
+  ``FrameRate`` (picamera2 turns it into ``FrameDurationLimits``), which bounds the
+  exposure too.
 """
 
 from __future__ import annotations
@@ -46,6 +58,7 @@ from typing import Any
 import numpy as np
 
 from kmea.sources.base import Frame, FrameSource, SourceError
+from kmea.timing import FrameTiming, imx219_line_time
 
 __all__ = [
     "PICAMERA2_MISSING",
@@ -200,11 +213,13 @@ class PiCameraSource(FrameSource):
     ``fps`` (default 30), ``buffer_count`` (default 4), ``camera`` (libcamera's camera number,
     default 0), ``timeout`` (seconds without a frame that count as a stall; default the larger
     of 1 s and 10 frame periods), ``reopen`` (consecutive stalls survived by closing and
-    opening the camera again before the source gives up; default 3).
+    opening the camera again before the source gives up; default 3), ``max_exposure_ms``
+    (0: the AGC's own exposure; > 0: that exposure, gain making up the light).
 
     Frame: image (H, W) uint8, full-range luma; timestamp: unix time (s) of the start of the
     frame's readout (sensor timestamp); meta: ``sensor_timestamp_ns`` (CLOCK_MONOTONIC),
-    ``exposure_time_us``, ``frame_duration_us`` when the camera reports them.
+    ``exposure_time_us``, ``frame_duration_us``, ``analogue_gain`` when the camera reports
+    them, and ``timing`` (:class:`kmea.timing.FrameTiming`) with the sensor timestamp.
     Raises :class:`SourceError` (one line) when picamera2 cannot be imported, the camera is
     missing or busy, or it stalled ``reopen + 1`` times in a row.
     """
@@ -213,11 +228,15 @@ class PiCameraSource(FrameSource):
 
     def __init__(self, width: int = 1640, height: int = 1232, fps: float = 30.0,
                  buffer_count: int = 4, camera: int = 0, timeout: float | None = None,
-                 reopen: int = 3) -> None:
+                 reopen: int = 3, max_exposure_ms: float = 0.0) -> None:
         super().__init__()
         self.spec = "picamera"
         if fps <= 0:
             raise SourceError(f"picamera: fps must be > 0, got {fps}")
+        if not (0 <= max_exposure_ms <= 1e3 / fps):
+            raise SourceError(f"picamera: max_exposure_ms must be in [0, {1e3 / fps:g}] ms "
+                              f"(one frame at {fps:g} frames/s), got {max_exposure_ms}")
+        self.max_exposure_ms = float(max_exposure_ms)
         if timeout is not None and timeout <= 0:
             raise SourceError(f"picamera: timeout must be > 0 s, got {timeout}")
         if int(reopen) < 0:
@@ -265,7 +284,7 @@ class PiCameraSource(FrameSource):
             config = cam.create_video_configuration(
                 main={"size": (w, h), "format": "YUV420"},
                 colour_space=self._libcamera.ColorSpace.Sycc(),  # full-range Y
-                controls={"FrameRate": self.fps}, buffer_count=self.buffer_count,
+                controls=self._controls(), buffer_count=self.buffer_count,
                 # queue=False: every capture_request waits for a frame that completes after
                 # it is asked for, never one held from earlier (lowest latency).
                 queue=False)
@@ -283,6 +302,14 @@ class PiCameraSource(FrameSource):
             log.warning("picamera: asked for %dx%d, the camera delivers %dx%d", w, h,
                         *self.size)
         self._cam = cam
+
+    def _controls(self) -> dict[str, Any]:
+        """FrameRate, and ExposureTime (us) when an exposure is set (the AGC then varies the
+        analogue gain only)."""
+        out: dict[str, Any] = {"FrameRate": self.fps}
+        if self.max_exposure_ms > 0:
+            out["ExposureTime"] = round(self.max_exposure_ms * 1e3)
+        return out
 
     def _close_cam(self) -> None:
         cam, self._cam = self._cam, None
@@ -342,6 +369,12 @@ class PiCameraSource(FrameSource):
             meta["exposure_time_us"] = md["ExposureTime"]
         if "FrameDuration" in md:
             meta["frame_duration_us"] = md["FrameDuration"]
+        if "AnalogueGain" in md:
+            meta["analogue_gain"] = md["AnalogueGain"]
+        if ts_ns is not None:
+            line = imx219_line_time(w, h) if self.model.lower() == "imx219" else 0.0
+            exp = md.get("ExposureTime")
+            meta["timing"] = FrameTiming(t, line, 0.0 if exp is None else float(exp) * 1e-6)
         i = self._index
         self._index += 1
         return Frame(i, t, gray, meta)

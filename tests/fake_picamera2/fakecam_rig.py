@@ -46,8 +46,18 @@ class Rig:
     libcamera_installed: bool = True       # apt python3-libcamera present
     simplejpeg_numpy_major: int | None = None  # numpy major simplejpeg was built for (None: same)
     scene: Callable[[int, int, int], np.ndarray] = gradient  # (n, w, h) -> (h, w) uint8
+    # Auto exposure's choice (us) when the application sets no ExposureTime: indoors the
+    # AGC picks 10-30 ms at low gain. With ExposureTime set, the AGC keeps it and varies
+    # only the analogue gain to make up the light (RPi AGC, fixed shutter): the gain is
+    # light_exposure_us / ExposureTime within the IMX219's 1.0-10.667 (imx219.c: register
+    # 0..232, gain = 256 / (256 - reg)).
     exposure_us: int = 8000
-    readout_s: float = 0.004               # arrival of the frame - start of its readout
+    light_exposure_us: int = 16000
+    # Arrival of the frame - the instant its first row is read out (SensorTimestamp,
+    # picamera2 examples/timestamp_capture.py). None: the sensor's readout of all its rows,
+    # rows x 18.90 us (IMX219 line time, kmea.timing) - 23.3 ms for 1232 rows - plus 1 ms
+    # through the ISP.
+    readout_s: float | None = None
     # Stalls: the k-th open of a camera (0-based) hands stall_after[k] frames to the
     # application and then completes no more; opens past the list deliver forever. (Counted
     # in delivered frames, not sensor frames, so a slow test machine sees the same story.)

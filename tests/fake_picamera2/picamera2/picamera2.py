@@ -196,10 +196,20 @@ class Picamera2:
             y = 16.0 + y * (219.0 / 255.0)  # limited ("video") range
         buf[:h, :w] = np.round(y).astype(np.uint8)
         buf[:h, w:] = 0x5A  # row padding: whatever the ISP left there
-        md = {"SensorTimestamp": int((t_arrival - rig.readout_s) * 1e9),
-              "ExposureTime": rig.exposure_us,
-              "FrameDuration": round(self._period * 1e6),
-              "AnalogueGain": 1.0, "DigitalGain": 1.0}
+        controls = self.camera_config["controls"]
+        # libcamera: ExposureTime is the exposure this frame used (us, every row); it is
+        # capped by the frame duration (exposure <= frame length - 4 lines, imx219.c).
+        frame_us = round(self._period * 1e6)
+        exposure = int(controls.get("ExposureTime") or rig.exposure_us)
+        exposure = min(exposure, frame_us - 4 * 19)
+        gain = min(max(rig.light_exposure_us / exposure, 1.0), 256 / (256 - 232))
+        readout = rig.readout_s
+        if readout is None:  # the sensor mode's rows (2 per output row below 1640x1232)
+            rows = 1232 if h <= 1232 else 2464
+            readout = rows * 3448 / 182.4e6 + 0.001
+        md = {"SensorTimestamp": int((t_arrival - readout) * 1e9),
+              "ExposureTime": exposure, "FrameDuration": frame_us,
+              "AnalogueGain": round(gain, 3), "DigitalGain": 1.0}
         return CompletedRequest(self, buf, md)
 
     def _returned(self, req: CompletedRequest) -> None:
