@@ -699,7 +699,7 @@ class Pipeline:
                 # the motion matters for a pair seen at two instants and a skewed square
                 need = tm is not None and (any(m in rates for m in seen) or (
                     len(seen) == 2 and times[seen[0]] != times[seen[1]]))
-                st = self.tracker.predict(spec.name, tm) if need else None
+                st = self.tracker.predict(spec.name, tm) if need and tm is not None else None
                 if st is not None:
                     motion = (st.vx, st.vy, st.omega)
             pose = robot_pose(spec, est.markers, times, motion, rates)
