@@ -66,6 +66,11 @@ def _unarr(v: Any, shape: tuple[int, ...]) -> np.ndarray | None:
     return None if v is None else np.array(v, dtype=float).reshape(shape)  # null -> NaN
 
 
+def _needarr(d: dict, key: str, shape: tuple[int, ...]) -> np.ndarray:
+    """d[key] as an array of ``shape`` (a missing field is a broken recording: KeyError)."""
+    return np.array(d[key], dtype=float).reshape(shape)
+
+
 def unnum(v: Any) -> float:
     return math.nan if v is None else float(v)
 
@@ -121,7 +126,7 @@ def obs_from_json(d: dict, detected: dict[int, Any] | None = None) -> MarkerObse
     mid = int(d["id"])
     corners = d["corners"] if "corners" in d else (detected or {})[mid]
     return MarkerObservation(
-        id=mid, marker2cam_R=_unarr(d.get("R"), (3, 3)), marker2cam_t=_unarr(d.get("t"), (3,)),
+        id=mid, marker2cam_R=_needarr(d, "R", (3, 3)), marker2cam_t=_needarr(d, "t", (3,)),
         corners=_unarr(corners, (4, 2)), length=float(d["length"]),
         reproj_error=unnum(d.get("reproj")), alt_R=_unarr(d.get("alt_R"), (3, 3)),
         alt_t=_unarr(d.get("alt_t"), (3,)), alt_reproj_error=unnum(d.get("alt_reproj")),

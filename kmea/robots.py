@@ -87,8 +87,8 @@ class RobotSpec:
 
 
 def _finite(v: object, where: str, positive: bool = False) -> None:
-    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-    if not ok or (positive and v <= 0) or (not positive and v < 0):
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or (
+            positive and v <= 0) or (not positive and v < 0):
         raise ValueError(f"{where} must be a finite number {'> 0' if positive else '>= 0'} m, "
                          f"got {v!r}")
 

@@ -204,6 +204,8 @@ class KmeaTui(App[None]):
         # for the tables' topics only when a pane shows them (see _body).
         drain = getattr(self.client, "drain_raw", None)
         decode = getattr(self.client, "decode_raw", None)
+        if drain is not None and decode is None:
+            raise TypeError("a client with drain_raw needs decode_raw")
         while True:
             if drain is not None:
                 wait = next_post - time.monotonic()
@@ -219,7 +221,7 @@ class KmeaTui(App[None]):
             for topic, body in msgs:
                 received += 1
                 if topic in (protocol.TOPIC_EVENT, protocol.TOPIC_LOG):
-                    if drain is not None:
+                    if decode is not None and drain is not None:
                         got = decode(body)
                         if got is None:
                             continue
@@ -236,7 +238,7 @@ class KmeaTui(App[None]):
             pending = bool(latest or events) or (ended and not ended_sent)
             if pending and now >= next_post and self._ui_ready.is_set():
                 raw: dict[str, list[bytes]] = {}
-                if drain is not None:
+                if decode is not None and drain is not None:
                     raw = {t: latest.pop(t) for t in LAZY_TOPICS if t in latest}
                     latest = {t: m[1] for t, f in latest.items()
                               if (m := decode(f)) is not None and m[0] == t}

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from kmea.moved import MovedEvidence
 from kmea.protocol import (
     FrameBody,
+    MapInfo,
     MarkerRow,
     MarkersBody,
     RobotRow,
@@ -94,12 +95,13 @@ def robots_body(res: FrameResult, tracks: Iterable[RobotTrack]) -> RobotsBody:
     """``robots``: every configured robot's last pose and relay counters."""
     out: list[RobotRow] = []
     for tr in tracks:
-        seen = tr.last_seen is not None
+        last = tr.last_seen
+        seen = last is not None
         out.append({"name": tr.name, "markers": list(tr.markers),
                     "x": tr.x if seen else None, "y": tr.y if seen else None,
                     "theta": tr.theta if seen else None, "sigma": tr.sigma,
                     "valid": tr.name in res.robots,
-                    "age_s": (res.timestamp - tr.last_seen) if seen else None,
+                    "age_s": (res.timestamp - last) if last is not None else None,
                     "stale": tr.stale, "destinations": list(tr.destinations),
                     "sent": tr.sent, "seq": tr.seq, "send_errors": tr.errors,
                     "send_refused": tr.refused, "refused": tr.refused_now()})
@@ -150,7 +152,7 @@ def status_body(*, t0: float, source: str, config_file: str, config_files: list[
     return body
 
 
-def map_info(world_map: Any) -> dict:
+def map_info(world_map: Any) -> MapInfo:
     """The ``status`` body's ``map``: name, marker count and floor extent (m)."""
     return {"name": world_map.name, "n": len(world_map),
             "extent": [round(v, 4) for v in world_map.floor_extent()]}

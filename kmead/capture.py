@@ -242,6 +242,7 @@ class LiveDetect:
                                     self.pipeline.detector_generation)
                     t0 = time.perf_counter()
                     try:
+                        assert det is not None  # made above for this generation
                         result = det.detect(frame.image)  # Detections
                     except Exception:  # the main thread detects again and reports it
                         result = None

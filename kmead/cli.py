@@ -207,7 +207,7 @@ def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
     except KeyboardInterrupt:  # Ctrl-C while starting (the simulator builds its floor)
         return 130
 
-    endpoints = [f"telemetry {daemon.telemetry.bound or 'off'}",
+    endpoints = [f"telemetry {(daemon.telemetry.bound if daemon.telemetry else '') or 'off'}",
                  f"control {daemon.control.bound if daemon.control else 'off'}"]
     print(f"kmead: {', '.join(endpoints)}", file=sys.stderr, flush=True)
     if len(cfg.files) > 1:  # say which files, so a saved overlay never surprises anyone

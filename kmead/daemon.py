@@ -20,6 +20,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -597,7 +598,7 @@ class Daemon:
             return 0.0
         return (len(ts) - 1) / (ts[-1] - ts[0])
 
-    def publish(self, topic: str, body: dict) -> None:
+    def publish(self, topic: str, body: Mapping[str, Any]) -> None:
         if self.telemetry is not None:
             self.telemetry.publish(topic, body)
 

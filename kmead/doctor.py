@@ -323,7 +323,7 @@ class Doctor:
                 self.add(True, name, f"{ep} (any free port)")
                 continue
             host = {"*": "0.0.0.0", "localhost": "127.0.0.1"}.get(host, host)
-            err = _bind_error(host.strip("[]"), int(port))
+            err = _bind_error((host or "").strip("[]"), int(port))
             if err is None:
                 self.add(True, name, f"{ep} is free")
             else:

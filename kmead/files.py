@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -136,7 +137,7 @@ class DataDir:
                               "choose a new name (existing files are never overwritten)")
         return path
 
-    def create(self, name: Any, kind: str, busy: list[str | Path] = ()) -> Path:
+    def create(self, name: Any, kind: str, busy: Sequence[str | Path] = ()) -> Path:
         """Check ``name`` and create the empty file atomically; ``busy``: paths of files the
         daemon is writing (the other output), which ``name`` must not be."""
         path = self.check_name(name, kind)

@@ -24,6 +24,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -378,7 +379,7 @@ class FusionNode:
         }
 
     # ------------------------------------------------------------------ daemon interface
-    def publish(self, topic: str, body: dict) -> None:
+    def publish(self, topic: str, body: Mapping[str, Any]) -> None:
         self.telemetry.publish(topic, body)
 
     def event(self, level: str, text: str) -> None:

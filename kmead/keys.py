@@ -224,7 +224,7 @@ class CurveServer:
             self.ring.refresh()
         except Exception:
             log.exception("reading client keys")
-        return self.ring.role(user)
+        return self.ring.role(user if isinstance(user, str) else None)
 
     def stop(self) -> None:
         self.auth.stop()

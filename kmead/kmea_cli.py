@@ -31,7 +31,7 @@ DAEMON_BENCHES: dict[str, str] = {
 
 def main(argv: list[str] | None = None) -> int:
     return cli.main(argv, {**cli.COMMANDS, **DAEMON_COMMANDS}, DAEMON_BENCHES,
-                    __doc__.splitlines()[0])
+                    (__doc__ or "").splitlines()[0])
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import zmq
@@ -52,7 +53,7 @@ class Telemetry:
                                             daemon=True)
             self._thread.start()
 
-    def publish(self, topic: str, body: dict[str, Any]) -> None:
+    def publish(self, topic: str, body: Mapping[str, Any]) -> None:
         if self._thread is None:
             return
         try:

@@ -81,7 +81,8 @@ class Candidates:
             return False
         if not reachable(self.chain[-1], t, z, R, self.cfg.max_speed):
             return False
-        inn = innovation(*c.mode_set.combine(c.mode_set.predict(c.modes, t - c.t)), z, R)
+        s, P = c.mode_set.combine(c.mode_set.predict(c.modes, t - c.t))
+        inn = innovation(s, P, z, R)
         return inn is not None and inn.d2 <= self.fit and inn.d2 < d2
 
     def add(self, t: float, z: np.ndarray, R: np.ndarray) -> Any:

@@ -19,7 +19,7 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = __doc__.splitlines()[0].split(": ", 1)[1]
+    p.description = (__doc__ or "").splitlines()[0].split(": ", 1)[1]
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--dpi", type=float, default=None,
                         help="resolution (default 300; floor: 150)")

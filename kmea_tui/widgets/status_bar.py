@@ -23,8 +23,9 @@ SHORT = {"capture": "cap", "detect": "det", "pose": "pose", "estimate": "est", "
 def output_alert(status: dict[str, Any] | None) -> str:
     """A few words when the CSV log or the recording stopped on its own (a write error, the
     free-space floor: ``error`` in the status body), else ""."""
+    body = status or {}
     stopped = [name for key, name in (("logging", "log"), ("recording", "recording"))
-               if isinstance((status or {}).get(key), dict) and status[key].get("error")]
+               if isinstance(body.get(key), dict) and body[key].get("error")]
     return f"{' and '.join(stopped)} stopped (Log tab)" if stopped else ""
 
 
