@@ -15,6 +15,7 @@ from kmead.settings_schema import ROS_TOKEN_RE
 
 LOOPBACK_HOSTS = ("localhost", "[::1]")
 
+
 def ros_token_problem(name: str) -> str | None:
     """Why robot ``name`` cannot be a ROS 2 topic token (``/kmea/<robot>/pose``), or None."""
     if ROS_TOKEN_RE.match(name):
