@@ -49,9 +49,14 @@ def type_hash(ros_type: str) -> str:
 
 
 def stamp(t: float) -> object:
-    """builtin_interfaces/Time of ``t`` (s since the epoch): whole seconds and nanoseconds."""
-    ns = round(t * 1e9)
-    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+    """builtin_interfaces/Time of ``t`` (s since the epoch): whole seconds and nanoseconds.
+    The seconds are split off first: ``t * 1e9`` of an epoch time is past a double's 53 bits
+    and would be off by up to 256 ns."""
+    sec = math.floor(t)
+    ns = round((t - sec) * 1e9)
+    if ns >= 1_000_000_000:
+        sec, ns = sec + 1, ns - 1_000_000_000
+    return Time(sec=int(sec), nanosec=int(ns))
 
 
 def covariance6(sigma: float | None, cov3: np.ndarray | None) -> np.ndarray:
