@@ -148,17 +148,18 @@ class ZenohOutput:
     def _send(self, tr: Any, t: float, valid: bool, stopping: bool) -> None:
         rp = self._publishers(tr.name)
         extra = tr.extra if valid else {}
-        cov6 = msgs.covariance6(tr.sigma, tr.cov)
+        c3 = msgs.covariance3(tr.sigma, tr.cov)
         if rp.binary is not None:
             flags = ((PREDICTED if extra.get("age", 0.0) > 0 else 0)
                      | (TRACKED if tr.cov is not None else 0) | (STOPPING if stopping else 0))
             rp.binary.put(pack_pose(BinaryPose(
-                valid, flags, tr.seq, t, tr.x, tr.y, tr.theta, math.sqrt(cov6[0]),
-                math.sqrt(cov6[7]), math.sqrt(cov6[35]), extra.get("vx", 0.0),
+                valid, flags, tr.seq, t, tr.x, tr.y, tr.theta, math.sqrt(c3[0][0]),
+                math.sqrt(c3[1][1]), math.sqrt(c3[2][2]), extra.get("vx", 0.0),
                 extra.get("vy", 0.0), extra.get("omega", 0.0), extra.get("age", 0.0))))
         if not valid or rp.pose is None:
             return
-        rp.pose.put(msgs.pose_cdr(t, self.z["frame_id"], tr.x, tr.y, tr.theta, cov6))
+        rp.pose.put(msgs.pose_cdr(t, self.z["frame_id"], tr.x, tr.y, tr.theta,
+                                  msgs.covariance6(c3)))
         self.tf.put(msgs.tf_cdr(t, self.z["frame_id"], f"{tr.name}/kmea", tr.x, tr.y,
                                 tr.theta))
 

@@ -88,7 +88,7 @@ def test_attachment_is_zenohs_serialization_of_seq_time_gid() -> None:
 
 
 def test_pose_cdr_is_the_bytes_the_cdr_rules_give() -> None:
-    cov = msgs.covariance6(0.004, None)
+    cov = msgs.covariance6(msgs.covariance3(0.004, None))
     data = msgs.pose_cdr(1764000000.25, "map", 0.5, -0.25, math.pi / 2, cov)
     s, c = math.sin(math.pi / 4), math.cos(math.pi / 4)
     expected = (b"\x00\x01\x00\x00"  # encapsulation: CDR little-endian, options 0
@@ -106,17 +106,17 @@ def test_pose_cdr_is_the_bytes_the_cdr_rules_give() -> None:
 
 def test_covariance_is_the_filters_and_never_zero() -> None:
     cov3 = np.array([[4e-6, 1e-6, 2e-7], [1e-6, 9e-6, -3e-7], [2e-7, -3e-7, 4e-4]])
-    c = msgs.covariance6(0.003, cov3).reshape(6, 6)
+    c = msgs.covariance6(msgs.covariance3(0.003, cov3)).reshape(6, 6)
     assert np.allclose(c[np.ix_([0, 1, 5], [0, 1, 5])], cov3)
     assert c[2, 2] == c[3, 3] == c[4, 4] == msgs.UNESTIMATED_VARIANCE
     assert np.allclose(c, c.T)
     # The IIR filter: the pose's sigma; none at all: the tracking filter's default sigma.
-    c = msgs.covariance6(0.01, None).reshape(6, 6)
+    c = msgs.covariance6(msgs.covariance3(0.01, None)).reshape(6, 6)
     assert math.isclose(c[0, 0], 1e-4) and math.isclose(c[1, 1], 1e-4)
     assert math.isclose(c[5, 5], (0.01 / 0.05) ** 2)
     for sigma, cov in ((None, None), (0.0, None), (0.0, np.zeros((3, 3))),
                        (math.nan, np.full((3, 3), math.nan))):
-        d = np.diag(msgs.covariance6(sigma, cov).reshape(6, 6))
+        d = np.diag(msgs.covariance6(msgs.covariance3(sigma, cov)).reshape(6, 6))
         assert np.all(d > 0), (sigma, cov)
 
 
