@@ -806,8 +806,7 @@ class Daemon:
             self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False,
                               cov=cov)
             tot.robots_seen.add(fix.name)
-        for fix in fixes.values():
-            self.relay.publish_fix(fix.name)
+        self.relay.publish_fixes(list(fixes))
         for name in self.relay.tick(t):
             self.event("warning", f"robot {name} not seen for "
                                   f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")

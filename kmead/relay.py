@@ -214,8 +214,8 @@ class Relay:
         if publish:
             self._publish(tr, t, valid)
 
-    def _publish(self, tr: RobotTrack, t: float, valid: bool) -> None:
-        if self.sink is not None:
+    def _publish(self, tr: RobotTrack, t: float, valid: bool, sink: bool = True) -> None:
+        if sink and self.sink is not None:
             self.sink(tr, t, valid, self._stopping)
         if self.publish is not None:
             body = {"name": tr.name, "seq": tr.seq, "t": t, "x": tr.x, "y": tr.y,
@@ -245,6 +245,17 @@ class Relay:
         """The telemetry body of robot ``name``'s last fix."""
         tr = self.tracks[name]
         self._publish(tr, tr.last_seen, True)
+
+    def publish_fixes(self, names: list[str]) -> None:
+        """:meth:`publish_fix` for a frame's robots: every sink message first, then the
+        telemetry bodies (the first body wakes the telemetry thread, which would take the
+        GIL from the next robot's Zenoh message)."""
+        tracks = [self.tracks[n] for n in names]
+        if self.sink is not None:
+            for tr in tracks:
+                self.sink(tr, tr.last_seen, True, self._stopping)
+        for tr in tracks:
+            self._publish(tr, tr.last_seen, True, sink=False)
 
     def tick(self, now: float) -> list[str]:
         """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.

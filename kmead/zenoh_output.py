@@ -104,7 +104,7 @@ class ZenohOutput:
         zenoh = import_zenoh()
         return self.session.declare_publisher(
             key, reliability=zenoh.Reliability.RELIABLE,
-            congestion_control=zenoh.CongestionControl.DROP, express=True)
+            congestion_control=zenoh.CongestionControl.DROP)  # not express: it lost samples
 
     def _ros_publisher(self, topic: str, ros_type: str, qos: wire.Qos) -> RosPublisher:
         z, h = self.z, msgs.type_hash(ros_type)

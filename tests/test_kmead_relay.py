@@ -189,8 +189,7 @@ def test_the_sink_gets_every_message_after_the_frames_datagrams(udp: socket.sock
         relay.update("amr2", 10.0, 0.4, 0.5, 0.6, 0.002, publish=False)
         assert seen == []  # the datagrams first
         assert [parse_datagram(udp.recv(256))["name"] for _ in range(2)] == ["amr1", "amr2"]
-        relay.publish_fix("amr1")
-        relay.publish_fix("amr2")
+        relay.publish_fixes(["amr1", "amr2"])
         assert seen == [("amr1", 1, True, False, cov), ("amr2", 1, True, False, None)]
         relay.tick(10.6)  # both stale
         assert [(s[0], s[2], s[3]) for s in seen[2:]] == [("amr1", False, False),
