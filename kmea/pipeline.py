@@ -73,7 +73,9 @@ class RobotFix:
     """A robot pose in one frame: world x, y (m), theta (rad), 1-sigma (m) or None.
 
     With the tracking filter: vx, vy (world velocity, m/s), omega (turn rate, rad/s), and
-    raw, the measurement before filtering (x, y, theta, sigma), which a fusion node fuses.
+    raw, the measurement before filtering (x, y, theta, sigma), which a fusion node fuses;
+    cov, the filter's (3, 3) covariance of (x, y, theta) in m^2, m rad, rad^2 (the ROS 2
+    output's covariance; None with the IIR filter, which has none).
     t: the instant the pose stands for (s, the frame timestamps' clock): its markers'
     mid-exposure when the source gives the frame's timing (``meta["timing"]``,
     :class:`kmea.timing.FrameTiming`), else the frame's timestamp.
@@ -90,6 +92,7 @@ class RobotFix:
     omega: float | None = None
     raw: tuple[float, float, float, float | None] | None = None
     t: float | None = None
+    cov: np.ndarray | None = None
 
 
 @dataclass
@@ -715,7 +718,8 @@ class Pipeline:
                 st = o.state
                 out[spec.name] = RobotFix(spec.name, st.x, st.y, st.theta, st.sigma,
                                           list(pose.markers_seen), st.vx, st.vy, st.omega,
-                                          (pose.x, pose.y, pose.theta, pose.sigma), tp)
+                                          raw=(pose.x, pose.y, pose.theta, pose.sigma),
+                                          t=tp, cov=st.cov)
                 continue
             p, th = self.filter.update(("robot", spec.name), tp,
                                        np.array([pose.x, pose.y, pose.z]), pose.theta)

@@ -114,6 +114,7 @@ class Daemon:
         logging.getLogger("kmead").addHandler(self.log_ring)
         self.last_image = None  # the last processed frame's image (snapshots)
         self.foxglove = None
+        self.zenoh = None  # kmead.zenoh_output.ZenohOutput when [zenoh] enabled = true
         self.curve = None  # kmead.keys.CurveServer when network.keys is set
         self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
         self.guard = ChangeGuard()
@@ -201,6 +202,18 @@ class Daemon:
                 raise StartupError(f"key 'log.{key}': {e}") from None
         if cfg.data.get("foxglove", {}).get("enabled"):
             self._start_foxglove()
+        if cfg.data.get("zenoh", {}).get("enabled"):
+            self._start_zenoh()
+
+    def _start_zenoh(self) -> None:
+        """Robot poses on Zenoh (docs/ros2.md): the relay hands it every message."""
+        try:
+            from kmead.zenoh_output import ZenohOutput
+        except ImportError:
+            raise StartupError("key 'zenoh.enabled': the zenoh extra is not installed "
+                               "(pip install 'kmea[zenoh]')") from None
+        self.zenoh = ZenohOutput.open(self.cfg["zenoh"])
+        self.relay.sink = self.zenoh.send
 
     def _start_foxglove(self) -> None:
         fx = self.cfg["foxglove"]
@@ -470,6 +483,8 @@ class Daemon:
             elif key == "robots":
                 self.pipeline.configure_robots()
                 self.relay.configure(v, t=self._now())
+                if self.zenoh is not None:
+                    self.zenoh.retain({r["name"] for r in v})
             elif key.startswith("relay."):
                 self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
                 self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
@@ -798,7 +813,7 @@ class Daemon:
             # The pose's own instant: its markers' mid-exposure when the source gives the
             # frame's timing (kmea.timing), else the frame's time.
             t_pose = t if fix.t is None else fix.t
-            t_fix, x, y, th, sigma = t_pose, fix.x, fix.y, fix.theta, fix.sigma
+            t_fix, x, y, th, sigma, cov = t_pose, fix.x, fix.y, fix.theta, fix.sigma, fix.cov
             if fix.vx is not None:
                 extra = {"vx": fix.vx, "vy": fix.vy, "omega": fix.omega, "age": 0.0}
                 if fix.raw is not None:  # the measurement itself, for a fusion node
@@ -810,13 +825,14 @@ class Daemon:
                     st = tracker.predict(fix.name, now)
                     if st is not None and now >= t_pose:
                         t_fix, x, y, th, sigma = now, st.x, st.y, st.theta, st.sigma
+                        cov = st.cov
                         extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t_pose)
             # Every datagram first: a telemetry body wakes the telemetry thread, which
             # would take the GIL from the next robot's datagram.
-            self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False)
+            self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False,
+                              cov=cov)
             tot.robots_seen.add(fix.name)
-        for fix in fixes.values():
-            self.relay.publish_fix(fix.name)
+        self.relay.publish_fixes(list(fixes))
         for name in self.relay.tick(t):
             self.event("warning", f"robot {name} not seen for "
                                   f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
@@ -984,6 +1000,11 @@ class Daemon:
                     log.exception("relay shutdown")
                 self.relay.close()
                 self.relay = None
+            if self.zenoh is not None:
+                log.info("zenoh: %d messages published, %d failed", self.zenoh.sent,
+                         self.zenoh.errors)
+                self.zenoh.close()
+                self.zenoh = None
             if self._log_handler is not None:
                 logging.getLogger("kmead").removeHandler(self._log_handler)
                 self._log_handler = None

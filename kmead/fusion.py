@@ -568,6 +568,10 @@ def run(args: Any) -> int:
         print(f"kmea fuse: {e}", file=sys.stderr)
         return 1
     with stderr_logging(cfg["log"]["level"]):
+        if cfg["zenoh"]["enabled"]:
+            # Said, not silently ignored: the fused poses go by UDP and ZeroMQ only so far.
+            log.warning("zenoh: [zenoh] is not used by kmea fuse yet; its robots get UDP "
+                        "datagrams (docs/ros2.md)")
         return _serve(node, args)
 
 

@@ -83,6 +83,7 @@ def plan_startup(cfg: Config) -> StartupPlan:
                                "(pip install 'kmea[foxglove]')") from None
     if prefix == "picamera":
         _exposure(cfg)
+    warnings += zenoh_plan(cfg)
     if prefix in ("picamera", "camera"):
         warnings.append(f"source: {spec} is a live camera: not opened by --check "
                         "(opened at start)")
@@ -318,4 +319,32 @@ def network_exposure(cfg: Config) -> list[str]:
             KeyRing(net["keys"])
         except KeysError as e:
             raise StartupError(str(e)) from None
+    return [warning] if warning else []
+
+
+def zenoh_plan(cfg: Config) -> list[str]:
+    """``[zenoh]``: the extra installed, the exposure rule (:func:`zenoh_exposure`), the
+    certificate files readable, robot names that can be ROS 2 topic tokens. Warnings."""
+    from kmead.zenoh_settings import ros_token_problem, zenoh_exposure
+
+    z = cfg.data.get("zenoh", {})
+    if not z.get("enabled"):
+        return []
+    try:
+        import rosbags  # noqa: F401
+        import zenoh  # noqa: F401
+    except ImportError:
+        raise StartupError("key 'zenoh.enabled': the zenoh extra is not installed "
+                           "(pip install 'kmea[zenoh]')") from None
+    error, warning = zenoh_exposure(z)
+    if error:
+        raise StartupError(error)
+    for key in ("tls_ca", "tls_cert", "tls_key"):
+        path = z[key]
+        if path and not os.access(Path(path).expanduser(), os.R_OK):
+            raise StartupError(f"key 'zenoh.{key}': cannot read {path}")
+    if z["ros2"]:
+        for r in cfg["robots"]:
+            if (problem := ros_token_problem(r["name"])) is not None:
+                raise StartupError(f"robots: {problem}")
     return [warning] if warning else []

@@ -56,6 +56,7 @@ class RobotTrack:
     y: float = math.nan
     theta: float = math.nan
     sigma: float | None = None
+    cov: Any = None  # the tracking filter's (3, 3) covariance of (x, y, theta), or None
     last_seen: float | None = None  # source clock, s
     last_stale_sent: float | None = None
     stale: bool = True
@@ -124,8 +125,12 @@ class Relay:
     """Sends robot poses; ``publish`` is called with (topic, body) for the telemetry topic."""
 
     def __init__(self, robots: list[dict], stale_after_s: float, stale_repeat_s: float,
-                 publish=None, extra_fields: bool = False) -> None:
+                 publish=None, extra_fields: bool = False, sink=None) -> None:
         self.stale_after_s = stale_after_s
+        # sink(track, t, valid, stopping): every message again for another output (Zenoh),
+        # called where the telemetry body is, so after all of a frame's datagrams.
+        self.sink = sink
+        self._stopping = False
         self.stale_repeat_s = stale_repeat_s
         self.extra_fields = extra_fields
         self.publish = publish
@@ -209,7 +214,9 @@ class Relay:
         if publish:
             self._publish(tr, t, valid)
 
-    def _publish(self, tr: RobotTrack, t: float, valid: bool) -> None:
+    def _publish(self, tr: RobotTrack, t: float, valid: bool, sink: bool = True) -> None:
+        if sink and self.sink is not None:
+            self.sink(tr, t, valid, self._stopping)
         if self.publish is not None:
             body = {"name": tr.name, "seq": tr.seq, "t": t, "x": tr.x, "y": tr.y,
                     "theta": tr.theta, "valid": valid, "sigma": tr.sigma}
@@ -219,14 +226,15 @@ class Relay:
 
     def update(self, name: str, t: float, x: float, y: float, theta: float,
                sigma: float | None = None, extra: dict[str, Any] | None = None,
-               publish: bool = True) -> None:
+               publish: bool = True, cov: Any = None) -> None:
         """A fix of robot ``name`` at time ``t`` (the time the pose refers to): send it
         everywhere. ``extra``: vx, vy, omega, age (datagram extra fields, telemetry) and
-        anything else for the telemetry body (e.g. the fusion's ``source``).
+        anything else for the telemetry body (e.g. the fusion's ``source``); ``cov``: the
+        tracking filter's (3, 3) covariance of (x, y, theta) (the ROS 2 output's).
         ``publish=False``: the telemetry body waits for :meth:`publish_fix` (a frame's
         datagrams all go out before its telemetry wakes the telemetry thread)."""
         tr = self.tracks[name]
-        tr.x, tr.y, tr.theta, tr.sigma = x, y, theta, sigma
+        tr.x, tr.y, tr.theta, tr.sigma, tr.cov = x, y, theta, sigma, cov
         tr.extra = dict(extra) if extra else {}
         tr.last_seen = t
         tr.stale = False
@@ -237,6 +245,17 @@ class Relay:
         """The telemetry body of robot ``name``'s last fix."""
         tr = self.tracks[name]
         self._publish(tr, tr.last_seen, True)
+
+    def publish_fixes(self, names: list[str]) -> None:
+        """:meth:`publish_fix` for a frame's robots: every sink message first, then the
+        telemetry bodies (the first body wakes the telemetry thread, which would take the
+        GIL from the next robot's Zenoh message)."""
+        tracks = [self.tracks[n] for n in names]
+        if self.sink is not None:
+            for tr in tracks:
+                self.sink(tr, tr.last_seen, True, self._stopping)
+        for tr in tracks:
+            self._publish(tr, tr.last_seen, True, sink=False)
 
     def tick(self, now: float) -> list[str]:
         """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.
@@ -263,6 +282,7 @@ class Relay:
     def shutdown(self, t: float) -> None:
         """One ``valid=0`` message to every robot: the daemon stops (SIGTERM, SIGINT, end of
         frames); robots must not keep following their last pose."""
+        self._stopping = True
         for tr in self.tracks.values():
             tr.stale = True
             self._send(tr, t, False)

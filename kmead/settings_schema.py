@@ -452,6 +452,65 @@ def validate_robots(rows: Any, where: str, remote: bool = False) -> list[dict]:
     return out
 
 
+# ---------------------------------------------------------------------------- zenoh
+
+MAX_ZENOH_ENDPOINTS = 16
+PROTOCOLS = ("tcp", "tls", "udp", "quic")
+# proto/host:port; host a name, an IPv4 literal or a bracketed IPv6 literal. Zenoh's
+# "#iface=..." metadata and other suffixes are refused: nothing but an address goes in.
+_ZENOH_ENDPOINT_RE = re.compile(r"^(tcp|tls|udp|quic)/"
+                                r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]{1,253}):(\d{1,5})$")
+_SITE_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+# ROS 2 name tokens (rcl's rules): a letter or '_' first, then letters, digits, '_'.
+ROS_TOKEN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,62}$")
+
+
+def zenoh_endpoint(v: Any, where: str) -> str:
+    s = _str(v, where)
+    m = _ZENOH_ENDPOINT_RE.match(s)
+    if not m or not 0 <= int(m.group(3)) < 65536:
+        raise ConfigError(f"{where}: expected a Zenoh endpoint like tcp/127.0.0.1:7447 or "
+                          f"tls/host.example:7447 ({', '.join(PROTOCOLS)}), got {_short(s)}")
+    return s
+
+
+def zenoh_endpoints(v: Any, where: str, remote: bool = False) -> list[str]:
+    if not isinstance(v, list) or len(v) > MAX_ZENOH_ENDPOINTS:
+        raise ConfigError(f"{where}: expected a list of at most {MAX_ZENOH_ENDPOINTS} Zenoh "
+                          "endpoints like [\"tcp/127.0.0.1:7447\"]")
+    return [zenoh_endpoint(e, f"{where}[{i}]") for i, e in enumerate(v)]
+
+
+def site_name(v: Any, where: str, remote: bool = False) -> str:
+    """The site: the first chunk of every key (``<site>/robots/<robot>/pose``)."""
+    s = _str(v, where)
+    if not _SITE_RE.match(s):
+        raise ConfigError(f"{where}: 1-32 letters, digits, '_' or '-' (it is the first part "
+                          f"of every Zenoh key), got {_short(s)}")
+    return s
+
+
+def ros_namespace(v: Any, where: str, remote: bool = False) -> str:
+    """``""`` (the root) or ``/a/b``: tokens of ROS names, a leading slash, none trailing."""
+    s = _str(v, where)
+    if s in ("", "/"):
+        return ""
+    if not s.startswith("/") or not all(ROS_TOKEN_RE.match(t) for t in s[1:].split("/")):
+        raise ConfigError(f"{where}: a ROS 2 namespace like \"/kmea\" (tokens of letters, "
+                          f"digits and '_', not starting with a digit), got {_short(s)}")
+    return s
+
+
+def frame_id(v: Any, where: str, remote: bool = False) -> str:
+    """A tf2 frame id: tokens separated by '/', no leading slash (tf2 refuses one)."""
+    s = _str(v, where)
+    if not s or s.startswith("/") or not all(ROS_TOKEN_RE.match(t) for t in s.split("/")):
+        raise ConfigError(f"{where}: a tf2 frame id like \"map\" (no leading '/'), "
+                          f"got {_short(s)}")
+    return s
+
+
+
 # ---------------------------------------------------------------------------- the schema
 
 SCHEMA: dict[str, dict[str, Check]] = {
@@ -501,6 +560,14 @@ SCHEMA: dict[str, dict[str, Check]] = {
             "record_part_min": off_or_number(1, 7 * 24 * 60, unit=" min")},
     "foxglove": {"enabled": _bool, "host": _str, "port": integer(0, 65535),
                  "image_hz": number(0, 60, unit=" images/s")},
+    # docs/ros2.md. Lease: Zenoh's own floor is about 0.1 s of keep-alives; below 0.5 s a
+    # busy Wi-Fi link drops sessions that are alive.
+    "zenoh": {"enabled": _bool, "mode": choice("peer", "client"),
+              "connect": zenoh_endpoints, "listen": zenoh_endpoints, "multicast": _bool,
+              "site": site_name, "lease_s": number(0.5, 3600, unit=" s"),
+              "ros2": _bool, "ros_domain": integer(0, 232), "ros_namespace": ros_namespace,
+              "frame_id": frame_id, "dds_bridge": _bool, "robot_pose": _bool,
+              "tls_ca": _str, "tls_cert": _str, "tls_key": _str, "insecure": _bool},
 }
 
 

@@ -133,6 +133,36 @@ REFUSALS = {
 }
 
 
+def _zenoh(*sets: str, robots: str = ""):
+    """[zenoh] enabled with ``sets`` (and a robot list): judged before any session opens."""
+    def args(tmp: Path) -> list[str]:
+        out = ["--set", "zenoh.enabled=true"]
+        for s in sets:
+            out += ["--set", s.replace("TMP", str(tmp))]
+        if robots:
+            p = tmp / "robots.toml"
+            p.write_text(robots)
+            out = ["--config", str(p), *out]
+        return out
+    return args
+
+
+REFUSALS.update({
+    "zenoh listens on the LAN without TLS": _zenoh('zenoh.listen=["tcp/192.168.1.10:7447"]'),
+    "zenoh listens on every interface without TLS": _zenoh('zenoh.listen=["tcp/[::]:7447"]'),
+    "zenoh tls endpoint without certificates": _zenoh('zenoh.listen=["tls/0.0.0.0:7447"]'),
+    "zenoh client that listens": _zenoh('zenoh.mode="client"',
+                                        'zenoh.connect=["tcp/127.0.0.1:7447"]',
+                                        'zenoh.listen=["tcp/127.0.0.1:7448"]'),
+    "zenoh client with nowhere to connect": _zenoh('zenoh.mode="client"'),
+    "zenoh certificate file missing": _zenoh('zenoh.tls_ca="TMP/none.pem"',
+                                             'zenoh.tls_cert="TMP/none.pem"',
+                                             'zenoh.tls_key="TMP/none.pem"'),
+    "zenoh robot name that is no ROS 2 token": _zenoh(
+        robots='[[robots]]\nname = "amr-1"\nmarkers = [40, 41]\n'),
+})
+
+
 def _run(argv: list[str], capsys) -> tuple[int, str]:
     code = cli.main(argv)
     return code, capsys.readouterr().err.strip()

@@ -171,3 +171,31 @@ def test_a_frames_datagrams_all_go_out_before_its_robot_telemetry(udp: socket.so
     finally:
         d.close()
     assert got == [2, 0], got  # both datagrams were out at the first publish
+
+
+def test_the_sink_gets_every_message_after_the_frames_datagrams(udp: socket.socket) -> None:
+    """The Zenoh output's hook: each fix (with its covariance), stale and stopping message,
+    handed over where the telemetry body is, so after all of a frame's datagrams."""
+    port = udp.getsockname()[1]
+    seen: list[tuple[str, int, bool, bool, object]] = []
+    relay = Relay([{"name": n, "markers": [m], "destinations": [f"udp:127.0.0.1:{port}"]}
+                   for n, m in (("amr1", 40), ("amr2", 42))],
+                  stale_after_s=0.5, stale_repeat_s=0.0,
+                  sink=lambda tr, t, valid, stopping: seen.append(
+                      (tr.name, tr.seq, valid, stopping, tr.cov)))
+    try:
+        cov = [[4e-6, 0, 0], [0, 4e-6, 0], [0, 0, 1e-4]]
+        relay.update("amr1", 10.0, 0.1, 0.2, 0.3, 0.002, publish=False, cov=cov)
+        relay.update("amr2", 10.0, 0.4, 0.5, 0.6, 0.002, publish=False)
+        assert seen == []  # the datagrams first
+        assert [parse_datagram(udp.recv(256))["name"] for _ in range(2)] == ["amr1", "amr2"]
+        relay.publish_fixes(["amr1", "amr2"])
+        assert seen == [("amr1", 1, True, False, cov), ("amr2", 1, True, False, None)]
+        relay.tick(10.6)  # both stale
+        assert [(s[0], s[2], s[3]) for s in seen[2:]] == [("amr1", False, False),
+                                                          ("amr2", False, False)]
+        relay.shutdown(11.0)
+        assert [(s[0], s[1], s[2], s[3]) for s in seen[4:]] == [("amr1", 3, False, True),
+                                                                ("amr2", 3, False, True)]
+    finally:
+        relay.close()

@@ -1,0 +1,98 @@
+"""The [zenoh] section: its defaults, one clear line per bad value, the exposure rule that
+start-up and --check share, and the one line that says what to install without the extra."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from kmead import cli
+from kmead.config import ConfigError, load_config
+from kmead.plan import plan_startup, zenoh_plan
+from kmead.startup import StartupError
+from kmead.zenoh_settings import ros_token_problem, zenoh_exposure
+
+NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
+       "--set", 'network.control="tcp://127.0.0.1:*"']
+
+
+def _cfg(*sets: str):
+    return load_config(None, ["zenoh.enabled=true", *sets], use_local=False)
+
+
+def test_defaults_are_off_and_loopback_only() -> None:
+    z = load_config(None, [], use_local=False)["zenoh"]
+    assert z["enabled"] is False
+    assert (z["mode"], z["connect"], z["listen"], z["multicast"]) == ("peer", [], [], False)
+    assert (z["site"], z["lease_s"], z["ros2"], z["ros_domain"]) == ("kmea", 3.0, True, 0)
+    assert (z["ros_namespace"], z["frame_id"], z["insecure"]) == ("/kmea", "map", False)
+    assert zenoh_exposure(_cfg()["zenoh"]) == (None, None)
+
+
+@pytest.mark.parametrize(("setting", "words"), [
+    ('zenoh.listen=["tcp/0.0.0.0:7447#iface=eth0"]', "Zenoh endpoint"),
+    ('zenoh.connect=["tcp://127.0.0.1:7447"]', "Zenoh endpoint"),
+    ('zenoh.connect=["tcp/127.0.0.1:99999"]', "Zenoh endpoint"),
+    ("zenoh.connect=" + str(["tcp/127.0.0.1:7447"] * 17).replace("'", '"'), "at most 16"),
+    ('zenoh.site="a/b"', "first part of every Zenoh key"),
+    ('zenoh.site="*"', "first part of every Zenoh key"),
+    ('zenoh.ros_namespace="kmea"', "ROS 2 namespace"),
+    ('zenoh.ros_namespace="/1kmea"', "ROS 2 namespace"),
+    ('zenoh.frame_id="/map"', "tf2 frame id"),
+    ("zenoh.ros_domain=300", "[0, 232]"),
+    ("zenoh.lease_s=0.01", "[0.5, 3600] s"),
+    ('zenoh.mode="router"', "peer, client"),
+])
+def test_a_bad_value_is_one_line_naming_the_key(setting: str, words: str) -> None:
+    with pytest.raises(ConfigError) as e:
+        load_config(None, [setting], use_local=False)
+    msg = str(e.value)
+    assert f"'{setting.split('=')[0]}'" in msg and words in msg and "\n" not in msg
+
+
+def test_listening_on_loopback_needs_no_tls_and_insecure_is_warned() -> None:
+    assert zenoh_plan(_cfg('zenoh.listen=["tcp/127.0.0.1:7447", "tcp/localhost:7448"]')) == []
+    warnings = zenoh_plan(_cfg('zenoh.listen=["tcp/10.0.0.5:7447"]', "zenoh.insecure=true"))
+    assert len(warnings) == 1 and "tcp/10.0.0.5:7447" in warnings[0]
+    assert "unauthenticated" in warnings[0]
+
+
+def test_tls_with_certificate_files_may_listen_beyond_loopback(tmp_path) -> None:
+    for name in ("ca.pem", "cert.pem", "key.pem"):
+        (tmp_path / name).write_text("-----BEGIN CERTIFICATE-----\n")
+    cfg = _cfg('zenoh.listen=["tls/0.0.0.0:7447"]', f'zenoh.tls_ca="{tmp_path}/ca.pem"',
+               f'zenoh.tls_cert="{tmp_path}/cert.pem"', f'zenoh.tls_key="{tmp_path}/key.pem"')
+    assert zenoh_plan(cfg) == []
+
+
+def test_the_refusal_is_the_same_line_from_check_and_start(capsys) -> None:
+    args = [*NET, "--set", "source.fps=0", "--set", "zenoh.enabled=true",
+            "--set", 'zenoh.listen=["tcp/192.168.1.10:7447"]']
+    assert cli.main([*args, "--check"]) == 2
+    check_err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert cli.main([*args, "--headless", "--frames", "1"]) == 2
+    run_err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert check_err == run_err
+    assert "zenoh.listen" in run_err and "tls/" in run_err and "insecure" in run_err
+
+
+def test_without_the_extra_one_line_says_what_to_install(monkeypatch) -> None:
+    monkeypatch.setitem(sys.modules, "zenoh", None)  # import zenoh raises ImportError
+    with pytest.raises(StartupError) as e:
+        plan_startup(_cfg())
+    assert str(e.value) == ("key 'zenoh.enabled': the zenoh extra is not installed "
+                            "(pip install 'kmea[zenoh]')")
+    assert e.value.code == 2
+    # Disabled, nothing is imported and nothing is said.
+    assert zenoh_plan(load_config(None, [], use_local=False)) == []
+
+
+def test_robot_names_and_ros_tokens() -> None:
+    assert ros_token_problem("amr1") is None and ros_token_problem("_r") is None
+    assert "zenoh.ros2 = false" in ros_token_problem("amr-1")
+    assert ros_token_problem("1amr") is not None
+    robots = 'robots=[{name="amr-1", markers=[40, 41]}]'
+    with pytest.raises(StartupError, match="amr-1"):
+        zenoh_plan(_cfg(robots))
+    assert zenoh_plan(_cfg(robots, "zenoh.ros2=false")) == []
