@@ -19,6 +19,7 @@ Needs the optional extra (``pip install 'kmea[zenoh]'``).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
@@ -48,7 +49,7 @@ def type_hash(ros_type: str) -> str:
     return _TS.hash_rihs01(ros_type)
 
 
-def stamp(t: float) -> object:
+def stamp(t: float) -> Any:  # the typestore's message class: no static type
     """builtin_interfaces/Time of ``t`` (s since the epoch): whole seconds and nanoseconds.
     The seconds are split off first: ``t * 1e9`` of an epoch time is past a double's 53 bits
     and would be off by up to 256 ns."""
@@ -88,7 +89,7 @@ def covariance6(c3: list[list[float]]) -> np.ndarray:
     return np.array(out)
 
 
-def _quaternion(theta: float) -> object:
+def _quaternion(theta: float) -> Any:
     return Quaternion(x=0.0, y=0.0, z=math.sin(theta / 2), w=math.cos(theta / 2))
 
 

@@ -160,8 +160,9 @@ class ZenohOutput:
             return
         rp.pose.put(msgs.pose_cdr(t, self.z["frame_id"], tr.x, tr.y, tr.theta,
                                   msgs.covariance6(c3)))
-        self.tf.put(msgs.tf_cdr(t, self.z["frame_id"], f"{tr.name}/kmea", tr.x, tr.y,
-                                tr.theta))
+        if self.tf is not None:  # (None once closed)
+            self.tf.put(msgs.tf_cdr(t, self.z["frame_id"], f"{tr.name}/kmea", tr.x, tr.y,
+                                    tr.theta))
 
     def retain(self, names: set[str]) -> None:
         """Undeclare the publishers (and their tokens) of robots no longer configured."""
