@@ -2,7 +2,8 @@
 re-acquisition around the IMM filter.
 
 One measurement (:meth:`Track.update`): predicted to its time; gated (:mod:`.gating`); an
-accepted one corrects the modes with the step-bounded weight (:mod:`.step_bound`); a
+accepted one corrects the modes with the step-bounded weight (:mod:`.step_bound`; a new
+track's first accepted update takes the whole correction, its velocity unknown before); a
 rejected one, or one that fits a chain of rejected ones better than the track, is kept as a
 re-acquisition candidate (:mod:`.reacquire`). The covariance after an accepted one includes
 the chance that it was an outlier (:mod:`.mixture`). A measurement older
