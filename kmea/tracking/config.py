@@ -60,7 +60,7 @@ class TrackerConfig:
     outlier_radius: float = 0.2
     manoeuvre_scale: float = 200.0
     manoeuvre_time_s: float = 0.3
-    cruise_time_s: float = 1.0
+    cruise_time_s: float = 2.0
 
     def __post_init__(self) -> None:
         check_tracker_config(self)
