@@ -143,10 +143,10 @@ def test_sigma_drives_the_weight_of_a_measurement() -> None:
 
 def test_heading_sigma_is_the_measurements_own_not_the_floored_positions() -> None:
     # Position sigma floored at min_sigma (2 mm); the heading's sigma / heading_lever comes
-    # from the measurement's own sigma, floored at min_sigma_theta (0.01 rad) only.
+    # from the measurement's own sigma, floored at min_sigma_theta (0.0125 rad) only.
     tr = Track("r")
     R = tr.noise(0.0002)
-    assert R[0, 0] == pytest.approx(0.002 ** 2) and R[2, 2] == pytest.approx(0.01 ** 2)
+    assert R[0, 0] == pytest.approx(0.002 ** 2) and R[2, 2] == pytest.approx(0.0125 ** 2)
     assert tr.noise(0.001)[2, 2] == pytest.approx((0.001 / 0.05) ** 2)
     assert tr.noise(0.004)[2, 2] == pytest.approx((0.004 / 0.05) ** 2)
     assert tr.noise(0.0002, 0.02)[2, 2] == pytest.approx(0.02 ** 2)

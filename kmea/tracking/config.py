@@ -52,7 +52,7 @@ class TrackerConfig:
     default_sigma: float = 0.005
     min_sigma: float = 0.002
     heading_lever: float = 0.05
-    min_sigma_theta: float = 0.01
+    min_sigma_theta: float = 0.0125
     max_speed: float = 1.5
     max_turn_rate: float = 3.0
     step_k: float = 1.2
