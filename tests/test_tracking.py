@@ -170,18 +170,6 @@ def test_new_track_takes_its_velocity_from_its_first_two_measurements(model: str
     assert max(errs) < 0.003  # bounded, the first update gave 22 mm
 
 
-def test_first_measurement_after_a_gap_is_followed_not_step_bounded() -> None:
-    # A robot out of view for 0.6 s comes back 8 cm off the track's straight-line
-    # prediction (it turned meanwhile): the first update back takes the whole correction.
-    tr = Track("r")
-    for k in range(30):
-        tr.update(k / 30, 1.0 * k / 30, 0.0, 0.0, 0.0005)
-    t = 29 / 30 + 0.6
-    out = tr.update(t, 1.0 * t - 0.03, 0.08, 0.5, 0.0005)
-    assert out.kind == "update"
-    assert math.hypot(out.state.x - (t - 0.03), out.state.y - 0.08) < 0.003
-
-
 def test_bad_configuration_names_the_key() -> None:
     with pytest.raises(ValueError, match="model"):
         TrackerConfig(model="ukf")
