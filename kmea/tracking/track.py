@@ -79,12 +79,6 @@ class Outcome:
         return self.kind != "rejected"
 
 
-#: A gap (s) without accepted measurements after which the first update back is not
-#: step-bounded (a robot back in view after 0.3-1 s); above the outlier drives' longest gap
-#: between good measurements (0.25 s).
-GAP_S = 0.3
-
-
 @functools.lru_cache(maxsize=16)
 def _candidates_config(cfg: TrackerConfig) -> TrackerConfig:
     """A candidate chain's own track takes every step and never re-acquires (made once per
@@ -150,10 +144,6 @@ class Track:
         if dt < -cfg.reset_after_s:
             return Outcome("rejected", f"too old ({-dt:.2f} s before the last measurement)",
                            math.nan, None)
-        if dt > GAP_S:
-            # After a gap the prediction (e.g. through a turn out of view) is no reference for
-            # the step bound either: the first update back takes the whole correction.
-            self.fresh = True
         pred = self.mode_set.predict(self.modes, dt)
         sc, Pc = self.mode_set.combine(pred)
         inn = innovation(sc, Pc, z, R)
