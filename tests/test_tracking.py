@@ -141,6 +141,35 @@ def test_sigma_drives_the_weight_of_a_measurement() -> None:
     assert a.state().x > 2 * b.state().x > 0
 
 
+def test_heading_sigma_is_the_measurements_own_not_the_floored_positions() -> None:
+    # Position sigma floored at min_sigma (2 mm); the heading's sigma / heading_lever comes
+    # from the measurement's own sigma, floored at min_sigma_theta (0.0125 rad) only.
+    tr = Track("r")
+    R = tr.noise(0.0002)
+    assert R[0, 0] == pytest.approx(0.002 ** 2) and R[2, 2] == pytest.approx(0.0125 ** 2)
+    assert tr.noise(0.001)[2, 2] == pytest.approx((0.001 / 0.05) ** 2)
+    assert tr.noise(0.004)[2, 2] == pytest.approx((0.004 / 0.05) ** 2)
+    assert tr.noise(0.0002, 0.02)[2, 2] == pytest.approx(0.02 ** 2)
+
+
+@pytest.mark.parametrize("model", ["cv", "ctrv"])
+def test_new_track_takes_its_velocity_from_its_first_two_measurements(model: str) -> None:
+    # A robot entering the view at 1.5 m/s: the track starts at rest (velocity unknown);
+    # its first update is not step-bounded, so from the second measurement on it follows.
+    tr = Track("r", TrackerConfig(model=model))
+    rng = np.random.default_rng(3)
+    errs = []
+    for k in range(6):
+        t = k / 30
+        out = tr.update(t, 1.5 * t + rng.normal(0, 0.0005), rng.normal(0, 0.0005), 0.0,
+                        0.0005)
+        assert out.accepted
+        errs.append(math.hypot(out.state.x - 1.5 * t, out.state.y))
+        if k == 1:
+            assert out.state.speed == pytest.approx(1.5, abs=0.1)
+    assert max(errs) < 0.003  # bounded, the first update gave 22 mm
+
+
 def test_bad_configuration_names_the_key() -> None:
     with pytest.raises(ValueError, match="model"):
         TrackerConfig(model="ukf")

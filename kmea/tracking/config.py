@@ -25,8 +25,9 @@ class TrackerConfig:
     robot was moved by hand); reacquire_window_s: they must fall within this time.
     reset_after_s: a track not updated for this long restarts from its next measurement.
     default_sigma: position sigma (m) of a measurement that has none; min_sigma: the floor
-    on any position sigma (estimators can be over-confident); heading_lever: m (heading
-    sigma = sigma / heading_lever); min_sigma_theta: the floor on heading sigma, rad.
+    on any position sigma (estimators can be over-confident); heading_lever: m (a heading
+    without its own sigma has the measurement's position sigma, before min_sigma, over
+    heading_lever); min_sigma_theta: the floor on heading sigma, rad.
     max_speed, max_turn_rate: 1-sigma of a new track's velocity and turn rate (m/s, rad/s);
     max_speed is also the fastest a robot moves between two re-acquisition candidates.
     step_k: no accepted measurement moves the position by more than step_k sigmas of the
@@ -52,7 +53,7 @@ class TrackerConfig:
     default_sigma: float = 0.005
     min_sigma: float = 0.002
     heading_lever: float = 0.05
-    min_sigma_theta: float = 0.01
+    min_sigma_theta: float = 0.0125
     max_speed: float = 1.5
     max_turn_rate: float = 3.0
     step_k: float = 1.2

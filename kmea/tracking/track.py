@@ -2,7 +2,8 @@
 re-acquisition around the IMM filter.
 
 One measurement (:meth:`Track.update`): predicted to its time; gated (:mod:`.gating`); an
-accepted one corrects the modes with the step-bounded weight (:mod:`.step_bound`); a
+accepted one corrects the modes with the step-bounded weight (:mod:`.step_bound`; a new
+track's first accepted update takes the whole correction, its velocity unknown before); a
 rejected one, or one that fits a chain of rejected ones better than the track, is kept as a
 re-acquisition candidate (:mod:`.reacquire`). The covariance after an accepted one includes
 the chance that it was an outlier (:mod:`.mixture`). A measurement older
@@ -106,6 +107,8 @@ class Track:
         self.s: np.ndarray | None = None
         self.P: np.ndarray | None = None
         self.t: float | None = None
+        # True from a start until the track's first accepted update (see update()).
+        self.fresh = False
         self.candidates = Candidates(cfg, lambda: Track(name, _candidates_config(cfg), True))
 
     def noise(self, sigma: float | None, sigma_theta: float | None = None) -> np.ndarray:
@@ -113,9 +116,11 @@ class Track:
         heading sigma ``sigma_theta`` rad: by default sigma / heading_lever)."""
         cfg = self.config
         sp = cfg.default_sigma if sigma is None or not math.isfinite(sigma) else float(sigma)
-        sp = max(sp, cfg.min_sigma)
         if sigma_theta is None or not math.isfinite(sigma_theta):
+            # The heading's own sigma: the position sigma's over the lever (before the floor
+            # on position sigma; the heading has its own floor).
             sigma_theta = sp / cfg.heading_lever
+        sp = max(sp, cfg.min_sigma)
         st = max(float(sigma_theta), cfg.min_sigma_theta)
         v, vt = sp * sp, st * st
         return np.array([[v, 0.0, 0.0], [0.0, v, 0.0], [0.0, 0.0, vt]])
@@ -149,6 +154,7 @@ class Track:
             restart = self.candidates.add(t, z, R)
             if restart is not None:
                 self._set(restart.modes, restart.t)
+                self.fresh = False
                 return Outcome("reacquired", f"{cfg.reacquire_n} consistent measurements away "
                                f"from the track ({reason})", inn.d2, self.state())
             st = self._state(t, sc, Pc) if dt > 0 else self.predict(self.t)
@@ -156,7 +162,12 @@ class Track:
         self.candidates.clear()
         g = self.mode_set.gains(pred, z, R)
         ky = (g.Ks @ g.ys[:, :, None])[:, :, 0]
-        w = step_weight(pred, g, ky, (float(sc[0]), float(sc[1])), cfg.step_k)
+        # A new track knows no velocity (1-sigma max_speed): its prediction is no reference
+        # for the step bound, and its first accepted update takes the whole correction, so the
+        # velocity comes from its first two measurements.
+        w = 1.0 if self.fresh else step_weight(pred, g, ky, (float(sc[0]), float(sc[1])),
+                                               cfg.step_k)
+        self.fresh = False
         new = self.mode_set.correct(pred, R, g, w, ky)
         if not self.candidate:
             q = outlier_posterior(sc, Pc, z, R, self._outlier_ratio)
@@ -177,6 +188,7 @@ class Track:
     def _start(self, t: float, z: np.ndarray, R: np.ndarray) -> None:
         cfg = self.config
         self._set(self.mode_set.start(z, R, cfg.max_speed, cfg.max_turn_rate), t)
+        self.fresh = True
         self.candidates.clear()
 
     # ------------------------------------------------------------------ output
