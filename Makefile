@@ -2,8 +2,9 @@
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-# Type checking in `make lint` (pyproject's [tool.pyright]: basic); PYRIGHT= skips it.
-PYRIGHT ?= $(BIN)/pyright
+# Type checking in `make lint` with pyproject.toml's [tool.pyright] (basic; -p . so that no
+# pyrightconfig.json above the checkout is picked up); PYRIGHT= skips it.
+PYRIGHT ?= $(BIN)/pyright -p .
 # On a Raspberry Pi the venv keeps the apt numpy picamera2 is built for: pip installs with
 # constraints/<codename>.txt (README, On the Raspberry Pi). Elsewhere: none (today's stack).
 ON_PI := $(shell grep -qs 'Raspberry Pi' /proc/device-tree/model && echo yes)
