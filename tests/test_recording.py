@@ -150,7 +150,12 @@ def test_a_killed_daemon_leaves_a_compressed_recording_that_replays(tmp_path: Pa
 
 def test_a_version_1_recording_still_replays_to_its_rows(tmp_path: Path) -> None:
     """tests/data/recording_v1.jsonl: two frames written by the first format's writer
-    (every marker's corners, every flag), with the CSV log of that run."""
+    (every marker's corners, every flag), with the CSV log of that run.
+
+    Marker rows and the first frame's robot rows come from the recording alone and
+    must match exactly. A later robot row is the tracking filter's output, and the
+    filter has changed since that run (a new track now takes its velocity from its
+    first two measurements), so it is held to the recorded pose within 1 mm and 2 deg."""
     from kmead import cli
 
     assert read_header(DATA / "recording_v1.jsonl")["version"] == 1
@@ -158,7 +163,22 @@ def test_a_version_1_recording_still_replays_to_its_rows(tmp_path: Path) -> None
     out = tmp_path / "again.csv"
     assert cli.main(["--source", f"replay:{tmp_path / 'recording_v1.jsonl'}", "--headless",
                      "--log", str(out), *NET]) == 0
-    assert out.read_text() == (DATA / "recording_v1.csv").read_text()
+    got = out.read_text().splitlines()
+    want = (DATA / "recording_v1.csv").read_text().splitlines()
+    assert got[0] == want[0] and len(got) == len(want)
+    filtered = 0
+    for g, w in zip(got[1:], want[1:], strict=True):
+        gf, wf = g.split(","), w.split(",")
+        if wf[3] == "marker" or wf[0] == "0":
+            assert g == w
+            continue
+        filtered += 1
+        assert gf[:5] == wf[:5] and gf[9:] == wf[9:]
+        xyz = np.array(gf[5:8], float) - np.array(wf[5:8], float)
+        assert np.linalg.norm(xyz) < 1e-3, (g, w)
+        dyaw = (float(gf[8]) - float(wf[8]) + np.pi) % (2 * np.pi) - np.pi
+        assert abs(dyaw) < np.radians(2.0), (g, w)
+    assert filtered == 2
 
 
 def test_corrupt_compressed_bytes_are_one_line_naming_the_file(tmp_path: Path, frames) -> None:
