@@ -55,6 +55,7 @@ __all__ = [
     "dumps_map_toml",
     "load_csv_markers",
     "load_map",
+    "map_digest",
     "map_from_dict",
     "map_to_dict",
     "save_map_toml",
@@ -335,6 +336,19 @@ def map_to_dict(m: MarkerMap) -> dict:
         rows.append(row)
     doc["markers"] = rows
     return doc
+
+
+def map_digest(m: MarkerMap) -> str:
+    """A short digest (16 hex digits) of what the poses depend on: dictionary, marker ids,
+    poses and sizes, the axes' markers; not the map's name or file. Two cameras estimate in
+    the same world frame only if their maps' digests agree (the fusion node checks)."""
+    import hashlib
+    import json
+
+    doc = map_to_dict(m)
+    doc.pop("name", None)
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def dumps_map_toml(m: MarkerMap) -> str:

@@ -277,11 +277,14 @@ class MapInfo(TypedDict, total=False):
 
 
 class InputState(TypedDict):
-    """A fusion node's input (one camera's telemetry): counters, seconds since its last
+    """A fusion node's camera (found on Zenoh): its id, key, state (waiting for its
+    metadata, used, refused with a reason, silent, gone), counters, seconds since its last
     message, median delay (arrival - capture time, s)."""
 
     label: str
-    endpoint: str
+    key: str
+    state: str
+    reason: str | None
     received: int
     measurements: int
     bad: int
@@ -299,6 +302,10 @@ class FusionState(TypedDict):
     dropped_old: int
     latency_ms_p50: float | None
     latency_ms_p99: float | None
+    node: str  # this node's id (its Zenoh session id)
+    role: str  # starting, standby or active (the one that speaks to the robots)
+    map_digest: str | None  # the map every camera must have (None: no camera yet)
+    overflow: int  # samples dropped because the node fell behind
 
 
 class _StatusExtra(TypedDict, total=False):

@@ -115,6 +115,7 @@ class Daemon:
         self.last_image = None  # the last processed frame's image (snapshots)
         self.foxglove = None
         self.zenoh = None  # kmead.zenoh_output.ZenohOutput when [zenoh] enabled = true
+        self.zenoh_camera = None  # kmead.zenoh_camera.ZenohCamera, with it
         self.curve = None  # kmead.keys.CurveServer when network.keys is set
         self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
         self.guard = ChangeGuard()
@@ -212,8 +213,30 @@ class Daemon:
         except ImportError:
             raise StartupError("key 'zenoh.enabled': the zenoh extra is not installed "
                                "(pip install 'kmea[zenoh]')") from None
-        self.zenoh = ZenohOutput.open(self.cfg["zenoh"])
+        from kmead.zenoh_camera import ZenohCamera, camera_id
+
+        z = self.cfg["zenoh"]
+        self.zenoh = ZenohOutput.open(z)
         self.relay.sink = self.zenoh.send
+        # This kmead as a camera of its site, for the fusion nodes (docs/fusion.md).
+        self.zenoh_camera = ZenohCamera(self.zenoh.session, z["site"],
+                                        camera_id(z, self.source_spec), self._camera_meta(),
+                                        on_fusion=self._fusion_nodes)
+
+    def _camera_meta(self) -> dict:
+        from kmea.maps import map_digest
+        from kmead.zenoh_camera import camera_id, meta_body
+
+        return meta_body(camera_id(self.cfg["zenoh"], self.source_spec),
+                         map_digest(self.world_map), self.world_map.name,
+                         self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
+
+    def _fusion_nodes(self, n: int) -> None:
+        """Zenoh's thread: ``n`` fusion nodes alive on the site. While one is, it speaks to
+        the robots and this kmead's relay is muted (one voice per robot)."""
+        relay = self.relay
+        if relay is not None:
+            relay.muted = n > 0
 
     def _start_foxglove(self) -> None:
         fx = self.cfg["foxglove"]
@@ -539,6 +562,8 @@ class Daemon:
         self.displaced.clear()
         self.monitor.clear()
         log.info("map reloaded: %s (%d markers)", new.name, len(new))
+        if self.zenoh_camera is not None:
+            self.zenoh_camera.set_meta(self._camera_meta())
         return new
 
     def save_config(self, path: str | None = None) -> dict:
@@ -833,6 +858,13 @@ class Daemon:
                               cov=cov)
             tot.robots_seen.add(fix.name)
         self.relay.publish_fixes(list(fixes))
+        cam = self.zenoh_camera
+        if cam is not None:  # the measurements, for the fusion nodes (after the datagrams)
+            for fix in fixes.values():
+                mx, my, mth, ms = fix.raw if fix.raw is not None else (
+                    fix.x, fix.y, fix.theta, fix.sigma)
+                cam.measurement(fix.name, t if fix.t is None else fix.t, mx, my, mth, ms)
+            cam.frame(t)
         for name in self.relay.tick(t):
             self.event("warning", f"robot {name} not seen for "
                                   f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
@@ -1000,6 +1032,9 @@ class Daemon:
                     log.exception("relay shutdown")
                 self.relay.close()
                 self.relay = None
+            if self.zenoh_camera is not None:
+                self.zenoh_camera.close()
+                self.zenoh_camera = None
             if self.zenoh is not None:
                 log.info("zenoh: %d messages published, %d failed", self.zenoh.sent,
                          self.zenoh.errors)

@@ -1,26 +1,37 @@
 """``kmea fuse``: the fusion node, one picture from several cameras (docs/fusion.md).
 
-Each camera runs ``kmead`` and publishes its robots' poses on its telemetry socket
-(``robot.NAME`` topics: capture time, pose, sigma). The node subscribes to every input,
-fuses each robot's measurements through the tracking filter (:class:`kmea.fusion.Fusion`)
-and serves the same outputs as a daemon: telemetry (``robot.NAME``, ``robots`` with the
-cameras that saw each robot, ``status``, ``event``, ``log``), control (the daemon's
-commands that make sense without a camera), UDP datagrams to the robots and the CSV log in
-the daemon's format (``kind`` robot, ``algorithm`` fusion, ``refs`` the number of cameras).
+Each camera runs ``kmead`` with ``[zenoh] enabled = true`` and publishes its robots'
+measurements under ``<site>/cam/<id>/...`` (:mod:`kmead.zenoh_camera`). The node finds the
+cameras by subscription, not configuration: a camera's liveliness token makes it known, its
+metadata (asked once) must carry the node's map digest or it is refused with a reason, its
+measurements are fused through the tracking filter (:class:`kmea.fusion.Fusion`). A camera
+whose token goes (killed: at once; frozen or cut off: after the lease) or that sends nothing
+for the lease (its frame loop stuck) is dropped; it is used again when it comes back.
 
-Everything an input sends is hostile: a message that does not decode, lacks a field or has
-a non-finite number is counted and reported once per input, never raised.
+Two or more nodes may run hot (:class:`Election`): each holds ``<site>/fusion/<id>/<role>``;
+one is active and speaks to the robots (UDP datagrams, ``<site>/robots/<robot>/pose``, ROS 2),
+the others fuse the same measurements with their relay muted. The node serves the same
+ZeroMQ outputs as a daemon: telemetry (``robot.NAME``, ``robots`` with the cameras that saw
+each robot, ``status``, ``event``, ``log``), control (the daemon's commands that make sense
+without a camera) and the CSV log in the daemon's format (``kind`` robot, ``algorithm``
+fusion, ``refs`` the number of cameras).
+
+Everything received over Zenoh is hostile: a key or payload that does not decode, a missing
+or non-finite field is counted and reported once per camera, never raised. Zenoh's callbacks
+only queue what arrives (bounded); the node's loop owns every piece of state.
 
 Time: the fusion clock is the newest measurement time, advanced by the wall clock between
-measurements (so it works on the Pis' Unix time and on simulated time); robots go stale
-on it. A camera that stops leaves its robots stale (valid=0) and is picked up again when
-it returns: the SUB sockets reconnect by themselves.
+measurements (so it works on the Pis' Unix time and on simulated time); robots go stale on
+it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import queue
+import re
 import threading
 import time
 from collections import deque
@@ -32,7 +43,8 @@ import zmq
 
 from kmea import protocol as P
 from kmea.fusion import Fusion, Measurement
-from kmea.maps import MapError
+from kmea.jsonlimits import safe_loads
+from kmea.maps import MapError, map_digest
 from kmea.tracking import TrackerConfig
 from kmead.bodies import map_info
 from kmead.config import Config, ConfigError
@@ -47,7 +59,13 @@ from kmead.telemetry import Telemetry, TelemetryLogHandler
 
 log = logging.getLogger("kmead.fusion")
 
-__all__ = ["FusionNode", "Input", "tracker_config"]
+__all__ = ["Camera", "Election", "FusionNode", "tracker_config"]
+
+MAX_CAMERAS = 64  # cameras known at once (gone ones make room first)
+MAX_SAMPLE_BYTES = 1024  # a measurement or heartbeat; larger ones are bad
+MAX_META_BYTES = 4096
+QUEUE_MAX = 20000  # samples waiting for the loop; beyond, they are counted and dropped
+_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
 
 def tracker_config(cfg: Config) -> TrackerConfig:
@@ -55,47 +73,34 @@ def tracker_config(cfg: Config) -> TrackerConfig:
     return TrackerConfig.from_table(cfg["filter"])
 
 
-def secure_subscriber(sock: zmq.Socket, endpoint: str, cfg: Config) -> None:
-    """With ``network.keys``: make ``sock`` a CURVE client of the cameras (before it
-    connects to ``endpoint``) with the key pair ``clients/fusion.key_secret`` of that
-    directory, else ``clients/operator.key_secret`` (``kmea keys add DIR fusion --viewer``:
-    the node only watches the cameras). The cameras must share the key directory's server
-    key. Without keys the inputs are plain TCP (keep them on loopback or a private network).
-    """
-    keys = cfg["network"]["keys"]
-    if not keys:
-        return
-    from pathlib import Path
-
-    from kmea.curve_client import CurveKeyError, apply_client_keys
-
-    name = "fusion" if (Path(keys).expanduser() / "clients" / "fusion.key_secret").exists() \
-        else "operator"
-    try:
-        apply_client_keys(sock, keys, name)
-    except CurveKeyError as e:
-        raise ConfigError(f"network.keys: {e}") from None
-
-
 @dataclass
-class Input:
-    """One camera's telemetry: label (cam0, cam1, ...), endpoint and counters."""
+class Camera:
+    """One camera of the site: its id, state and counters.
+
+    state: ``waiting`` (for its metadata), ``used``, ``refused`` (``reason`` says why),
+    ``silent`` (alive but nothing for the lease), ``gone`` (its token went)."""
 
     label: str
-    endpoint: str
-    sock: zmq.Socket | None = None
+    key: str
+    state: str = "waiting"
+    reason: str | None = None
     received: int = 0
     measurements: int = 0
     bad: int = 0
     dropped_old: int = 0
-    last_wall: float | None = None
+    ignored: int = 0  # measurements while not used (waiting, refused, gone)
+    last_wall: float | None = None  # time.time() of its last sample
+    last_mono: float | None = None  # time.monotonic() of its last sample
     last_t: float | None = None
     delays: deque = field(default_factory=lambda: deque(maxlen=300))  # wall - t, s
     bad_reported: bool = False
+    asked: float = -math.inf  # monotonic time of the last metadata query
+    meta: dict | None = None
 
-    def body(self, now_wall: float) -> dict:
+    def body(self, now_wall: float) -> P.InputState:
         d = sorted(self.delays)
-        return {"label": self.label, "endpoint": self.endpoint, "received": self.received,
+        return {"label": self.label, "key": self.key, "state": self.state,
+                "reason": self.reason, "received": self.received,
                 "measurements": self.measurements, "bad": self.bad,
                 "dropped_old": self.dropped_old,
                 "silent_s": None if self.last_wall is None else now_wall - self.last_wall,
@@ -103,20 +108,20 @@ class Input:
                 "delay_s": d[len(d) // 2] if d else None}
 
 
-def parse_inputs(items: list[str]) -> list[tuple[str, str]]:
-    """``[LABEL=]ENDPOINT`` items -> (label, endpoint); labels default to cam0, cam1, ..."""
-    out = []
-    for i, item in enumerate(items):
-        label, eq, ep = item.partition("=")
-        if not eq or "://" in label:
-            label, ep = f"cam{i}", item
-        if not label.replace("_", "").replace("-", "").isalnum():
-            raise ConfigError(f"--input {item!r}: label must be letters, digits, '_' or '-'")
-        out.append((label, ep))
-    labels = [lb for lb, _ in out]
-    if len(set(labels)) != len(labels):
-        raise ConfigError(f"--input: duplicate labels {labels}")
-    return out
+def check_meta(payload: bytes) -> dict:
+    """A camera's metadata (kmead.zenoh_camera.meta_body), checked; ValueError names what
+    is wrong."""
+    body = safe_loads(payload, MAX_META_BYTES, 4)
+    if not isinstance(body, dict):
+        raise ValueError("metadata: expected a JSON object")
+    for k in ("camera", "map_digest", "map_name", "model", "source"):
+        if not isinstance(body.get(k), str) or len(body[k]) > 256:
+            raise ValueError(f"metadata field {k!r}: expected a string")
+    for k in ("width", "height"):
+        v = body.get(k)
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 < v < 100000:
+            raise ValueError(f"metadata field {k!r}: expected a size in pixels")
+    return body
 
 
 _NUM = (int, float)
@@ -170,92 +175,222 @@ class _NoPipeline:
     algorithm = "fusion"
 
 
+class Election:
+    """Which of the site's fusion nodes speaks to the robots; the node's loop calls it.
+
+    Each node holds one liveliness token ``<site>/fusion/<id>/<role>``: ``id`` its Zenoh
+    session id, ``role`` one of ``starting`` (the first lease after its start: it watches
+    the site for the tokens of nodes already there), ``standby`` or ``active``. The rule,
+    the same in every node, so that nodes that see the same tokens agree:
+
+    - a standby claims the voice when no active token is alive and it has the lowest id of
+      the standbys: a node that starts never takes the voice from a running active one,
+      whatever its id, and never claims before it has watched the site for one lease;
+    - an active node that sees another active one with a lower id steps down to standby
+      (two nodes cut off from each other both claim; when they meet again one voice is
+      left);
+    - an active node that finds it has not run for longer than the lease (the machine or
+      the process was frozen; a standby has taken over meanwhile) steps down before it
+      sends anything, and starts over (one lease of watching).
+    """
+
+    def __init__(self, node_id: str, grace_s: float, now: float) -> None:
+        self.id = node_id
+        self.grace_s = grace_s
+        self.role = "starting"
+        self.since = now  # start of "starting"
+        self.others: dict[str, set[str]] = {}  # node id -> its roles' tokens alive
+
+    def token(self, node_id: str, role: str, alive: bool) -> None:
+        if node_id == self.id:
+            return
+        roles = self.others.setdefault(node_id, set())
+        (roles.add if alive else roles.discard)(role)
+        if not roles:
+            del self.others[node_id]
+
+    def decide(self, now: float, stalled: bool = False) -> str | None:
+        """The new role when it changes, else None."""
+        actives = {n for n, roles in self.others.items() if "active" in roles}
+        if self.role == "active":
+            if stalled:
+                self.role, self.since = "starting", now
+            elif any(n < self.id for n in actives):
+                self.role = "standby"
+            else:
+                return None
+            return self.role
+        if self.role == "starting":
+            if now - self.since < self.grace_s:
+                return None
+            self.role = "standby"
+            return self.role
+        standbys = {n for n, roles in self.others.items() if "standby" in roles}
+        if actives or min([self.id, *standbys]) != self.id:
+            return None
+        self.role = "active"
+        return self.role
+
+
 class FusionNode:
     """The fusion node; :meth:`run` until ``max_outputs`` fused outputs or :meth:`stop`.
 
-    Duck-typed for :class:`kmead.control.ControlServer` (``cfg``, ``lock``, ``publish``,
-    ``status_body``, ``tick``, ``event`` and the command methods).
+    Serves :class:`kmead.control.ControlServer` as a daemon does (it satisfies its
+    :class:`kmead.control.Host` protocol).
     """
 
-    def __init__(self, cfg: Config, inputs: list[tuple[str, str]],
-                 max_outputs: int | None = None, context: zmq.Context | None = None) -> None:
-        if not inputs:
-            raise ConfigError("fusion: no input; give --input ENDPOINT (a camera daemon's "
-                              "telemetry) at least once, or fusion.inputs")
+    def __init__(self, cfg: Config, max_outputs: int | None = None,
+                 context: zmq.Context | None = None, session: Any = None) -> None:
         self.cfg = cfg
         self.max_outputs = max_outputs
         self.lock = threading.RLock()
         self.stop_event = threading.Event()
         self.t0 = time.time()
-        self.curve = None
+        self.curve: CurveServer | None = None
+        self.control: Any = None
+        self.telemetry: Telemetry | None = None
+        self.relay: Relay | None = None
+        self.csv: CsvLog | None = None
+        self.session: Any = None
+        self.zenoh_out: Any = None  # kmead.zenoh_output.ZenohOutput while active
+        self._subs: list[Any] = []
+        self._token: Any = None
+        self._log_handler: TelemetryLogHandler | None = None
+        self._own_ctx: zmq.Context | None = None
         self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
+        self.guard = None  # no change on trial: nothing of a camera to roll back
         net = cfg["network"]
+        self.z = {**cfg["zenoh"], "enabled": True}  # the node lives on Zenoh
         try:
             warnings = network_exposure(cfg)
+            from kmead.plan import zenoh_plan
+
+            warnings += zenoh_plan(cfg, self.z)
         except StartupError as e:
             raise ConfigError(str(e)) from None
         for w in warnings:
             log.warning("%s", w)
+        self.lease_s = float(self.z["lease_s"])
+        self.site = self.z["site"]
         # A keyed node has its own context: one ZAP handler per context (kmead.keys).
         self._own_ctx = zmq.Context() if net["keys"] else None
         self.ctx = self._own_ctx or context or zmq.Context.instance()
-        if net["keys"]:
-            try:
-                self.curve = CurveServer(self.ctx, net["keys"])
-            except KeysError as e:
-                self.close()
-                raise ConfigError(str(e)) from None
-        self.data_dir = DataDir(cfg["log"]["dir"])
-        try:  # the floor the robots are on: the UI's map outline (map.file, else built-in)
-            self.world_map = configured_map(cfg, None)
-        except MapError as e:
-            self.close()
-            raise ConfigError(f"map: {e}") from None
-        self.fusion = Fusion(tracker_config(cfg), cfg["fusion"]["max_age_s"])
-        self.names = {r["name"] for r in cfg["robots"]}
-        self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx, curve=self.curve)
-        self._log_handler = TelemetryLogHandler(self.telemetry)
-        logging.getLogger("kmead").addHandler(self._log_handler)
-        logging.getLogger("kmead").addHandler(self.log_ring)
-        self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
-                           cfg["relay"]["stale_repeat_s"], publish=self.publish,
-                           extra_fields=cfg["relay"]["extra_fields"])
-        self.inputs = [Input(label, ep) for label, ep in inputs]
-        for inp in self.inputs:
-            s = self.ctx.socket(zmq.SUB)
-            s.setsockopt(zmq.LINGER, 0)
-            s.setsockopt(zmq.RCVHWM, 10000)
-            s.setsockopt(zmq.MAXMSGSIZE, P.MAX_MESSAGE_BYTES + 4096)
-            s.setsockopt(zmq.RECONNECT_IVL, 100)
-            s.setsockopt(zmq.RECONNECT_IVL_MAX, 1000)
-            secure_subscriber(s, inp.endpoint, cfg)
-            try:
-                s.connect(inp.endpoint)
-            except zmq.ZMQError as e:
-                s.close()
-                self.close()
-                raise ConfigError(f"--input {inp.endpoint!r}: {e}") from None
-            s.setsockopt(zmq.SUBSCRIBE, P.TOPIC_ROBOT_PREFIX.encode())
-            inp.sock = s
-        self.csv: CsvLog | None = None
-        if cfg["log"]["csv"]:
-            self.start_csv(cfg["log"]["csv"])
-        self.outputs = 0
-        self.rejected_events = 0
-        self.latency_ms: deque = deque(maxlen=100000)
-        self._clock_t = -math.inf  # fusion clock at _clock_wall
-        self._clock_wall = time.monotonic()
-        self._last_robots_pub = 0.0
-        self.control = None
-        if cfg["network"]["control"]:
-            from kmead.control import ControlServer
+        try:
+            if net["keys"]:
+                try:
+                    self.curve = CurveServer(self.ctx, net["keys"])
+                except KeysError as e:
+                    raise ConfigError(str(e)) from None
+            self.data_dir = DataDir(cfg["log"]["dir"])
+            try:  # the floor the robots are on: map.file, else the first camera's
+                self.world_map = configured_map(cfg, None)
+            except MapError as e:
+                raise ConfigError(f"map: {e}") from None
+            # Without map.file the node takes the map of the first camera it uses; the
+            # others must have the same.
+            self.map_digest: str | None = map_digest(self.world_map) \
+                if cfg["map"]["file"] else None
+            self.map_name = self.world_map.name if cfg["map"]["file"] else None
+            self.fusion = Fusion(tracker_config(cfg), cfg["fusion"]["max_age_s"])
+            self.names = {r["name"] for r in cfg["robots"]}
+            self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx, curve=self.curve)
+            self._log_handler = TelemetryLogHandler(self.telemetry)
+            logging.getLogger("kmead").addHandler(self._log_handler)
+            logging.getLogger("kmead").addHandler(self.log_ring)
+            self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
+                               cfg["relay"]["stale_repeat_s"], publish=self.publish,
+                               extra_fields=cfg["relay"]["extra_fields"])
+            self.relay.muted = True  # until this node is the active one
+            self.cameras: dict[str, Camera] = {}
+            self.queue: queue.Queue = queue.Queue(QUEUE_MAX)
+            self.overflow = 0  # samples dropped: the loop fell behind by QUEUE_MAX
+            self.foreign = 0  # samples on keys that do not parse (bad camera id, key)
+            if cfg["log"]["csv"]:
+                self.start_csv(cfg["log"]["csv"])
+            self.outputs = 0
+            self.rejected_events = 0
+            self.latency_ms: deque = deque(maxlen=100000)
+            self._clock_t = -math.inf  # fusion clock at _clock_wall
+            self._clock_wall = time.monotonic()
+            self._last_robots_pub = 0.0
+            self._open_zenoh(session)
+            self.election = Election(self.node_id, self.lease_s, time.monotonic())
+            self.role_changes: list[tuple[float, str]] = []  # (time.time(), role)
+            self._declare_role()
+            if cfg["network"]["control"]:
+                from kmead.control import ControlServer
 
-            try:
                 self.control = ControlServer(cfg["network"]["control"], self, self.ctx,
                                              curve=self.curve)
-            except OSError:
-                self.close()
-                raise
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ Zenoh
+    def _open_zenoh(self, session: Any) -> None:
+        from kmead.zenoh_session import open_session
+
+        self._owns_session = session is None
+        self.session = session if session is not None else open_session(self.z)
+        self.node_id = str(self.session.info.zid())
+        q, site = self.queue, self.site
+
+        def on_data(sample: Any) -> None:  # Zenoh's thread: queue it, nothing else
+            try:
+                q.put_nowait(("data", str(sample.key_expr), sample.payload.to_bytes(),
+                              time.perf_counter()))
+            except queue.Full:
+                self.overflow += 1  # (a lost increment under a race is harmless)
+
+        def on_liveliness(kind: str) -> Any:
+            def cb(sample: Any) -> None:
+                alive = str(sample.kind).rsplit(".", 1)[-1] == "PUT"
+                try:
+                    q.put_nowait((kind, str(sample.key_expr), alive, 0.0))
+                except queue.Full:
+                    self.overflow += 1
+            return cb
+
+        live = self.session.liveliness()
+        self._subs = [
+            self.session.declare_subscriber(f"{site}/cam/*/robots/*", on_data),
+            self.session.declare_subscriber(f"{site}/cam/*/frame", on_data),
+            live.declare_subscriber(f"{site}/cam/*", on_liveliness("camera"), history=True),
+            live.declare_subscriber(f"{site}/fusion/*/*", on_liveliness("node"),
+                                    history=True)]
+
+    def _declare_role(self) -> None:
+        """The token of this node's role: the new one first, then the old one goes (a
+        camera watching the site never sees no fusion node while this one runs)."""
+        old = self._token
+        self._token = self.session.liveliness().declare_token(
+            f"{self.site}/fusion/{self.node_id}/{self.election.role}")
+        if old is not None:
+            old.undeclare()
+
+    def _set_role(self, role: str) -> None:
+        """Called in the loop, under the lock, when the election changed this node's role."""
+        assert self.relay is not None
+        self.role_changes.append((time.time(), role))
+        if role == "active":
+            from kmead.zenoh_output import FUSION_NODE_NAME, ZenohOutput
+
+            self.zenoh_out = ZenohOutput.open(self.z, self.session, FUSION_NODE_NAME)
+            self.relay.sink = self.zenoh_out.send
+            self.relay.muted = False
+        elif self.zenoh_out is not None:
+            self.relay.muted = True
+            self.relay.sink = None
+            self.zenoh_out.close()
+            self.zenoh_out = None
+        self._declare_role()
+        text = {"active": "active: this node speaks to the robots",
+                "standby": "standby: another node speaks to the robots, or this one will "
+                           "when none does",
+                "starting": "stepped down (it did not run for longer than the lease); "
+                            "watching the site again"}[role]
+        self.event("warning" if role == "starting" else "info", f"fusion node "
+                   f"{self.node_id[:8]}: {text}")
 
     # ------------------------------------------------------------------ clock
     def clock(self) -> float:
@@ -264,55 +399,188 @@ class FusionNode:
             return -math.inf
         return self._clock_t + (time.monotonic() - self._clock_wall)
 
-    # ------------------------------------------------------------------ messages
-    def handle(self, inp: Input, frames: list[bytes], t_recv: float) -> bool:
-        """One message of one input; True when it produced a fused output."""
-        inp.received += 1
-        now_wall = time.time()
-        inp.last_wall = now_wall
+    # ------------------------------------------------------------------ what arrives
+    def handle(self, kind: str, key: str, value: Any, t_recv: float) -> bool:
+        """One queued item; True when it produced a fused output. Never raises on input."""
+        if kind == "data":
+            return self._sample(key, value, t_recv)
+        parts = key.split("/")
+        if kind == "camera" and len(parts) == 3 and _ID_RE.match(parts[2]):
+            self._camera_token(parts[2], value)
+        elif kind == "node" and len(parts) == 4:
+            self.election.token(parts[2], parts[3], value)
+        elif kind == "meta":
+            self._meta(key, value)
+        return False
+
+    def _camera(self, cam_id: str) -> Camera | None:
+        cam = self.cameras.get(cam_id)
+        if cam is None:
+            if len(self.cameras) >= MAX_CAMERAS:
+                gone = [c for c, v in self.cameras.items() if v.state == "gone"]
+                if not gone:
+                    return None
+                del self.cameras[gone[0]]
+            cam = self.cameras[cam_id] = Camera(cam_id, f"{self.site}/cam/{cam_id}")
+        return cam
+
+    def _camera_token(self, cam_id: str, alive: bool) -> None:
+        cam = self._camera(cam_id)
+        if cam is None:
+            self.foreign += 1
+            return
+        if alive:
+            if cam.state in ("gone", "silent") or cam.meta is None:
+                cam.state, cam.reason = "waiting", None
+                cam.meta = None
+                self._ask(cam)
+        elif cam.state != "gone":
+            was = cam.state
+            cam.state, cam.reason = "gone", "its liveliness token went (stopped, or cut off)"
+            if was == "used":
+                self._drop_sources(cam)
+            self.event("warning", f"camera {cam.label}: gone (its session closed or its "
+                                  "lease ran out): dropped")
+
+    def _ask(self, cam: Camera) -> None:
+        """Ask the camera's metadata; the answer comes back through the queue."""
+        cam.asked = time.monotonic()
+        q = self.queue
+
+        def on_reply(reply: Any) -> None:
+            ok = reply.ok
+            try:
+                q.put_nowait(("meta", cam.label, ok.payload.to_bytes() if ok is not None
+                              else None, 0.0))
+            except queue.Full:
+                self.overflow += 1
+
         try:
-            topic, body = P.decode(frames)
-            if not topic.startswith(P.TOPIC_ROBOT_PREFIX):
+            self.session.get(f"{cam.key}/meta", on_reply, timeout=self.lease_s)
+        except Exception as e:  # a session closing
+            log.debug("zenoh: metadata query of %s failed: %s", cam.label, e)
+
+    def _meta(self, cam_id: str, payload: bytes | None) -> None:
+        cam = self.cameras.get(cam_id)
+        if cam is None or cam.state != "waiting" or payload is None:
+            return
+        try:
+            meta = check_meta(payload)
+        except ValueError as e:
+            self._refuse(cam, f"metadata: {e}")
+            return
+        cam.meta = meta
+        if self.map_digest is None:
+            self.map_digest, self.map_name = meta["map_digest"], meta["map_name"]
+            log.info("map: %s (%s), the first camera's (%s); the other cameras must have the "
+                     "same (or set map.file)", self.map_name, self.map_digest, cam.label)
+        if meta["map_digest"] != self.map_digest:
+            self._refuse(cam, f"its map {meta['map_name']!r} ({meta['map_digest']}) is not "
+                              f"the node's {self.map_name!r} ({self.map_digest})")
+            return
+        cam.state, cam.reason = "used", None
+        cam.last_mono = time.monotonic()  # the data timeout starts now
+        self.event("info", f"camera {cam.label}: used ({meta['width']}x{meta['height']}, "
+                           f"{meta['source']})")
+
+    def _refuse(self, cam: Camera, reason: str) -> None:
+        cam.state, cam.reason = "refused", reason
+        self.event("warning", f"camera {cam.label}: refused: {reason}")
+
+    def _drop_sources(self, cam: Camera) -> None:
+        """A dropped camera no longer counts among the robots' sources."""
+        for seen in self.fusion.seen.values():
+            seen.last.pop(cam.label, None)
+
+    def _sample(self, key: str, payload: bytes, t_recv: float) -> bool:
+        parts = key.split("/")
+        if len(parts) < 4 or not _ID_RE.match(parts[2]):
+            self.foreign += 1
+            return False
+        cam = self._camera(parts[2])
+        if cam is None:
+            self.foreign += 1
+            return False
+        cam.received += 1
+        now_wall, now_mono = time.time(), time.monotonic()
+        cam.last_wall, cam.last_mono = now_wall, now_mono
+        if cam.state == "silent":
+            cam.state, cam.reason = "used", None
+            self.event("info", f"camera {cam.label}: sends again: used")
+        try:
+            body = safe_loads(payload, MAX_SAMPLE_BYTES, 2)
+            if not isinstance(body, dict):
+                raise ValueError("expected a JSON object")
+            if parts[3] == "frame" and len(parts) == 4:
+                t = body.get("t")
+                if isinstance(t, bool) or not isinstance(t, _NUM) or not math.isfinite(t):
+                    raise ValueError(f"frame field 't': expected a finite number, got {t!r}")
                 return False
-            m = measurement_from(inp.label, body, self.names)
-        except ValueError as e:  # ProtocolError is a ValueError
-            inp.bad += 1
-            if not inp.bad_reported:
-                inp.bad_reported = True
-                self.event("warning", f"input {inp.label} ({inp.endpoint}): bad message "
-                                      f"ignored: {e} (further ones are only counted)")
+            if parts[3] != "robots" or len(parts) != 5 or body.get("name") != parts[4]:
+                raise ValueError(f"key {key!r}: not <site>/cam/<id>/robots/<its name>")
+            m = measurement_from(cam.label, body, self.names)
+        except ValueError as e:  # JsonLimitError is a ValueError
+            cam.bad += 1
+            if not cam.bad_reported:
+                cam.bad_reported = True
+                self.event("warning", f"camera {cam.label}: bad message ignored: {e} "
+                                      "(further ones are only counted)")
             return False
         if m is None:
             return False
-        inp.measurements += 1
-        inp.last_t = m.t
-        inp.delays.append(now_wall - m.t)
+        if cam.state != "used":
+            cam.ignored += 1
+            if cam.state == "waiting" and now_mono - cam.asked >= self.lease_s:
+                self._ask(cam)  # the first answer was lost, or the token came late
+            return False
+        cam.measurements += 1
+        cam.last_t = m.t
+        cam.delays.append(now_wall - m.t)
         out = self.fusion.add(m)
         if out is None:
-            inp.dropped_old += 1
+            cam.dropped_old += 1
             return False
         if m.t >= self._clock_t or not math.isfinite(self._clock_t):
             self._clock_t, self._clock_wall = m.t, time.monotonic()
         if out.kind == "rejected":
             self.rejected_events += 1
-            self.event("warning", f"robot {m.name}: measurement of {inp.label} rejected: "
+            self.event("warning", f"robot {m.name}: measurement of {cam.label} rejected: "
                                   f"{out.reason}")
             return False
         if out.kind == "reacquired":
-            self.event("warning", f"robot {m.name}: re-acquired from {inp.label}: {out.reason}")
+            self.event("warning", f"robot {m.name}: re-acquired from {cam.label}: "
+                                  f"{out.reason}")
         self._output(m, t_recv)
         return True
 
+    def _watch_cameras(self, now_mono: float) -> None:
+        """Drop a used camera silent for the lease (alive, but its frame loop is stuck);
+        ask again the metadata of a waiting one."""
+        for cam in self.cameras.values():
+            if cam.state == "used" and cam.last_mono is not None \
+                    and now_mono - cam.last_mono >= self.lease_s:
+                cam.state = "silent"
+                cam.reason = f"nothing for {self.lease_s:g} s (the lease)"
+                self._drop_sources(cam)
+                self.event("warning", f"camera {cam.label}: silent for {self.lease_s:g} s: "
+                                      "dropped")
+            elif cam.state == "waiting" and now_mono - cam.asked >= self.lease_s:
+                self._ask(cam)
+
     def _output(self, m: Measurement, t_recv: float) -> None:
+        assert self.relay is not None
         tr = self.fusion.tracker.tracks[m.name]
-        t_out = tr.t  # the newest measurement time of this robot
+        t_meas = tr.t if tr.t is not None else m.t  # the newest measurement time
+        t_out = t_meas
         if self.cfg["filter"]["predict"]:
             t_out = max(t_out, self.clock())
         st = tr.predict(t_out)
+        if st is None:
+            return
         srcs = self.fusion.sources(m.name, self.cfg["relay"]["stale_after_s"])
-        extra = {"vx": st.vx, "vy": st.vy, "omega": st.omega, "age": st.t - tr.t,
-                 "source": "+".join(srcs), "t_capture": tr.t}
-        self.relay.update(m.name, st.t, st.x, st.y, st.theta, st.sigma, extra)
+        extra = {"vx": st.vx, "vy": st.vy, "omega": st.omega, "age": st.t - t_meas,
+                 "source": "+".join(srcs), "t_capture": t_meas}
+        self.relay.update(m.name, st.t, st.x, st.y, st.theta, st.sigma, extra, cov=st.cov)
         self.outputs += 1
         if self.csv is not None:
             self.csv.write_rows([row(self.outputs, st.t, "fusion", "robot", m.name, st.x, st.y,
@@ -325,6 +593,7 @@ class FusionNode:
 
     # ------------------------------------------------------------------ bodies
     def robots_body(self) -> dict:
+        assert self.relay is not None
         now = self.clock()
         out = []
         for tr in self.relay.tracks.values():
@@ -337,7 +606,7 @@ class FusionNode:
                         "x": tr.x if seen else None, "y": tr.y if seen else None,
                         "theta": tr.theta if seen else None, "sigma": tr.sigma,
                         "valid": seen and not tr.stale,
-                        "age_s": (now - tr.last_seen) if seen else None,
+                        "age_s": (now - tr.last_seen) if tr.last_seen is not None else None,
                         "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
                         "seq": tr.seq, "send_errors": tr.errors,
                         "send_refused": tr.refused, "refused": tr.refused_now(),
@@ -350,13 +619,15 @@ class FusionNode:
 
     def status(self) -> P.StatusBody:
         """The ``status`` body: a daemon's, without camera (zeros) and map (its robots),
-        plus ``inputs`` and ``fusion``."""
+        plus ``inputs`` (the cameras) and ``fusion``."""
         c = self.csv
         now_wall = time.time()
         lat = sorted(self.latency_ms)
+        cams = list(self.cameras.values())
         return {
             "t": now_wall, "uptime": now_wall - self.t0,
-            "source": "fusion: " + ", ".join(f"{i.label}={i.endpoint}" for i in self.inputs),
+            "source": f"fusion on zenoh site {self.site!r}: " + (", ".join(
+                f"{c.label} {c.state}" for c in cams) or "no camera yet"),
             "config_file": self.cfg.user_file or "<default config>",
             "config_files": self.cfg.files, "algorithm": "fusion", "algorithms": ["fusion"],
             "logging": {"active": c is not None, "path": str(c.path) if c else None,
@@ -364,23 +635,26 @@ class FusionNode:
             "recording": {"active": False, "path": None, "frames": 0, "bytes": 0},
             "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
             "map": map_info(self.world_map),
-            "frames": self.outputs, "dropped": sum(i.dropped_old for i in self.inputs),
-            "bad_frames": sum(i.bad for i in self.inputs),
-            "inputs": [i.body(now_wall) for i in self.inputs],
+            "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
+            "bad_frames": sum(i.bad for i in cams),
+            "inputs": [i.body(now_wall) for i in cams],
             "fusion": {"accepted": self.fusion.accepted,
                        "rejected": self.fusion.tracker.counts["rejected"],
                        "reacquired": self.fusion.tracker.counts["reacquired"],
                        "dropped_old": self.fusion.dropped_old,
                        "latency_ms_p50": lat[len(lat) // 2] if lat else None,
                        "latency_ms_p99": lat[min(len(lat) - 1, int(0.99 * len(lat)))]
-                       if lat else None},
-            "telemetry": self.telemetry.bound, "control": self.control.bound
-            if self.control else "",
+                       if lat else None,
+                       "node": self.node_id, "role": self.election.role,
+                       "map_digest": self.map_digest, "overflow": self.overflow},
+            "telemetry": self.telemetry.bound if self.telemetry else "",
+            "control": self.control.bound if self.control else "",
         }
 
     # ------------------------------------------------------------------ daemon interface
     def publish(self, topic: str, body: Mapping[str, Any]) -> None:
-        self.telemetry.publish(topic, body)
+        if self.telemetry is not None:
+            self.telemetry.publish(topic, body)
 
     def event(self, level: str, text: str) -> None:
         getattr(log, "warning" if level == "warning" else level, log.info)(text)
@@ -399,12 +673,15 @@ class FusionNode:
         if not math.isfinite(now):
             return
         with self.lock:
-            for name in self.relay.tick(now):
+            relay = self.relay  # close() sets it to None under the lock
+            if relay is None:
+                return
+            for name in relay.tick(now):
                 self.event("warning", f"robot {name} not seen for "
-                                      f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
+                                      f"{relay.stale_after_s:g} s: stale (valid=0 sent)")
                 self.publish(P.TOPIC_ROBOTS, self.robots_body())
 
-    def start_csv(self, path: str, remote: bool = False) -> CsvLog:
+    def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
         if self.csv is not None:
             self.csv.close()
         if remote:  # over control: a new plain name in the data directory (kmead.files)
@@ -427,58 +704,80 @@ class FusionNode:
         if key not in ("relay.stale_after_s", "relay.stale_repeat_s", "log.level"):
             raise ValueError(f"{key}: not settable on a fusion node (restart it with --set)")
         v = self.cfg.set(key, value, remote=remote)
-        self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
-        self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
+        if self.relay is not None:
+            self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
+            self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
         return v
 
-    def _unsupported(self, *_: Any) -> dict:
-        raise ValueError("not available on a fusion node (no camera)")
+    @staticmethod
+    def _unsupported() -> ValueError:
+        return ValueError("not available on a fusion node (no camera)")
 
-    start_recording = stop_recording = reload_map = save_config = snapshot = _unsupported
+    def start_recording(self, path: str, remote: bool = False, keep: bool = False) -> Any:
+        raise self._unsupported()
+
+    def stop_recording(self) -> dict:
+        raise self._unsupported()
+
+    def reload_map(self) -> Any:
+        raise self._unsupported()
+
+    def save_config(self, path: str | None = None) -> dict:
+        raise self._unsupported()
+
+    def snapshot(self, overlay: bool = False) -> dict:
+        raise self._unsupported()
 
     # ------------------------------------------------------------------ run
     def run(self) -> int:
         if self.control is not None:
             self.control.start()
         self.publish(P.TOPIC_STATUS, self.status())
-        log.info("fusion: %d inputs (%s), telemetry %s", len(self.inputs),
-                 ", ".join(i.endpoint for i in self.inputs), self.telemetry.bound or "off")
-        poller = zmq.Poller()
-        by_sock = {}
-        for inp in self.inputs:
-            poller.register(inp.sock, zmq.POLLIN)
-            by_sock[inp.sock] = inp
-        next_tick = time.monotonic()
-        last_status = time.monotonic()
-        try:
-            while not self.stop_event.is_set() and not self.done():
-                for sock, _ in poller.poll(50):
-                    inp = by_sock[sock]
-                    # Drain what is there, oldest first, then look at the other inputs.
-                    # --frames N is checked before every message: when several are queued
-                    # the Nth output must still be the last one.
-                    for _ in range(1000):
-                        if self.done():
-                            break
-                        try:
-                            frames = sock.recv_multipart(zmq.NOBLOCK)
-                        except zmq.Again:
-                            break
-                        t_recv = time.perf_counter()
-                        with self.lock:
-                            self.handle(inp, frames, t_recv)
-                now = time.monotonic()
-                if now >= next_tick:
-                    next_tick = now + 0.05
-                    self.tick()
-                if self.control is None and now - last_status >= \
-                        self.cfg["network"]["status_period_s"]:
-                    last_status = now
-                    self.publish(P.TOPIC_STATUS, self.status())
-        except zmq.ZMQError as e:
-            if e.errno != zmq.ETERM:
-                raise
+        log.info("fusion node %s on zenoh site %r (lease %g s), telemetry %s",
+                 self.node_id[:8], self.site, self.lease_s,
+                 self.telemetry.bound if self.telemetry else "off")
+        next_tick = last_status = last_loop = time.monotonic()
+        q = self.queue
+        while not self.stop_event.is_set() and not self.done():
+            try:
+                first: tuple | None = q.get(timeout=0.05)
+            except queue.Empty:
+                first = None
+            now = time.monotonic()
+            # The election before anything is sent: a node that did not run for the lease
+            # (frozen) steps down first.
+            stalled = now - last_loop > self.lease_s
+            last_loop = now
+            with self.lock:
+                self._elect(now, stalled)
+                # What is there, oldest first; --frames N is checked before every item: the
+                # Nth output must be the last one.
+                item = first
+                for _ in range(1000):
+                    if item is None or self.done():
+                        break
+                    self.handle(*item)
+                    try:
+                        item = q.get_nowait()
+                    except queue.Empty:
+                        item = None
+            if now >= next_tick:
+                next_tick = now + 0.05
+                with self.lock:
+                    self._elect(now)
+                    self._watch_cameras(now)
+                self.tick()
+            if self.control is None and now - last_status >= \
+                    self.cfg["network"]["status_period_s"]:
+                last_status = now
+                self.publish(P.TOPIC_STATUS, self.status())
         return 0
+
+    def _elect(self, now: float, stalled: bool = False) -> None:
+        role = self.election.decide(now, stalled)
+        while role is not None:
+            self._set_role(role)
+            role = self.election.decide(now)
 
     def done(self) -> bool:
         """True once ``max_outputs`` fused outputs have been made."""
@@ -488,60 +787,68 @@ class FusionNode:
         self.stop_event.set()
 
     def close(self) -> None:
-        if getattr(self, "control", None) is not None:
+        with self.lock:
+            self._close()
+
+    def _close(self) -> None:
+        if self.control is not None:
             self.control.stop()
             self.control = None
-        for inp in getattr(self, "inputs", []):
-            if inp.sock is not None:
-                inp.sock.close(linger=0)
-                inp.sock = None
-        if getattr(self, "csv", None) is not None:
+        if self.csv is not None:
             self.csv.close()
-        if getattr(self, "_log_handler", None) is not None:
+            self.csv = None
+        if self._log_handler is not None:
             logging.getLogger("kmead").removeHandler(self._log_handler)
             self._log_handler = None
-        if getattr(self, "log_ring", None) is not None:
-            logging.getLogger("kmead").removeHandler(self.log_ring)
-        if getattr(self, "relay", None) is not None:
-            try:  # robots must not keep following the last fused pose
+        logging.getLogger("kmead").removeHandler(self.log_ring)
+        if self.relay is not None:
+            try:  # robots must not keep following the last fused pose (active node only)
                 self.relay.shutdown(time.time())
             except Exception:
                 log.exception("relay shutdown")
             self.relay.close()
             self.relay = None
-        if getattr(self, "telemetry", None) is not None:
+        if self.zenoh_out is not None:
+            self.zenoh_out.close()
+            self.zenoh_out = None
+        for entity in (*self._subs, self._token):
+            if entity is not None:
+                with contextlib.suppress(Exception):  # a session already closed
+                    entity.undeclare()
+        self._subs, self._token = [], None
+        if self.session is not None and getattr(self, "_owns_session", False):
+            self.session.close()
+        self.session = None
+        if self.telemetry is not None:
             self.telemetry.close()
             self.telemetry = None
-        if getattr(self, "curve", None) is not None:
+        if self.curve is not None:
             self.curve.stop()
             self.curve = None
-        if getattr(self, "_own_ctx", None) is not None:
+        if self._own_ctx is not None:
             self._own_ctx.term()
             self._own_ctx = None
 
     def summary(self) -> str:
         lat = sorted(self.latency_ms)
         p99 = f"{lat[min(len(lat) - 1, int(0.99 * len(lat)))]:.2f} ms" if lat else "-"
-        per = ", ".join(f"{i.label}: {i.measurements} measurements, {i.bad} bad, "
-                        f"{i.dropped_old} too old" for i in self.inputs)
-        return (f"kmea fuse: {self.outputs} fused outputs; {per}; rejected "
+        per = ", ".join(f"{i.label} ({i.state}): {i.measurements} measurements, {i.bad} bad, "
+                        f"{i.dropped_old} too old" for i in self.cameras.values())
+        return (f"kmea fuse: {self.outputs} fused outputs; {per or 'no camera'}; rejected "
                 f"{self.fusion.tracker.counts['rejected']}, re-acquired "
                 f"{self.fusion.tracker.counts['reacquired']}; added latency p99 {p99}")
 
 
-
 # ---------------------------------------------------------------------------- command line
 def add_arguments(p: Any) -> None:
-    """``kmea fuse`` options (as for kmead, plus --input)."""
-    p.add_argument("--input", metavar="[LABEL=]ENDPOINT", action="append", default=[],
-                   help="a camera daemon's telemetry endpoint (repeat for each camera; "
-                        "labels default to cam0, cam1, ...); adds to fusion.inputs")
+    """``kmea fuse`` options (as for kmead)."""
     p.add_argument("--config", metavar="FILE", help="configuration file overlaid on the default")
     p.add_argument("--set", metavar="SECTION.KEY=VALUE", action="append", default=[],
                    help="override any configuration key; VALUE is TOML (repeatable)")
     p.add_argument("--log", metavar="FILE.csv", help="CSV log of every fused pose (log.csv)")
-    p.add_argument("--map", metavar="FILE", help="the floor's map, drawn by the terminal UI "
-                                                 "(map.file; default: the built-in one)")
+    p.add_argument("--map", metavar="FILE", help="the floor's map: cameras with another are "
+                                                 "refused (map.file; default: the first "
+                                                 "camera's)")
     p.add_argument("--headless", action="store_true", help="no terminal UI")
     p.add_argument("--frames", metavar="N", type=int, help="stop after N fused outputs")
 
@@ -559,19 +866,18 @@ def run(args: Any) -> int:
     try:
         overrides = {k: v for k, v in (("log.csv", args.log), ("map.file", args.map)) if v}
         cfg = load_config(args.config, args.set, overrides or None)
-        inputs = parse_inputs([*cfg["fusion"]["inputs"], *args.input])
-        node = FusionNode(cfg, inputs, max_outputs=args.frames)
+        with stderr_logging(cfg["log"]["level"]):
+            node = FusionNode(cfg, max_outputs=args.frames)
     except ConfigError as e:
         print(f"kmea fuse: configuration error: {e}", file=sys.stderr)
         return 2
+    except StartupError as e:  # Zenoh cannot open its session
+        print(f"kmea fuse: {e}", file=sys.stderr)
+        return e.code
     except OSError as e:
         print(f"kmea fuse: {e}", file=sys.stderr)
         return 1
     with stderr_logging(cfg["log"]["level"]):
-        if cfg["zenoh"]["enabled"]:
-            # Said, not silently ignored: the fused poses go by UDP and ZeroMQ only so far.
-            log.warning("zenoh: [zenoh] is not used by kmea fuse yet; its robots get UDP "
-                        "datagrams (docs/ros2.md)")
         return _serve(node, args)
 
 
@@ -582,7 +888,7 @@ def _serve(node: FusionNode, args: Any) -> int:
 
     from kmead.cli import _run_with_ui
 
-    print(f"kmea fuse: telemetry {node.telemetry.bound or 'off'}, control "
+    print(f"kmea fuse: telemetry {node.telemetry.bound if node.telemetry else 'off'}, control "
           f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
     code = 0

@@ -322,12 +322,13 @@ def network_exposure(cfg: Config) -> list[str]:
     return [warning] if warning else []
 
 
-def zenoh_plan(cfg: Config) -> list[str]:
-    """``[zenoh]``: the extra installed, the exposure rule (:func:`zenoh_exposure`), the
-    certificate files readable, robot names that can be ROS 2 topic tokens. Warnings."""
+def zenoh_plan(cfg: Config, z: dict | None = None) -> list[str]:
+    """``[zenoh]`` (or ``z``, the section as a fusion node uses it): the extra installed,
+    the exposure rule (:func:`zenoh_exposure`), the certificate files readable, robot names
+    that can be ROS 2 topic tokens. Warnings."""
     from kmead.zenoh_settings import ros_token_problem, zenoh_exposure
 
-    z = cfg.data.get("zenoh", {})
+    z = cfg.data.get("zenoh", {}) if z is None else z
     if not z.get("enabled"):
         return []
     try:

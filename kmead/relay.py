@@ -131,6 +131,9 @@ class Relay:
         # called where the telemetry body is, so after all of a frame's datagrams.
         self.sink = sink
         self._stopping = False
+        # muted: nothing goes to the robots (no datagram, no sink message), the telemetry
+        # still does: a fusion node's standby, or a camera while a fusion node speaks.
+        self.muted = False
         self.stale_repeat_s = stale_repeat_s
         self.extra_fields = extra_fields
         self.publish = publish
@@ -195,7 +198,7 @@ class Relay:
             extra = {"sigma": tr.sigma, **tr.extra} if valid else {}
         data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid, extra)
         dests = dict(zip(tr.addrs, tr.destinations, strict=False))
-        for addr in tr.addrs if addrs is None else addrs:
+        for addr in () if self.muted else tr.addrs if addrs is None else addrs:
             s = self._sock(addr) if addr is not None else None
             if s is None:  # a host name that did not resolve at configuration time
                 tr.errors += 1
@@ -215,7 +218,7 @@ class Relay:
             self._publish(tr, t, valid)
 
     def _publish(self, tr: RobotTrack, t: float, valid: bool, sink: bool = True) -> None:
-        if sink and self.sink is not None:
+        if sink and self.sink is not None and not self.muted:
             self.sink(tr, t, valid, self._stopping)
         if self.publish is not None:
             body = {"name": tr.name, "seq": tr.seq, "t": t, "x": tr.x, "y": tr.y,
@@ -251,7 +254,7 @@ class Relay:
         telemetry bodies (the first body wakes the telemetry thread, which would take the
         GIL from the next robot's Zenoh message)."""
         tracks = [self.tracks[n] for n in names]
-        if self.sink is not None:
+        if self.sink is not None and not self.muted:
             for tr in tracks:
                 self.sink(tr, tr.last_seen, True, self._stopping)
         for tr in tracks:

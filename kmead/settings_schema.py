@@ -490,6 +490,15 @@ def site_name(v: Any, where: str, remote: bool = False) -> str:
     return s
 
 
+def camera_id(v: Any, where: str, remote: bool = False) -> str:
+    """This camera's id in ``<site>/cam/<id>``; ``""``: derived (kmead.zenoh_camera)."""
+    s = _str(v, where)
+    if s and not _SITE_RE.match(s):
+        raise ConfigError(f"{where}: \"\" or 1-32 letters, digits, '_' or '-' (the camera's "
+                          f"part of its Zenoh keys), got {_short(s)}")
+    return s
+
+
 def ros_namespace(v: Any, where: str, remote: bool = False) -> str:
     """``""`` (the root) or ``/a/b``: tokens of ROS names, a leading slash, none trailing."""
     s = _str(v, where)
@@ -547,7 +556,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
               "displaced_frames": integer(1, 1000)},
     "relay": {"stale_after_s": number(0.01, 3600, unit=" s"),
               "stale_repeat_s": number(0, 3600, unit=" s"), "extra_fields": _bool},
-    "fusion": {"inputs": _endpoints, "max_age_s": number(1e-3, 3600, unit=" s")},
+    "fusion": {"max_age_s": number(1e-3, 3600, unit=" s")},
     "network": {"telemetry": _endpoint, "control": _endpoint,
                 "status_period_s": number(0.05, 3600, unit=" s"),
                 "keys": _str, "insecure": _bool},
@@ -564,7 +573,7 @@ SCHEMA: dict[str, dict[str, Check]] = {
     # busy Wi-Fi link drops sessions that are alive.
     "zenoh": {"enabled": _bool, "mode": choice("peer", "client"),
               "connect": zenoh_endpoints, "listen": zenoh_endpoints, "multicast": _bool,
-              "site": site_name, "lease_s": number(0.5, 3600, unit=" s"),
+              "site": site_name, "camera": camera_id, "lease_s": number(0.5, 3600, unit=" s"),
               "ros2": _bool, "ros_domain": integer(0, 232), "ros_namespace": ros_namespace,
               "frame_id": frame_id, "dds_bridge": _bool, "robot_pose": _bool,
               "tls_ca": _str, "tls_cert": _str, "tls_key": _str, "insecure": _bool},

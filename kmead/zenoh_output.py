@@ -16,6 +16,13 @@ message a robot gets, after the frame's UDP datagrams went out), per robot:
   its leading slash), no attachment.
 
 A failed put is counted in :attr:`errors` and logged once; the frame loop never sees it.
+
+Threads: the publisher table (:attr:`ZenohOutput.robots`) is filled lazily by :meth:`send`,
+which the relay calls from the frame loop and from the stall watcher (the control thread's
+:meth:`kmead.daemon.Daemon.tick`, robots gone stale while no frame comes), and emptied by
+:meth:`retain` (a live ``robots`` change) and :meth:`close`. Every one of these calls is
+made under the owner's lock (the daemon's, or the fusion node's), so the table has one
+owner at a time and needs no lock of its own; nothing here starts a thread.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from kmead.zenoh_settings import ros_token_problem
 log = logging.getLogger("kmead.zenoh")
 
 NODE_NAME = "kmead"
+FUSION_NODE_NAME = "kmea_fuse"
 POSE_QOS, TF_QOS = wire.Qos(depth=10), wire.Qos(depth=100)
 
 
@@ -76,18 +84,22 @@ class ZenohOutput:
     robots: dict[str, RobotPublishers] = field(default_factory=dict)
     tf: RosPublisher | None = None
     node_token: Any = None
+    node_name: str = NODE_NAME
+    owns_session: bool = True  # close() closes the session (else its owner does)
     sent: int = 0
     errors: int = 0
     _next_entity: int = 1  # 0 is the node's id
     _warned: bool = False
 
     @classmethod
-    def open(cls, z: dict) -> ZenohOutput:
-        out = cls(z, open_session(z))
+    def open(cls, z: dict, session: Any = None, node_name: str = NODE_NAME) -> ZenohOutput:
+        """On a new session, or on ``session`` (its owner closes it)."""
+        out = cls(z, session if session is not None else open_session(z),
+                  node_name=node_name, owns_session=session is None)
         out.zid = str(out.session.info.zid())
         if z["ros2"]:
             out.node_token = out.session.liveliness().declare_token(
-                wire.node_token(z["ros_domain"], out.zid, 0, out._namespace, NODE_NAME))
+                wire.node_token(z["ros_domain"], out.zid, 0, out._namespace, node_name))
             out.tf = out._ros_publisher("/tf", msgs.TF_TYPE, TF_QOS)
         log.info("zenoh: session %s (%s), site %r%s", out.zid, z["mode"], z["site"],
                  f", ROS 2 domain {z['ros_domain']}" if z["ros2"] else "")
@@ -109,7 +121,8 @@ class ZenohOutput:
     def _ros_publisher(self, topic: str, ros_type: str, qos: wire.Qos) -> RosPublisher:
         z, h = self.z, msgs.type_hash(ros_type)
         token_key = wire.publisher_token(z["ros_domain"], self.zid, 0, self._next_entity,
-                                         self._namespace, NODE_NAME, topic, ros_type, h, qos)
+                                         self._namespace, self.node_name, topic, ros_type, h,
+                                         qos)
         self._next_entity += 1
         pub = self._declare(wire.topic_keyexpr(z["ros_domain"], topic, ros_type, h))
         token = self.session.liveliness().declare_token(token_key)
@@ -180,5 +193,6 @@ class ZenohOutput:
             if entity is not None:
                 entity.undeclare()
         self.tf = self.node_token = None
-        self.session.close()
+        if self.owns_session:
+            self.session.close()
         self.session = None

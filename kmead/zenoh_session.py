@@ -4,6 +4,13 @@ Every setting is explicit, none left to Zenoh's defaults where they would expose
 configured: a peer listens only on ``listen`` (Zenoh's own default is every interface, a
 random port), multicast scouting is off unless asked, and TLS endpoints use mutual TLS with
 the configured CA (a peer without a certificate signed by it is refused).
+
+**This machine** (peer mode, no ``connect``, no ``listen``, no multicast): the processes of
+one machine find each other on loopback without an endpoint typed. Each listens on a free
+loopback port and on the shared rendezvous port :data:`RENDEZVOUS` (only the first one
+started gets it; the others retry in the background, so a survivor takes it over) and
+connects to it; Zenoh's gossip then tells every peer the others' ports and the peers form a
+full mesh, which the death of the rendezvous holder does not break.
 """
 
 from __future__ import annotations
@@ -11,6 +18,9 @@ from __future__ import annotations
 import json
 
 from kmead.startup import EXIT_RUNTIME, StartupError
+
+#: The loopback rendezvous of the processes of one machine (Zenoh's own default port).
+RENDEZVOUS = "tcp/127.0.0.1:7447"
 
 INSTALL_HINT = "the zenoh extra is not installed (pip install 'kmea[zenoh]')"
 
@@ -32,9 +42,15 @@ def session_config(z: dict):
         conf.insert_json5(key, json.dumps(value))
 
     put("mode", z["mode"])
-    put("connect/endpoints", list(z["connect"]))
-    if z["mode"] == "peer":
-        put("listen/endpoints", list(z["listen"]))
+    if this_machine(z):
+        put("connect/endpoints", [RENDEZVOUS])
+        put("listen/endpoints", [RENDEZVOUS, "tcp/127.0.0.1:0"])
+        put("listen/exit_on_failure", False)  # the rendezvous port is taken: go on
+        put("listen/timeout_ms", -1)  # and retry it in the background
+    else:
+        put("connect/endpoints", list(z["connect"]))
+        if z["mode"] == "peer":
+            put("listen/endpoints", list(z["listen"]))
     put("scouting/multicast/enabled", bool(z["multicast"]))
     put("transport/link/tx/lease", max(1, round(z["lease_s"] * 1000)))  # ms
     if z["tls_ca"]:
@@ -46,6 +62,12 @@ def session_config(z: dict):
             put(f"transport/link/tls/{side}_private_key", z["tls_key"])
         put("transport/link/tls/enable_mtls", True)
     return conf
+
+
+def this_machine(z: dict) -> bool:
+    """True when ``z`` gives no way to meet another peer: the loopback rendezvous is used."""
+    return (z["mode"] == "peer" and not z["connect"] and not z["listen"]
+            and not z["multicast"])
 
 
 def open_session(z: dict):
