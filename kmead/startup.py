@@ -38,6 +38,11 @@ def source_options(cfg: Config, prefix: str) -> dict[str, Any]:
         opts["max_exposure_ms"] = cfg["camera"]["max_exposure_ms"]
     if prefix in ("images", "video", "camera"):
         opts["gray"] = True  # detection works on grey: convert once at decode time
+    base, _, query = cfg["source"]["spec"].partition("?")
+    if is_paced_sim(cfg) and base in ("sim:wide", "sim:wide-cam1") and "clock=" not in query:
+        # The wide scene's cameras, paced: the robots move on the Unix time, so cameras
+        # started separately (one kmead each) show them at the same place (docs/fusion.md).
+        opts["clock"] = "wall"
     return opts
 
 

@@ -41,6 +41,7 @@ from kmead.zenoh_session import import_zenoh
 log = logging.getLogger("kmead.zenoh")
 
 HEARTBEAT_S = 0.2
+STARTUP_S = 1.0  # s: the start waits at most this long for the fusion nodes' tokens
 _ID_RE = re.compile(r"[^A-Za-z0-9_-]")
 
 
@@ -92,6 +93,14 @@ class ZenohCamera:
         self.beat = self._declare(f"{self.prefix}/frame")
         self.watch = session.liveliness().declare_subscriber(
             f"{site}/fusion/**", self._fusion_change, history=True)
+        # Before the first frame: a fusion node already there mutes this kmead's relay
+        # before it sends anything (the subscriber's history may come a moment later).
+        try:
+            for reply in session.liveliness().get(f"{site}/fusion/**", timeout=STARTUP_S):
+                if reply.ok is not None:
+                    self._fusion_change(reply.ok)
+        except Exception as e:  # a session closing
+            log.debug("zenoh: fusion nodes query failed: %s", e)
         self.token = session.liveliness().declare_token(self.prefix)
         log.info("zenoh: camera %s on site %r (%s/...)", cam_id, site, self.prefix)
 
