@@ -8,7 +8,13 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 from deadlines import JOIN
+
+pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
+                                    "(pip install 'kmea[zenoh]')")
+
+from zenoh_helpers import free_port, zenoh_sets
 
 from kmea.maps import save_map_toml
 from kmea.sim.scenes import get_scene
@@ -33,9 +39,11 @@ async def test_fusion_node_ui_opens_on_robots_and_draws_its_map(tmp_path: Path) 
     save_map_toml(get_scene("wide").effective_map(), wide)
     cfg = load_config(None, ['network.telemetry="tcp://127.0.0.1:*"',
                              'network.control="tcp://127.0.0.1:*"', 'log.level="warning"',
-                             "network.status_period_s=0.5", f'map.file="{wide}"'])
-    # An input nobody publishes on: the node runs, with nothing to fuse.
-    node = FusionNode(cfg, [("cam0", "tcp://127.0.0.1:9")])
+                             "network.status_period_s=0.5", f'map.file="{wide}"',
+                             *zenoh_sets(listen=free_port())])
+    # No camera on its site: the node runs, with nothing to fuse.
+    node = FusionNode(cfg)
+    assert node.telemetry is not None and node.control is not None
     tn = threading.Thread(target=node.run, daemon=True)
     tn.start()
     app = KmeaTui(DaemonClient(node.telemetry.bound, node.control.bound, timeout=2.0),
@@ -67,8 +75,9 @@ async def test_fusion_node_ui_opens_on_robots_and_draws_its_map(tmp_path: Path) 
 
 
 def test_fusion_node_status_names_its_map(tmp_path: Path) -> None:
-    cfg = load_config(None, ['network.telemetry="tcp://127.0.0.1:*"', 'network.control=""'])
-    node = FusionNode(cfg, [("cam0", "tcp://127.0.0.1:9")])
+    cfg = load_config(None, ['network.telemetry="tcp://127.0.0.1:*"', 'network.control=""',
+                             *zenoh_sets(listen=free_port())])
+    node = FusionNode(cfg)
     try:
         m = node.status()["map"]
         assert m["name"] == "RobotAtFactory 4.0" and m["n"] == 49

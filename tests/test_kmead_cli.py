@@ -7,10 +7,9 @@ import logging
 import sys
 import threading
 
-import zmq
+import pytest
 from deadlines import JOIN
 
-from kmea import protocol as P
 from kmead import cli
 from kmead.kmea_cli import main as kmea_main
 
@@ -54,28 +53,33 @@ def test_in_process_kmead_leaves_no_log_handler_behind(capsys) -> None:
 
 
 def test_in_process_fusion_node_leaves_no_log_handler_behind(capsys) -> None:
-    ctx = zmq.Context.instance()
-    pub = ctx.socket(zmq.PUB)
-    ep = f"tcp://127.0.0.1:{pub.bind_to_random_port('tcp://127.0.0.1')}"
+    pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
+    from zenoh_helpers import FakeCamera, free_port, meta
+
+    port = free_port()
     done = threading.Event()
 
-    def camera() -> None:  # a camera daemon's robot messages until the node has its one
+    def camera() -> None:  # a camera's measurements until the node has its one
+        cam = FakeCamera(port, "cam0", meta("cam0", "d" * 16))
         k = 0
-        while not done.wait(0.05):
-            pub.send_multipart(P.encode("robot.amr1", {
-                "name": "amr1", "seq": k, "valid": True, "t": 100.0 + 0.1 * k,
-                "x": 0.5, "y": 0.3, "theta": 0.0, "sigma": 0.002}))
-            k += 1
+        try:
+            while not done.wait(0.05):
+                cam.measurement("amr1", 100.0 + 0.1 * k, 0.5, 0.3)
+                cam.put("frame", {"t": 100.0 + 0.1 * k, "frames": k})
+                k += 1
+        finally:
+            cam.close()
 
     before = _state()
     t = threading.Thread(target=camera, daemon=True)
     t.start()
     try:
-        assert kmea_main(["fuse", "--input", ep, "--headless", "--frames", "1", *NET]) == 0
+        assert kmea_main(["fuse", "--headless", "--frames", "1", *NET, "--set",
+                          "zenoh.lease_s=0.5", "--set",
+                          f'zenoh.listen=["tcp/127.0.0.1:{port}"]']) == 0
     finally:
         done.set()
         t.join(timeout=JOIN)
-        pub.close(linger=0)
     assert "kmea fuse: 1 fused outputs" in capsys.readouterr().out
     assert _state() == before
     assert _later_daemon_logs(capsys) == ""

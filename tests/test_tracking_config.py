@@ -66,8 +66,7 @@ def test_bad_value_in_a_config_file_names_file_and_key(tmp_path: Path,
 
 
 def test_bad_value_for_the_fusion_node_names_the_key(capsys: pytest.CaptureFixture) -> None:
-    assert kmea_main(["fuse", "--input", "tcp://127.0.0.1:1", "--set",
-                      "filter.step_k=0", "--headless", *OFF]) == 2
+    assert kmea_main(["fuse", "--set", "filter.step_k=0", "--headless", *OFF]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "filter.step_k" in err, err
 
