@@ -1,10 +1,12 @@
 """``kmea bench fusion-node``: what one fusion node carries, and the latency it adds.
 
-The node runs as it would in the field (``kmea fuse --headless`` in its own process).
-This process plays C cameras (ZeroMQ PUB sockets sending ``robot.NAME`` messages for R
-robots each at ``fps``, capture time = the Unix time of sending) and the robots (one UDP
-listener). Latency = UDP arrival - the measurement's time: the ZeroMQ hop, the fusion and
-the UDP hop, i.e. what fusion adds between a camera's daemon and a robot. CPU = the node
+The node runs as it would in the field (``kmea fuse --headless`` in its own process, a Zenoh
+peer listening on a loopback port). This process plays C cameras (one Zenoh session each,
+with the camera's liveliness token and metadata, sending measurements of R robots each at
+``fps`` on ``<site>/cam/<id>/robots/<robot>``, capture time = the Unix time of sending) and
+the robots (one UDP listener). Latency = UDP arrival - the measurement's time: the Zenoh
+hop, the fusion and the UDP hop, i.e. what fusion adds between a camera's daemon and a
+robot. CPU = the node
 process's user + system time over the wall time (100 % = one core). Loads stay within the
 configuration's MAX_ROBOTS robots per node; beyond the node's capacity by a faster rate.
 """
@@ -21,9 +23,6 @@ import threading
 import time
 from pathlib import Path
 
-import zmq
-
-from kmea import protocol as P
 from kmead.relay import parse_datagram
 from kmead.settings_schema import MAX_ROBOTS
 
@@ -35,13 +34,27 @@ def _cpu_s(pid: int) -> float:
 
 
 def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
-    ctx = zmq.Context.instance()
-    pubs, eps = [], []
-    for _ in range(cameras):
-        s = ctx.socket(zmq.XPUB)  # a PUB that also hears the node subscribe
-        s.setsockopt(zmq.SNDHWM, 100000)
-        eps.append(f"tcp://127.0.0.1:{s.bind_to_random_port('tcp://127.0.0.1')}")
-        pubs.append(s)
+    import zenoh
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        zport = probe.getsockname()[1]
+    meta = json.dumps({"camera": "c", "map_digest": "bench", "map_name": "bench",
+                       "model": "bench", "width": 640, "height": 480, "fx": 500.0,
+                       "fy": 500.0, "source": "bench"}).encode()
+    sessions, pubs = [], []
+    for c in range(cameras):
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+        conf.insert_json5("listen/endpoints", "[]")
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        z = zenoh.open(conf)
+        prefix = f"kmea/cam/c{c}"
+        z.declare_queryable(f"{prefix}/meta", lambda q, k=prefix: q.reply(f"{k}/meta", meta))
+        z.liveliness().declare_token(prefix)
+        sessions.append(z)
+        pubs.append([z.declare_publisher(f"{prefix}/robots/r{c}_{k}") for k in range(robots)])
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
     udp.bind(("127.0.0.1", 0))
@@ -56,10 +69,12 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         proc = subprocess.Popen(
             [sys.executable, "-m", "kmead.fusion", "--config", str(cfg), "--headless",
              "--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""',
-             "--set", 'log.level="error"', *(a for e in eps for a in ("--input", e))],
+             "--set", 'log.level="error"', "--set", "zenoh.lease_s=0.5",
+             "--set", "zenoh.ros2=false", "--set", f'zenoh.listen=["tcp/127.0.0.1:{zport}"]'],
             stdout=subprocess.DEVNULL, stderr=err)
         lat: list[float] = []
         got = [0]
+        heard: set[str] = set()
         stop = threading.Event()
 
         def listen() -> None:
@@ -70,6 +85,7 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
                     continue
                 now = time.time()
                 m = parse_datagram(data)
+                heard.add(m["name"])
                 if m["valid"]:
                     got[0] += 1
                     lat.append(now - m["t"])
@@ -77,21 +93,26 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         th = threading.Thread(target=listen, daemon=True)
         th.start()
         try:
-            # Measure from the node's subscription on every input: a fixed start-up wait
-            # is too short on a loaded machine, and every message before it is lost.
+            # Measure once every camera's robots reach the UDP listener (the node found
+            # the cameras, took their metadata and is active): a fixed start-up wait is
+            # too short on a loaded machine, and every message before it is lost.
             deadline = time.monotonic() + 60.0
-            for s in pubs:
-                while not s.poll(100):
-                    if proc.poll() is not None:
-                        # A node that did not start (e.g. a configuration it refuses) would
-                        # show as every message lost: say why instead.
-                        err.seek(0)
-                        lines = err.read().strip().splitlines() or ["(no output)"]
-                        raise RuntimeError(f"the fusion node exited with {proc.returncode}: "
-                                           f"{lines[-1]}")
-                    if time.monotonic() > deadline:
-                        raise RuntimeError("the fusion node did not subscribe within 60 s")
-                s.recv()
+            first = {f"r{c}_0" for c in range(cameras)}
+            while not first <= heard:
+                if proc.poll() is not None:
+                    # A node that did not start (e.g. a configuration it refuses) would
+                    # show as every message lost: say why instead.
+                    err.seek(0)
+                    lines = err.read().strip().splitlines() or ["(no output)"]
+                    raise RuntimeError(f"the fusion node exited with {proc.returncode}: "
+                                       f"{lines[-1]}")
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the fusion node relayed nothing within 60 s")
+                for c, ps in enumerate(pubs):
+                    ps[0].put(json.dumps({"name": f"r{c}_0", "valid": True, "t": time.time(),
+                                          "x": 0.0, "y": 0.1 * c, "theta": 0.0,
+                                          "sigma": 0.002}).encode())
+                time.sleep(0.05)
             period = 1.0 / fps
             cpu0, w0 = _cpu_s(proc.pid), time.monotonic()
             sent = 0
@@ -101,13 +122,12 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
             next_t = time.monotonic()
             while time.monotonic() - w0 < seconds:
                 t = time.time()
-                for c, s in enumerate(pubs):
+                for c, ps in enumerate(pubs):
                     for r in range(robots):
                         n = names[c * robots + r]
-                        body = {"name": n, "seq": k, "t": t, "x": 0.001 * k * 0.03 + r,
-                                "y": 0.1 * c, "theta": 0.0, "valid": True, "sigma": 0.002}
-                        s.send_multipart([f"robot.{n}".encode(), json.dumps(
-                            {"v": P.PROTOCOL_VERSION, **body}).encode()])
+                        ps[r].put(json.dumps({
+                            "name": n, "valid": True, "t": t, "x": 0.001 * k * 0.03 + r,
+                            "y": 0.1 * c, "theta": 0.0, "sigma": 0.002}).encode())
                         sent += 1
                 k += 1
                 next_t += period
@@ -123,8 +143,8 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
             proc.wait(timeout=10)
             th.join(timeout=2)
             udp.close()
-            for s in pubs:
-                s.close(linger=0)
+            for z in sessions:
+                z.close()
     lat.sort()
     return {"sent_per_s": sent / wall, "fused_per_s": got[0] / wall, "cpu": cpu,
             "p50": lat[len(lat) // 2] * 1e3 if lat else float("nan"),
