@@ -18,7 +18,8 @@ fusion, ``refs`` the number of cameras).
 
 Everything received over Zenoh is hostile: a key or payload that does not decode, a missing
 or non-finite field is counted and reported once per camera, never raised. Zenoh's callbacks
-only queue what arrives (bounded); the node's loop owns every piece of state.
+only queue what arrives (bounded; the measurements wait in Zenoh's ring buffers); the node's
+loop owns every piece of state.
 
 Time: the fusion clock is the newest measurement time, advanced by the wall clock between
 measurements (so it works on the Pis' Unix time and on simulated time); robots go stale on
@@ -64,7 +65,8 @@ __all__ = ["Camera", "Election", "FusionNode", "tracker_config"]
 MAX_CAMERAS = 64  # cameras known at once (gone ones make room first)
 MAX_SAMPLE_BYTES = 1024  # a measurement or heartbeat; larger ones are bad
 MAX_META_BYTES = 4096
-QUEUE_MAX = 20000  # samples waiting for the loop; beyond, they are counted and dropped
+QUEUE_MAX = 20000  # samples waiting for the loop; beyond, the oldest are dropped
+POLL_S = 0.001  # s: the loop's sleep when nothing came
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
 
@@ -254,6 +256,7 @@ class FusionNode:
         self.session: Any = None
         self.zenoh_out: Any = None  # kmead.zenoh_output.ZenohOutput while active
         self._subs: list[Any] = []
+        self._data: list[Any] = []  # the data subscribers (ring channels)
         self._token: Any = None
         self._log_handler: TelemetryLogHandler | None = None
         self._own_ctx: zmq.Context | None = None
@@ -303,7 +306,7 @@ class FusionNode:
             self.relay.muted = True  # until this node is the active one
             self.cameras: dict[str, Camera] = {}
             self.queue: queue.Queue = queue.Queue(QUEUE_MAX)
-            self.overflow = 0  # samples dropped: the loop fell behind by QUEUE_MAX
+            self.overflow = 0  # events dropped: the loop fell behind by QUEUE_MAX
             self.foreign = 0  # samples on keys that do not parse (bad camera id, key)
             if cfg["log"]["csv"]:
                 self.start_csv(cfg["log"]["csv"])
@@ -334,13 +337,9 @@ class FusionNode:
         self.session = session if session is not None else open_session(self.z)
         self.node_id = str(self.session.info.zid())
         q, site = self.queue, self.site
+        from kmead.zenoh_session import import_zenoh
 
-        def on_data(sample: Any) -> None:  # Zenoh's thread: queue it, nothing else
-            try:
-                q.put_nowait(("data", str(sample.key_expr), sample.payload.to_bytes(),
-                              time.perf_counter()))
-            except queue.Full:
-                self.overflow += 1  # (a lost increment under a race is harmless)
+        ring = import_zenoh().handlers.RingChannel
 
         def on_liveliness(kind: str) -> Any:
             def cb(sample: Any) -> None:
@@ -352,9 +351,14 @@ class FusionNode:
             return cb
 
         live = self.session.liveliness()
+        # The measurements wait in Zenoh's own ring buffers (no Python on Zenoh's threads
+        # per sample: that cost a third of the node's capacity); when the loop falls behind
+        # by QUEUE_MAX the oldest go.
+        self._data = [
+            self.session.declare_subscriber(f"{site}/cam/*/robots/*", ring(QUEUE_MAX)),
+            self.session.declare_subscriber(f"{site}/cam/*/frame", ring(QUEUE_MAX))]
         self._subs = [
-            self.session.declare_subscriber(f"{site}/cam/*/robots/*", on_data),
-            self.session.declare_subscriber(f"{site}/cam/*/frame", on_data),
+            *self._data,
             live.declare_subscriber(f"{site}/cam/*", on_liveliness("camera"), history=True),
             live.declare_subscriber(f"{site}/fusion/*/*", on_liveliness("node"),
                                     history=True)]
@@ -737,12 +741,7 @@ class FusionNode:
                  self.node_id[:8], self.site, self.lease_s,
                  self.telemetry.bound if self.telemetry else "off")
         next_tick = last_status = last_loop = time.monotonic()
-        q = self.queue
         while not self.stop_event.is_set() and not self.done():
-            try:
-                first: tuple | None = q.get(timeout=0.05)
-            except queue.Empty:
-                first = None
             now = time.monotonic()
             # The election before anything is sent: a node that did not run for the lease
             # (frozen) steps down first.
@@ -750,17 +749,9 @@ class FusionNode:
             last_loop = now
             with self.lock:
                 self._elect(now, stalled)
-                # What is there, oldest first; --frames N is checked before every item: the
-                # Nth output must be the last one.
-                item = first
-                for _ in range(1000):
-                    if item is None or self.done():
-                        break
-                    self.handle(*item)
-                    try:
-                        item = q.get_nowait()
-                    except queue.Empty:
-                        item = None
+                n = self._pump()
+            if not n:
+                time.sleep(POLL_S)
             if now >= next_tick:
                 next_tick = now + 0.05
                 with self.lock:
@@ -772,6 +763,28 @@ class FusionNode:
                 last_status = now
                 self.publish(P.TOPIC_STATUS, self.status())
         return 0
+
+    def _pump(self, limit: int = 1000) -> int:
+        """Handle what is there, oldest first: the queued events (cameras, nodes,
+        metadata), then up to ``limit`` samples; ``--frames N`` is checked before each
+        (the Nth output must be the last one). Returns how many were handled."""
+        n = 0
+        while n < limit and not self.done():
+            try:
+                item = self.queue.get_nowait()
+            except queue.Empty:
+                break
+            self.handle(*item)
+            n += 1
+        for sub in self._data:
+            while n < limit and not self.done():
+                sample = sub.try_recv()
+                if sample is None:
+                    break
+                self.handle("data", str(sample.key_expr), sample.payload.to_bytes(),
+                            time.perf_counter())
+                n += 1
+        return n
 
     def _elect(self, now: float, stalled: bool = False) -> None:
         role = self.election.decide(now, stalled)
