@@ -14,8 +14,9 @@ a UDP listener here.
   telemetry ``log`` topic). Killed: the token goes with the TCP connection. Frozen (the
   process stopped): its Zenoh lease runs out (``zenoh.lease_s``). Stuck (the process and
   its session alive, its frame loop not): the node's data timeout, the lease too.
-- Failover: two nodes, the camera, the robot. The active node is killed (SIGKILL), later
-  the new active one is frozen (SIGSTOP, then SIGCONT after 3 leases). Failover time: from
+- Failover: two nodes, the camera, the robot. The active node is killed (SIGKILL) and
+  restarted (a standby now); then the new active one is frozen (SIGSTOP, then SIGCONT after
+  3 leases). Failover time: from
   the signal to the first datagram from the other node; the largest gap: between two
   datagrams the robot got, over the whole run; voices: the datagrams that came from a node
   while the other one was speaking (a second voice; 0 expected).
@@ -53,15 +54,18 @@ def camera_main(port: int, cam_id: str) -> None:
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("listen/endpoints", "[]")
+    # A port of its own too: the nodes' gossip tells each other where it is, so the
+    # camera stays connected to a standby node when the node it connected to dies.
+    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     conf.insert_json5("scouting/multicast/enabled", "false")
     z = zenoh.open(conf)
     prefix = f"{SITE}/cam/{cam_id}"
     meta = json.dumps({"camera": cam_id, "map_digest": "bench", "map_name": "bench",
                        "model": "bench", "width": 640, "height": 480, "fx": 500.0,
                        "fy": 500.0, "source": "bench"}).encode()
-    z.declare_queryable(f"{prefix}/meta", lambda q: q.reply(f"{prefix}/meta", meta))
-    z.liveliness().declare_token(prefix)
+    # (kept: a token or queryable dropped is undeclared)
+    kept = (z.declare_queryable(f"{prefix}/meta", lambda q: q.reply(f"{prefix}/meta", meta)),
+            z.liveliness().declare_token(prefix))
     pub = z.declare_publisher(f"{prefix}/robots/amr1")
     beat = z.declare_publisher(f"{prefix}/frame")
     stuck = threading.Event()
@@ -75,44 +79,48 @@ def camera_main(port: int, cam_id: str) -> None:
             beat.put(json.dumps({"t": t, "frames": k}).encode())
             k += 1
         time.sleep(1 / 30)
+    del kept
 
 
 class Node:
-    """``kmea fuse --headless`` in its own process; its stderr in a file, its telemetry's
-    log lines (with their arrival time here) in :attr:`lines`."""
+    """``kmea fuse --headless`` in its own process; its stderr lines (with the time this
+    process read them, every 5 ms) in :attr:`lines`."""
 
     def __init__(self, tmp: Path, name: str, lease: float, zport: int, listen: bool,
                  udp_port: int) -> None:
-        import zmq
-
-        self.tel = _free_port()
         self.err = open(tmp / f"{name}.err", "w+")  # noqa: SIM115 (closed in stop())
+        # The first node listens on zport, the others on a port of their own and connect to
+        # it (then Zenoh's gossip meshes every peer: a node's death leaves the rest joined).
         zset = f'zenoh.listen=["tcp/127.0.0.1:{zport}"]' if listen \
-            else f'zenoh.connect=["tcp/127.0.0.1:{zport}"]'
+            else f'zenoh.listen=["tcp/127.0.0.1:{_free_port()}"]'
+        zcon = [] if listen else ["--set", f'zenoh.connect=["tcp/127.0.0.1:{zport}"]']
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "kmead.fusion", "--headless",
-             "--set", f'network.telemetry="tcp://127.0.0.1:{self.tel}"',
+             "--set", 'network.telemetry=""',
              "--set", 'network.control=""', "--set", 'log.level="info"',
-             "--set", f"zenoh.lease_s={lease}", "--set", "zenoh.ros2=false", "--set", zset,
+             "--set", f"zenoh.lease_s={lease}", "--set", "zenoh.ros2=false", "--set", zset, *zcon,
              "--set", "relay.stale_after_s=5.0",
              "--set", f'robots=[{{name="amr1", markers=[40, 41], height=0.2, '
                       f'destinations=["udp:127.0.0.1:{udp_port}"]}}]'],
             stdout=subprocess.DEVNULL, stderr=self.err, cwd=tmp,
             env=dict(os.environ, PYTHONPATH=str(ROOT)))
         self.lines: list[tuple[float, str]] = []
-        self.sub = zmq.Context.instance().socket(zmq.SUB)
-        self.sub.connect(f"tcp://127.0.0.1:{self.tel}")
-        self.sub.setsockopt(zmq.SUBSCRIBE, b"log")
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._read, daemon=True)
         self.thread.start()
 
     def _read(self) -> None:
-        while not self._stop.is_set():
-            if self.sub.poll(100):
-                frames = self.sub.recv_multipart()
-                body = json.loads(frames[-1])
-                self.lines.append((time.time(), body.get("text", "")))
+        with open(self.err.name) as f:
+            buf = ""
+            while not self._stop.is_set():
+                chunk = f.read()
+                if not chunk:
+                    time.sleep(0.005)
+                    continue
+                buf += chunk
+                *done, buf = buf.split("\n")
+                now = time.time()
+                self.lines.extend((now, line) for line in done)
 
     def wait_for(self, text: str, after: float = 0.0, timeout: float = 60.0) -> float:
         end = time.monotonic() + timeout
@@ -133,7 +141,6 @@ class Node:
             self.proc.terminate()
         self.proc.wait(timeout=30)
         self.thread.join(timeout=5)
-        self.sub.close(linger=0)
         self.err.close()
 
 
@@ -163,7 +170,8 @@ def drops(lease: float) -> None:
                 cam.send_signal(sig)
                 t1 = node.wait_for(f"camera {cam_id}: " + ("" if expect == ": " else expect),
                                    after=t0)
-                line = next(text for t, text in node.lines if t == t1)
+                line = next(text for t, text in node.lines
+                            if t == t1 and f"camera {cam_id}" in text)
                 print(f"  {how:44s} {(t1 - t0) * 1e3:7.0f} ms   ({line})", flush=True)
         finally:
             for cam in cams:
@@ -205,11 +213,12 @@ def failover(lease: float) -> None:
             t0 = time.time()
             a.proc.send_signal(signal.SIGKILL)
             b.wait_for("active: this node speaks", after=t0)
+            a2 = Node(Path(tmp), "a2", lease, zport, True, udp.getsockname()[1])
+            nodes.append(a2)  # restarted: a standby now, it must not take the voice
+            a2.wait_for("standby:")
             time.sleep(2.0)
             t1 = time.time()
-            b.proc.send_signal(signal.SIGSTOP)  # frozen: the next node must take over
-            a2 = Node(Path(tmp), "a2", lease, zport, True, udp.getsockname()[1])
-            nodes.append(a2)
+            b.proc.send_signal(signal.SIGSTOP)  # frozen: the other node must take over
             a2.wait_for("active: this node speaks", after=t1)
             time.sleep(3 * lease)
             t2 = time.time()
@@ -238,7 +247,7 @@ def failover(lease: float) -> None:
     gaps = [(valid[i + 1][0] - valid[i][0], valid[i][0]) for i in range(len(valid) - 1)]
     print(f"  active killed (SIGKILL): the standby spoke after "
           f"{first_from_other(t0, port_a) * 1e3:.0f} ms")
-    print("  active frozen (SIGSTOP; a node restarted meanwhile, standby then): the other "
+    print("  active frozen (SIGSTOP), the killed node restarted as standby meanwhile: it "
           f"spoke after {first_from_other(t1, port_b) * 1e3:.0f} ms")
     late_b = sum(1 for t, p in valid if t > t2 and p == port_b)
     print(f"  the frozen node resumed (SIGCONT): {late_b} datagrams from it afterwards "

@@ -42,7 +42,7 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
     meta = json.dumps({"camera": "c", "map_digest": "bench", "map_name": "bench",
                        "model": "bench", "width": 640, "height": 480, "fx": 500.0,
                        "fy": 500.0, "source": "bench"}).encode()
-    sessions, pubs = [], []
+    sessions, pubs, kept = [], [], []
     for c in range(cameras):
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
@@ -51,8 +51,10 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         conf.insert_json5("scouting/multicast/enabled", "false")
         z = zenoh.open(conf)
         prefix = f"kmea/cam/c{c}"
-        z.declare_queryable(f"{prefix}/meta", lambda q, k=prefix: q.reply(f"{k}/meta", meta))
-        z.liveliness().declare_token(prefix)
+        # (kept: a token or queryable dropped is undeclared)
+        kept.append((z.declare_queryable(f"{prefix}/meta",
+                                         lambda q, k=prefix: q.reply(f"{k}/meta", meta)),
+                     z.liveliness().declare_token(prefix)))
         sessions.append(z)
         pubs.append([z.declare_publisher(f"{prefix}/robots/r{c}_{k}") for k in range(robots)])
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
