@@ -181,19 +181,20 @@ class Election:
     """Which of the site's fusion nodes speaks to the robots; the node's loop calls it.
 
     Each node holds one liveliness token ``<site>/fusion/<id>/<role>``: ``id`` its Zenoh
-    session id, ``role`` one of ``starting`` (the first lease after its start: it watches
-    the site for the tokens of nodes already there), ``standby`` or ``active``. The rule,
+    session id, ``role`` one of ``starting`` (the first ``grace_s`` after its start, two
+    leases: it watches the site for the tokens of nodes already there; the peers retry a
+    lost connection every half lease, kmead.zenoh_session), ``standby`` or ``active``. The rule,
     the same in every node, so that nodes that see the same tokens agree:
 
     - a standby claims the voice when no active token is alive and it has the lowest id of
       the standbys: a node that starts never takes the voice from a running active one,
-      whatever its id, and never claims before it has watched the site for one lease;
+      whatever its id, and never claims before it has watched the site for ``grace_s``;
     - an active node that sees another active one with a lower id steps down to standby
       (two nodes cut off from each other both claim; when they meet again one voice is
       left);
     - an active node that finds it has not run for longer than the lease (the machine or
       the process was frozen; a standby has taken over meanwhile) steps down before it
-      sends anything, and starts over (one lease of watching).
+      sends anything, and starts over (``grace_s`` of watching).
     """
 
     def __init__(self, node_id: str, grace_s: float, now: float) -> None:
@@ -317,7 +318,7 @@ class FusionNode:
             self._clock_wall = time.monotonic()
             self._last_robots_pub = 0.0
             self._open_zenoh(session)
-            self.election = Election(self.node_id, self.lease_s, time.monotonic())
+            self.election = Election(self.node_id, 2 * self.lease_s, time.monotonic())
             self.role_changes: list[tuple[float, str]] = []  # (time.time(), role)
             self._declare_role()
             if cfg["network"]["control"]:

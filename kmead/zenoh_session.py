@@ -52,7 +52,17 @@ def session_config(z: dict):
         if z["mode"] == "peer":
             put("listen/endpoints", list(z["listen"]))
     put("scouting/multicast/enabled", bool(z["multicast"]))
-    put("transport/link/tx/lease", max(1, round(z["lease_s"] * 1000)))  # ms
+    lease_ms = max(1, round(z["lease_s"] * 1000))
+    # Zenoh declares a link dead when nothing came for its lease, and looks every quarter
+    # of it: three quarters of lease_s find a silent peer gone within lease_s (a frozen
+    # fusion node's standby takes over, a frozen camera is dropped, within the lease).
+    put("transport/link/tx/lease", max(1, lease_ms * 3 // 4))
+    # A lost connection is retried every half lease at most (Zenoh's default backs off to
+    # 4 s): a fusion node that restarts on the port the others connect to is found within
+    # its first two leases, before it may claim the robots (kmead.fusion.Election).
+    retry_ms = max(100, lease_ms // 2)
+    put("connect/retry", {"period_init_ms": min(1000, retry_ms), "period_max_ms": retry_ms,
+                          "period_increase_factor": 2})
     if z["tls_ca"]:
         put("transport/link/tls/root_ca_certificate", z["tls_ca"])
     if z["tls_cert"] and z["tls_key"]:

@@ -46,10 +46,13 @@ class FakeCamera:
     """A camera of the site played by the test: ``meta`` is what its queryable answers
     (bytes as they are, a dict as JSON)."""
 
-    def __init__(self, connect: int, cam_id: str, meta: dict | bytes) -> None:
+    def __init__(self, connect: int, cam_id: str, meta: dict | bytes,
+                 mesh: bool = False) -> None:
+        """``mesh``: also listen on a free port, so that the nodes' gossip joins it to a
+        node it did not connect to (it outlives the node it connected to)."""
         self.id = cam_id
         self.prefix = f"{SITE}/cam/{cam_id}"
-        self.session = open_peer(connect=connect)
+        self.session = open_peer(connect=connect, listen=free_port() if mesh else None)
         payload = meta if isinstance(meta, bytes) else json.dumps(meta).encode()
         self.queryable = self.session.declare_queryable(
             f"{self.prefix}/meta", lambda q: q.reply(f"{self.prefix}/meta", payload))
