@@ -46,12 +46,14 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def camera_main(port: int, cam_id: str) -> None:
+def camera_main(port: int, cam_id: str, lease: float) -> None:
     """A camera of the site (a process of its own): SIGUSR1 stops its 'frame loop' (the
-    session and its token stay)."""
+    session and its token stay). Its session as kmead's (kmead.zenoh_session: Zenoh's
+    lease 3/4 of zenoh.lease_s)."""
     import zenoh
 
     conf = zenoh.Config()
+    conf.insert_json5("transport/link/tx/lease", str(max(1, int(lease * 750))))
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     # A port of its own too: the nodes' gossip tells each other where it is, so the
@@ -144,8 +146,9 @@ class Node:
         self.err.close()
 
 
-def _camera(zport: int, cam_id: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, __file__, "--camera", str(zport), cam_id],
+def _camera(zport: int, cam_id: str, lease: float) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, __file__, "--camera", str(zport), cam_id,
+                             str(lease)],
                             env=dict(os.environ, PYTHONPATH=str(ROOT)))
 
 
@@ -162,7 +165,7 @@ def drops(lease: float) -> None:
                     ("frozen", "frozen (SIGSTOP)", signal.SIGSTOP, ": "),
                     ("stuck", "frame loop stuck (SIGUSR1: session alive)", signal.SIGUSR1,
                      "silent")):
-                cam = _camera(zport, cam_id)
+                cam = _camera(zport, cam_id, lease)
                 cams.append(cam)
                 node.wait_for(f"camera {cam_id}: used")
                 time.sleep(1.0)
@@ -201,7 +204,7 @@ def failover(lease: float) -> None:
     th.start()
     with tempfile.TemporaryDirectory() as tmp:
         a = Node(Path(tmp), "a", lease, zport, True, udp.getsockname()[1])
-        cam = _camera(zport, "cam0")
+        cam = _camera(zport, "cam0", lease)
         nodes = [a]
         try:
             a.wait_for("active: this node speaks")
@@ -260,10 +263,11 @@ def failover(lease: float) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--lease", type=float, default=1.0, help="zenoh.lease_s (s)")
-    p.add_argument("--camera", nargs=2, metavar=("PORT", "ID"), help=argparse.SUPPRESS)
+    p.add_argument("--camera", nargs=3, metavar=("PORT", "ID", "LEASE"),
+                   help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.camera:
-        camera_main(int(args.camera[0]), args.camera[1])
+        camera_main(int(args.camera[0]), args.camera[1], float(args.camera[2]))
         return 0
     drops(args.lease)
     failover(args.lease)
