@@ -42,9 +42,11 @@ COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop", "
 READ_ONLY = ("ping", "get_state", "get_config", "camera_watch", "snapshot", "get_log")
 
 
-class Daemon(Protocol):
-    """What the control thread uses of the daemon (``kmead.daemon.Daemon``; declared here
-    so this module does not import the daemon, which creates the server)."""
+class Host(Protocol):
+    """What the control thread uses of its host: a daemon (``kmead.daemon.Daemon``) or a
+    fusion node (``kmead.fusion.FusionNode``, whose camera commands raise ValueError with
+    the reason). Declared here so this module imports neither (they create the server);
+    pyright checks that both satisfy it where they hand themselves to the server."""
 
     cfg: Any
     lock: Any
@@ -98,7 +100,7 @@ def _field(req: dict, name: str, types: type | tuple[type, ...], required: bool 
 class ControlServer:
     """REP socket on ``endpoint`` serving ``daemon``; :meth:`start` runs the thread."""
 
-    def __init__(self, endpoint: str, daemon: Daemon, context: zmq.Context | None = None,
+    def __init__(self, endpoint: str, daemon: Host, context: zmq.Context | None = None,
                  poll_ms: int = 100, curve: CurveServer | None = None) -> None:
         self.daemon = daemon
         self.poll_ms = poll_ms
