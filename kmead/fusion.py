@@ -831,7 +831,10 @@ class FusionNode:
                     entity.undeclare()
         self._subs, self._token = [], None
         if self.session is not None and getattr(self, "_owns_session", False):
-            self.session.close()
+            try:
+                self.session.close()
+            except Exception as e:  # zenoh.ZError: "close operation timed out"
+                log.warning("zenoh: closing the session: %s", str(e).splitlines()[0])
         self.session = None
         if self.telemetry is not None:
             self.telemetry.close()

@@ -194,5 +194,8 @@ class ZenohOutput:
                 entity.undeclare()
         self.tf = self.node_token = None
         if self.owns_session:
-            self.session.close()
+            try:
+                self.session.close()
+            except Exception as e:  # zenoh.ZError: "close operation timed out"
+                log.warning("zenoh: closing the session: %s", str(e).splitlines()[0])
         self.session = None

@@ -8,7 +8,7 @@ the configured CA (a peer without a certificate signed by it is refused).
 **This machine** (peer mode, no ``connect``, no ``listen``, no multicast): the processes of
 one machine find each other on loopback without an endpoint typed. Each listens on a free
 loopback port and on the shared rendezvous port :data:`RENDEZVOUS` (only the first one
-started gets it; the others retry in the background, so a survivor takes it over) and
+started gets it; once its holder is gone, the next process that starts takes it) and
 connects to it; Zenoh's gossip then tells every peer the others' ports and the peers form a
 full mesh, which the death of the rendezvous holder does not break.
 """
@@ -46,7 +46,10 @@ def session_config(z: dict):
         put("connect/endpoints", [RENDEZVOUS])
         put("listen/endpoints", [RENDEZVOUS, "tcp/127.0.0.1:0"])
         put("listen/exit_on_failure", False)  # the rendezvous port is taken: go on
-        put("listen/timeout_ms", -1)  # and retry it in the background
+        # No retry in the background (a session retrying its listener cannot close): when
+        # the holder goes, the next process that starts takes the port, and the others'
+        # connections, retried every half lease, reach it.
+        put("listen/timeout_ms", 0)
     else:
         put("connect/endpoints", list(z["connect"]))
         if z["mode"] == "peer":
