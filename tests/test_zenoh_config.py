@@ -96,3 +96,52 @@ def test_robot_names_and_ros_tokens() -> None:
     with pytest.raises(StartupError, match="amr-1"):
         zenoh_plan(_cfg(robots))
     assert zenoh_plan(_cfg(robots, "zenoh.ros2=false")) == []
+
+
+def test_this_machine_meets_on_a_loopback_rendezvous_without_endpoints() -> None:
+    """No connect, no listen, no multicast (the defaults): the processes of one machine
+    find each other on loopback (docs/fusion.md); endpoints given are used as they are."""
+    pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
+    import json
+
+    from kmead.zenoh_session import RENDEZVOUS, session_config
+
+    conf = session_config(_cfg()["zenoh"])
+    assert json.loads(conf.get_json("connect/endpoints")) == [RENDEZVOUS]
+    listen = json.loads(conf.get_json("listen/endpoints"))
+    assert listen == [RENDEZVOUS, "tcp/127.0.0.1:0"]
+    assert RENDEZVOUS.startswith("tcp/127.0.0.1:")
+    conf = session_config(_cfg('zenoh.connect=["tcp/127.0.0.1:7000"]')["zenoh"])
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7000"]
+    assert json.loads(conf.get_json("listen/endpoints")) == []
+    # Zenoh's lease: 3/4 of lease_s (a silent peer is found gone within lease_s).
+    assert json.loads(conf.get_json("transport/link/tx/lease")) == 2250
+
+
+def test_camera_ids_and_map_digests() -> None:
+    from kmea.maps import map_digest
+    from kmea.sim.scenes import get_scene, wide_map
+    from kmead.zenoh_camera import camera_id
+
+    z = _cfg()["zenoh"]
+    assert camera_id(z, "sim:wide?camera=1&speed=0.1") == "cam1"
+    assert camera_id(z, "sim:wide") == "cam0" and camera_id(z, "sim:wide-cam1") == "cam1"
+    assert camera_id({**z, "camera": "north"}, "sim:wide?camera=1") == "north"
+    assert camera_id(z, "picamera").replace("-", "").replace("_", "").isalnum()
+    with pytest.raises(ConfigError, match=r"zenoh\.camera"):
+        load_config(None, ['zenoh.camera="a/b"'], use_local=False)
+    wide = get_scene("wide").effective_map()
+    assert map_digest(wide) == map_digest(wide_map())
+    assert map_digest(wide) != map_digest(get_scene("default").effective_map())
+
+
+def test_a_paced_wide_scene_runs_on_the_wall_clock() -> None:
+    """Cameras started separately show the robots at the same place (docs/fusion.md)."""
+    from kmead.startup import source_options
+
+    paced = load_config(None, ['source.spec="sim:wide?camera=1"'], use_local=False)
+    assert source_options(paced, "sim")["clock"] == "wall"
+    given = load_config(None, ['source.spec="sim:wide?clock=frame"'], use_local=False)
+    assert "clock" not in source_options(given, "sim")
+    flat = load_config(None, ['source.spec="sim:wide"', "source.fps=0"], use_local=False)
+    assert "clock" not in source_options(flat, "sim")
