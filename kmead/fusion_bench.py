@@ -164,12 +164,12 @@ def run(quick: bool = False) -> None:
     seconds = 2.0 if quick else 5.0
     print(f"one fusion node ({os.cpu_count()} cores here), {seconds:g} s per load; every "
           "message a measurement of one robot; latency = UDP arrival - capture time")
-    print(f"  {'cameras':>7} {'robots':>6} {'fps':>4} {'msgs/s in':>10} {'fused/s':>8} "
-          f"{'lost':>6} {'CPU':>6} {'p50 ms':>7} {'p99 ms':>7}")
     ms = loop_cost()
     print(f"the node's loop: {ms:.3f} ms of CPU per measurement (8 cameras x 8 robots, "
           f"its thread's clock): about {1000 / ms:.0f} measurements/s per core",
           flush=True)
+    print(f"  {'cameras':>7} {'robots':>6} {'fps':>4} {'msgs/s in':>10} {'fused/s':>8} "
+          f"{'lost':>6} {'CPU':>6} {'p50 ms':>7} {'p99 ms':>7}")
     for c, r, fps in loads:
         a = _load(c, r, fps, seconds)
         print(f"  {c:7d} {c * r:6d} {fps:4.0f} {a['sent_per_s']:10.0f} {a['fused_per_s']:8.0f} "
