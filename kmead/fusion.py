@@ -90,7 +90,7 @@ class Camera:
     measurements: int = 0
     bad: int = 0
     dropped_old: int = 0
-    ignored: int = 0  # measurements while not used (waiting, refused, gone)
+    ignored: int = 0  # measurements while not used, or of robots not this node's
     last_wall: float | None = None  # time.time() of its last sample
     last_mono: float | None = None  # time.monotonic() of its last sample
     last_t: float | None = None
@@ -523,6 +523,9 @@ class FusionNode:
                 return False
             if parts[3] != "robots" or len(parts) != 5 or body.get("name") != parts[4]:
                 raise ValueError(f"key {key!r}: not <site>/cam/<id>/robots/<its name>")
+            if parts[4] not in self.names:  # another node's robot (a region of its own)
+                cam.ignored += 1
+                return False
             m = measurement_from(cam.label, body, self.names)
         except ValueError as e:  # JsonLimitError is a ValueError
             cam.bad += 1
