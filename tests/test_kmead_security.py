@@ -516,18 +516,27 @@ def test_missing_keys_directory_is_a_one_line_error(tmp_path: Path,
 # ----------------------------------------------------------------------------- fusion node
 
 def test_fusion_node_has_the_same_rules(tmp_path: Path) -> None:
-    from kmead.config import ConfigError, load_config
-    from kmead.fusion import FusionNode, parse_inputs
+    pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
+    from zenoh_helpers import free_port, zenoh_sets
 
-    inputs = parse_inputs(["tcp://127.0.0.1:1"])
+    from kmead.config import ConfigError, load_config
+    from kmead.fusion import FusionNode
+
+    z = zenoh_sets(listen=free_port())
     open_ = load_config(None, ['network.control="tcp://0.0.0.0:*"',
-                               'network.telemetry="tcp://127.0.0.1:*"'])
+                               'network.telemetry="tcp://127.0.0.1:*"', *z])
     with pytest.raises(ConfigError, match="kmea keys init DIR"):
-        FusionNode(open_, inputs)
+        FusionNode(open_)
+    # Zenoh beyond loopback: the same rule (mutual TLS, or zenoh.insecure).
+    exposed = load_config(None, ['network.control=""', 'network.telemetry=""',
+                                 *zenoh_sets(), 'zenoh.listen=["tcp/0.0.0.0:7447"]'])
+    with pytest.raises(ConfigError, match=r"zenoh\.listen"):
+        FusionNode(exposed)
     cfg = load_config(None, ['network.control="tcp://127.0.0.1:*"',
                              'network.telemetry="tcp://127.0.0.1:*"',
-                             f'log.dir="{tmp_path / "data"}"'])
-    node = FusionNode(cfg, inputs)
+                             f'log.dir="{tmp_path / "data"}"', *z])
+    node = FusionNode(cfg)
+    assert node.control is not None
     ctx = zmq.Context()
     try:
         node.control.start()
