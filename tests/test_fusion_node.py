@@ -20,7 +20,7 @@ from deadlines import DEADLINE, JOIN
 pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
                                     "(pip install 'kmea[zenoh]')")
 
-from zenoh_helpers import FakeCamera, free_port, meta, zenoh_sets
+from zenoh_helpers import FakeCamera, free_port, meta, open_peer, zenoh_sets
 
 from kmea import protocol as P
 from kmea.maps import map_digest, save_map_toml
@@ -31,6 +31,7 @@ from kmead.daemon import Daemon
 from kmead.fusion import Election, FusionNode, measurement_from
 from kmead.kmea_cli import main as kmea_main
 from kmead.relay import datagram, parse_datagram
+from kmead.robot_pose_wire import TRACKED, unpack_pose
 
 SPEED = 0.01  # m/s: the robots stay where the test expects them for its ~20 s
 # A camera daemon in this busy process may stall for a second or two under load: stale only
@@ -200,6 +201,18 @@ def _fused_dropped_refused_and_back(node: FusionNode, running: dict, fakes: list
     expected = {"amr1": "cam0+cam1", "amr2": "cam1"}
     _wait(lambda: {r["name"]: r["source"] for r in node.robots_body()["robots"]} == expected,
           "amr1 from both cameras, amr2 from camera 1")
+    # The fused poses on Zenoh too: the binary pose on <site>/robots/<robot>/pose.
+    poses: list = []
+    listener = open_peer(connect=port)
+    sub = listener.declare_subscriber(
+        "kmea/robots/*/pose", lambda smp: poses.append(unpack_pose(smp.payload.to_bytes())))
+    try:
+        _wait(lambda: sum(p.valid for p in list(poses)) >= 5, "fused binary poses on Zenoh")
+    finally:
+        sub.undeclare()
+        listener.close()
+    for p in [p for p in poses if p.valid][-5:]:
+        assert p.flags & TRACKED and p.sigma_x > 0
 
     # 2. A camera whose map differs is refused, with the reason.
     odd = FakeCamera(port, "odd", meta("odd", "0" * 16))
