@@ -54,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="validate the configuration, map and camera files, print the "
                         "effective configuration and the warnings, then exit (0 OK, 2 not); "
                         "opens no camera and binds no port")
+    p.add_argument("--default-config", action="store_true",
+                   help="print the documented default configuration (config.toml: every key "
+                        "with its default, meaning, range and unit) and exit")
     p.add_argument("--free-ports", action="store_true",
                    help="bind telemetry and control to free ports on 127.0.0.1 (printed at "
                         "start), e.g. next to another running kmead")
@@ -150,6 +153,11 @@ def starting_what(spec: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.default_config:
+        from kmead.settings_schema import default_config_text
+
+        sys.stdout.write(default_config_text())
+        return 0
     if args.frames is not None and args.frames < 1:
         print("kmead: --frames: must be >= 1", file=sys.stderr)
         return EXIT_CONFIG

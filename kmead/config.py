@@ -1,4 +1,5 @@
-"""kmead configuration: the packaged default, overlays, ``--set`` and validation.
+"""kmead configuration: the declared defaults (kmead.settings_schema), overlays, ``--set``
+and validation.
 
 The effective configuration is a plain nested dict ``{section: {key: value}}`` plus
 ``"robots"``: a list of robot tables. Every value is checked here, the same way for a file,
@@ -13,12 +14,12 @@ import copy
 import os
 import sys
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from kmea.tomlvalue import parse_toml_value
-from kmead.settings_schema import SCHEMA, ConfigError, parse_destination, validate_setting
+from kmead.config_checks import ConfigError, parse_destination
+from kmead.settings_schema import LIVE_KEYS, SCHEMA, default_config, is_live, validate_setting
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -29,48 +30,19 @@ __all__ = [
     "LIVE_KEYS",
     "Config",
     "ConfigError",
-    "default_text",
     "is_live",
     "load_config",
     "parse_destination",
     "parse_set",
-    "validate_value",
+    "validate_setting",
 ]
-
-
-# Keys a live ``set`` request may change (the rest need a restart).
-LIVE_KEYS = {
-    "estimator.algorithm", "estimator.unknown_plane", "filter.alpha", "filter.reset_after_s",
-    "robots",
-    "filter.kind", "filter.model", "filter.accel_noise", "filter.turn_noise",
-    "filter.gate_probability", "filter.reacquire_n", "filter.predict",
-    "filter.manoeuvre_scale", "filter.manoeuvre_time_s", "filter.cruise_time_s",
-    "filter.step_k", "filter.max_speed", "filter.outlier_probability", "filter.outlier_radius",
-    "relay.stale_after_s", "relay.stale_repeat_s", "relay.extra_fields", "stats.window",
-    "stats.loo", "stats.displaced_threshold", "stats.displaced_frames", "log.level",
-}
-LIVE_SECTIONS = {"detector"}
-# Keys of a live section that still need a restart (the detection threads start once).
-RESTART_KEYS = {"detector.workers"}
-
-
-def is_live(key: str) -> bool:
-    """True when a live ``set`` request may change ``key``."""
-    return isinstance(key, str) and key not in RESTART_KEYS and (
-        key in LIVE_KEYS or key.partition(".")[0] in LIVE_SECTIONS)
-
-
-def validate_value(key: str, value: Any, where: str, remote: bool = False) -> Any:
-    """Check one ``section.key`` (or ``robots``); returns the normalised value
-    (kmead.settings_schema holds every key's type and range)."""
-    return validate_setting(key, value, where, remote)
 
 
 def _merge(base: dict, doc: dict, where: str) -> None:
     """Overlay a parsed TOML document on ``base`` in place, validating every key."""
     for section, table in doc.items():
         if section == "robots":
-            base["robots"] = validate_value("robots", table, where)
+            base["robots"] = validate_setting("robots", table, where)
             continue
         if section not in SCHEMA:
             raise ConfigError(f"{where}: unknown section [{section}] "
@@ -78,12 +50,7 @@ def _merge(base: dict, doc: dict, where: str) -> None:
         if not isinstance(table, dict):
             raise ConfigError(f"{where}: {section} must be a table [{section}]")
         for key, value in table.items():
-            base.setdefault(section, {})[key] = validate_value(f"{section}.{key}", value, where)
-
-
-def default_text() -> str:
-    """The packaged default configuration (identical to the repository's config.toml)."""
-    return (resources.files("kmead") / "default_config.toml").read_text()
+            base.setdefault(section, {})[key] = validate_setting(f"{section}.{key}", value, where)
 
 
 def _read_toml(path: Path) -> dict:
@@ -150,13 +117,13 @@ class Config:
         try:
             return self.data[section][name]
         except (KeyError, TypeError):
-            validate_value(key, None, "control")  # raises the one-line unknown-key error
+            validate_setting(key, None, "control")  # raises the one-line unknown-key error
             raise ConfigError(f"control: key {key!r} is not set") from None
 
     def set(self, key: str, value: Any, where: str = "control", remote: bool = False) -> Any:
         """Validate and apply one key; returns the stored value. ``remote``: the value came
         over the network (see kmead.settings_schema)."""
-        v = validate_value(key, value, where, remote)
+        v = validate_setting(key, value, where, remote)
         if key == "robots":
             self.data["robots"] = v
         else:
@@ -208,7 +175,7 @@ def load_config(path: str | None = None, sets: list[str] | None = None,
     Raises :class:`ConfigError` with one line naming the file or option, the key and problem.
     """
     data: dict = {}
-    _merge(data, tomllib.loads(default_text()), "<default config>")
+    _merge(data, default_config(), "<default config>")
     files = ["<default config>"]
     if path is not None:
         p = Path(path)

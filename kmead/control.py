@@ -23,7 +23,7 @@ import zmq
 
 from kmea import protocol as P
 from kmead import bodies
-from kmead.config import LIVE_KEYS, ConfigError, validate_value
+from kmead.config import LIVE_KEYS, ConfigError, validate_setting
 
 if TYPE_CHECKING:
     from kmead.keys import CurveServer
@@ -229,7 +229,7 @@ class ControlServer:
         if "value" not in req:
             raise RequestError("field 'value': missing")
         # Checked before waiting for the frame loop: a refused value never holds the pipeline.
-        validate_value(key, req["value"], "control", remote=True)
+        validate_setting(key, req["value"], "control", remote=True)
         with self.daemon.lock:
             v = self.daemon.apply_setting(key, req["value"], remote=True)
         return {"key": key, "value": v}

@@ -24,8 +24,8 @@ from pathlib import Path
 import zmq
 
 from kmea import protocol as P
+from kmead.config_checks import MAX_ROBOTS
 from kmead.relay import parse_datagram
-from kmead.settings_schema import MAX_ROBOTS
 
 
 def _cpu_s(pid: int) -> float:

@@ -22,7 +22,7 @@ from kmea.sources.base import SourceError
 from kmea.sources.registry import parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
 from kmead.config import Config, ConfigError
-from kmead.settings_schema import check_intrinsics
+from kmead.config_checks import check_intrinsics
 from kmead.startup import StartupError, configured_map
 
 

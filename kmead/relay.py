@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from kmea.protocol import robot_topic
-from kmead.settings_schema import parse_destination
+from kmead.config_checks import parse_destination
 
 log = logging.getLogger("kmead.relay")
 

@@ -1,7 +1,7 @@
 """The ``[zenoh]`` section's values and the rule on what a Zenoh session may expose.
 
 No Zenoh import (the extra is optional and ``kmead --check`` must judge a configuration
-without it). The values' types and ranges are in :mod:`kmead.settings_schema` with every
+without it). The values' types and ranges are in :mod:`kmead.config_checks` with every
 other key's; here: :func:`zenoh_exposure`, the same rule as the ZeroMQ sockets' (listening
 beyond loopback needs mutual TLS, with certificate files, or an explicit ``insecure =
 true``; docs/ros2.md, "Security"), and whether a robot name can be a ROS 2 topic token.
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import re
 
-from kmead.settings_schema import ROS_TOKEN_RE
+from kmead.config_checks import ROS_TOKEN_RE
 
 LOOPBACK_HOSTS = ("localhost", "[::1]")
 

@@ -18,11 +18,6 @@ else:  # pragma: no cover
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def test_packaged_default_is_the_repository_config() -> None:
-    packaged = (ROOT / "kmead" / "default_config.toml").read_text()
-    assert packaged == (ROOT / "config.toml").read_text()
-
-
 def test_default_has_the_documented_keys() -> None:
     cfg = load_config(None)
     for key in ("source.spec", "camera.file", "map.file", "detector.dictionary",

@@ -8,14 +8,13 @@ import math
 import cv2
 import pytest
 
-from kmead.settings_schema import (
+from kmead.config_checks import (
     DETECTOR_PARAMETERS,
-    SCHEMA,
     ConfigError,
     check_intrinsics,
     parse_destination,
-    validate_setting,
 )
+from kmead.settings_schema import SCHEMA, validate_setting
 
 HUGE = 10**30
 
