@@ -16,9 +16,8 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from kmea.aruco_names import MAX_MARKER_ID
 
@@ -43,8 +42,10 @@ class ConfigError(ValueError):
     """A bad configuration file or value; the message is one line naming file and key."""
 
 
-# ``check(value, where, remote) -> normalised value``
-Check = Callable[[Any, str, bool], Any]
+class Check(Protocol):
+    """``check(value, where, remote=False) -> normalised value``; raises ConfigError."""
+
+    def __call__(self, v: Any, where: str, remote: bool = False, /) -> Any: ...
 
 MAX_ROBOTS = 64
 MAX_DESTINATIONS = 8
