@@ -16,11 +16,11 @@ from importlib import import_module
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "map": ("kmea.map_cli", "show, check or convert a marker map"),
+    "map": ("kmea.maps.cli", "show, check or convert a marker map"),
     "calibrate": ("kmea.vision.calibrate_cli", "calibrate a camera from board views"),
     "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
     "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
-    "bench": ("kmea.bench", "benchmarks that print figures"),
+    "bench": ("kmea.benchmarks.cli", "benchmarks that print figures"),
 }
 
 

@@ -1,9 +1,9 @@
 """Telemetry bodies from explicit inputs: one function per message type of
-:mod:`kmea.protocol`, each returning that type.
+:mod:`kmea.wire.protocol`, each returning that type.
 
 Nothing here reads the daemon: the daemon (and the control thread) pass the frame result,
 the statistics, the relay's tracks and the configuration snapshot they hold. Values may be
-numpy scalars or arrays; :func:`kmea.protocol.encode_body` turns them into JSON.
+numpy scalars or arrays; :func:`kmea.wire.protocol.encode_body` turns them into JSON.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import time
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
-from kmea.moved import MovedEvidence
-from kmea.protocol import (
+from kmea.stats.moved import MovedEvidence
+from kmea.wire.protocol import (
     FrameBody,
     MapInfo,
     MarkerRow,
@@ -26,9 +26,9 @@ from kmea.protocol import (
 )
 
 if TYPE_CHECKING:
-    from kmea.maps import MarkerMap
-    from kmea.metrics import WindowStats
+    from kmea.maps.files import MarkerMap
     from kmea.pipeline import FrameResult
+    from kmea.stats.metrics import WindowStats
     from kmea.vision.camera import CameraModel
     from kmead.relay import RobotTrack
 
@@ -52,7 +52,7 @@ def markers_body(res: FrameResult, world_map: MarkerMap,
                  moved: Callable[[int], MovedEvidence]) -> MarkersBody:
     """``markers``: every map marker and every detected marker, sorted by id.
 
-    moved: id -> the moved-marker monitor's evidence (:meth:`kmea.moved.MovedMonitor.get`).
+    moved: id -> the moved-marker monitor's evidence (:meth:`kmea.stats.moved.MovedMonitor.get`).
     """
     est = res.estimate
     planes = est.info.get("unknown_planes", {})

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 from kmea.vision.camera import CameraModel
 from kmea.vision.overlay import (
     OverlayMarker,

@@ -270,7 +270,7 @@ def _run_with_ui(daemon) -> int:
         signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
         return daemon.run()
     # A keyed daemon's own UI connects as the operator of its key directory.
-    from kmea.curve_client import CurveKeyError
+    from kmea.wire.curve_client import CurveKeyError
 
     try:
         client = DaemonClient(_connectable(daemon.telemetry.bound),

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from kmea.tomlvalue import parse_toml_value
+from kmea.wire.tomlvalue import parse_toml_value
 from kmead.config_checks import ConfigError, parse_destination
 from kmead.settings_schema import LIVE_KEYS, SCHEMA, default_config, is_live, validate_setting
 
@@ -71,7 +71,8 @@ def _read_toml(path: Path) -> dict:
 
 
 def parse_set(item: str) -> tuple[str, Any]:
-    """``"SECTION.KEY=VALUE"`` -> (key, value); VALUE as :func:`kmea.tomlvalue.parse_toml_value`
+    """``"SECTION.KEY=VALUE"`` -> (key, value); VALUE as
+    :func:`kmea.wire.tomlvalue.parse_toml_value`
     reads it (TOML, or a bare string), but a value that starts like a TOML array, table or
     string and is not valid TOML is an error rather than a string.
     """

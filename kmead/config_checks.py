@@ -19,7 +19,7 @@ import re
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from kmea.aruco_names import MAX_MARKER_ID
+from kmea.maps.aruco_names import MAX_MARKER_ID
 
 __all__ = [
     "DETECTOR_PARAMETERS",
@@ -189,7 +189,7 @@ def dictionary_name(v: Any, where: str, remote: bool = False) -> str:
     s = text_value(v, where)
     if s == "":
         return s
-    from kmea.aruco_names import canonical_name
+    from kmea.maps.aruco_names import canonical_name
     from kmea.vision.dictionary import get_dictionary
 
     if remote:
@@ -410,7 +410,7 @@ def _robot(row: Any, where: str) -> dict:
     if bad:
         raise ConfigError(f"{where}: unknown key {shown(bad[0])} (robot keys: "
                           f"{', '.join(ROBOT_KEYS)})")
-    from kmea.robots import ROBOT_DEFAULTS, robot_from_table  # the one robot validation
+    from kmea.robots.poses import ROBOT_DEFAULTS, robot_from_table  # the one robot validation
 
     for k in ("name", "markers"):
         if k not in row:

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import zmq
 
-from kmea import protocol as P
+from kmea.wire import protocol as P
 from kmead import bodies
 from kmead.config import LIVE_KEYS, ConfigError, validate_setting
 

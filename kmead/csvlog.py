@@ -17,7 +17,7 @@ import math
 import os
 from pathlib import Path
 
-from kmea import wholewrite
+from kmea.recordings import wholewrite
 
 HEADER = "frame,timestamp,algorithm,kind,id,x,y,z,yaw,error,refs"
 COLUMNS = HEADER.split(",")

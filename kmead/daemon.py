@@ -25,15 +25,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from kmea import protocol as P
 from kmea.estimators import available as available_algorithms
-from kmea.maps import MarkerMap
-from kmea.metrics import WindowStats
-from kmea.moved import MovedMonitor
+from kmea.maps.files import MarkerMap
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
-from kmea.recording import Recorder
+from kmea.recordings.format import Recorder
 from kmea.sources.replay import ReplaySource
+from kmea.stats.metrics import WindowStats
+from kmea.stats.moved import MovedMonitor
 from kmea.timing import blur_warning
+from kmea.wire import protocol as P
 from kmead import bodies
 from kmead.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.capture import Capture, CaptureEnded, open_feed
@@ -281,7 +281,7 @@ class Daemon:
 
     def _output_failed(self, kind: str, e: OSError) -> None:
         """A write error (ENOSPC, EIO) stops that output only: the file keeps its whole rows
-        (kmea.wholewrite cut the failed frame back), the event and the status say why."""
+        (kmea.recordings.wholewrite cut the failed frame back), the event and the status say why."""
         out = self.csv if kind == "log" else self.recorder
         count = f"{out.rows} rows" if kind == "log" else f"{out.frames} frames"
         cut = ("" if getattr(e, "cut_back", True)
@@ -843,7 +843,7 @@ class Daemon:
                 del tot.latency_ms[:50000]
 
     def _displacement_events(self, res: FrameResult) -> None:
-        # The moved-marker decision (kmea.moved: persistence over the frames the marker was
+        # The moved-marker decision (kmea.stats.moved: persistence over the frames the marker was
         # measured in, a threshold scaled to the error level) from its LOO error or a robust
         # estimator's rejection distance; the markers body publishes it with its evidence.
         # The event is quiet for that marker for DISPLACED_QUIET_S (noise near the

@@ -68,7 +68,7 @@ from foxglove.messages import (
     Vector3,
 )
 
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 from kmea.vision.camera import CameraModel
 from kmea.vision.overlay import OverlayMarker
 

@@ -2,7 +2,7 @@
 
 Each camera runs ``kmead`` and publishes its robots' poses on its telemetry socket
 (``robot.NAME`` topics: capture time, pose, sigma). The node subscribes to every input,
-fuses each robot's measurements through the tracking filter (:class:`kmea.fusion.Fusion`)
+fuses each robot's measurements through the tracking filter (:class:`kmea.robots.fusion.Fusion`)
 and serves the same outputs as a daemon: telemetry (``robot.NAME``, ``robots`` with the
 cameras that saw each robot, ``status``, ``event``, ``log``), control (the daemon's
 commands that make sense without a camera), UDP datagrams to the robots and the CSV log in
@@ -30,10 +30,10 @@ from typing import Any
 
 import zmq
 
-from kmea import protocol as P
-from kmea.fusion import Fusion, Measurement
-from kmea.maps import MapError
-from kmea.tracking import TrackerConfig
+from kmea.maps.files import MapError
+from kmea.robots.fusion import Fusion, Measurement
+from kmea.robots.tracking import TrackerConfig
+from kmea.wire import protocol as P
 from kmead.bodies import map_info
 from kmead.config import Config, ConfigError
 from kmead.csvlog import CsvLog, row
@@ -67,7 +67,7 @@ def secure_subscriber(sock: zmq.Socket, endpoint: str, cfg: Config) -> None:
         return
     from pathlib import Path
 
-    from kmea.curve_client import CurveKeyError, apply_client_keys
+    from kmea.wire.curve_client import CurveKeyError, apply_client_keys
 
     name = "fusion" if (Path(keys).expanduser() / "clients" / "fusion.key_secret").exists() \
         else "operator"

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import zmq
 
-from kmea import protocol as P
+from kmea.wire import protocol as P
 from kmead.config_checks import MAX_ROBOTS
 from kmead.relay import parse_datagram
 

@@ -1,7 +1,7 @@
 """CURVE authentication and encryption for the daemon's two sockets (pyzmq's ``zmq.auth``).
 
 The key directory contract (``kmea keys init DIR``, ``kmea keys add DIR NAME [--viewer]``)
-is described in :mod:`kmea.curve_client`. With ``[network] keys = "DIR"`` the daemon:
+is described in :mod:`kmea.wire.curve_client`. With ``[network] keys = "DIR"`` the daemon:
 
 - makes both sockets CURVE servers with ``DIR/server.key_secret``;
 - runs a ZAP handler (:class:`zmq.auth.thread.ThreadAuthenticator`) that accepts a client
@@ -12,7 +12,7 @@ is described in :mod:`kmea.curve_client`. With ``[network] keys = "DIR"`` the da
   every message once ZAP accepted the peer) is an operator's *now*; a viewer's requests get
   an error reply.
 
-A client connects with :func:`connect_client` (or :func:`kmea.curve_client.apply_client_keys`
+A client connects with :func:`connect_client` (or :func:`kmea.wire.curve_client.apply_client_keys`
 on a socket it made).
 """
 
@@ -29,7 +29,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from kmea.curve_client import (
+from kmea.wire.curve_client import (
     DEFAULT_CLIENT,
     CurveKeyError,
     apply_client_keys,

@@ -1,7 +1,7 @@
 """``kmea keys``: make the CURVE key directory of kmead (see docs/security.md).
 
 ``kmea keys init DIR`` writes the daemon's pair and a first operator; ``kmea keys add DIR
-NAME [--viewer]`` adds a client. The contract is described in :mod:`kmea.curve_client`.
+NAME [--viewer]`` adds a client. The contract is described in :mod:`kmea.wire.curve_client`.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kmea.curve_client import CurveKeyError
+from kmea.wire.curve_client import CurveKeyError
 from kmead.keys import add_client, init_keys
 
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from kmea.jsonsafe import to_jsonable
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 from kmea.pipeline import FrameResult
+from kmea.wire.jsonsafe import to_jsonable
 from kmead.csvlog import row
 
 

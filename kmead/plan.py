@@ -17,7 +17,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from kmea.maps import MapError, MarkerMap, check_map, check_spread, default_map
+from kmea.maps.files import MapError, MarkerMap, check_map, check_spread, default_map
 from kmea.sources.base import SourceError
 from kmea.sources.registry import parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
@@ -136,7 +136,7 @@ def _source_preview(cfg: Config, prefix: str) -> tuple[MarkerMap | None, CameraM
             raise StartupError(f"key 'source.spec': {spec}: {e}") from None
         return scene.effective_map(), scene.camera
     if prefix == "replay":
-        from kmea.recording import RecordingError, read_header
+        from kmea.recordings.format import RecordingError, read_header
 
         if not Path(rest).is_file():
             raise StartupError(f"key 'source.spec': {spec}: no such file")
@@ -153,7 +153,7 @@ def _source_preview(cfg: Config, prefix: str) -> tuple[MarkerMap | None, CameraM
 
 
 def _header_map(spec: str, header: dict) -> MarkerMap | None:
-    from kmea.recording import map_from_json
+    from kmea.recordings.format import map_from_json
 
     try:
         return map_from_json(header["map"])
@@ -221,7 +221,7 @@ def check_camera(cfg: Config, cam: CameraModel) -> None:
 
 def dictionary_size(cfg: Config, world_map: MarkerMap) -> tuple[str, int | None]:
     """The detector's dictionary and its size (None for a custom dictionary file)."""
-    from kmea.aruco_names import PREDEFINED, canonical_name
+    from kmea.maps.aruco_names import PREDEFINED, canonical_name
 
     name = cfg["detector"]["dictionary"] or world_map.dictionary
     known = canonical_name(name)

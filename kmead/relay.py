@@ -38,7 +38,7 @@ import socket
 from dataclasses import dataclass, field
 from typing import Any
 
-from kmea.protocol import robot_topic
+from kmea.wire.protocol import robot_topic
 from kmead.config_checks import parse_destination
 
 log = logging.getLogger("kmead.relay")

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from kmea.tracking.config import TrackerConfig
+from kmea.robots.tracking.config import TrackerConfig
 
 POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF_TYPE = "tf2_msgs/msg/TFMessage"

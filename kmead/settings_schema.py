@@ -344,11 +344,11 @@ Statistics window, in frames.""",
                   live=True),
         "displaced_threshold": Key(0.01, number(1e-4, 10, unit=" m"),
                   ('smallest median offset (m) called a moved marker (the threshold also scales '
-                   'with the error level, `kmea/moved.py`)'),
+                   'with the error level, `kmea/stats/moved.py`)'),
                   doc="""\
 A map marker has moved (event, and "moved" in the markers telemetry) when the median of
 its leave-one-out error over the last N frames it was measured in exceeds this (m) and 3x
-the error level of the other markers and of its own jitter (kmea/moved.py).""",
+the error level of the other markers and of its own jitter (kmea/stats/moved.py).""",
                   live=True),
         "displaced_frames": Key(5, integer(1, 1000),
                   ('... over the last N frames it was measured in (median of N, at least 3 '

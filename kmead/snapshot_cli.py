@@ -26,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import zmq
 
-    from kmea import protocol as P
+    from kmea.wire import protocol as P
 
     ctx = zmq.Context.instance()
     s = ctx.socket(zmq.REQ)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from kmea.maps import DEFAULT_DICTIONARY, MarkerMap, default_map, load_map
+from kmea.maps.files import DEFAULT_DICTIONARY, MarkerMap, default_map, load_map
 from kmea.sources.base import FrameSource, SourceError
 from kmea.sources.registry import open_source, parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, pi_camera_v2

@@ -6,7 +6,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 
 
 class Daemon(Protocol):

@@ -15,7 +15,7 @@ from typing import Any
 
 import zmq
 
-from kmea.protocol import TOPIC_EVENT, TOPIC_LOG, encode
+from kmea.wire.protocol import TOPIC_EVENT, TOPIC_LOG, encode
 
 
 class Telemetry:

@@ -10,7 +10,7 @@ from pathlib import Path
 import zmq
 from deadlines import JOIN
 
-from kmea import protocol as P
+from kmea.wire import protocol as P
 from kmead.config import load_config
 from kmead.daemon import Daemon
 from kmead.keys import connect_client

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from kmea import bench
+from kmea.benchmarks import cli as bench
 
 
 def _args(*argv: str, benches: dict) -> argparse.Namespace:

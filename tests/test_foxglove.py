@@ -124,7 +124,7 @@ def test_mcap_export_reads_back_with_channels_and_counts(recorded, tmp_path):
     # The map scene: the floor and every map marker.
     (scene,) = [m for t, _, m in msgs if t == "/floor/map"]
     entities = [v for num, v in pb_fields(scene.data) if num == 2]
-    from kmea.maps import default_map
+    from kmea.maps.files import default_map
     assert len(entities) == 1 + len(default_map())
 
 

@@ -15,8 +15,8 @@ import pytest
 import zmq
 from deadlines import DEADLINE, JOIN
 
-from kmea import protocol as P
 from kmea.sim.scenes import get_scene
+from kmea.wire import protocol as P
 from kmead.config import ConfigError, load_config
 from kmead.csvlog import HEADER
 from kmead.daemon import Daemon

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from deadlines import JOIN
 
-from kmea.maps import save_map_toml
+from kmea.maps.files import save_map_toml
 from kmea.sim.scenes import get_scene
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient

@@ -10,7 +10,7 @@ import threading
 import zmq
 from deadlines import JOIN
 
-from kmea import protocol as P
+from kmea.wire import protocol as P
 from kmead import cli
 from kmead.kmea_cli import main as kmea_main
 

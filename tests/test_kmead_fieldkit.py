@@ -22,7 +22,7 @@ import pytest
 import zmq
 from deadlines import DEADLINE
 
-from kmea import protocol as P
+from kmea.wire import protocol as P
 from kmea_tui import cli as tui_cli
 from kmea_tui.widgets.camera_view import CameraFrame
 from kmead import cli, kmea_cli

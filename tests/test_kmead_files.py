@@ -1,4 +1,4 @@
-"""The confined data directory (kmead.files) and JSON with limits (kmea.jsonlimits)."""
+"""The confined data directory (kmead.files) and JSON with limits (kmea.wire.jsonlimits)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from kmea.jsonlimits import JsonLimitError, json_depth, safe_loads
+from kmea.wire.jsonlimits import JsonLimitError, json_depth, safe_loads
 from kmead.files import DataDir, FileRefused
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from security_helpers import LiveDaemon
 
-from kmea.protocol import PROTOCOL_VERSION as V
+from kmea.wire.protocol import PROTOCOL_VERSION as V
 from kmead.settings_schema import SCHEMA
 
 VB = str(V).encode()

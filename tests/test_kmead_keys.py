@@ -11,7 +11,7 @@ import pytest
 import zmq
 import zmq.auth
 
-from kmea.curve_client import CurveKeyError, read_certificate, read_client_keys
+from kmea.wire.curve_client import CurveKeyError, read_certificate, read_client_keys
 from kmead import kmea_cli
 from kmead.keys import OPERATOR, VIEWER, CurveServer, KeysError, add_client, connect_client
 

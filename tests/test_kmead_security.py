@@ -22,10 +22,10 @@ import zmq
 from deadlines import DEADLINE
 from security_helpers import LiveDaemon, robots_toml, udp_listener
 
-from kmea import protocol as P
 from kmea.sim.renderer import Renderer
 from kmea.sim.scenes import scene_from_spec
 from kmea.vision.camera import pi_camera_v2, save_camera
+from kmea.wire import protocol as P
 from kmead import cli, kmea_cli
 from kmead.keys import connect_client
 from kmead.relay import parse_datagram
@@ -229,7 +229,7 @@ def test_camera_file_with_principal_point_outside_the_image_refuses_to_start(
 def test_map_id_outside_the_dictionary_is_named_in_a_warning(tmp_path: Path,
                                                              capsys: pytest.CaptureFixture
                                                              ) -> None:
-    from kmea.maps import default_map, map_to_dict
+    from kmea.maps.files import default_map, map_to_dict
 
     doc = map_to_dict(default_map())
     rows = doc["markers"]

@@ -51,7 +51,7 @@ def test_telemetry_markers_carry_the_plane_choice() -> None:
 
     import zmq
 
-    from kmea import protocol as P
+    from kmea.wire import protocol as P
     from kmead.config import load_config
     from kmead.daemon import Daemon
 

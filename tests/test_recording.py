@@ -1,5 +1,6 @@
-"""Recordings (kmea/recording.py, kmea/recfile.py): the compressed format, a file cut at any
-byte, the first format's files, and a recording cut into parts by the daemon.
+"""Recordings (kmea/recordings/format.py, kmea/recordings/recfile.py): the compressed
+format, a file cut at any byte, the first format's files, and a recording cut into parts by
+the daemon.
 
 Real files throughout; frames from the real pipeline on the simulated floor."""
 
@@ -17,7 +18,7 @@ import pytest
 import zstandard
 
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
-from kmea.recording import Recorder, read_header
+from kmea.recordings.format import Recorder, read_header
 from kmea.sources.base import SourceError
 from kmea.sources.registry import open_source
 from kmea.sources.replay import ReplaySource
@@ -262,7 +263,7 @@ def test_a_full_disk_leaves_a_compressed_recording_of_whole_frames(
     then stops, closed without its end mark, and replays every frame it counted."""
     from test_kmead_faults import Disk, FullingFile
 
-    from kmea import wholewrite
+    from kmea.recordings import wholewrite
 
     disk = Disk(0)
     real_open = wholewrite.open_output

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import tomllib
 
-from kmea.tracking import TrackerConfig
+from kmea.robots.tracking import TrackerConfig
 from kmead.config import load_config
 from kmead.settings_schema import (
     KEYS,

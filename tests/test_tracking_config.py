@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from kmea.pipeline import PipelineSettings
-from kmea.tracking import TrackerConfig
+from kmea.robots.tracking import TrackerConfig
 from kmead import cli
 from kmead.config import load_config
 from kmead.fusion import tracker_config as fusion_tracker_config

@@ -36,8 +36,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from kmea.filters import PoseFilter
-from kmea.tracking import Tracker, TrackerConfig
+from kmea.robots.iir import PoseFilter
+from kmea.robots.tracking import Tracker, TrackerConfig
 
 __all__ = [
     "HELD_OUT",

@@ -34,7 +34,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 __all__ = [
     "CameraIntrinsics",

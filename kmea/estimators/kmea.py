@@ -45,7 +45,7 @@ from kmea.estimators.common import (
 )
 from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import kabsch
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 __all__ = ["KMEA", "kmea_align"]
 

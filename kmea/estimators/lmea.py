@@ -35,7 +35,7 @@ from kmea.estimators.base import (
 )
 from kmea.estimators.common import COLLINEAR_TOL, References, finish_estimate
 from kmea.estimators.unknown_plane import check_mode
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 __all__ = ["LMEA", "LMEAPrinted", "anchor_basis", "printed_basis"]
 

@@ -21,7 +21,7 @@ from kmea.estimators.base import (
 )
 from kmea.estimators.common import finish_estimate, reference_problem, select_references
 from kmea.estimators.unknown_plane import check_mode
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 __all__ = ["Umeyama", "umeyama", "umeyama_batch"]
 

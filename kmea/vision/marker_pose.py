@@ -44,7 +44,7 @@ import numpy as np
 
 from kmea.estimators.base import CameraIntrinsics, MarkerObservation
 from kmea.geometry import marker_corners_local
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 from kmea.vision import pose_consensus
 from kmea.vision.camera import CameraModel
 from kmea.vision.ippe import (

@@ -4,7 +4,7 @@ Without FILE the built-in RobotAtFactory 4.0 map is used. A CSV map takes its di
 and default marker length from ``--dictionary`` and ``--length``.
 
 ``kmea map survey --source SPEC --camera FILE --map FILE --out FILE.csv [--frames N]``
-measures every marker the camera sees against the map (see :mod:`kmea.survey`).
+measures every marker the camera sees against the map (see :mod:`kmea.maps.survey`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import math
 import sys
 from pathlib import Path
 
-from kmea.maps import (
+from kmea.maps.files import (
     DEFAULT_DICTIONARY,
     MapError,
     MarkerMap,
@@ -127,7 +127,7 @@ def _convert(args: argparse.Namespace) -> int:
 
 def _survey(args: argparse.Namespace) -> int:
     from kmea import estimators
-    from kmea.survey import run_cli
+    from kmea.maps.survey import run_cli
 
     missing = [opt for opt, v in (("--source", args.source), ("--out", args.out)) if not v]
     if missing:

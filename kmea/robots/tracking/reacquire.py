@@ -26,9 +26,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from kmea.chi2 import chi2_quantile
-from kmea.tracking.config import TrackerConfig
-from kmea.tracking.gating import innovation
+from kmea.robots.tracking.config import TrackerConfig
+from kmea.robots.tracking.gating import innovation
+from kmea.stats.chi2 import chi2_quantile
 
 __all__ = ["FIT_PROBABILITY", "Candidates", "Link", "reachable"]
 

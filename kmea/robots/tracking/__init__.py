@@ -9,8 +9,8 @@ may cause (:mod:`.step_bound`); re-acquisition after a hand move (:mod:`.reacqui
 by the measurements of one robot.
 """
 
-from kmea.tracking.config import MODELS, TrackerConfig
-from kmea.tracking.track import Outcome, Rejection, Track, Tracker, TrackState
+from kmea.robots.tracking.config import MODELS, TrackerConfig
+from kmea.robots.tracking.track import Outcome, Rejection, Track, Tracker, TrackState
 
 __all__ = ["MODELS", "Outcome", "Rejection", "Track", "TrackState", "Tracker",
            "TrackerConfig"]

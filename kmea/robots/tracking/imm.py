@@ -22,9 +22,9 @@ from typing import NamedTuple
 import numpy as np
 
 from kmea.geometry.rotations import wrap_angle
-from kmea.tracking.config import TrackerConfig
-from kmea.tracking.gating import det3, inv3, mahalanobis
-from kmea.tracking.models import MotionModel, motion_model
+from kmea.robots.tracking.config import TrackerConfig
+from kmea.robots.tracking.gating import det3, inv3, mahalanobis
+from kmea.robots.tracking.models import MotionModel, motion_model
 
 __all__ = ["Gains", "ModeSet", "Modes", "moments"]
 

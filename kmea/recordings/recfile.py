@@ -20,7 +20,7 @@ from typing import Any
 
 import zstandard
 
-from kmea import wholewrite
+from kmea.recordings import wholewrite
 
 __all__ = ["ZSTD_MAGIC", "LineWriter", "RecordingBytesError", "is_compressed_name",
            "read_lines"]
@@ -44,7 +44,8 @@ class LineWriter:
     """Appends whole lines to a new file (compressed when the name ends in ``.zst``).
 
     ``bytes`` counts what is on disk. A failed write (``OSError``: a full disk) is cut back
-    to the last whole line (:func:`kmea.wholewrite.write_whole`) and raised; the writer is
+    to the last whole line (:func:`kmea.recordings.wholewrite.write_whole`) and raised; the
+    writer is
     then broken: close() closes the file without writing more (the stream's end is not
     needed to read it)."""
 

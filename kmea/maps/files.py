@@ -1,11 +1,11 @@
 """Marker map files: TOML (full description) and CSV (marker table only), and the built-in
 RobotAtFactory 4.0 map. The model itself (:class:`Marker`, :class:`MarkerMap`,
-:func:`check_map`) is :mod:`kmea.map_model`, re-exported here.
+:func:`check_map`) is :mod:`kmea.maps.model`, re-exported here.
 
 A CSV map takes the dictionary and default length from the configuration. Positions are
 metres; rotations are given in the files as degrees ``rx_deg, ry_deg, rz_deg``: fixed-frame
 rotations applied first about Z, then Y, then X, i.e. ``R = Rx @ Ry @ Rz`` (marker2world).
-The dictionary is any name the configuration accepts (:mod:`kmea.aruco_names`): a
+The dictionary is any name the configuration accepts (:mod:`kmea.maps.aruco_names`): a
 predefined one or a custom dictionary file, relative to the map file. See ``docs/maps.md``.
 
 Every problem with a file raises :class:`MapError` with one line naming the file, the line
@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from kmea.aruco_names import check_dictionary_name, is_dictionary_file
 from kmea.geometry import euler_zyx_fixed_deg
-from kmea.map_model import (
+from kmea.maps.aruco_names import check_dictionary_name, is_dictionary_file
+from kmea.maps.model import (
     DEFAULT_DICTIONARY,
     MAX_COORDINATE,
     MAX_LENGTH,

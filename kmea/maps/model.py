@@ -1,7 +1,7 @@
 """The marker map model: surveyed 6-DoF poses of ArUco markers in the world frame (numpy only).
 
 Positions are metres; ``Marker.rotation`` is marker2world. The file formats (TOML, CSV) and
-the built-in RobotAtFactory map are in :mod:`kmea.maps`. See ``docs/maps.md``.
+the built-in RobotAtFactory map are in :mod:`kmea.maps.files`. See ``docs/maps.md``.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kmea.aruco_names import MAX_MARKER_ID, PREDEFINED, is_dictionary_file
 from kmea.geometry import marker_corners_local
+from kmea.maps.aruco_names import MAX_MARKER_ID, PREDEFINED, is_dictionary_file
 
 __all__ = ["DEFAULT_DICTIONARY", "MAX_COORDINATE", "MAX_LENGTH", "MAX_MARKER_ID", "MIN_LENGTH",
            "MapError", "Marker", "MarkerMap", "check_map", "check_spread"]

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from kmea.tracking.imm import Modes
+from kmea.robots.tracking.imm import Modes
 
 __all__ = ["mixed", "outlier_posterior", "prior_density_ratio"]
 

@@ -1,13 +1,13 @@
 """Multi-camera fusion of robot poses through the tracking filter, numpy only.
 
 Several cameras measure the same robots in one world frame. Each measurement (robot pose
-with its own sigma, capture time ``t`` s) goes through the robot's :class:`kmea.tracking.Track`
-in arrival order: the Kalman update weighs each camera's measurement by its uncertainty, so
-a robot in the overlap of two cameras gets both, and a robot handed over from one camera to
-the other keeps one continuous track. Measurements arriving late (a slower camera) are
-applied at their own time (retrodiction); those older than ``max_age_s`` behind the newest
-measurement time seen (the fusion clock, so any shared clock works: Unix time from the Pis,
-or simulated time) are dropped and counted.
+with its own sigma, capture time ``t`` s) goes through the robot's
+:class:`kmea.robots.tracking.Track` in arrival order: the Kalman update weighs each
+camera's measurement by its uncertainty, so a robot in the overlap of two cameras gets both,
+and a robot handed over from one camera to the other keeps one continuous track.
+Measurements arriving late (a slower camera) are applied at their own time (retrodiction);
+those older than ``max_age_s`` behind the newest measurement time seen (the fusion clock, so
+any shared clock works: Unix time from the Pis, or simulated time) are dropped and counted.
 
 The camera clocks must agree: a camera whose clock is ahead by d seconds makes its robots
 look d s further along (a position error of speed x d) and, if d > ``max_age_s``, makes the
@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from kmea.tracking import Outcome, Tracker, TrackerConfig, TrackState
+from kmea.robots.tracking import Outcome, Tracker, TrackerConfig, TrackState
 
 __all__ = ["Fusion", "Measurement", "RobotSeen"]
 

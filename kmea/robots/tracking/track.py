@@ -21,14 +21,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kmea.chi2 import chi2_quantile
 from kmea.geometry.rotations import wrap_angle
-from kmea.tracking.config import TrackerConfig
-from kmea.tracking.gating import innovation, rejection_reason
-from kmea.tracking.imm import Modes, ModeSet
-from kmea.tracking.mixture import mixed, outlier_posterior, prior_density_ratio
-from kmea.tracking.reacquire import Candidates
-from kmea.tracking.step_bound import step_weight
+from kmea.robots.tracking.config import TrackerConfig
+from kmea.robots.tracking.gating import innovation, rejection_reason
+from kmea.robots.tracking.imm import Modes, ModeSet
+from kmea.robots.tracking.mixture import mixed, outlier_posterior, prior_density_ratio
+from kmea.robots.tracking.reacquire import Candidates
+from kmea.robots.tracking.step_bound import step_weight
+from kmea.stats.chi2 import chi2_quantile
 
 __all__ = ["Outcome", "Rejection", "Track", "TrackState", "Tracker"]
 
@@ -89,7 +89,7 @@ def _candidates_config(cfg: TrackerConfig) -> TrackerConfig:
 class Track:
     """The tracking filter of one robot (docs/tracking.md).
 
-    ``modes``: the IMM filter's state (:class:`kmea.tracking.imm.Modes`); ``s`` (n,) and
+    ``modes``: the IMM filter's state (:class:`kmea.robots.tracking.imm.Modes`); ``s`` (n,) and
     ``P`` (n, n) its combination, what is gated, reported and predicted; ``t``: the time of
     the newest measurement applied (s)."""
 

@@ -50,7 +50,7 @@ import numpy as np
 
 from kmea.estimators import get
 from kmea.estimators.base import CameraIntrinsics, MarkerObservation
-from kmea.maps import MarkerMap, _angles_deg
+from kmea.maps.files import MarkerMap, _angles_deg
 from kmea.progress import Progress
 
 __all__ = ["MarkerSurvey", "Survey", "format_report", "survey_frames", "write_csv"]
@@ -178,7 +178,7 @@ def survey_frames(frames: Iterable[np.ndarray], world_map: MarkerMap, camera,
 
     progress(frame index, markers seen so far) is called after each frame.
     """
-    from kmea.chi2 import chi2_quantile
+    from kmea.stats.chi2 import chi2_quantile
     from kmea.vision.detection import DetectorConfig, MarkerDetector
     from kmea.vision.marker_pose import estimate_marker_poses
 
@@ -335,7 +335,7 @@ def run_cli(source_spec: str, camera_file: str | None, map_file: str | None, out
             dictionary: str | None = None, length: float | None = None,
             quiet: bool = False) -> int:
     """``kmea map survey``; returns the exit code."""
-    from kmea.maps import MapError, default_map, load_map
+    from kmea.maps.files import MapError, default_map, load_map
     from kmea.sources.base import SourceError
     from kmea.sources.registry import open_source
     from kmea.vision.camera import CameraError, load_camera, model_for_frame

@@ -6,7 +6,7 @@ No pickle anywhere. Every body has ONE declared type below (a ``TypedDict``: the
 object's keys and value types); :func:`check_body` checks a decoded body against the type
 of its topic, so a client (and the tests) find out when the daemon's messages and the
 declared types disagree. This module imports only the standard library (and
-:mod:`kmea.jsonsafe`, which is stdlib-only too): the terminal UI imports it and nothing
+:mod:`kmea.wire.jsonsafe`, which is stdlib-only too): the terminal UI imports it and nothing
 else from ``kmea``.
 
 Units: metres, radians, seconds. ``float | None``: JSON has no NaN/inf, those are ``null``.
@@ -20,8 +20,8 @@ import typing
 from collections.abc import Callable
 from typing import Any, TypedDict, Union
 
-from kmea.jsonlimits import MAX_DEPTH, JsonLimitError, safe_loads
-from kmea.jsonsafe import to_jsonable
+from kmea.wire.jsonlimits import MAX_DEPTH, JsonLimitError, safe_loads
+from kmea.wire.jsonsafe import to_jsonable
 
 # 2: markers[].moved/moved_offset/moved_frames/moved_threshold (the daemon's "moved" decision
 #    with its evidence), markers[].rejection (was "displacement"), status.algorithms;
@@ -99,7 +99,7 @@ class _MarkerRowBase(TypedDict):
     rejected: bool  # a robust estimator left it out of this frame's references
     rejection: float | None  # ... and how far it disagreed with the map (m)
     reference: bool
-    moved: bool  # the daemon's decision (kmea.moved), with its evidence:
+    moved: bool  # the daemon's decision (kmea.stats.moved), with its evidence:
     moved_offset: float | None  # median displacement figure over the window (m)
     moved_frames: int  # figures in the window
     moved_threshold: float | None  # the marker's threshold now (m)
@@ -634,7 +634,7 @@ def decode_body(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES,
                 max_depth: int = MAX_DEPTH) -> dict[str, Any]:
     """Parse one JSON body and check its version; ``ProtocolError`` names the problem.
 
-    Refused (:mod:`kmea.jsonlimits`): more than ``max_bytes``, nesting deeper than
+    Refused (:mod:`kmea.wire.jsonlimits`): more than ``max_bytes``, nesting deeper than
     ``max_depth``, not UTF-8 JSON, NaN or Infinity; then anything but an object, and a ``v``
     other than exactly the integer :data:`PROTOCOL_VERSION` (``true`` or ``2.0`` are not
     versions).

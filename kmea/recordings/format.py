@@ -1,7 +1,7 @@
 """Recordings: every frame's detections and per-marker poses, for ``--source replay:FILE``.
 
 A recording is JSON lines (UTF-8, one object per line), zstd-compressed when its name ends
-in ``.zst`` (:mod:`kmea.recfile`: whole lines survive a kill):
+in ``.zst`` (:mod:`kmea.recordings.recfile`: whole lines survive a kill):
 
 1. a header ``{"format": "kmead-recording", "version": 2, "created", "source", "camera",
    "map", "robots", "config"[, "part", "previous"]}``: the camera model at the frame size,
@@ -35,10 +35,10 @@ from typing import Any
 import numpy as np
 
 from kmea.estimators.base import MarkerObservation
-from kmea.jsonsafe import to_jsonable
-from kmea.maps import Marker, MarkerMap
-from kmea.recfile import LineWriter, RecordingBytesError, read_lines
+from kmea.maps.files import Marker, MarkerMap
+from kmea.recordings.recfile import LineWriter, RecordingBytesError, read_lines
 from kmea.vision.camera import CameraModel
+from kmea.wire.jsonsafe import to_jsonable
 
 FORMAT = "kmead-recording"
 VERSION = 2

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kmea.tracking.imm import Gains, Modes
+from kmea.robots.tracking.imm import Gains, Modes
 
 __all__ = ["step_weight"]
 
