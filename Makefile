@@ -79,9 +79,9 @@ test-bookworm: $(BW_STAMP)
 endif
 
 # config.toml and the key table of docs/daemon.md, from the declarations in
-# kmead/settings_schema.py (a test fails when they disagree).
+# kmead/config/schema.py (a test fails when they disagree).
 config: $(STAMP)
-	$(BIN)/python -m kmead.settings_schema
+	$(BIN)/python -m kmead.config.schema
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

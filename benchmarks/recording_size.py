@@ -37,9 +37,9 @@ from typing import Any, NamedTuple
 
 from kmea.recordings.format import Recorder, _arr, _num
 from kmea.wire.jsonsafe import to_jsonable
-from kmead.config import load_config
-from kmead.daemon import Daemon
-from kmead.outputs import truth_record
+from kmead.config.layers import load_config
+from kmead.outputs.totals import truth_record
+from kmead.run.daemon import Daemon
 
 FPS = 30.0
 CASES = {"fast path": [], "every frame new": ["detector.tracking=false"]}

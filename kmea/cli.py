@@ -2,7 +2,7 @@
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
-dependency of one tool never breaks another. The ``kmea`` command (``kmead.kmea_cli``) is
+dependency of one tool never breaks another. The ``kmea`` command (``kmead.tools.kmea_cli``) is
 this front door with the daemon-side tools added (fuse, doctor, keys, export, snapshot and
 the daemon's benchmarks): the library never reaches into the daemon.
 """
@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None,
          description: str | None = None) -> int:
     """Run one subcommand. ``commands``: name -> (module, help), by default the library's
     :data:`COMMANDS`; ``extra_benches``: more benchmarks for ``bench`` to offer (name ->
-    "module:function"; the daemon's, from ``kmead.kmea_cli``)."""
+    "module:function"; the daemon's, from ``kmead.tools.kmea_cli``)."""
     from kmea import __version__
 
     parser = argparse.ArgumentParser(prog="kmea",

@@ -15,8 +15,8 @@ from kmea.sim.scenes import get_scene
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
 from kmea_tui.widgets.floor_map import FloorMap
-from kmead.config import load_config
-from kmead.fusion import FusionNode
+from kmead.config.layers import load_config
+from kmead.fusion.node import FusionNode
 
 
 async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from kmead import cli
-from kmead.config import ConfigError, load_config, overlay_doc, parse_set, save_overlay
+from kmead.config.layers import ConfigError, load_config, overlay_doc, parse_set, save_overlay
 
 if sys.version_info >= (3, 11):
     import tomllib

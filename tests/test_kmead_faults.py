@@ -25,8 +25,8 @@ from security_helpers import LiveDaemon, robots_toml, udp_listener
 
 from kmea.recordings import wholewrite
 from kmea.wire import protocol as P
-from kmead.csvlog import COLUMNS, HEADER
-from kmead.relay import parse_datagram
+from kmead.outputs.csvlog import COLUMNS, HEADER
+from kmead.outputs.relay import parse_datagram
 
 
 class Disk:
@@ -330,8 +330,8 @@ def test_every_filter_value_the_schema_accepts_runs_the_tracker() -> None:
 
     from kmea.pipeline import tracker_config
     from kmea.robots.tracking import Tracker
-    from kmead.config import load_config
-    from kmead.settings_schema import SCHEMA
+    from kmead.config.layers import load_config
+    from kmead.config.schema import SCHEMA
 
     base = load_config(None, [], use_local=False)["filter"]
     checked = 0

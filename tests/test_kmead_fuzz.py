@@ -17,7 +17,7 @@ import pytest
 from security_helpers import LiveDaemon
 
 from kmea.wire.protocol import PROTOCOL_VERSION as V
-from kmead.settings_schema import SCHEMA
+from kmead.config.schema import SCHEMA
 
 VB = str(V).encode()
 SEED = 20261130

@@ -1,4 +1,4 @@
-"""Every settable key has a type and a range (kmead.settings_schema); nothing else escapes."""
+"""Every settable key has a type and a range (kmead.config.schema); nothing else escapes."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import math
 import cv2
 import pytest
 
-from kmead.config_checks import (
+from kmead.config.checks import (
     DETECTOR_PARAMETERS,
     ConfigError,
     check_intrinsics,
     parse_destination,
 )
-from kmead.settings_schema import SCHEMA, validate_setting
+from kmead.config.schema import SCHEMA, validate_setting
 
 HUGE = 10**30
 

@@ -2,7 +2,7 @@
 
 - ``kmea`` (the library) imports neither ``kmead`` (the daemon) nor ``kmea_tui`` (the UI),
   with no exception: the ``kmea`` command's daemon-side tools are added above both, in
-  ``kmead/kmea_cli.py``.
+  ``kmead/tools/kmea_cli.py``.
 - ``kmea_tui`` imports from ``kmea`` only the wire protocol and the stdlib-only helpers of
   :data:`TUI_MAY_IMPORT`, and never ``kmead``; those modules import only the standard
   library (and each other). A subprocess checks that importing the UI loads neither
@@ -11,7 +11,7 @@
   under ``TYPE_CHECKING``), with no exception.
 
 Imports are read from the AST of every module, and dynamic imports by name
-(``import_module("kmead.bench")``, ``"kmead.bench:run"`` tables) are found as string
+(``import_module("kmead.tools.bench")``, ``"kmead.tools.bench:run"`` tables) are found as string
 constants that name a module of the other layer.
 """
 

@@ -224,7 +224,7 @@ def test_the_daemon_cuts_a_recording_into_parts_that_each_replay(tmp_path: Path)
 
 
 def test_part_limits_are_off_or_physical(tmp_path: Path) -> None:
-    from kmead.config import ConfigError, load_config
+    from kmead.config.layers import ConfigError, load_config
 
     cfg = load_config(None, ["log.record_part_mb=0", "log.record_part_min=0"])
     assert cfg["log"]["record_part_mb"] == 0 and cfg["log"]["record_part_min"] == 0
@@ -239,7 +239,7 @@ def test_a_part_is_due_by_size_or_by_age(tmp_path: Path, frames) -> None:
     """log.record_part_mb / _min against a real recorder (its bytes on disk, its start)."""
     from types import SimpleNamespace
 
-    from kmead.daemon import Daemon
+    from kmead.run.daemon import Daemon
 
     _, camera, world_map = frames
     rec = Recorder(tmp_path / "run.jsonl.zst", camera, world_map, "sim", {})

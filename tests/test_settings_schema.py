@@ -1,4 +1,4 @@
-"""Every key is declared once (kmead.settings_schema.KEYS); config.toml, the key table of
+"""Every key is declared once (kmead.config.schema.KEYS); config.toml, the key table of
 docs/daemon.md, the live keys and the tracking filter's defaults follow from it."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 import tomllib
 
 from kmea.robots.tracking import TrackerConfig
-from kmead.config import load_config
-from kmead.settings_schema import (
+from kmead.config.layers import load_config
+from kmead.config.schema import (
     KEYS,
     LIVE_KEYS,
     default_config,

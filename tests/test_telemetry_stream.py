@@ -20,8 +20,8 @@ import zmq
 from deadlines import DEADLINE
 
 from kmea.wire import protocol as P
-from kmead.config import load_config
-from kmead.daemon import Daemon
+from kmead.config.layers import load_config
+from kmead.run.daemon import Daemon
 
 RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
 SCENE = "sim:misplaced?robots=true"

@@ -11,7 +11,7 @@ A key directory made by ``kmea keys init DIR`` / ``kmea keys add DIR NAME``::
 Files are ZeroMQ certificates (the ZPL text that pyzmq's ``zmq.auth`` and czmq write). A
 client needs ``server.key`` and its own ``clients/NAME.key_secret``; :func:`apply_client_keys`
 sets them on a pyzmq socket before ``connect`` (pyzmq sockets take options as attributes, so
-this module needs no import of zmq and the terminal UI can use it). ``kmead.keys`` has the
+this module needs no import of zmq and the terminal UI can use it). ``kmead.net.keys`` has the
 daemon's half and ``connect_client``.
 """
 

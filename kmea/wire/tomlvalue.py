@@ -1,6 +1,6 @@
 """One typed-in configuration value, read as TOML (stdlib only: the terminal UI imports it).
 
-Used by ``kmead --set KEY=VALUE`` (:func:`kmead.config.parse_set`) and the UI's settings
+Used by ``kmead --set KEY=VALUE`` (:func:`kmead.config.layers.parse_set`) and the UI's settings
 form, so both read ``1.0``, ``true``, ``"DICT_6X6_250"``, ``[40, 41]`` the same way.
 """
 
