@@ -80,7 +80,7 @@ def latency(frames: int) -> None:
         with lock:
             ros_ms.append((now - m.header.stamp.sec - m.header.stamp.nanosec * 1e-9) * 1e3)
 
-    subs = [session.declare_subscriber("kmea/robots/poses/*/pose", on_binary),
+    subs = [session.declare_subscriber("kmea/robots/*/pose", on_binary),
             session.declare_subscriber("0/kmea/*/pose/**", on_ros)]
     socks, ports = [], []
     for _ in range(2):

@@ -155,7 +155,7 @@ class Capture:
         with self.lock:
             self.samples.append(s)
             stops = {str(x.key_expr) for x in self.samples
-                     if str(x.key_expr).startswith("kmea/robots/poses/")
+                     if str(x.key_expr).startswith("kmea/robots/")
                      and unpack_pose(x.payload.to_bytes()).flags & STOPPING}
         if len(stops) == 2:
             self.done.set()
@@ -203,7 +203,7 @@ def test_pose_topic_samples_are_taken_as_rmw_zenoh_takes_them(daemon_run) -> Non
     key = f"0/kmea/amr1/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/{POSE_HASH}"
     samples = [s for s in cap.samples if str(s.key_expr) == key]
     assert len(samples) >= 10  # 30 frames; the first may go before the route is set up
-    binary = [unpack_pose(s.payload.to_bytes()) for s in _by_key(cap, "kmea/robots/poses/amr1/")]
+    binary = [unpack_pose(s.payload.to_bytes()) for s in _by_key(cap, "kmea/robots/amr1/")]
     fixes = {round(b.t, 6): b for b in binary if b.valid}
     seqs, gids = [], set()
     for s in samples:
@@ -275,7 +275,7 @@ def test_liveliness_tokens_of_the_node_and_publishers(daemon_run) -> None:
 
 def test_binary_pose_every_message_and_the_stopping_one(daemon_run) -> None:
     cap, _ = daemon_run
-    poses = [unpack_pose(s.payload.to_bytes()) for s in _by_key(cap, "kmea/robots/poses/amr2/pose")]
+    poses = [unpack_pose(s.payload.to_bytes()) for s in _by_key(cap, "kmea/robots/amr2/pose")]
     assert sum(p.valid for p in poses) >= 10
     assert all(p.flags & TRACKED and p.sigma_x > 0 and p.sigma_theta > 0 for p in poses)
     assert [p.seq for p in poses] == sorted(p.seq for p in poses)
@@ -290,7 +290,7 @@ def test_the_c_decoder_reads_the_bytes_kmead_sent(daemon_run, tmp_path) -> None:
     subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-o",
                     str(exe), str(ROOT / "examples" / "kmea_pose_decode.c")], check=True,
                    timeout=JOIN)
-    payloads = [s.payload.to_bytes() for s in _by_key(cap, "kmea/robots/poses/")]
+    payloads = [s.payload.to_bytes() for s in _by_key(cap, "kmea/robots/")]
     out = subprocess.run([str(exe)], input=b"".join(payloads), capture_output=True,
                          check=True, timeout=JOIN).stdout.decode().splitlines()
     assert len(out) == len(payloads)
