@@ -47,13 +47,7 @@ from itertools import combinations
 
 import numpy as np
 
-from kmea.estimators.base import (
-    CameraIntrinsics,
-    Estimate,
-    EstimatorBase,
-    MarkerObservation,
-    check_observations,
-)
+from kmea.estimators.base import Estimate, EstimatorBase, MarkerObservation, check_observations
 from kmea.estimators.common import (
     References,
     finish_estimate,
@@ -65,6 +59,7 @@ from kmea.estimators.kmea import kmea_align
 from kmea.estimators.umeyama import umeyama_batch
 from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import ray_plane_parameter
+from kmea.geometry.camera import CameraIntrinsics
 from kmea.maps.model import MarkerMap
 from kmea.stats.chi2 import chi2_quantile
 

@@ -34,9 +34,10 @@ from multiprocessing import get_context
 import numpy as np
 
 from kmea import estimators as est_registry
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
 from kmea.experiments import simscene
 from kmea.experiments.setup import MODES, ExperimentConfig
+from kmea.geometry.camera import CameraIntrinsics
 from kmea.maps.files import MarkerMap
 
 __all__ = [

@@ -49,7 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from kmea.estimators import get
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
+from kmea.geometry.camera import CameraIntrinsics
 from kmea.maps.files import MarkerMap, _angles_deg
 from kmea.progress import Progress
 

@@ -42,8 +42,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
 from kmea.geometry import marker_corners_local
+from kmea.geometry.camera import CameraIntrinsics
 from kmea.maps.files import MarkerMap
 from kmea.vision import pose_consensus
 from kmea.vision.camera import CameraModel

@@ -12,7 +12,6 @@ import numpy as np
 
 from kmea.estimators import unknown_plane as unknown_plane_mod
 from kmea.estimators.base import (
-    CameraIntrinsics,
     CheckedObservations,
     Estimate,
     EstimateWithLoo,
@@ -38,6 +37,7 @@ from kmea.geometry import (
     project,
     undistort,
 )
+from kmea.geometry.camera import CameraIntrinsics
 from kmea.maps.model import MarkerMap
 from kmea.stats.chi2 import chi2_quantile
 
