@@ -24,11 +24,11 @@ import numpy as np
 
 from kmea import estimators
 from kmea.estimators.base import Estimate, MarkerObservation, PlacesOnPlanes, WarmStart
-from kmea.filters import PoseFilter
 from kmea.geometry import wrap_angle
-from kmea.maps import MarkerMap
-from kmea.robots import RobotSpec, robot_pose, robot_time
-from kmea.tracking import Tracker, TrackerConfig
+from kmea.maps.files import MarkerMap
+from kmea.robots.iir import PoseFilter
+from kmea.robots.poses import RobotSpec, robot_pose, robot_time
+from kmea.robots.tracking import Tracker, TrackerConfig
 from kmea.vision.camera import CameraModel
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector
 
@@ -141,7 +141,7 @@ class PipelineSettings:
     unknown_plane: what the estimator does with markers of unknown plane ("auto", "floor",
     "free"; :mod:`kmea.estimators.unknown_plane`);
     alpha, reset_after_s: the pose filter; filter_kind: the robots' filter, "iir" (the
-    paper's, with alpha) or "kalman" (:mod:`kmea.tracking`, configured by ``tracker``);
+    paper's, with alpha) or "kalman" (:mod:`kmea.robots.tracking`, configured by ``tracker``);
     loo: compute leave-one-out errors; robots: the robots carrying markers.
     tracking: a fixed live camera (:mod:`kmea.incremental`): the tracking detector
     (:mod:`kmea.vision.tracking_detector`, a background full detection every
@@ -683,14 +683,14 @@ class Pipeline:
     def robot_fixes(self, est: Estimate, t: float,
                     rejections: dict[str, str] | None = None,
                     times: Mapping[int, float] | None = None) -> dict[str, RobotFix]:
-        """Robot poses from the raw marker estimates (kmea.robots), then filtered per robot
+        """Robot poses from the raw marker estimates (kmea.robots.poses), then filtered per robot
         (the IIR filter, or the tracking filter: a measurement it rejects gives no fix this
         frame, and its reason goes to ``rejections``).
 
         Each robot's measurement is at its own markers' time (``times``, id -> s: in
         :meth:`process`, :meth:`observation_times` of the frame; else ``t``); the tracking
         filter runs on those times, and its velocity and turn rate bring a pair seen in two
-        rows to one instant (kmea.robots)."""
+        rows to one instant (kmea.robots.poses)."""
         out: dict[str, RobotFix] = {}
         times = times or {}
         rates = self._rates if times is self._times else {}

@@ -15,14 +15,14 @@ import pytest
 import zmq
 from deadlines import DEADLINE, JOIN
 
-from kmea import protocol as P
 from kmea.sim.scenes import get_scene
-from kmead.config import ConfigError, load_config
-from kmead.csvlog import HEADER
-from kmead.daemon import Daemon
-from kmead.fusion import FusionNode, measurement_from, parse_inputs
-from kmead.kmea_cli import main as kmea_main
-from kmead.relay import datagram, parse_datagram
+from kmea.wire import protocol as P
+from kmead.config.layers import ConfigError, load_config
+from kmead.fusion.node import FusionNode, measurement_from, parse_inputs
+from kmead.outputs.csvlog import HEADER
+from kmead.outputs.relay import datagram, parse_datagram
+from kmead.run.daemon import Daemon
+from kmead.tools.kmea_cli import main as kmea_main
 
 SPEED = 0.01  # m/s: the robots stay where the test expects them for its ~20 s
 # A camera daemon in this busy process may stall for a second or two under load: stale only

@@ -10,13 +10,13 @@ from pathlib import Path
 
 from deadlines import JOIN
 
-from kmea.maps import save_map_toml
+from kmea.maps.files import save_map_toml
 from kmea.sim.scenes import get_scene
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
 from kmea_tui.widgets.floor_map import FloorMap
-from kmead.config import load_config
-from kmead.fusion import FusionNode
+from kmead.config.layers import load_config
+from kmead.fusion.node import FusionNode
 
 
 async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:

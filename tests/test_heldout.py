@@ -77,7 +77,7 @@ def test_gridboard_photo_markers_off_the_map():
 
 
 def test_default_estimator_on_the_default_floor_at_820x616():
-    from kmead.config import load_config
+    from kmead.config.layers import load_config
 
     loo = default_floor_loo(frames=3, width=820, height=616)
     errs = np.array([e for v in loo.values() for e in v])

@@ -10,9 +10,9 @@ import threading
 import zmq
 from deadlines import JOIN
 
-from kmea import protocol as P
+from kmea.wire import protocol as P
 from kmead import cli
-from kmead.kmea_cli import main as kmea_main
+from kmead.tools.kmea_cli import main as kmea_main
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""']
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from kmea.geometry import marker_corners_local, rot_x, rot_y, rot_z
-from kmea.maps import Marker, MarkerMap, default_map
+from kmea.maps.files import Marker, MarkerMap, default_map
 from kmea.vision.camera import CameraModel, pi_camera_v2
 from kmea.vision.marker_pose import DisambiguationSettings, PoseDiagnostics, estimate_marker_poses
 

@@ -388,8 +388,8 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
 
     from kmea.sim.scenes import scene_from_spec
     from kmea.sources.registry import register_source
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     scene = scene_from_spec("sim:default", width=WIDTH)
     # The bump at 0.8 s of the scene's 30 frames/s: frame 24.
@@ -459,8 +459,8 @@ def test_live_frame_time_is_the_sensor_timestamp():
 
     from kmea.sources.base import Frame, FrameSource
     from kmea.sources.registry import register_source
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     scene_src = SimSource("sim:default", width=WIDTH, frames=1)
     image = scene_src.read().image
@@ -510,7 +510,7 @@ def test_live_frame_time_is_the_sensor_timestamp():
 
 
 def test_tracking_is_on_for_live_sources_only_and_can_be_switched_off():
-    from kmead.config import load_config
+    from kmead.config.layers import load_config
 
     on = load_config(None, use_local=False).data
     assert on["detector"]["tracking"] is True  # the default
@@ -521,7 +521,7 @@ def test_tracking_is_on_for_live_sources_only_and_can_be_switched_off():
 
 
 def test_refit_pacing_is_a_detector_setting():
-    from kmead.config import ConfigError, load_config
+    from kmead.config.layers import ConfigError, load_config
 
     cfg = load_config(None, sets=["detector.track_refit_every=7"], use_local=False)
     assert PipelineSettings.from_config(cfg.data, live=True).refit_every == 7

@@ -8,10 +8,10 @@ import sys
 import pytest
 
 from kmead import cli
-from kmead.config import ConfigError, load_config
-from kmead.plan import plan_startup, zenoh_plan
-from kmead.startup import StartupError
-from kmead.zenoh_settings import ros_token_problem, zenoh_exposure
+from kmead.config.layers import ConfigError, load_config
+from kmead.config.plan import plan_startup, zenoh_plan
+from kmead.config.zenoh import ros_token_problem, zenoh_exposure
+from kmead.run.startup import StartupError
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']

@@ -138,7 +138,7 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
         (fw, fc), (tw, tc) = row["full detection"], row["tracking"]
         print(f"{algo}: tracking / full detection = {tw / fw:.2f} (wall), {tc / fc:.2f} (CPU)")
         # The library's default robot filter is the paper's IIR; the daemon's configuration
-        # defaults to the tracking filter (kmea.tracking), whose update runs per robot per
+        # defaults to the tracking filter (kmea.robots.tracking), whose update runs per robot per
         # frame: the same tracking run with it.
         out = {}
         adjacent = _adjacent_bare(images, dic)

@@ -34,10 +34,10 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
 
 __all__ = [
-    "CameraIntrinsics",
     "CheckedObservations",
     "Estimate",
     "EstimateWithLoo",
@@ -50,20 +50,6 @@ __all__ = [
     "loo_by_exclusion",
     "loo_candidates",
 ]
-
-
-@dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics with OpenCV distortion, as plain arrays (numpy only).
-
-    camera_matrix: (3, 3) K in pixels; dist_coeffs: (n,) OpenCV order (k1, k2, p1, p2, k3, ...).
-    width, height: image size in pixels the intrinsics belong to.
-    """
-
-    camera_matrix: np.ndarray
-    dist_coeffs: np.ndarray
-    width: int
-    height: int
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,6 @@ from collections.abc import Collection, Mapping, Sequence
 import numpy as np
 
 from kmea.estimators.base import (
-    CameraIntrinsics,
     CheckedObservations,
     Estimate,
     EstimatorBase,
@@ -45,7 +44,8 @@ from kmea.estimators.common import (
 )
 from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import kabsch
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
 
 __all__ = ["KMEA", "kmea_align"]
 

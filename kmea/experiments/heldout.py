@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kmea.maps import Marker, default_map
+from kmea.maps.files import Marker, default_map
 
 __all__ = [
     "ESTIMATORS",
@@ -374,10 +374,10 @@ def default_floor_loo(frames: int = 8, width: int = 820, height: int = 616,
 
 def moved_markers(loo: dict[int, list[float]], min_offset: float = 0.01,
                   frames: int = 5) -> set[int]:
-    """Markers the daemon's moved-marker rule (:class:`kmea.moved.MovedMonitor`, with the
+    """Markers the daemon's moved-marker rule (:class:`kmea.stats.moved.MovedMonitor`, with the
     daemon's default ``stats.displaced_threshold`` and ``displaced_frames``) calls moved at
     some frame, fed these leave-one-out errors frame by frame."""
-    from kmea.moved import MovedMonitor
+    from kmea.stats.moved import MovedMonitor
 
     mon = MovedMonitor(min_offset, frames)
     n = max((len(v) for v in loo.values()), default=0)
@@ -442,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"default estimator, default floor {args.width}x{height}{where}, "
               f"{args.frames} frames, "
               f"{len(loo)} map markers: LOO mean {errs.mean() * 1e3:.3f} mm, "
-              f"max {errs.max() * 1e3:.3f} mm; markers the daemon's rule (kmea.moved, "
+              f"max {errs.max() * 1e3:.3f} mm; markers the daemon's rule (kmea.stats.moved, "
               f"default thresholds) calls moved: {sorted(moved) or 'none'}")
         return 0
     pool = HELDOUT if args.split == "heldout" else TUNING

@@ -42,9 +42,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
 from kmea.geometry import marker_corners_local
-from kmea.maps import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.files import MarkerMap
 from kmea.vision import pose_consensus
 from kmea.vision.camera import CameraModel
 from kmea.vision.ippe import (

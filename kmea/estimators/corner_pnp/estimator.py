@@ -10,10 +10,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kmea.chi2 import chi2_quantile
 from kmea.estimators import unknown_plane as unknown_plane_mod
 from kmea.estimators.base import (
-    CameraIntrinsics,
     CheckedObservations,
     Estimate,
     EstimateWithLoo,
@@ -39,7 +37,9 @@ from kmea.geometry import (
     project,
     undistort,
 )
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
+from kmea.stats.chi2 import chi2_quantile
 
 # Placeholders of place_on_planes' observations: markers of known plane are placed from
 # their corners; their PnP pose is never read.

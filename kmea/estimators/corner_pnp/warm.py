@@ -7,9 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
 from kmea.estimators.corner_pnp.fit import CameraFit
 from kmea.geometry import check_distortion
+from kmea.geometry.camera import CameraIntrinsics
 
 CameraKey = tuple[bytes, bytes]  # (camera matrix bytes, distortion bytes), float64
 

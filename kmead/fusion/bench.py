@@ -1,0 +1,151 @@
+"""``kmea bench fusion-node``: what one fusion node carries, and the latency it adds.
+
+The node runs as it would in the field (``kmea fuse --headless`` in its own process).
+This process plays C cameras (ZeroMQ PUB sockets sending ``robot.NAME`` messages for R
+robots each at ``fps``, capture time = the Unix time of sending) and the robots (one UDP
+listener). Latency = UDP arrival - the measurement's time: the ZeroMQ hop, the fusion and
+the UDP hop, i.e. what fusion adds between a camera's daemon and a robot. CPU = the node
+process's user + system time over the wall time (100 % = one core). Loads stay within the
+configuration's MAX_ROBOTS robots per node; beyond the node's capacity by a faster rate.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import zmq
+
+from kmea.wire import protocol as P
+from kmead.config.checks import MAX_ROBOTS
+from kmead.outputs.relay import parse_datagram
+
+
+def _cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        parts = f.read().rsplit(")", 1)[1].split()
+    return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
+    ctx = zmq.Context.instance()
+    pubs, eps = [], []
+    for _ in range(cameras):
+        s = ctx.socket(zmq.XPUB)  # a PUB that also hears the node subscribe
+        s.setsockopt(zmq.SNDHWM, 100000)
+        eps.append(f"tcp://127.0.0.1:{s.bind_to_random_port('tcp://127.0.0.1')}")
+        pubs.append(s)
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+    udp.bind(("127.0.0.1", 0))
+    udp.settimeout(0.2)
+    port = udp.getsockname()[1]
+    names = [f"r{c}_{k}" for c in range(cameras) for k in range(robots)]
+    toml = [f'[[robots]]\nname = "{n}"\nmarkers = [{i}]\n'
+            f'destinations = ["udp:127.0.0.1:{port}"]\n' for i, n in enumerate(names)]
+    with tempfile.TemporaryDirectory() as tmp, open(Path(tmp) / "node.err", "w+") as err:
+        cfg = Path(tmp) / "fuse.toml"
+        cfg.write_text("\n".join(toml))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "kmead.fusion.node", "--config", str(cfg), "--headless",
+             "--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""',
+             "--set", 'log.level="error"', *(a for e in eps for a in ("--input", e))],
+            stdout=subprocess.DEVNULL, stderr=err)
+        lat: list[float] = []
+        got = [0]
+        stop = threading.Event()
+
+        def listen() -> None:
+            while not stop.is_set():
+                try:
+                    data = udp.recv(512)
+                except TimeoutError:
+                    continue
+                now = time.time()
+                m = parse_datagram(data)
+                if m["valid"]:
+                    got[0] += 1
+                    lat.append(now - m["t"])
+
+        th = threading.Thread(target=listen, daemon=True)
+        th.start()
+        try:
+            # Measure from the node's subscription on every input: a fixed start-up wait
+            # is too short on a loaded machine, and every message before it is lost.
+            deadline = time.monotonic() + 60.0
+            for s in pubs:
+                while not s.poll(100):
+                    if proc.poll() is not None:
+                        # A node that did not start (e.g. a configuration it refuses) would
+                        # show as every message lost: say why instead.
+                        err.seek(0)
+                        lines = err.read().strip().splitlines() or ["(no output)"]
+                        raise RuntimeError(f"the fusion node exited with {proc.returncode}: "
+                                           f"{lines[-1]}")
+                    if time.monotonic() > deadline:
+                        raise RuntimeError("the fusion node did not subscribe within 60 s")
+                s.recv()
+            period = 1.0 / fps
+            cpu0, w0 = _cpu_s(proc.pid), time.monotonic()
+            sent = 0
+            lat.clear()
+            got[0] = 0
+            k = 0
+            next_t = time.monotonic()
+            while time.monotonic() - w0 < seconds:
+                t = time.time()
+                for c, s in enumerate(pubs):
+                    for r in range(robots):
+                        n = names[c * robots + r]
+                        body = {"name": n, "seq": k, "t": t, "x": 0.001 * k * 0.03 + r,
+                                "y": 0.1 * c, "theta": 0.0, "valid": True, "sigma": 0.002}
+                        s.send_multipart([f"robot.{n}".encode(), json.dumps(
+                            {"v": P.PROTOCOL_VERSION, **body}).encode()])
+                        sent += 1
+                k += 1
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            wall = time.monotonic() - w0
+            time.sleep(0.3)
+            cpu = (_cpu_s(proc.pid) - cpu0) / wall
+        finally:
+            stop.set()
+            proc.terminate()
+            proc.wait(timeout=10)
+            th.join(timeout=2)
+            udp.close()
+            for s in pubs:
+                s.close(linger=0)
+    lat.sort()
+    return {"sent_per_s": sent / wall, "fused_per_s": got[0] / wall, "cpu": cpu,
+            "p50": lat[len(lat) // 2] * 1e3 if lat else float("nan"),
+            "p99": lat[min(len(lat) - 1, int(0.99 * len(lat)))] * 1e3 if lat else float("nan"),
+            "lost": 1.0 - got[0] / max(sent, 1)}
+
+
+def run(quick: bool = False) -> None:
+    # Cameras, robots per camera, frames/s. A node takes at most MAX_ROBOTS robots (the
+    # configuration's bound), so the loads beyond its capacity come from a faster rate.
+    loads = [(2, 2, 30.0), (4, 10, 30.0), (8, 8, 30.0), (8, 8, 60.0), (8, 8, 120.0)]
+    assert all(c * r <= MAX_ROBOTS for c, r, _ in loads)
+    if quick:
+        loads = loads[:3]
+    seconds = 2.0 if quick else 5.0
+    print(f"one fusion node ({os.cpu_count()} cores here), {seconds:g} s per load; every "
+          "message a measurement of one robot; latency = UDP arrival - capture time")
+    print(f"  {'cameras':>7} {'robots':>6} {'fps':>4} {'msgs/s in':>10} {'fused/s':>8} "
+          f"{'lost':>6} {'CPU':>6} {'p50 ms':>7} {'p99 ms':>7}")
+    for c, r, fps in loads:
+        a = _load(c, r, fps, seconds)
+        print(f"  {c:7d} {c * r:6d} {fps:4.0f} {a['sent_per_s']:10.0f} {a['fused_per_s']:8.0f} "
+              f"{a['lost'] * 100:5.1f}% {a['cpu'] * 100:5.0f}% {a['p50']:7.2f} {a['p99']:7.2f}",
+              flush=True)
