@@ -237,22 +237,23 @@ def test_part_limits_are_off_or_physical(tmp_path: Path) -> None:
 
 def test_a_part_is_due_by_size_or_by_age(tmp_path: Path, frames) -> None:
     """log.record_part_mb / _min against a real recorder (its bytes on disk, its start)."""
-    from types import SimpleNamespace
-
-    from kmead.run.daemon import Daemon
+    from kmead.outputs.datadir import DataDir
+    from kmead.outputs.files import FileOutputs
+    from kmead.outputs.totals import RunTotals
 
     _, camera, world_map = frames
     rec = Recorder(tmp_path / "run.jsonl.zst", camera, world_map, "sim", {})
     try:
-        d = SimpleNamespace(recorder=rec, cfg={"log": {"record_part_mb": 1.0,
-                                                       "record_part_min": 1.0}})
-        assert Daemon._part_due(d) is None
+        log_cfg = {"record_part_mb": 1.0, "record_part_min": 1.0, "min_free_mb": 0.0}
+        files = FileOutputs(log_cfg, DataDir(str(tmp_path)), RunTotals(), lambda *a: None)
+        files.recorder = rec
+        assert files._part_due() is None
         rec.started -= 61.0  # as if started a minute and a second ago
-        assert Daemon._part_due(d) == "log.record_part_min = 1 min reached"
-        d.cfg["log"]["record_part_min"] = 0.0  # off
-        assert Daemon._part_due(d) is None
-        d.cfg["log"]["record_part_mb"] = rec.bytes / 1e6  # its size now
-        assert Daemon._part_due(d) == f"log.record_part_mb = {rec.bytes / 1e6:g} MB reached"
+        assert files._part_due() == "log.record_part_min = 1 min reached"
+        log_cfg["record_part_min"] = 0.0  # off
+        assert files._part_due() is None
+        log_cfg["record_part_mb"] = rec.bytes / 1e6  # its size now
+        assert files._part_due() == f"log.record_part_mb = {rec.bytes / 1e6:g} MB reached"
     finally:
         rec.close()
 

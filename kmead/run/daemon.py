@@ -14,10 +14,8 @@ capture.
 from __future__ import annotations
 
 import collections
-import contextlib
 import logging
 import math
-import os
 import threading
 import time
 from collections.abc import Mapping
@@ -39,15 +37,9 @@ from kmead.config.plan import check_camera, plan_startup, robot_ids_problem
 from kmead.net import bodies
 from kmead.net.control import ControlServer
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
-from kmead.outputs.csvlog import CsvLog, ends_whole, has_header
-from kmead.outputs.datadir import (
-    DataDir,
-    FileRefused,
-    low_space,
-    next_part,
-    same_file,
-    split_suffix,
-)
+from kmead.outputs.csvlog import CsvLog
+from kmead.outputs.datadir import DataDir, FileRefused
+from kmead.outputs.files import FileOutputs, LowSpace
 from kmead.outputs.relay import Relay
 from kmead.outputs.totals import RunTotals, csv_lines, truth_record
 from kmead.run.camera_feed import CameraFeed, camera_body, frame_outlines
@@ -71,17 +63,9 @@ __all__ = ["Daemon", "StartupError"]
 log = logging.getLogger("kmead")
 
 DISPLACED_QUIET_S = 30.0
-# How often (s) the free space under a running log or recording is checked: statvfs is a few
-# microseconds, but every frame would be needless.
-SPACE_CHECK_S = 1.0
 # Frames in a row that failed before any frame succeeded: a configuration under which no
 # frame can succeed (the daemon exits 1 naming the first error instead of running forever).
 STARTUP_FAILURES = 30
-OUTPUT_NAMES = {"log": "CSV log", "record": "recording"}
-
-
-class LowSpace(ValueError):
-    """An output refused because its disk is below ``log.min_free_mb`` (one line)."""
 
 
 class Daemon:
@@ -94,8 +78,7 @@ class Daemon:
         self.stop_event = threading.Event()
         self.totals = RunTotals()
         self.t0 = time.time()
-        self.csv: CsvLog | None = None
-        self.recorder = None
+        self.files: FileOutputs | None = None
         self.telemetry: Telemetry | None = None
         self.control = None
         self.relay: Relay | None = None
@@ -125,10 +108,6 @@ class Daemon:
         self.curve = None  # kmead.net.keys.CurveServer when network.keys is set
         self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
         self.guard = ChangeGuard()
-        # Why each output last stopped on its own (a write error, the free-space floor);
-        # None while it runs or after a stop that was asked for. In the status body.
-        self.output_errors: dict[str, str | None] = {"log": None, "record": None}
-        self._space_t = 0.0
         self.frames_read = 0  # what --frames counts: frames that came in, failed or not
         self._fail_streak = 0
         self._first_failure: str | None = None
@@ -166,6 +145,8 @@ class Daemon:
             self.data_dir = DataDir(cfg["log"]["dir"])
         except FileRefused as e:
             raise StartupError(f"key 'log.dir': {e}") from None
+        self.files = FileOutputs(cfg["log"], self.data_dir, self.totals, self.event,
+                                 self._new_recorder)
         # The tracking detector's background detection: one thread of the daemon's (the
         # library starts none), started on first use.
         self.discovery = ThreadPoolExecutor(1, thread_name_prefix="kmead-discover")
@@ -204,7 +185,7 @@ class Daemon:
             except LowSpace as e:
                 # A full disk is the moment's state, not a configuration error: the robots
                 # get their poses without this output (event, status "error").
-                self._output_refused("log" if key == "csv" else "record", str(e))
+                self.files.refused("log" if key == "csv" else "record", str(e))
             except ValueError as e:  # an unwritable path: name the key, do not start
                 raise StartupError(f"key 'log.{key}': {e}") from None
         if cfg.data.get("foxglove", {}).get("enabled"):
@@ -263,192 +244,35 @@ class Daemon:
         """The pipeline's settings from the configuration (tracking only for live sources)."""
         return PipelineSettings.from_config(self.cfg.data, live=self.live)
 
-    # ------------------------------------------------------------------ outputs on/off
-    def _output_path(self, name: str, kind: str, other: Any, remote: bool) -> str:
-        """Where an output goes: over control a new plain file in the data directory
-        (kmead.outputs.datadir); never the file the other output writes."""
-        busy = [other.path] if other is not None else []
-        if remote:
-            return str(self.data_dir.create(name, kind, busy))
-        for b in busy:
-            if same_file(name, b):
-                raise ValueError(f"{kind}: {name} is the file the other output writes")
-        return name
+    # ------------------------------------------------------------------ files
+    # The CSV log and the recording are kmead.outputs.files.FileOutputs; control and the
+    # summary reach them through these.
+    @property
+    def csv(self) -> CsvLog | None:
+        return self.files.csv if self.files is not None else None
 
-    def _check_space(self, path: str, kind: str, remote: bool) -> None:
-        """LowSpace when the disk an output would go to is below ``log.min_free_mb``."""
-        reason = low_space(self.data_dir.root if remote else path,
-                           self.cfg["log"]["min_free_mb"])
-        if reason:
-            raise LowSpace(f"{kind}: not started: {reason}")
-
-    def _output_refused(self, kind: str, text: str) -> None:
-        self.output_errors[kind] = text
-        self.event("error", text)
-
-    def _output_failed(self, kind: str, e: OSError) -> None:
-        """A write error (ENOSPC, EIO) stops that output only: the file keeps its whole rows
-        (kmea.recordings.wholewrite cut the failed frame back), the event and the status say why."""
-        out = self.csv if kind == "log" else self.recorder
-        count = f"{out.rows} rows" if kind == "log" else f"{out.frames} frames"
-        cut = ("" if getattr(e, "cut_back", True)
-               else "; its last row may be cut (the file could not be truncated)")
-        self._stop_output(kind, f"{OUTPUT_NAMES[kind]} {out.path}: write failed: "
-                                f"{e.strerror or e}; stopped after {count}{cut}; robots and "
-                                "telemetry go on")
-
-    def _stop_output(self, kind: str, text: str) -> None:
-        try:
-            self.stop_csv() if kind == "log" else self.stop_recording()
-        except OSError as e:  # closing a file on a failing disk: it is stopped all the same
-            log.debug("closing the %s: %s", OUTPUT_NAMES[kind], e)
-            if kind == "log":
-                self.csv = None
-            else:
-                self.recorder = None
-        self._output_refused(kind, text)
-
-    def _watch_space(self) -> None:
-        """Stop an output cleanly (between two frames: whole rows) when its disk falls
-        below the floor, long before a write fails."""
-        now = time.monotonic()
-        if now - self._space_t < SPACE_CHECK_S:
-            return
-        self._space_t = now
-        for kind, out in (("log", self.csv), ("record", self.recorder)):
-            reason = low_space(out.path, self.cfg["log"]["min_free_mb"]) if out else None
-            if reason:
-                count = f"{out.rows} rows" if kind == "log" else f"{out.frames} frames"
-                self._stop_output(kind, f"{OUTPUT_NAMES[kind]} {out.path}: stopped after "
-                                        f"{count}: {reason}; robots and telemetry go on")
-
-    @staticmethod
-    def _forget_created(path: str, remote: bool) -> None:
-        # The empty file a refused control request created (a full disk): its name stays
-        # free for the next try.
-        if remote:
-            with contextlib.suppress(OSError):
-                if os.path.getsize(path) == 0:
-                    os.unlink(path)
-
-    @staticmethod
-    def _keep_existing(path: str, kind: str) -> tuple[str, str]:
-        """Where a restarted output goes without truncating anything: (path, mode).
-
-        mode "create": no file (or an empty one) there; "append": a CSV log of this format
-        ending with a whole row, continued without a second header; "new name": the file
-        is kept as it is and the output goes to ``NAME-2.csv`` (``-3`` ...), the first free
-        name. A recording always gets a new name: its header holds the camera, the map and
-        the configuration of the run that started it, which may have changed since.
-        """
-        p = Path(path)
-        try:
-            if not p.exists() or (p.is_file() and p.stat().st_size == 0):
-                return path, "create"
-            if kind == "log" and p.is_file() and has_header(p) and ends_whole(p):
-                return path, "append"
-        except OSError:
-            pass  # unreadable: never written over, a new name instead
-        base, suffix = split_suffix(p)
-        for n in range(2, 10000):
-            other = f"{base}-{n}{suffix}"
-            if not os.path.lexists(other):
-                return other, "new name"
-        raise ValueError(f"{kind}: {base}-2{suffix} to -9999 all exist; give a path")
+    @property
+    def recorder(self) -> Recorder | None:
+        return self.files.recorder if self.files is not None else None
 
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
-        """Start the CSV log. keep: an existing file is never truncated (a restart over
-        control: see _keep_existing); else an operator's path is written afresh."""
-        if self.csv is not None:
-            raise ValueError(f"already logging to {self.csv.path}; stop it first")
-        self._check_space(path, "log", remote)
-        mode = "create"
-        if keep and not remote:
-            path, mode = self._keep_existing(path, "log")
-        path = self._output_path(path, "log", self.recorder, remote)
-        try:
-            self.csv = CsvLog(path, append=mode == "append")
-        except OSError as e:
-            self._forget_created(path, remote)
-            raise ValueError(f"log: cannot write {path}: {e.strerror or e}") from None
-        self.csv.mode = mode
-        self.output_errors["log"] = None
-        self.totals.csv_paths.append(str(self.csv.path))
-        log.info("CSV log started: %s%s", self.csv.path,
-                 " (appending: the earlier rows are kept)" if mode == "append" else "")
-        return self.csv
+        return self.files.start_csv(path, remote, keep)
 
     def stop_csv(self) -> dict:
-        if self.csv is None:
-            raise ValueError("not logging")
-        c, self.csv = self.csv, None
-        c.close()
-        self.totals.csv_rows += c.rows
-        log.info("CSV log stopped: %s (%d rows)", c.path, c.rows)
-        return {"path": str(c.path), "rows": c.rows, "bytes": c.bytes}
+        return self.files.stop_csv()
 
     def start_recording(self, path: str, remote: bool = False, keep: bool = False
                         ) -> Recorder:
-        """Start recording; keep: as for :meth:`start_csv` (a recording is never appended
-        to: a new name)."""
-        if self.recorder is not None:
-            raise ValueError(f"already recording to {self.recorder.path}; stop it first")
-        self._check_space(path, "record", remote)
-        mode = "create"
-        if keep and not remote:
-            path, mode = self._keep_existing(path, "record")
-        path = self._output_path(path, "record", self.csv, remote)
-        try:
-            self.recorder = self._new_recorder(path)
-        except OSError as e:
-            self._forget_created(path, remote)
-            raise ValueError(f"record: cannot write {path}: {e.strerror or e}") from None
-        self.recorder.mode = mode
-        self.output_errors["record"] = None
-        log.info("recording started: %s%s", self.recorder.path, "" if self.recorder.compressed
-                 else " (plain JSON lines: 3 to 25 times the size of a name ending .zst)")
-        return self.recorder
+        return self.files.start_recording(path, remote, keep)
+
+    def stop_recording(self) -> dict:
+        return self.files.stop_recording()
 
     def _new_recorder(self, path: str | Path, part: int = 1,
                       previous: str | None = None) -> Recorder:
-        r = Recorder(path, self.pipeline.camera, self.world_map, self.source_spec,
-                     self.cfg.to_dict(), fast_path=self.pipeline.settings.tracking, part=part,
-                     previous=previous)
-        self.totals.record_paths.append(str(r.path))
-        return r
-
-    def _part_due(self) -> str | None:
-        """Why the recording must go on in a new part (log.record_part_mb/_min), or None."""
-        r, lg = self.recorder, self.cfg["log"]
-        if lg["record_part_mb"] and r.bytes >= lg["record_part_mb"] * 1e6:
-            return f"log.record_part_mb = {lg['record_part_mb']:g} MB reached"
-        if lg["record_part_min"] and time.monotonic() - r.started >= lg["record_part_min"] * 60:
-            return f"log.record_part_min = {lg['record_part_min']:g} min reached"
-        return None
-
-    def _next_part(self, why: str) -> None:
-        """Close this part and go on in a new file (a new name: nothing is written over);
-        each part has its own header and replays alone."""
-        old = self.recorder
-        try:
-            path, part = next_part(old.path, old.part + 1)
-            new = self._new_recorder(path, part, previous=old.path.name)
-        except OSError as e:
-            self._output_failed("record", e)
-            return
-        new.mode = old.mode
-        old.close()
-        self.recorder = new
-        log.info("recording: part %d in %s (%s; %s kept, %d frames)", part, path, why,
-                 old.path.name, old.frames)
-
-    def stop_recording(self) -> dict:
-        if self.recorder is None:
-            raise ValueError("not recording")
-        r, self.recorder = self.recorder, None
-        r.close()
-        log.info("recording stopped: %s (%d frames)", r.path, r.frames)
-        return {"path": str(r.path), "frames": r.frames, "bytes": r.bytes, "part": r.part}
+        return Recorder(path, self.pipeline.camera, self.world_map, self.source_spec,
+                        self.cfg.to_dict(), fast_path=self.pipeline.settings.tracking,
+                        part=part, previous=previous)
 
     # ------------------------------------------------------------------ live settings
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
@@ -585,7 +409,7 @@ class Daemon:
             config_file=self.cfg.user_file or "<default config>",
             config_files=self.cfg.files, algorithm=self.pipeline.algorithm,
             algorithms=available_algorithms(), csv=self.csv, recorder=self.recorder,
-            output_errors=self.output_errors,
+            output_errors=self.files.errors if self.files is not None else None,
             camera=self.pipeline.camera, world_map=self.world_map,
             frames=self.totals.frames, dropped=self.dropped,
             bad_frames=self.totals.bad_frames,
@@ -763,26 +587,15 @@ class Daemon:
             self.event("warning", f"robot {name}: measurement rejected by the tracking "
                                   f"filter: {reason}")
         # 3. files: a failing disk stops that file only, never the frame or the robots
-        if self.csv is not None or self.recorder is not None:
-            self._watch_space()
-        if self.csv is not None:
-            try:
-                self.csv.write_rows(csv_lines(res, self.world_map,
-                                              self.pipeline.robot_heights))
-            except OSError as e:
-                self._output_failed("log", e)
-        if self.recorder is not None:
+        files = self.files
+        files.watch_space()
+        if files.csv is not None:
+            files.write_csv(csv_lines(res, self.world_map, self.pipeline.robot_heights))
+        if files.recorder is not None:
             truth = res.meta.get("truth")
-            try:
-                self.recorder.write_frame(res.index, res.timestamp, res.ids, res.corners,
-                                          res.observations, res.diagnostics,
-                                          truth_record(truth) if truth is not None else None)
-            except OSError as e:
-                self._output_failed("record", e)
-            else:
-                why = self._part_due()
-                if why:
-                    self._next_part(why)
+            files.write_frame(lambda r: r.write_frame(
+                res.index, res.timestamp, res.ids, res.corners, res.observations,
+                res.diagnostics, truth_record(truth) if truth is not None else None))
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
                                                           self.monitor.get))
@@ -993,10 +806,8 @@ class Daemon:
                 self.capture.close()
             elif getattr(self, "source", None) is not None:
                 self.source.close()
-            if self.csv is not None:
-                self.stop_csv()
-            if self.recorder is not None:
-                self.stop_recording()
+            if self.files is not None:
+                self.files.close()
             if self.foxglove is not None:
                 self.foxglove.close()
                 self.foxglove = None
