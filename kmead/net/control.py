@@ -222,7 +222,7 @@ class ControlServer:
         with d.lock:
             return {"config": d.cfg.to_dict(), "config_file": d.cfg.user_file,
                     "config_files": d.cfg.files, "overlay_file": str(d.cfg.overlay_path),
-                    "live_keys": [*sorted(LIVE_KEYS), "detector.*"]}
+                    "live_keys": sorted(LIVE_KEYS)}
 
     def _cmd_set(self, req: dict) -> dict:
         key = _field(req, "key", str)

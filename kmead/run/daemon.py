@@ -32,7 +32,7 @@ from kmea.stats.metrics import WindowStats
 from kmea.stats.moved import MovedMonitor
 from kmea.timing import blur_warning
 from kmea.wire import protocol as P
-from kmead.config.layers import LIVE_KEYS, Config, ConfigError, is_live, save_overlay
+from kmead.config.layers import Config
 from kmead.config.plan import check_camera, plan_startup, robot_ids_problem
 from kmead.net import bodies
 from kmead.net.control import ControlServer
@@ -45,6 +45,7 @@ from kmead.outputs.totals import RunTotals, csv_lines, truth_record
 from kmead.run.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.run.capture import Capture, CaptureEnded, open_feed
 from kmead.run.gc_pacing import GcPacing
+from kmead.run.live_settings import LiveSettings
 from kmead.run.log_ring import LogRing
 from kmead.run.rollback import ChangeGuard
 from kmead.run.startup import (
@@ -107,12 +108,12 @@ class Daemon:
         self.zenoh = None  # kmead.outputs.zenoh.ZenohOutput when [zenoh] enabled = true
         self.curve = None  # kmead.net.keys.CurveServer when network.keys is set
         self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
-        self.guard = ChangeGuard()
+        self.live_settings = LiveSettings(cfg, self._reconfigure, self.event,
+                                          self._setting_problem)
         self.frames_read = 0  # what --frames counts: frames that came in, failed or not
         self._fail_streak = 0
         self._first_failure: str | None = None
         self._succeeded = False
-        self._resave = False  # save_config ran while a change was on trial
         try:
             self._build()
         except BaseException:
@@ -275,92 +276,54 @@ class Daemon:
                         part=part, previous=previous)
 
     # ------------------------------------------------------------------ live settings
+    # kmead.run.live_settings: check, apply, trial, rollback, save; the daemon's part is
+    # what follows a change.
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
-        """Validate and apply one key live (``ConfigError``/``ValueError`` if not allowed).
+        return self.live_settings.set(key, value, remote)
 
-        The change is then on trial (kmead.run.rollback): if most of the next frames fail, the
-        old value returns. ``remote``: the value came over the network.
-        """
-        old = self.cfg.get(key)  # ConfigError for an unknown key
-        if not is_live(key):
-            raise ConfigError(f"control: key {key!r} cannot change while running "
-                              f"(live keys: {', '.join(sorted(LIVE_KEYS))}, detector.*); "
-                              "save it and restart kmead")
-        v = self._apply(key, value, old, remote)
-        # Every live change goes on trial (kmead.run.rollback), not only the detector's and the
-        # estimator's: a filter value inside its range once made every frame fail.
-        self.guard.begin(key, old, v)
-        log.info("set %s = %r", key, v)
-        return v
+    def save_config(self, path: str | None = None) -> dict:
+        return self.live_settings.save(path)
 
-    def _apply(self, key: str, value: Any, old: Any, remote: bool = False) -> Any:
+    @property
+    def guard(self) -> ChangeGuard:
+        return self.live_settings.guard
+
+    def _setting_problem(self, key: str, value: Any) -> str | None:
+        return robot_ids_problem(self.cfg, self.world_map, value) if key == "robots" else None
+
+    def _reconfigure(self, key: str, v: Any) -> None:
+        """Make the running parts follow the configuration after ``key`` became ``v``."""
         section = key.partition(".")[0]
-        v = self.cfg.set(key, value, where="control", remote=remote)
-        problem = robot_ids_problem(self.cfg, self.world_map, v) if key == "robots" else None
-        if problem:
-            self.cfg.set(key, old, where="control")
-            raise ConfigError(f"control: {problem}")
-        try:
-            self.pipeline.settings = self._settings()
-            if key == "estimator.algorithm":
-                self.pipeline.set_algorithm(v)
-                self.stats.reset()
-            elif key == "estimator.unknown_plane":
-                self.pipeline.set_algorithm(self.pipeline.algorithm)
-            elif key.startswith("filter."):
-                self.pipeline.configure_filter()
-            elif section == "detector":
-                self.pipeline.configure_detector()
-            elif key == "robots":
-                self.pipeline.configure_robots()
-                self.relay.configure(v, t=self._now())
-                if self.zenoh is not None:
-                    self.zenoh.retain({r["name"] for r in v})
-            elif key.startswith("relay."):
-                self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
-                self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
-                self.relay.extra_fields = self.cfg["relay"]["extra_fields"]
-            elif key == "stats.window":
-                self.stats = WindowStats(v, self.world_map.ref_length())
-            elif key in ("stats.displaced_threshold", "stats.displaced_frames"):
-                self.monitor = MovedMonitor(self.cfg["stats"]["displaced_threshold"],
-                                            self.cfg["stats"]["displaced_frames"])
-            elif key == "log.level":
-                logging.getLogger("kmead").setLevel(v.upper())
-        except Exception as e:
-            self.cfg.set(key, old, where="control")
-            self.pipeline.settings = self._settings()
-            raise ValueError(f"control: key {key!r}: {e}") from None
-        return v
+        self.pipeline.settings = self._settings()
+        if key == "estimator.algorithm":
+            self.pipeline.set_algorithm(v)
+            self.stats.reset()
+        elif key == "estimator.unknown_plane":
+            self.pipeline.set_algorithm(self.pipeline.algorithm)
+        elif key.startswith("filter."):
+            self.pipeline.configure_filter()
+        elif section == "detector":
+            self.pipeline.configure_detector()
+        elif key == "robots":
+            self.pipeline.configure_robots()
+            self.relay.configure(v, t=self._now())
+            if self.zenoh is not None:
+                self.zenoh.retain({r["name"] for r in v})
+        elif key.startswith("relay."):
+            self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
+            self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
+            self.relay.extra_fields = self.cfg["relay"]["extra_fields"]
+        elif key == "stats.window":
+            self.stats = WindowStats(v, self.world_map.ref_length())
+        elif key in ("stats.displaced_threshold", "stats.displaced_frames"):
+            self.monitor = MovedMonitor(self.cfg["stats"]["displaced_threshold"],
+                                        self.cfg["stats"]["displaced_frames"])
+        elif key == "log.level":
+            logging.getLogger("kmead").setLevel(v.upper())
 
     def _now(self) -> float:
         """The time of the last frame (the relay's clock), else the wall clock."""
         return self.last_result.timestamp if self.last_result is not None else time.time()
-
-    def _judge(self, ok: bool) -> None:
-        """One frame's outcome for the change on trial; undo it if it broke the pipeline.
-
-        A save_config during the trial wrote the previous value; once the trial passes the
-        overlay is written again with the new one (after a rollback it is right as it is).
-        """
-        pending = bool(self.guard.trials)
-        condemned = self.guard.frame(ok)
-        if pending and not self.guard.trials and self._resave:
-            self._resave = False
-            if not condemned:
-                try:
-                    self.save_config()
-                except Exception as e:
-                    self.event("error", f"save_config after the trial: {e}")
-        for trial in condemned:
-            try:
-                self._apply(trial.key, trial.old, trial.new)
-            except Exception as e:  # the old value worked before; report if it does not now
-                self.event("error", f"rollback of {trial.key} failed: {e}")
-                continue
-            self.event("error", f"set {trial.key} rolled back: {trial.failures} of the "
-                                f"{trial.frames} frames after it failed; the previous "
-                                f"value is back")
 
     def reload_map(self) -> MarkerMap:
         new = configured_map(self.cfg, self.source)
@@ -371,35 +334,6 @@ class Daemon:
         self.monitor.clear()
         log.info("map reloaded: %s (%d markers)", new.name, len(new))
         return new
-
-    def save_config(self, path: str | None = None) -> dict:
-        from kmead.config.layers import overlay_doc
-
-        doc = overlay_doc(self.cfg)
-        held = []
-        for key in list(self.guard.trials):  # on trial: the value before it is saved
-            section, _, name = key.partition(".")
-            old = self.guard.trials[key].old
-            if key == "robots":
-                doc.pop("robots", None)
-                if old != self.cfg.base.get("robots"):
-                    doc["robots"] = old
-            else:
-                doc.get(section, {}).pop(name, None)
-                if self.cfg.base.get(section, {}).get(name) != old:
-                    doc.setdefault(section, {})[name] = old
-            held.append(key)
-        doc = {k: v for k, v in doc.items() if v != {}}
-        p, doc = save_overlay(self.cfg, path, doc)
-        self._resave = bool(held)
-        if held:
-            log.info("save_config: %s on trial; saved the previous value for now (saved "
-                     "again when the trial passes)", ", ".join(held))
-        keys = sorted(f"{s}.{k}" for s, t in doc.items() if s != "robots" for k in t)
-        if "robots" in doc:
-            keys.append("robots")
-        log.info("configuration overlay saved: %s (%s)", p, ", ".join(keys) or "no changes")
-        return {"path": str(p), "keys": keys, "held": held}
 
     # ------------------------------------------------------------------ telemetry bodies
     def status(self) -> P.StatusBody:
@@ -511,13 +445,13 @@ class Daemon:
             self._fail_streak += 1
             if self._first_failure is None:
                 self._first_failure = " ".join(text.split())  # one line
-            self._judge(False)
+            self.live_settings.judge(False)
             return None
         self._fail_streak = 0
         self._succeeded = True
         self._outputs(res)
         self._camera_outputs(frame.image, res)
-        self._judge(bool(res.estimate.ok))
+        self.live_settings.judge(bool(res.estimate.ok))
         return res
 
     def _camera_outputs(self, image, res: FrameResult) -> None:
@@ -775,25 +709,10 @@ class Daemon:
         # Only a flag: this runs in a signal handler (no locks, no sockets here).
         self.stop_event.set()
 
-    def _settle_trials(self) -> None:
-        """At shutdown: a change on trial whose frames so far mostly succeeded counts as
-        passed, so a save_config made during its trial gets the new value."""
-        trials = list(self.guard.trials.values())
-        if not (trials and self._resave):
-            return
-        t = trials[0]
-        self.guard.trials.clear()
-        self._resave = False
-        if t.frames and t.failures <= self.guard.ratio * t.frames:
-            try:
-                self.save_config()
-            except Exception as e:
-                log.error("save_config at shutdown: %s", e)
-
     def close(self) -> None:
         """Flush and close everything (idempotent)."""
         with self.lock:
-            self._settle_trials()
+            self.live_settings.settle()
             if self.control is not None:
                 self.control.stop()
                 self.control = None
