@@ -11,7 +11,7 @@ is then the same too, and is reused instead of recomputed:
   markers are new too, a few unchanged floor markers are posed with them as anchors;
 - the leave-one-out errors of the floor (:class:`IncrementalLoo`): they depend only on the
   map markers' observations (robots are never references), so while those are the same
-  objects the last errors are exactly what a recomputation would give. They are
+  (the same ``version``) the last errors are exactly what a recomputation would give. They are
   recomputed when any map marker's observation changes, and at least every ``every``
   frames.
 
@@ -155,7 +155,7 @@ class IncrementalLoo:
 
     def __init__(self, every: int = 30) -> None:
         self.every = max(1, int(every))
-        self._key: dict[int, MarkerObservation] | None = None
+        self._key: dict[int, int] | None = None  # id -> observation version
         self._value: dict[int, float] = {}
         self._age = 0
         self.computed = 0
@@ -168,14 +168,12 @@ class IncrementalLoo:
     def get(self, obs: Sequence[MarkerObservation], in_map: Collection[int],
             compute: Callable[[], dict[int, float]]) -> tuple[dict[int, float], bool]:
         """(errors, computed now): ``compute()`` unless the map markers' observations are
-        the same objects as last time and it ran fewer than ``every`` frames ago."""
+        the same versions as last time and it ran fewer than ``every`` frames ago."""
         # By id, not by order: a full detection lists the markers in its own order, a
         # tracked frame by id, and the errors do not depend on the order.
-        key = {o.id: o for o in obs if o.id in in_map}  # held: identities stay unique
+        key = {o.id: o.version for o in obs if o.id in in_map}
         self._age += 1
-        old = self._key
-        same = old is not None and len(old) == len(key) and all(
-            old.get(i) is o for i, o in key.items())
+        same = key == self._key
         if same and self._age < self.every:
             self.reused += 1
             return self._value, False

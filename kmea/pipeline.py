@@ -612,11 +612,12 @@ class Pipeline:
         (m, 4, 2) px; kept while the list is the same (frames with deferred markers keep
         it, and compare against it every frame)."""
         cache = self._floor_cache
-        if cache is None or cache[0] is not self._floor_obs:
-            floor = self._floor_obs
+        floor = self._floor_obs
+        key = tuple(o.version for o in floor)
+        if cache is None or cache[0] != key:
             stack = np.array([np.asarray(o.corners, float).reshape(4, 2) for o in floor]
                              ).reshape(-1, 4, 2)
-            cache = self._floor_cache = (floor, {o.id: k for k, o in enumerate(floor)}, stack)
+            cache = self._floor_cache = (key, {o.id: k for k, o in enumerate(floor)}, stack)
         return cache[1], cache[2]
 
     def _floor_grew(self, ids: np.ndarray) -> bool:

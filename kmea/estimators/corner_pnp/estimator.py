@@ -478,7 +478,7 @@ class CornerPnP(EstimatorBase):
                         dropped: dict[int, int], scale_refs: Sequence[int]
                         ) -> dict[int, MarkerEstimate]:
         """:func:`place_markers`, reusing the placements of the same fit for markers whose
-        observation is the same object (warm start only; see ``_placed``)."""
+        observation has the same version (warm start only; see ``_placed``)."""
         if not self.warm_start or self._warm is None or self._warm.fit is not fit:
             return place_markers(self._placing, self._corner_planes, fit, obs, world_map,
                                  plane_heights, inliers, planes, dropped=dropped,
@@ -489,7 +489,8 @@ class CornerPnP(EstimatorBase):
         for i, o in obs.items():
             hit = old.get(i)
             if hit is not None and hit.height == plane_heights.get(i) and (
-                    hit.obs is o or (hit.height is not None and _same_square(hit.obs, o))):
+                    hit.obs.version == o.version
+                    or (hit.height is not None and _same_square(hit.obs, o))):
                 out[i] = hit.estimate
                 if hit.plane is not None:
                     planes[i] = hit.plane
