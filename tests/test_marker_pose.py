@@ -386,7 +386,7 @@ def test_non_map_marker_normal_can_be_given() -> None:
 
 
 def test_a_known_consensus_rotation_decides_like_the_scene() -> None:
-    """A fixed camera keeps the scene's consensus rotation (kmea.incremental): the same
+    """A fixed camera keeps the scene's consensus rotation (kmea.fixed_camera): the same
     ambiguous robot marker posed alone with that rotation gets the choice the whole scene
     gives it, and its expected normal comes from the rotation, not from a vote."""
     trials = 60

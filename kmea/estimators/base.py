@@ -79,7 +79,7 @@ class MarkerObservation:
         version: unique to this measurement in this process, given at construction (also
             by ``dataclasses.replace``: new corners are a new measurement). What a fixed
             camera's caches key on: the same version is the same measurement
-            (:mod:`kmea.incremental`, the estimators' warm starts).
+            (:mod:`kmea.fixed_camera`, the estimators' warm starts).
     """
 
     id: int
@@ -312,7 +312,7 @@ class EstimatorBase:
 
     name: str
     # The fit reads the references' corners (their poses only seed it): a reference's pose
-    # may be reused while its corners move a little (kmea.incremental).
+    # may be reused while its corners move a little (kmea.fixed_camera).
     fits_corners: bool = False
 
     def estimate(self, observations, world_map, exclude=(), camera=None,
@@ -348,7 +348,7 @@ class EstimatorBase:
 class CheckedObservations:
     """:func:`check_observations` for a fixed camera's consecutive frames (an estimator's
     warm start): an observation whose version the last call checked (a fixed marker's,
-    reused by :mod:`kmea.incremental`) is not checked again; the duplicate-id test covers
+    reused by :mod:`kmea.fixed_camera`) is not checked again; the duplicate-id test covers
     them all, and any failure is raised by the full check (the same error). ``reset()``
     forgets."""
 

@@ -89,7 +89,7 @@ class KMEA(EstimatorBase):
         self.seed = seed
         self._rng = np.random.default_rng(seed)
         # Warm start (a fixed live camera, set by kmea.pipeline): while the references'
-        # observations are the very objects of the last call (kmea.incremental reuses a
+        # observations are the very objects of the last call (kmea.fixed_camera reuses a
         # floor marker's), their alignment is the last one; only the markers are mapped.
         self.warm_start = False
         self._check = CheckedObservations()

@@ -198,7 +198,7 @@ def estimate_marker_poses(
     robots' markers lie flat); a None value means "no assumption" for that id.
     quality: when a marker is flagged ``suspect`` (:class:`QualitySettings`).
     world2cam_R: (3, 3) the scene's consensus rotation when known already (a fixed camera:
-    from an earlier frame, :mod:`kmea.incremental`); the markers' expected normals then
+    from an earlier frame, :mod:`kmea.fixed_camera`); the markers' expected normals then
     come from it instead of a vote among these markers.
     Returns the observations (in input order, minus ``failed_ids``) and the diagnostics.
     """

@@ -206,7 +206,7 @@ class CornerPnP(EstimatorBase):
                 and all(a is b for a, b in zip(w.ref_obs, ref_obs, strict=True))
                 and self._same_camera(w, camera)):
             # The very observations of the last fit (a fixed camera's floor, reused by
-            # kmea.incremental): the same fit, nothing to check or stack again.
+            # kmea.fixed_camera): the same fit, nothing to check or stack again.
             return Solution(w.fit, refs, list(w.inliers), w.dis, obs)
         for i in refs:
             c = np.asarray(obs[i].corners, dtype=float)

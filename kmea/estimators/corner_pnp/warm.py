@@ -17,7 +17,7 @@ CameraKey = tuple[bytes, bytes]  # (camera matrix bytes, distortion bytes), floa
 
 @dataclass(frozen=True)
 class WarmFit:
-    """The last fit kept for the warm start (a fixed camera, :mod:`kmea.incremental`).
+    """The last fit kept for the warm start (a fixed camera, :mod:`kmea.fixed_camera`).
 
     map_id: id of the map it was solved for; camera: its intrinsics as checked
     (:data:`CameraKey`); refs, uv: its references and their stacked corners (4 rows each,
