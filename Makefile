@@ -34,7 +34,7 @@ test -x $(2)/bin/python || { \
 	  $(1) -m venv $(3) $(2); }
 endef
 
-.PHONY: run test test-current test-bookworm lint bench install-service clean
+.PHONY: run test test-current test-bookworm lint bench config install-service clean
 
 $(STAMP): pyproject.toml
 	@$(call venv,$(PY),$(VENV),$(if $(ON_PI),--system-site-packages))
@@ -77,6 +77,11 @@ test-bookworm: $(BW_STAMP)
 	@$(BW_BIN)/python $(STACK)
 	$(BW_BIN)/python -m pytest -q -n 2 $(ARGS)
 endif
+
+# config.toml and the key table of docs/daemon.md, from the declarations in
+# kmead/config/schema.py (a test fails when they disagree).
+config: $(STAMP)
+	$(BIN)/python -m kmead.config.schema
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/curve.py [--messages N] [--size BYTES] [--rate HZ]
 
 Both modes use the daemon's own set-up: a PUB socket made a CURVE server by
-``kmead.keys.CurveServer`` (ZAP handler, key directory from ``kmead.keys.init_keys``) and a
-SUB client connected with ``kmead.keys.connect_client``; the plain mode the same sockets
+``kmead.net.keys.CurveServer`` (ZAP handler, key directory from ``kmead.net.keys.init_keys``) and a
+SUB client connected with ``kmead.net.keys.connect_client``; the plain mode the same sockets
 without keys. Each mode runs in its own pair of ZeroMQ contexts (publisher, subscriber).
 
 - throughput: N messages of ``--size`` bytes (default: a 50-marker ``markers`` body, the
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import zmq
 
-from kmead.keys import CurveServer, connect_client, init_keys
+from kmead.net.keys import CurveServer, connect_client, init_keys
 
 
 def _markers_body(n: int = 50) -> bytes:

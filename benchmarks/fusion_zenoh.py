@@ -48,7 +48,7 @@ def _free_port() -> int:
 
 def camera_main(port: int, cam_id: str, lease: float) -> None:
     """A camera of the site (a process of its own): SIGUSR1 stops its 'frame loop' (the
-    session and its token stay). Its session as kmead's (kmead.zenoh_session: Zenoh's
+    session and its token stay). Its session as kmead's (kmead.outputs.zenoh_session: Zenoh's
     lease 3/4 of zenoh.lease_s)."""
     import zenoh
 
@@ -97,7 +97,7 @@ class Node:
             else f'zenoh.listen=["tcp/127.0.0.1:{_free_port()}"]'
         zcon = [] if listen else ["--set", f'zenoh.connect=["tcp/127.0.0.1:{zport}"]']
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "kmead.fusion", "--headless",
+            [sys.executable, "-m", "kmead.fusion.node", "--headless",
              "--set", 'network.telemetry=""',
              "--set", 'network.control=""', "--set", 'log.level="info"',
              "--set", f"zenoh.lease_s={lease}", "--set", "zenoh.ros2=false", "--set", zset, *zcon,

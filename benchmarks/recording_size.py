@@ -14,7 +14,7 @@ in two cases:
 
 Formats: ``v1`` is the first format's writer (every marker's corners and flags, plain JSON
 lines: what ``--record run.jsonl`` wrote before format version 2); ``v2 plain`` and ``v2
-.zst`` are :class:`kmea.recording.Recorder` today (``run.jsonl`` and ``run.jsonl.zst``).
+.zst`` are :class:`kmea.recordings.format.Recorder` today (``run.jsonl`` and ``run.jsonl.zst``).
 ``--candidates`` adds what was measured to choose: gzip (stdlib zlib, a sync flush every
 frame) and MCAP chunks (the ``mcap`` package, zstd and lz4, 1 MB chunks: durable only when a
 chunk closes). CPU is ``time.process_time`` of encoding, compressing and writing every frame
@@ -35,11 +35,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from kmea.jsonsafe import to_jsonable
-from kmea.recording import Recorder, _arr, _num
-from kmead.config import load_config
-from kmead.daemon import Daemon
-from kmead.outputs import truth_record
+from kmea.recordings.format import Recorder, _arr, _num
+from kmea.wire.jsonsafe import to_jsonable
+from kmead.config.layers import load_config
+from kmead.outputs.totals import truth_record
+from kmead.run.daemon import Daemon
 
 FPS = 30.0
 CASES = {"fast path": [], "every frame new": ["detector.tracking=false"]}
@@ -77,7 +77,7 @@ def capture(frames: int, extra: list[str]) -> tuple[list[tuple], Any, Any, dict]
 
 
 def v1_line(index, t, ids, corners, obs, diag, truth) -> bytes:
-    """A frame as format version 1 wrote it (kmea/recording.py before version 2)."""
+    """A frame as format version 1 wrote it (kmea/recordings/format.py before version 2)."""
     line = {"frame": int(index), "t": float(t), "ids": [int(i) for i in ids],
             "corners": [_arr(c) for c in corners],
             "markers": [{"id": int(o.id), "R": _arr(o.marker2cam_R), "t": _arr(o.marker2cam_t),
@@ -113,7 +113,7 @@ def write_recorder(out: Path, run: Run) -> int:
 
 
 def write_gzip(out: Path, run: Run) -> int:
-    from kmea.recording import frame_to_json
+    from kmea.recordings.format import frame_to_json
 
     z = zlib.compressobj(6, zlib.DEFLATED, 31)
     with open(out, "wb", buffering=0) as f:
@@ -128,7 +128,7 @@ def write_mcap(kind: str) -> Callable[[Path, Run], int]:
     def write(out: Path, run: Run) -> int:
         from mcap.writer import CompressionType, Writer
 
-        from kmea.recording import frame_to_json
+        from kmea.recordings.format import frame_to_json
 
         with open(out, "wb") as f:
             w = Writer(f, chunk_size=1 << 20, compression=getattr(CompressionType, kind))

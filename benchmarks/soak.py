@@ -31,8 +31,8 @@ from pathlib import Path
 
 import zmq
 
-from kmea import protocol as P
-from kmead.relay import parse_datagram
+from kmea.wire import protocol as P
+from kmead.outputs.relay import parse_datagram
 
 ROBOTS = {"amr1": "[40, 41]", "amr2": "[42]"}  # the simulated floor's robots
 

@@ -32,11 +32,11 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from kmead import ros2_messages as msgs
-from kmead.config import load_config
-from kmead.relay import RobotTrack, parse_datagram
-from kmead.robot_pose_wire import unpack_pose
-from kmead.zenoh_output import ZenohOutput
+from kmead.config.layers import load_config
+from kmead.outputs import ros2_messages as msgs
+from kmead.outputs.relay import RobotTrack, parse_datagram
+from kmead.outputs.robot_pose_wire import unpack_pose
+from kmead.outputs.zenoh import ZenohOutput
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -2,7 +2,7 @@
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; they are imported only when used, so a missing optional
-dependency of one tool never breaks another. The ``kmea`` command (``kmead.kmea_cli``) is
+dependency of one tool never breaks another. The ``kmea`` command (``kmead.tools.kmea_cli``) is
 this front door with the daemon-side tools added (fuse, doctor, keys, export, snapshot and
 the daemon's benchmarks): the library never reaches into the daemon.
 """
@@ -16,11 +16,11 @@ from importlib import import_module
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "map": ("kmea.map_cli", "show, check or convert a marker map"),
+    "map": ("kmea.maps.cli", "show, check or convert a marker map"),
     "calibrate": ("kmea.vision.calibrate_cli", "calibrate a camera from board views"),
     "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
     "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
-    "bench": ("kmea.bench", "benchmarks that print figures"),
+    "bench": ("kmea.benchmarks.cli", "benchmarks that print figures"),
 }
 
 
@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None,
          description: str | None = None) -> int:
     """Run one subcommand. ``commands``: name -> (module, help), by default the library's
     :data:`COMMANDS`; ``extra_benches``: more benchmarks for ``bench`` to offer (name ->
-    "module:function"; the daemon's, from ``kmead.kmea_cli``)."""
+    "module:function"; the daemon's, from ``kmead.tools.kmea_cli``)."""
     from kmea import __version__
 
     parser = argparse.ArgumentParser(prog="kmea",

@@ -23,12 +23,13 @@ from typing import Any
 import numpy as np
 
 from kmea import estimators
-from kmea.estimators.base import Estimate, MarkerObservation, PlacesOnPlanes, WarmStart
-from kmea.filters import PoseFilter
+from kmea.estimators.base import Estimate, MarkerObservation, WarmStart
+from kmea.fixed_camera import FixedCameraSession
 from kmea.geometry import wrap_angle
-from kmea.maps import MarkerMap
-from kmea.robots import RobotSpec, robot_pose, robot_time
-from kmea.tracking import Tracker, TrackerConfig
+from kmea.maps.files import MarkerMap
+from kmea.robots.iir import PoseFilter
+from kmea.robots.poses import RobotSpec, robot_pose, robot_time
+from kmea.robots.tracking import Tracker, TrackerConfig
 from kmea.vision.camera import CameraModel
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector
 
@@ -38,7 +39,7 @@ __all__ = ["STAGES", "FrameInput", "FrameResult", "MarkerObserver", "Pipeline",
 STAGES = ("capture", "detect", "pose", "estimate", "loo", "filter", "robots", "output")
 
 # A fixed marker whose reference corners moved by at most this (px) keeps its pose, for
-# estimators that fit corners (kmea.incremental.IncrementalPoses.reuse_px): a tenth of a
+# estimators that fit corners (kmea.fixed_camera.IncrementalPoses.reuse_px): a tenth of a
 # pixel, above the 0.005-0.05 px of one more averaged look, below the 0.1-0.3 px corner
 # noise of a single detection.
 REUSE_PX = 0.1
@@ -141,9 +142,9 @@ class PipelineSettings:
     unknown_plane: what the estimator does with markers of unknown plane ("auto", "floor",
     "free"; :mod:`kmea.estimators.unknown_plane`);
     alpha, reset_after_s: the pose filter; filter_kind: the robots' filter, "iir" (the
-    paper's, with alpha) or "kalman" (:mod:`kmea.tracking`, configured by ``tracker``);
+    paper's, with alpha) or "kalman" (:mod:`kmea.robots.tracking`, configured by ``tracker``);
     loo: compute leave-one-out errors; robots: the robots carrying markers.
-    tracking: a fixed live camera (:mod:`kmea.incremental`): the tracking detector
+    tracking: a fixed live camera (:mod:`kmea.fixed_camera`): the tracking detector
     (:mod:`kmea.vision.tracking_detector`, a background full detection every
     ``track_full_every`` frames), marker poses and leave-one-out errors reused while the
     floor's detections do not change (recomputed at least every ``loo_every`` frames),
@@ -277,15 +278,10 @@ class Pipeline:
         # detection waits for it, so it runs in the gap between frames.
         self.robots_sent = threading.Event()
         self.observer = MarkerObserver(None, camera, world_map)
-        from kmea.incremental import IncrementalLoo, IncrementalPoses
-
-        self.inc_poses = IncrementalPoses()
-        self._floor_obs: list[MarkerObservation] = []  # last frame's fixed markers (tracking)
-        self._floor_cache: tuple | None = None  # see _floor_rows
-        self._refit_age = 0  # frames since the floor's camera fit was last updated (tracking)
+        # A fixed live camera (settings.tracking): what carries over from frame to frame.
+        self.session = FixedCameraSession(self.settings.loo_every)
         self._times: dict[int, float] = {}  # this frame's robot markers' times (process)
         self._rates: dict[int, tuple[float, float]] = {}  # and their row time gradients
-        self.inc_loo = IncrementalLoo(self.settings.loo_every)
         self.configure(self.settings)
 
     # ------------------------------------------------------------------ configuration
@@ -311,13 +307,9 @@ class Pipeline:
         self.reset_incremental()
 
     def reset_incremental(self) -> None:
-        """Forget reused poses and leave-one-out errors (new map, robots, camera, view)."""
+        """Forget the fixed camera's session (new map, robots, camera, view)."""
         robot_ids = {m for r in self.settings.robots for m in r.markers}
-        self.inc_poses.reset(set(self.world_map.markers) - robot_ids)
-        self._floor_obs = []
-        self._refit_age = 0
-        self.inc_loo.reset()
-        self.inc_loo.every = max(1, int(self.settings.loo_every))
+        self.session.reset(set(self.world_map.markers) - robot_ids, self.settings.loo_every)
         est = getattr(self, "estimator", None)  # (None while __init__ builds the pipeline)
         if isinstance(est, WarmStart):
             est.warm_start = self.settings.tracking
@@ -342,6 +334,20 @@ class Pipeline:
     def detector(self):
         return self.observer.detector
 
+    @property
+    def marker_length(self) -> float:
+        """Side (m) of markers neither in the map nor on a robot."""
+        return self.settings.marker_length
+
+    @property
+    def refit_every(self) -> int:
+        """With tracking: the floor's camera fit is updated at most every N frames."""
+        return max(1, int(self.settings.refit_every))
+
+    @property
+    def intrinsics(self):
+        return self.camera.intrinsics
+
     def set_algorithm(self, name: str) -> None:
         """Build estimator ``name`` with the configured ``unknown_plane``."""
         self.estimator = estimators.get(name, unknown_plane=self.settings.unknown_plane)
@@ -349,11 +355,10 @@ class Pipeline:
         if isinstance(self.estimator, WarmStart):
             # Tracking (a fixed live camera): the camera fit starts from the previous one.
             self.estimator.warm_start = self.settings.tracking
-        if hasattr(self, "inc_loo"):
-            self.inc_loo.reset()
+        self.session.loo.reset()
         # A floor reference averaged once more keeps its pose when the estimator fits the
         # corners (see IncrementalPoses).
-        self.inc_poses.reuse_px = REUSE_PX if self.estimator.fits_corners else 0.0
+        self.session.poses.reuse_px = REUSE_PX if self.estimator.fits_corners else 0.0
 
     def close(self) -> None:
         """No more background detections (one waiting for the gate goes at once)."""
@@ -461,32 +466,10 @@ class Pipeline:
                 self.reset_incremental()
                 self.configure_filter()
             if incremental:
-                known = None
-                self._refit_age += 1
-                changed = bool(self._floor_obs) and (self.inc_poses.fixed_changed(ids, corners)
-                                                     or self._floor_grew(ids))
-                if changed and self._refit_age < self.settings.refit_every:
-                    corners, deferred = self._last_floor(ids, corners)
-                    changed = False
-                elif changed:
-                    self._refit_age = 0
-                if (self.robot_specs and self._floor_obs
-                        and isinstance(self.estimator, PlacesOnPlanes)):
-                    # The floor of the last camera fit: the robots are placed from their
-                    # corners with that fit and sent before any pose is computed; their
-                    # observations come from those placements (no IPPE pose for them).
-                    # Also when the floor changed: the refit below is for the statistics
-                    # and the next frame (the same fixes with and without a relay).
-                    early, known = self._robots_from_corners(inp.timestamp, ids, corners,
-                                                             on_robots, rejections)
-                if changed and early is None and on_robots is not None and self.robot_specs:
-                    # The floor's corners changed (one more averaged look, a marker back in
-                    # view): re-posing it and refitting the camera can take 10 ms or more.
-                    # The robots go first, placed with the camera fit of the floor as it
-                    # was; then the floor is updated for the statistics and the next frame.
-                    early, known = self._robots_first(inp.timestamp, ids, corners,
-                                                      on_robots, rejections)
-                obs, diag = self.inc_poses.poses(self.poses, ids, corners, known)
+                seen = self.session.observe(self, inp.timestamp, ids, corners, on_robots,
+                                            rejections, self._times)
+                obs, diag, corners = seen.obs, seen.diag, seen.corners
+                deferred, early = seen.deferred, seen.early
             else:
                 obs, diag = self.poses(ids, corners)
             t2 = time.perf_counter()
@@ -523,8 +506,7 @@ class Pipeline:
             if on_robots is not None:
                 on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
         if incremental and not deferred:
-            self._floor_obs = ([o for o in obs if o.id in self.inc_poses.fixed
-                                and o.corners is not None] if est.ok else [])
+            self.session.remember(obs, est.ok)
         self.robots_sent.set()  # also without a relay (no background detection waits long)
         t4 = time.perf_counter()
         tm["robots"] = (t4 - t3) * 1e3
@@ -548,113 +530,13 @@ class Pipeline:
                     return {}
             if incremental:  # the floor's observations unchanged: the same errors
                 refs = [o for o in obs if o.id not in deferred] if deferred else obs
-                loo_err, fresh = self.inc_loo.get(refs, self.world_map.markers, compute)
+                loo_err, fresh = self.session.loo.get(refs, self.world_map.markers, compute)
             else:
                 loo_err = compute()
         tm["loo"] = (time.perf_counter() - t5) * 1e3
         return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
                            est, markers, loo_err, robots, tm, inp.t_capture, inp.meta,
                            rejections, events, restart, mode, fresh, deferred)
-
-    def _robots_from_corners(self, t: float, ids: np.ndarray, corners: np.ndarray,
-                             on_robots: Callable[[float, dict[str, RobotFix]], None] | None,
-                             rejections: dict[str, str]
-                             ) -> tuple[dict[str, RobotFix] | None,
-                                        dict[int, MarkerObservation] | None]:
-        """Robot fixes of this frame from the moving markers' corners and the estimator's
-        last camera fit (``place_on_planes``), sent with ``on_robots``, and the moving
-        markers' observations from those placements (``placed_observations``: the pose
-        stage then has nothing to pose for them); (None, None) (the usual path then) when a
-        moving marker has no known plane or there is no fit."""
-        fixed = self.inc_poses.fixed
-        sel = [k for k, m in enumerate(ids.tolist()) if m not in fixed]
-        if not sel:
-            return None, None
-        est = self.estimator
-        if not isinstance(est, PlacesOnPlanes):
-            return None, None
-        mids = [int(ids[k]) for k in sel]
-        lengths = [self.robot_lengths.get(m, self.settings.marker_length) for m in mids]
-        placed = est.place_on_planes(mids, corners[sel], lengths, self.world_map,
-                                     self.plane_heights)
-        if placed is None:
-            return None, None
-        fixes = self.robot_fixes(Estimate(self.algorithm, True, placed), t, rejections,
-                                 self._times)
-        if on_robots is not None:
-            on_robots(t, fixes)
-        return fixes, est.placed_observations(placed, mids, corners[sel], lengths)
-
-    def _last_floor(self, ids: np.ndarray, corners: np.ndarray
-                    ) -> tuple[np.ndarray, tuple[int, ...]]:
-        """This frame's corners with the floor of the last camera fit: a fixed marker of
-        that fit keeps its corners there (its observation is reused); the fixed markers not
-        in it keep their new corners and are returned second (placed, not references:
-        ``exclude``)."""
-        rows, stack = self._floor_rows()
-        fixed = self.inc_poses.fixed
-        c = corners.copy()
-        new = []
-        ks, js = [], []
-        for k, m in enumerate(ids.tolist()):
-            j = rows.get(m)
-            if j is not None:
-                ks.append(k)
-                js.append(j)
-            elif m in fixed:
-                new.append(m)
-        if ks:
-            c[ks] = stack[js]
-        return c, tuple(new)
-
-    def _floor_rows(self) -> tuple[dict[int, int], np.ndarray]:
-        """The last fit's floor (``_floor_obs``) as id -> row and its corners stacked
-        (m, 4, 2) px; kept while the list is the same (frames with deferred markers keep
-        it, and compare against it every frame)."""
-        cache = self._floor_cache
-        if cache is None or cache[0] is not self._floor_obs:
-            floor = self._floor_obs
-            stack = np.array([np.asarray(o.corners, float).reshape(4, 2) for o in floor]
-                             ).reshape(-1, 4, 2)
-            cache = self._floor_cache = (floor, {o.id: k for k, o in enumerate(floor)}, stack)
-        return cache[1], cache[2]
-
-    def _floor_grew(self, ids: np.ndarray) -> bool:
-        """Is a fixed marker in ``ids`` that the last frame's floor did not have (back in
-        view: the camera fit gains a reference and is solved again)?"""
-        # Ids only: the floor list is a new one every frame without deferred markers, so
-        # _floor_rows (which stacks its corners) would rebuild on every steady frame.
-        had = {o.id for o in self._floor_obs}
-        fixed = self.inc_poses.fixed
-        return any(m in fixed and m not in had for m in ids.tolist())
-
-    def _robots_first(self, t: float, ids: np.ndarray, corners: np.ndarray,
-                      on_robots: Callable[[float, dict[str, RobotFix]], None],
-                      rejections: dict[str, str]
-                      ) -> tuple[dict[str, RobotFix] | None, dict[int, MarkerObservation] | None]:
-        """Robot fixes of this frame from its moving markers and the previous frame's
-        floor observations (their camera fit is the estimator's warm start: the same fit,
-        not a new one), sent with ``on_robots``; (fixes, this frame's moving-marker
-        observations) or (None, None) when no moving marker is in the frame."""
-        fixed = self.inc_poses.fixed
-        sel = [k for k, m in enumerate(ids.tolist()) if m not in fixed]
-        if not sel:
-            return None, None
-        floor = self._floor_obs
-        r_ids = np.concatenate([ids[sel], np.array([o.id for o in floor], np.int64)])
-        r_c = np.concatenate([corners[sel], np.stack([np.asarray(o.corners, float)
-                                                      for o in floor])])
-        obs, _ = self.inc_poses.poses(self.poses, r_ids, r_c)
-        try:
-            est = self.estimator.estimate(obs, self.world_map, camera=self.camera.intrinsics,
-                                          plane_heights=self.plane_heights)
-        except ValueError:
-            return None, None
-        if not est.ok:
-            return None, None
-        fixes = self.robot_fixes(est, t, rejections, self._times)
-        on_robots(t, fixes)
-        return fixes, {o.id: o for o in obs if o.id not in fixed}
 
     def observation_times(self, inp: FrameInput, ids: np.ndarray, corners: np.ndarray
                           ) -> dict[int, float]:
@@ -683,14 +565,14 @@ class Pipeline:
     def robot_fixes(self, est: Estimate, t: float,
                     rejections: dict[str, str] | None = None,
                     times: Mapping[int, float] | None = None) -> dict[str, RobotFix]:
-        """Robot poses from the raw marker estimates (kmea.robots), then filtered per robot
+        """Robot poses from the raw marker estimates (kmea.robots.poses), then filtered per robot
         (the IIR filter, or the tracking filter: a measurement it rejects gives no fix this
         frame, and its reason goes to ``rejections``).
 
         Each robot's measurement is at its own markers' time (``times``, id -> s: in
         :meth:`process`, :meth:`observation_times` of the frame; else ``t``); the tracking
         filter runs on those times, and its velocity and turn rate bring a pair seen in two
-        rows to one instant (kmea.robots)."""
+        rows to one instant (kmea.robots.poses)."""
         out: dict[str, RobotFix] = {}
         times = times or {}
         rates = self._rates if times is self._times else {}

@@ -25,7 +25,7 @@ from textual.binding import Binding
 from textual.css.query import NoMatches
 from textual.widgets import Footer, HelpPanel, Input, Select, Static, TabbedContent, TabPane
 
-from kmea import protocol
+from kmea.wire import protocol
 from kmea_tui.client import DaemonClient, RecordingClient
 from kmea_tui.messages import ConnectionChanged, ControlReply, ControlRequest, TelemetryBatch
 from kmea_tui.screens.quit_confirm import QuitScreen

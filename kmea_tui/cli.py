@@ -7,7 +7,7 @@ import asyncio
 import re
 import sys
 
-from kmea import protocol
+from kmea.wire import protocol
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from kmea.curve_client import CurveKeyError, read_client_keys
+    from kmea.wire.curve_client import CurveKeyError, read_client_keys
     from kmea_tui.client import DaemonClient, RecordingClient, check_endpoint, record_stream
 
     if args.keys is not None:

@@ -5,7 +5,7 @@ unchanged against either:
 
 - ``await open()`` / ``close()``
 - ``await recv(timeout)`` -> list of ``(topic, body)`` available now (waits at most
-  ``timeout`` s for the first one). Bodies are checked with :func:`kmea.protocol.decode`
+  ``timeout`` s for the first one). Bodies are checked with :func:`kmea.wire.protocol.decode`
   (JSON, version and the topic's declared type).
 - ``await request(cmd, **args)`` -> the reply dict; never raises for a dead daemon: the
   reply is then ``{"ok": False, "error": ...}`` (lazy-pirate pattern: the REQ socket is
@@ -31,8 +31,8 @@ from typing import Any
 import zmq
 import zmq.asyncio
 
-from kmea import protocol
-from kmea.curve_client import DEFAULT_CLIENT, apply_client_keys, read_client_keys
+from kmea.wire import protocol
+from kmea.wire.curve_client import DEFAULT_CLIENT, apply_client_keys, read_client_keys
 
 # Topics the UI shows. robot.<name> topics are for the robots themselves; "robots" has them all.
 UI_TOPICS = (

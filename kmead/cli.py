@@ -15,8 +15,8 @@ import sys
 import threading
 from typing import Any
 
-from kmead.config import ConfigError, load_config, parse_set
-from kmead.startup import EXIT_CONFIG
+from kmead.config.layers import ConfigError, load_config, parse_set
+from kmead.run.startup import EXIT_CONFIG
 
 STATUS_PERIOD_S = 5.0
 FREE_PORTS = ['network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"']
@@ -54,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="validate the configuration, map and camera files, print the "
                         "effective configuration and the warnings, then exit (0 OK, 2 not); "
                         "opens no camera and binds no port")
+    p.add_argument("--default-config", action="store_true",
+                   help="print the documented default configuration (config.toml: every key "
+                        "with its default, meaning, range and unit) and exit")
     p.add_argument("--free-ports", action="store_true",
                    help="bind telemetry and control to free ports on 127.0.0.1 (printed at "
                         "start), e.g. next to another running kmead")
@@ -78,7 +81,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 def _setup_logging(level: str, timestamps: bool | None = None) -> None:
     """kmead's stderr log handler; ``timestamps`` None: unless stderr is the journal."""
     if timestamps is None:
-        from kmead.status_line import stderr_is_journal
+        from kmead.run.status_line import stderr_is_journal
 
         timestamps = not stderr_is_journal()
     root = logging.getLogger("kmead")
@@ -150,6 +153,11 @@ def starting_what(spec: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.default_config:
+        from kmead.config.schema import default_config_text
+
+        sys.stdout.write(default_config_text())
+        return 0
     if args.frames is not None and args.frames < 1:
         print("kmead: --frames: must be >= 1", file=sys.stderr)
         return EXIT_CONFIG
@@ -171,10 +179,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"kmead: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
     if args.check:
-        from kmead.check import run_check
+        from kmead.config.check import run_check
 
         return run_check(cfg)
-    from kmead.status_line import stderr_is_journal
+    from kmead.run.status_line import stderr_is_journal
 
     journal = stderr_is_journal()
     with stderr_logging(cfg["log"]["level"], timestamps=not journal):
@@ -183,12 +191,12 @@ def main(argv: list[str] | None = None) -> int:
 
 def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
     """The daemon's run, its UI or headless status line, and its summary."""
-    from kmead.status_line import StatusReporter
+    from kmead.run.status_line import StatusReporter
 
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
 
-    from kmead.daemon import Daemon, StartupError
-    from kmead.notify import Notifier, monotonic_alive
+    from kmead.run.daemon import Daemon, StartupError
+    from kmead.run.notify import Notifier, monotonic_alive
 
     notifier = Notifier()
     if ui:
@@ -262,7 +270,7 @@ def _run_with_ui(daemon) -> int:
         signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
         return daemon.run()
     # A keyed daemon's own UI connects as the operator of its key directory.
-    from kmea.curve_client import CurveKeyError
+    from kmea.wire.curve_client import CurveKeyError
 
     try:
         client = DaemonClient(_connectable(daemon.telemetry.bound),

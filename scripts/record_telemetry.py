@@ -4,7 +4,7 @@
 
 Starts ``kmead`` (a subprocess, headless, the simulated floor with a moved marker and two
 robots, paced so a subscriber sees every message), records its telemetry with the UI's own
-client (typed decoding, :func:`kmea.protocol.decode`) up to frame ``--last``, asks it for
+client (typed decoding, :func:`kmea.wire.protocol.decode`) up to frame ``--last``, asks it for
 ``get_config`` and ``get_state`` (the replay's header), stops it and keeps the last
 ``--keep`` frames (:func:`kmea_tui.client.trim_messages`). Every message in the file came
 from the daemon unchanged (floats rounded to 6 digits). After regenerating, update the
@@ -28,7 +28,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from kmea import protocol  # noqa: E402
+from kmea.wire import protocol  # noqa: E402
 from kmea_tui.client import DaemonClient, trim_messages  # noqa: E402
 
 SCENE = "sim:misplaced?robots=true"

@@ -10,10 +10,10 @@ from pathlib import Path
 import zmq
 from deadlines import JOIN
 
-from kmea import protocol as P
-from kmead.config import load_config
-from kmead.daemon import Daemon
-from kmead.keys import connect_client
+from kmea.wire import protocol as P
+from kmead.config.layers import load_config
+from kmead.net.keys import connect_client
+from kmead.run.daemon import Daemon
 
 # 640x480 paced simulator, detection in the main loop: light on a 2-core machine.
 BASE = ["source.width=640", "source.height=480", "source.fps=20", "detector.workers=0",

@@ -14,7 +14,7 @@ import numpy as np
 
 from kmea.estimators.base import MarkerObservation
 from kmea.geometry import marker_corners_local, rot_x, rot_z
-from kmea.maps import Marker, MarkerMap, default_map
+from kmea.maps.files import Marker, MarkerMap, default_map
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
 __all__ = ["Scene", "observe", "scenario1"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from kmea import bench
+from kmea.benchmarks import cli as bench
 
 
 def _args(*argv: str, benches: dict) -> argparse.Namespace:
@@ -43,7 +43,7 @@ def test_an_unknown_benchmark_is_named_and_nothing_runs(capsys):
 def test_help_lists_every_command_and_every_benchmark(capsys):
     import pytest
 
-    from kmead import kmea_cli
+    from kmead.tools import kmea_cli
 
     with pytest.raises(SystemExit):
         kmea_cli.main(["--help"])
@@ -62,7 +62,7 @@ def test_help_lists_every_command_and_every_benchmark(capsys):
 def test_daemon_benchmarks_are_importable_targets():
     from importlib import import_module
 
-    from kmead import kmea_cli
+    from kmead.tools import kmea_cli
 
     for target in kmea_cli.DAEMON_BENCHES.values():
         module, func = target.split(":")

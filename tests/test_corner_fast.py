@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from synth_corners import observe, robot_marker, scenario1
 
-from kmea.estimators.base import CameraIntrinsics, check_observations
+from kmea.estimators.base import check_observations
 from kmea.estimators.corner_noise import corner_outliers, square_pose
 from kmea.estimators.corner_pnp import CornerPnP, uncertainty
 from kmea.estimators.corner_pnp.placement import corner_sigma
@@ -30,6 +30,7 @@ from kmea.geometry import (
     rotvec_to_matrix,
     undistort,
 )
+from kmea.geometry.camera import CameraIntrinsics
 
 ROBOTS = (40, 41, 42)
 HEIGHT = 0.2

@@ -275,7 +275,7 @@ def test_degenerate_inputs_are_not_estimated():
 
 def test_turned_reference_is_rejected_and_described():
     from kmea.geometry import rot_z
-    from kmea.maps import Marker
+    from kmea.maps.files import Marker
 
     sc = scenario1()
     mk = sc.map[16]

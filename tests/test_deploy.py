@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from kmead.config import load_config
+from kmead.config.layers import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"

@@ -13,7 +13,7 @@ import pytest
 from fakepi import forget, install
 
 from kmea.vision.camera import pi_camera_v2, save_camera
-from kmead.doctor import Doctor
+from kmead.tools.doctor import Doctor
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,7 +46,7 @@ def test_doctor_off_a_pi_says_so_and_checks_the_rest(tmp_path: Path) -> None:
         pytest.skip("this test is for machines that are not a Raspberry Pi")
     cfg = _config(tmp_path, NET_ANY)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, "-m", "kmead.kmea_cli", "doctor", "--config", cfg],
+    r = subprocess.run([sys.executable, "-m", "kmead.tools.kmea_cli", "doctor", "--config", cfg],
                        capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
     out = r.stdout
     assert r.returncode == 0, out + r.stderr

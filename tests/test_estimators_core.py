@@ -15,7 +15,7 @@ from kmea.estimators.lmea import LMEA
 from kmea.estimators.loo import loo_errors, loo_positions
 from kmea.estimators.umeyama import Umeyama
 from kmea.geometry import kabsch, rot_x, rot_z, rotvec_to_matrix
-from kmea.maps import Marker, MarkerMap, default_map
+from kmea.maps.files import Marker, MarkerMap, default_map
 
 # ----------------------------------------------------------------------------- helpers
 

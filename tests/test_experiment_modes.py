@@ -10,7 +10,7 @@ from kmea.cli import main
 from kmea.experiments.paper import paper_table
 from kmea.experiments.parts import get_part
 from kmea.experiments.run import ExperimentConfig, estimate_frame, iir_filter, run_modes
-from kmea.metrics import marker_metrics
+from kmea.stats.metrics import marker_metrics
 
 
 def _config(part, algorithms=("kmea", "corner-pnp"), samples=2, **kw):

@@ -17,7 +17,7 @@ from kmea.experiments.cli import write_outputs
 from kmea.experiments.parts import PARTS, get_part
 from kmea.experiments.plots import confidence_ellipse, have_matplotlib
 from kmea.experiments.run import ExperimentConfig, estimate_frame, run_simulation
-from kmea.metrics import marker_metrics, mean_metrics, percent_change
+from kmea.stats.metrics import marker_metrics, mean_metrics, percent_change
 
 SMALL = dict(width=640, height=480)
 
@@ -114,7 +114,7 @@ def test_part_three_shows_the_papers_conclusion_and_flags_the_displaced_anchors(
 def test_part_two_markers_are_really_raised_and_scored_on_their_floor_position():
     result = run_simulation(_config("II", samples=2))
     spec = get_part("II")
-    from kmea.maps import default_map
+    from kmea.maps.files import default_map
 
     m = default_map()
     for mid in spec.evaluated:
@@ -142,7 +142,7 @@ def test_miscalibration_is_given_to_the_estimators_only():
 
 def test_floor_only_keeps_wall_markers_out_of_the_references():
     from kmea.experiments import simscene
-    from kmea.maps import default_map
+    from kmea.maps.files import default_map
 
     cfg = _config("IV", floor_only=True)
     emap = simscene.estimator_map(cfg, default_map())
@@ -160,7 +160,7 @@ def test_jobs_do_not_change_the_results():
 def test_replay_scores_a_recording_against_the_map(tmp_path, capsys):
     from kmea.experiments import simscene
     from kmea.experiments.run import _setup
-    from kmea.recording import Recorder
+    from kmea.recordings.format import Recorder
 
     cfg = _config("I", samples=3)
     st = _setup(cfg)

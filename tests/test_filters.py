@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from kmea.filters import PoseFilter
+from kmea.robots.iir import PoseFilter
 
 
 def test_alpha_one_passes_samples_through() -> None:

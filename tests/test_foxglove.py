@@ -21,8 +21,9 @@ websockets = pytest.importorskip("websockets", reason="the websockets package is
 from kmea.sim.renderer import Renderer  # noqa: E402
 from kmea.sim.scenes import scene_from_spec  # noqa: E402
 from kmea.vision.overlay import OverlayMarker  # noqa: E402
-from kmead import cli, kmea_cli  # noqa: E402
-from kmead.foxglove_bridge import (  # noqa: E402
+from kmead import cli  # noqa: E402
+from kmead.tools import kmea_cli  # noqa: E402
+from kmead.viewers.foxglove import (  # noqa: E402
     TOPICS,
     FoxgloveServer,
     FrameView,
@@ -30,7 +31,7 @@ from kmead.foxglove_bridge import (  # noqa: E402
     RobotView,
     quaternion_xyzw,
 )
-from kmead.mcap_export import export_mcap  # noqa: E402
+from kmead.viewers.mcap_export import export_mcap  # noqa: E402
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']
@@ -124,7 +125,7 @@ def test_mcap_export_reads_back_with_channels_and_counts(recorded, tmp_path):
     # The map scene: the floor and every map marker.
     (scene,) = [m for t, _, m in msgs if t == "/floor/map"]
     entities = [v for num, v in pb_fields(scene.data) if num == 2]
-    from kmea.maps import default_map
+    from kmea.maps.files import default_map
     assert len(entities) == 1 + len(default_map())
 
 
@@ -273,8 +274,8 @@ def test_port_in_use_is_an_os_error():
 
 
 def test_kmead_serves_foxglove_when_enabled(tmp_path):
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     cfg = load_config(None, ["source.width=640", "source.height=480", "source.fps=8",
                              'network.telemetry="tcp://127.0.0.1:*"',

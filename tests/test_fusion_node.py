@@ -22,16 +22,16 @@ pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
 
 from zenoh_helpers import FakeCamera, free_port, meta, open_peer, zenoh_sets
 
-from kmea import protocol as P
-from kmea.maps import map_digest, save_map_toml
+from kmea.maps.files import map_digest, save_map_toml
 from kmea.sim.scenes import get_scene
-from kmead.config import load_config
-from kmead.csvlog import HEADER
-from kmead.daemon import Daemon
-from kmead.fusion import Election, FusionNode, measurement_from
-from kmead.kmea_cli import main as kmea_main
-from kmead.relay import datagram, parse_datagram
-from kmead.robot_pose_wire import TRACKED, unpack_pose
+from kmea.wire import protocol as P
+from kmead.config.layers import load_config
+from kmead.fusion.node import Election, FusionNode, measurement_from
+from kmead.outputs.csvlog import HEADER
+from kmead.outputs.relay import datagram, parse_datagram
+from kmead.outputs.robot_pose_wire import TRACKED, unpack_pose
+from kmead.run.daemon import Daemon
+from kmead.tools.kmea_cli import main as kmea_main
 
 SPEED = 0.01  # m/s: the robots stay where the test expects them for its ~20 s
 # A camera daemon in this busy process may stall for a second or two under load: stale only

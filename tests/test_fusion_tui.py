@@ -16,13 +16,13 @@ pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
 
 from zenoh_helpers import free_port, zenoh_sets
 
-from kmea.maps import save_map_toml
+from kmea.maps.files import save_map_toml
 from kmea.sim.scenes import get_scene
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
 from kmea_tui.widgets.floor_map import FloorMap
-from kmead.config import load_config
-from kmead.fusion import FusionNode
+from kmead.config.layers import load_config
+from kmead.fusion.node import FusionNode
 
 
 async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:

@@ -147,8 +147,14 @@ def test_validators_name_the_problem() -> None:
         check_distortion(np.zeros(15))
     with pytest.raises(ValueError, match="non-finite"):
         check_distortion([0.1, np.inf, 0, 0])
-    with pytest.raises(ValueError, match="fx and fy"):
+    with pytest.raises(ValueError, match="fx, fy must be > 0"):
         check_camera_matrix(np.diag([0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="not a camera matrix"):
+        check_camera_matrix([[1000.0, 0, 320], [5.0, 1000, 240], [0, 0, 1]])
+    with pytest.raises(ValueError, match="non-finite"):
+        check_camera_matrix([[np.nan, 0, 320], [0, 1000, 240], [0, 0, 1]])
+    K = check_camera_matrix([1000.0, 0, 320, 0, 1000, 240, 0, 0, 1])  # row by row
+    assert K.shape == (3, 3) and K[1, 2] == 240
     with pytest.raises(ValueError, match="rigid"):
         check_transform(np.diag([2.0, 1.0, 1.0, 1.0]))
 

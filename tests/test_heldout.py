@@ -77,7 +77,7 @@ def test_gridboard_photo_markers_off_the_map():
 
 
 def test_default_estimator_on_the_default_floor_at_820x616():
-    from kmead.config import load_config
+    from kmead.config.layers import load_config
 
     loo = default_floor_loo(frames=3, width=820, height=616)
     errs = np.array([e for v in loo.values() for e in v])
@@ -90,3 +90,22 @@ def test_default_estimator_on_the_default_floor_at_820x616():
     bad = dict(loo)
     bad[7] = [0.03] * len(loo[7])
     assert moved_markers(bad, stats["displaced_threshold"], stats["displaced_frames"]) == {7}
+
+
+def test_loo_on_another_scene_of_the_default_floor(capsys):
+    from kmea.experiments.heldout import camera_pose, main, parse_camera
+
+    assert parse_camera("down,1.38,0.02,-0.03,2,1.5") == ("down", 1.38, 0.02, -0.03, 2.0, 1.5)
+    assert parse_camera("look_at,1,0,1.2,0,0,0") == ("look_at", (1.0, 0.0, 1.2),
+                                                       (0.0, 0.0, 0.0))
+    with pytest.raises(ValueError):
+        parse_camera("down,1.38")
+    # The default placement is the default scene's camera.
+    from kmea.sim import scenario1_camera
+
+    assert np.allclose(camera_pose(("down", 1.35, 0.0, 0.0, 0.0, 0.0)), scenario1_camera(1.35))
+    assert main(["--loo", "--frames", "1", "--width", "820", "--seed", "5",
+                 "--camera", "down,1.40,0.01,0.0,1,0"]) == 0
+    out = capsys.readouterr().out
+    assert "820x616 (seed 5, camera down,1.40,0.01,0.0,1,0), 1 frames" in out
+    assert "LOO mean" in out

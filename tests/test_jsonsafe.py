@@ -1,4 +1,4 @@
-"""kmea.jsonsafe: the one JSON cleaner."""
+"""kmea.wire.jsonsafe: the one JSON cleaner."""
 
 import json
 import math
@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kmea.jsonsafe import to_jsonable
+from kmea.wire.jsonsafe import to_jsonable
 
 
 @dataclass

@@ -11,7 +11,7 @@ import pytest
 from deadlines import JOIN
 
 from kmead import cli
-from kmead.kmea_cli import main as kmea_main
+from kmead.tools.kmea_cli import main as kmea_main
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""']
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from kmead import cli
-from kmead.config import ConfigError, load_config, overlay_doc, parse_set, save_overlay
+from kmead.config.layers import ConfigError, load_config, overlay_doc, parse_set, save_overlay
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -16,11 +16,6 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def test_packaged_default_is_the_repository_config() -> None:
-    packaged = (ROOT / "kmead" / "default_config.toml").read_text()
-    assert packaged == (ROOT / "config.toml").read_text()
 
 
 def test_default_has_the_documented_keys() -> None:

@@ -24,16 +24,16 @@ import pytest
 import zmq
 from deadlines import DEADLINE, JOIN
 
-from kmea import protocol as P
-from kmea.maps import default_map
+from kmea.maps.files import default_map
 from kmea.sim.renderer import Renderer
 from kmea.sim.scenes import scene_from_spec
 from kmea.vision.camera import save_camera
+from kmea.wire import protocol as P
 from kmead import cli
-from kmead.config import load_config
-from kmead.csvlog import HEADER
-from kmead.daemon import Daemon
-from kmead.relay import parse_datagram
+from kmead.config.layers import load_config
+from kmead.outputs.csvlog import HEADER
+from kmead.outputs.relay import parse_datagram
+from kmead.run.daemon import Daemon
 
 ROOT = Path(__file__).resolve().parent.parent
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',

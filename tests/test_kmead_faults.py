@@ -23,10 +23,10 @@ import zmq
 from deadlines import DEADLINE
 from security_helpers import LiveDaemon, robots_toml, udp_listener
 
-from kmea import protocol as P
-from kmea import wholewrite
-from kmead.csvlog import COLUMNS, HEADER
-from kmead.relay import parse_datagram
+from kmea.recordings import wholewrite
+from kmea.wire import protocol as P
+from kmead.outputs.csvlog import COLUMNS, HEADER
+from kmead.outputs.relay import parse_datagram
 
 
 class Disk:
@@ -329,9 +329,9 @@ def test_every_filter_value_the_schema_accepts_runs_the_tracker() -> None:
     import random
 
     from kmea.pipeline import tracker_config
-    from kmea.tracking import Tracker
-    from kmead.config import load_config
-    from kmead.settings_schema import SCHEMA
+    from kmea.robots.tracking import Tracker
+    from kmead.config.layers import load_config
+    from kmead.config.schema import SCHEMA
 
     base = load_config(None, [], use_local=False)["filter"]
     checked = 0
@@ -360,7 +360,7 @@ def test_every_filter_value_the_schema_accepts_runs_the_tracker() -> None:
 
 def test_a_live_setting_that_breaks_every_frame_is_rolled_back_whatever_its_key(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from kmea import tracking
+    from kmea.robots import tracking
 
     # Stand-in for a value inside its range that the filter still cannot digest (the
     # ranges now refuse the 1e-300 that did this): every new track raises.

@@ -22,12 +22,13 @@ import pytest
 import zmq
 from deadlines import DEADLINE
 
-from kmea import protocol as P
+from kmea.wire import protocol as P
 from kmea_tui import cli as tui_cli
 from kmea_tui.widgets.camera_view import CameraFrame
-from kmead import cli, kmea_cli
-from kmead.config import load_config
-from kmead.daemon import Daemon
+from kmead import cli
+from kmead.config.layers import load_config
+from kmead.run.daemon import Daemon
+from kmead.tools import kmea_cli
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']
@@ -427,7 +428,7 @@ def test_summary_says_why_robots_are_not_tracked(tmp_path, capsys):
 
 def test_camera_body_is_json_and_small():
     from kmea.vision.overlay import OverlayMarker
-    from kmead.camera_feed import camera_body
+    from kmead.run.camera_feed import camera_body
 
     img = (np.arange(480 * 640) % 251).astype(np.uint8).reshape(480, 640)
     q = np.array([[100, 100], [200, 100], [200, 200], [100, 200]], float)
@@ -454,8 +455,8 @@ def test_truncated_replay_ends_with_a_warning(tmp_path, capsys):
 
 
 def test_a_snapshot_is_refused_below_the_data_directorys_free_space_floor(tmp_path):
-    from kmead.files import free_bytes
-    from kmead.snapshot import Limits, SnapshotError, check_room
+    from kmead.outputs.datadir import free_bytes
+    from kmead.outputs.snapshot import Limits, SnapshotError, check_room
 
     free = free_bytes(tmp_path)
     if free is None:

@@ -1,4 +1,5 @@
-"""The confined data directory (kmead.files) and JSON with limits (kmea.jsonlimits)."""
+"""The confined data directory (kmead.outputs.datadir) and JSON with limits
+(kmea.wire.jsonlimits)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from kmea.jsonlimits import JsonLimitError, json_depth, safe_loads
-from kmead.files import DataDir, FileRefused
+from kmea.wire.jsonlimits import JsonLimitError, json_depth, safe_loads
+from kmead.outputs.datadir import DataDir, FileRefused
 
 
 def _listing(root: Path) -> set[str]:

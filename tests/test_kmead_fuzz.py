@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from security_helpers import LiveDaemon
 
-from kmea.protocol import PROTOCOL_VERSION as V
-from kmead.settings_schema import SCHEMA
+from kmea.wire.protocol import PROTOCOL_VERSION as V
+from kmead.config.schema import SCHEMA
 
 VB = str(V).encode()
 SEED = 20261130

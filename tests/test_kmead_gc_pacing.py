@@ -9,7 +9,7 @@ import weakref
 
 from deadlines import DEADLINE
 
-from kmead.gc_pacing import GcPacing
+from kmead.run.gc_pacing import GcPacing
 
 
 class _Node:
@@ -49,8 +49,8 @@ def test_a_live_daemon_collects_only_between_frames():
     from kmea.sim.scenes import scene_from_spec
     from kmea.sources.registry import register_source
     from kmea.sources.sim import SimSource
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     scene = scene_from_spec("sim:default", width=820)
     src = SimSource(scene, frames=20)

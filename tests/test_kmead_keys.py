@@ -1,4 +1,4 @@
-"""The CURVE key contract with real ZeroMQ sockets on loopback (kmead.keys, kmea keys)."""
+"""The CURVE key contract with real ZeroMQ sockets on loopback (kmead.net.keys, kmea keys)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import pytest
 import zmq
 import zmq.auth
 
-from kmea.curve_client import CurveKeyError, read_certificate, read_client_keys
-from kmead import kmea_cli
-from kmead.keys import OPERATOR, VIEWER, CurveServer, KeysError, add_client, connect_client
+from kmea.wire.curve_client import CurveKeyError, read_certificate, read_client_keys
+from kmead.net.keys import OPERATOR, VIEWER, CurveServer, KeysError, add_client, connect_client
+from kmead.tools import kmea_cli
 
 
 @pytest.fixture

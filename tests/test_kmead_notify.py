@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from kmead.notify import Notifier, monotonic_alive, watchdog_interval
+from kmead.run.notify import Notifier, monotonic_alive, watchdog_interval
 
 
 def _recv_all(sock: socket.socket, n: int, timeout: float = 30.0) -> list[str]:

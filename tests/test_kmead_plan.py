@@ -1,4 +1,4 @@
-"""Start-up and ``kmead --check`` are one judgement (kmead.plan): every configuration that
+"""Start-up and ``kmead --check`` are one judgement (kmead.config.plan): every configuration that
 start-up refuses, --check refuses with the same line and the same exit code, and the
 reverse. Each case runs both, in-process, through the real command line."""
 

@@ -8,7 +8,7 @@ import socket
 
 import pytest
 
-from kmead.relay import Relay, datagram, parse_datagram
+from kmead.outputs.relay import Relay, datagram, parse_datagram
 
 LINE = re.compile(r"^name=[A-Za-z0-9_-]+;seq=\d+;t=-?\d+\.\d{6};x=-?\d+\.\d{6};y=-?\d+\.\d{6};"
                   r"theta=-?\d+\.\d{6};valid=[01]$")
@@ -141,8 +141,8 @@ def test_a_frames_datagrams_all_go_out_before_its_robot_telemetry(udp: socket.so
     after (a published body wakes the telemetry thread, which would compete with the next
     robot's datagram for the GIL)."""
     from kmea.pipeline import RobotFix
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     port = udp.getsockname()[1]
     robots = (f'robots=[{{name="amr1", markers=[40, 41], destinations=["udp:127.0.0.1:{port}"]}},'

@@ -22,13 +22,14 @@ import zmq
 from deadlines import DEADLINE
 from security_helpers import LiveDaemon, robots_toml, udp_listener
 
-from kmea import protocol as P
 from kmea.sim.renderer import Renderer
 from kmea.sim.scenes import scene_from_spec
 from kmea.vision.camera import pi_camera_v2, save_camera
-from kmead import cli, kmea_cli
-from kmead.keys import connect_client
-from kmead.relay import parse_datagram
+from kmea.wire import protocol as P
+from kmead import cli
+from kmead.net.keys import connect_client
+from kmead.outputs.relay import parse_datagram
+from kmead.tools import kmea_cli
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']
@@ -229,7 +230,7 @@ def test_camera_file_with_principal_point_outside_the_image_refuses_to_start(
 def test_map_id_outside_the_dictionary_is_named_in_a_warning(tmp_path: Path,
                                                              capsys: pytest.CaptureFixture
                                                              ) -> None:
-    from kmea.maps import default_map, map_to_dict
+    from kmea.maps.files import default_map, map_to_dict
 
     doc = map_to_dict(default_map())
     rows = doc["markers"]
@@ -519,8 +520,8 @@ def test_fusion_node_has_the_same_rules(tmp_path: Path) -> None:
     pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
     from zenoh_helpers import free_port, zenoh_sets
 
-    from kmead.config import ConfigError, load_config
-    from kmead.fusion import FusionNode
+    from kmead.config.layers import ConfigError, load_config
+    from kmead.fusion.node import FusionNode
 
     z = zenoh_sets(listen=free_port())
     open_ = load_config(None, ['network.control="tcp://0.0.0.0:*"',

@@ -1,4 +1,4 @@
-"""Every settable key has a type and a range (kmead.settings_schema); nothing else escapes."""
+"""Every settable key has a type and a range (kmead.config.schema); nothing else escapes."""
 
 from __future__ import annotations
 
@@ -8,14 +8,13 @@ import math
 import cv2
 import pytest
 
-from kmead.settings_schema import (
+from kmead.config.checks import (
     DETECTOR_PARAMETERS,
-    SCHEMA,
     ConfigError,
     check_intrinsics,
     parse_destination,
-    validate_setting,
 )
+from kmead.config.schema import SCHEMA, validate_setting
 
 HUGE = 10**30
 

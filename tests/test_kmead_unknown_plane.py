@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from kmead import cli
-from kmead.csvlog import HEADER
+from kmead.outputs.csvlog import HEADER
 
 NET = ["--set", 'network.telemetry=""', "--set", 'network.control=""']
 FAST = ["--set", "source.width=820", "--set", "source.height=616", "--set", "source.fps=0"]
@@ -51,9 +51,9 @@ def test_telemetry_markers_carry_the_plane_choice() -> None:
 
     import zmq
 
-    from kmea import protocol as P
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmea.wire import protocol as P
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     cfg = load_config(None, ["source.width=820", "source.height=616", "source.fps=10",
                              'network.telemetry="tcp://127.0.0.1:*"', 'network.control=""',

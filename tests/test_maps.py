@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from kmea.cli import main as kmea_main
-from kmea.maps import (
+from kmea.maps.files import (
     MapError,
     Marker,
     MarkerMap,
@@ -351,7 +351,7 @@ def test_map_cli_show_check_convert(tmp_path: Path, capsys: pytest.CaptureFixtur
     src = tmp_path / "floor.csv"
     src.write_text("id,x,y,z\n13,0,0,0\n16,0.7,0,0\n4,0,0.35,0\n")
     assert kmea_main(["map", "check", str(src)]) == 0
-    # The same dictionary as `map show`, `print` and kmead (kmea.map_model.DEFAULT_DICTIONARY).
+    # The same dictionary as `map show`, `print` and kmead (kmea.maps.model.DEFAULT_DICTIONARY).
     assert "OK, 3 markers, DICT_5X5_100" in capsys.readouterr().out
 
     out_toml = tmp_path / "floor.toml"

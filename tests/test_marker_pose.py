@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from kmea.geometry import marker_corners_local, rot_x, rot_y, rot_z
-from kmea.maps import Marker, MarkerMap, default_map
+from kmea.maps.files import Marker, MarkerMap, default_map
 from kmea.vision.camera import CameraModel, pi_camera_v2
 from kmea.vision.marker_pose import DisambiguationSettings, PoseDiagnostics, estimate_marker_poses
 
@@ -386,7 +386,7 @@ def test_non_map_marker_normal_can_be_given() -> None:
 
 
 def test_a_known_consensus_rotation_decides_like_the_scene() -> None:
-    """A fixed camera keeps the scene's consensus rotation (kmea.incremental): the same
+    """A fixed camera keeps the scene's consensus rotation (kmea.fixed_camera): the same
     ambiguous robot marker posed alone with that rotation gets the choice the whole scene
     gives it, and its expected normal comes from the rotation, not from a vote."""
     trials = 60

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from kmea.metrics import (
+from kmea.stats.metrics import (
     MarkerMetrics,
     WindowStats,
     marker_metrics,
@@ -103,7 +103,7 @@ def test_window_stats_keep_the_last_samples_per_marker() -> None:
 
 
 def test_scatter_and_bias_separate_precision_from_accuracy():
-    from kmea.metrics import marker_metrics
+    from kmea.stats.metrics import marker_metrics
 
     rng = np.random.default_rng(3)
     noise = rng.normal(0.0, 0.001, (4000, 2))

@@ -12,7 +12,7 @@ import pytest
 from kmea.estimators.base import MarkerEstimate
 from kmea.geometry import rot_z
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
-from kmea.robots import RobotSpec, robot_pose, skew_yaw
+from kmea.robots.poses import RobotSpec, robot_pose, skew_yaw
 from kmea.sim import CrossingPath, Renderer, SimRobot, get_scene
 from kmea.sim.motion import StadiumPath
 from kmea.sim.scene import Effects

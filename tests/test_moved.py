@@ -1,4 +1,4 @@
-"""One notion of a moved marker: kmea.moved (persistence, a threshold that scales with the
+"""One notion of a moved marker: kmea.stats.moved (persistence, a threshold that scales with the
 error level), the daemon's event and the ``moved`` evidence in its markers telemetry.
 
 A robot passing over a floor marker's corner used to raise "marker 26 looks displaced by
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from kmea.maps import default_map
-from kmea.moved import MovedMonitor
+from kmea.maps.files import default_map
+from kmea.stats.moved import MovedMonitor
 from kmead import cli
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
@@ -144,7 +144,7 @@ def test_median_of_the_others_equals_the_median_of_a_copy_without_the_marker():
     import random
     import statistics
 
-    from kmea.moved import _median_without
+    from kmea.stats.moved import _median_without
 
     rng = random.Random(5)
     for _ in range(500):

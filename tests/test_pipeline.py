@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from kmea.pipeline import FrameInput, MarkerObserver, Pipeline, PipelineSettings
-from kmea.recording import Recorder
+from kmea.recordings.format import Recorder
 from kmea.sources.registry import open_source
 
 

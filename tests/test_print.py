@@ -14,7 +14,7 @@ import pytest
 
 from kmea.cli import main
 from kmea.geometry import rot_z
-from kmea.maps import Marker, MarkerMap, default_map
+from kmea.maps.files import Marker, MarkerMap, default_map
 from kmea.vision.printing import (
     charuco_page,
     floor_page,

@@ -1,4 +1,4 @@
-"""kmea.protocol: encoding (fast path = cleaned path), versions, and the typed decoder."""
+"""kmea.wire.protocol: encoding (fast path = cleaned path), versions, and the typed decoder."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from kmea import protocol as P
-from kmea.jsonsafe import to_jsonable
+from kmea.wire import protocol as P
+from kmea.wire.jsonsafe import to_jsonable
 
 
 def slow(body: dict) -> bytes:

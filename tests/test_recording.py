@@ -1,5 +1,6 @@
-"""Recordings (kmea/recording.py, kmea/recfile.py): the compressed format, a file cut at any
-byte, the first format's files, and a recording cut into parts by the daemon.
+"""Recordings (kmea/recordings/format.py, kmea/recordings/recfile.py): the compressed
+format, a file cut at any byte, the first format's files, and a recording cut into parts by
+the daemon.
 
 Real files throughout; frames from the real pipeline on the simulated floor."""
 
@@ -17,7 +18,7 @@ import pytest
 import zstandard
 
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
-from kmea.recording import Recorder, read_header
+from kmea.recordings.format import Recorder, read_header
 from kmea.sources.base import SourceError
 from kmea.sources.registry import open_source
 from kmea.sources.replay import ReplaySource
@@ -223,7 +224,7 @@ def test_the_daemon_cuts_a_recording_into_parts_that_each_replay(tmp_path: Path)
 
 
 def test_part_limits_are_off_or_physical(tmp_path: Path) -> None:
-    from kmead.config import ConfigError, load_config
+    from kmead.config.layers import ConfigError, load_config
 
     cfg = load_config(None, ["log.record_part_mb=0", "log.record_part_min=0"])
     assert cfg["log"]["record_part_mb"] == 0 and cfg["log"]["record_part_min"] == 0
@@ -236,22 +237,23 @@ def test_part_limits_are_off_or_physical(tmp_path: Path) -> None:
 
 def test_a_part_is_due_by_size_or_by_age(tmp_path: Path, frames) -> None:
     """log.record_part_mb / _min against a real recorder (its bytes on disk, its start)."""
-    from types import SimpleNamespace
-
-    from kmead.daemon import Daemon
+    from kmead.outputs.datadir import DataDir
+    from kmead.outputs.files import FileOutputs
+    from kmead.outputs.totals import RunTotals
 
     _, camera, world_map = frames
     rec = Recorder(tmp_path / "run.jsonl.zst", camera, world_map, "sim", {})
     try:
-        d = SimpleNamespace(recorder=rec, cfg={"log": {"record_part_mb": 1.0,
-                                                       "record_part_min": 1.0}})
-        assert Daemon._part_due(d) is None
+        log_cfg = {"record_part_mb": 1.0, "record_part_min": 1.0, "min_free_mb": 0.0}
+        files = FileOutputs(log_cfg, DataDir(str(tmp_path)), RunTotals(), lambda *a: None)
+        files.recorder = rec
+        assert files._part_due() is None
         rec.started -= 61.0  # as if started a minute and a second ago
-        assert Daemon._part_due(d) == "log.record_part_min = 1 min reached"
-        d.cfg["log"]["record_part_min"] = 0.0  # off
-        assert Daemon._part_due(d) is None
-        d.cfg["log"]["record_part_mb"] = rec.bytes / 1e6  # its size now
-        assert Daemon._part_due(d) == f"log.record_part_mb = {rec.bytes / 1e6:g} MB reached"
+        assert files._part_due() == "log.record_part_min = 1 min reached"
+        log_cfg["record_part_min"] = 0.0  # off
+        assert files._part_due() is None
+        log_cfg["record_part_mb"] = rec.bytes / 1e6  # its size now
+        assert files._part_due() == f"log.record_part_mb = {rec.bytes / 1e6:g} MB reached"
     finally:
         rec.close()
 
@@ -262,7 +264,7 @@ def test_a_full_disk_leaves_a_compressed_recording_of_whole_frames(
     then stops, closed without its end mark, and replays every frame it counted."""
     from test_kmead_faults import Disk, FullingFile
 
-    from kmea import wholewrite
+    from kmea.recordings import wholewrite
 
     disk = Disk(0)
     real_open = wholewrite.open_output

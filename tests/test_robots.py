@@ -10,8 +10,8 @@ import pytest
 from kmea.estimators import MarkerObservation, get
 from kmea.estimators.base import MarkerEstimate
 from kmea.geometry import rot_x, rot_z
-from kmea.maps import default_map
-from kmea.robots import RobotSpec, robot_pose
+from kmea.maps.files import default_map
+from kmea.robots.poses import RobotSpec, robot_pose
 
 
 def me(mid: int, x: float, y: float, z: float = 0.2, yaw: float = 0.0,

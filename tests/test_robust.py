@@ -13,7 +13,7 @@ from kmea.estimators.base import MarkerObservation
 from kmea.estimators.loo import loo_errors
 from kmea.estimators.robust import KMEARobust, umeyama_batch
 from kmea.geometry import rotvec_to_matrix
-from kmea.maps import default_map
+from kmea.maps.files import default_map
 
 DISPLACED = {4: (0.02, -0.03), 13: (-0.03, 0.02), 16: (0.025, 0.025)}
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from kmea.geometry import marker_corners_local, rot_z
-from kmea.maps import Marker
+from kmea.maps.files import Marker
 from kmea.sim import (
     Effects,
     Occluder,
@@ -254,9 +254,9 @@ def test_extra_marker_and_robot_truth_conventions():
     assert np.allclose(left[:2], [x, y] + 0.05 * lft)
     assert np.allclose(right[:2], [x, y] - 0.04 * lft)
     assert abs(np.dot(tr.markers[40][:2, 0], fwd) - 1) < 1e-12  # x axis forward
-    # the robots' own pose rule (kmea.robots) recovers the true pose from the true markers
+    # the robots' own pose rule (kmea.robots.poses) recovers the true pose from the true markers
     from kmea.estimators.base import MarkerEstimate
-    from kmea.robots import robot_pose
+    from kmea.robots.poses import robot_pose
 
     spec = {s.name: s for s in sc.robot_specs()}["amr1"]
     R40 = tr.markers[40][:3, :3]
@@ -303,7 +303,7 @@ def test_moving_robot_rendered_like_the_same_geometry_in_the_static_pass():
 
 
 def test_any_map_any_dictionary():
-    from kmea.maps import MarkerMap
+    from kmea.maps.files import MarkerMap
 
     markers = {i: Marker(i, np.array([x, y, 0.0]), rot_z(yaw), 0.08)
                for i, (x, y, yaw) in enumerate([(-0.3, 0.1, 0.0), (0.2, -0.1, 0.6),

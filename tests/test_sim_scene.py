@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kmea.maps import default_map
+from kmea.maps.files import default_map
 from kmea.sim import (
     CrossingPath,
     LoopPath,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from kmead.relay import datagram
+from kmead.outputs.relay import datagram
 
 _spec = importlib.util.spec_from_file_location(
     "soak", Path(__file__).parent.parent / "benchmarks" / "soak.py")

@@ -1,4 +1,4 @@
-"""The UI's recorded stream and the daemon's messages agree, both with kmea.protocol's types.
+"""The UI's recorded stream and the daemon's messages agree, both with kmea.wire.protocol's types.
 
 ``tests/data/telemetry_sim.jsonl`` (the UI tests' and snapshots' input) is written by
 ``scripts/record_telemetry.py`` from a real daemon run. These tests fail when it drifts
@@ -19,9 +19,9 @@ from typing import Any
 import zmq
 from deadlines import DEADLINE
 
-from kmea import protocol as P
-from kmead.config import load_config
-from kmead.daemon import Daemon
+from kmea.wire import protocol as P
+from kmead.config.layers import load_config
+from kmead.run.daemon import Daemon
 
 RECORDING = Path(__file__).parent / "data" / "telemetry_sim.jsonl"
 SCENE = "sim:misplaced?robots=true"

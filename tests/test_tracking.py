@@ -19,8 +19,8 @@ from kmea.benchmarks.tracking import (
     trajectory,
     tuning_sets,
 )
-from kmea.chi2 import chi2_quantile
-from kmea.tracking import Track, Tracker, TrackerConfig
+from kmea.robots.tracking import Track, Tracker, TrackerConfig
+from kmea.stats.chi2 import chi2_quantile
 
 HEADING = math.atan2(-0.2, 0.5)  # of the default line: robots drive along their heading
 
@@ -210,9 +210,9 @@ def test_kalman_beats_raw_measurements_on_a_drive() -> None:
 
 def test_pipeline_robot_filter_kind_kalman_reports_rejections() -> None:
     from kmea.estimators.base import Estimate, MarkerEstimate
-    from kmea.maps import default_map
+    from kmea.maps.files import default_map
     from kmea.pipeline import Pipeline, PipelineSettings
-    from kmea.robots import RobotSpec
+    from kmea.robots.poses import RobotSpec
     from kmea.vision.camera import pi_camera_v2
 
     spec = RobotSpec("amr2", (42,), height=0.2)

@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 
 from kmea.pipeline import PipelineSettings
-from kmea.tracking import TrackerConfig
+from kmea.robots.tracking import TrackerConfig
 from kmead import cli
-from kmead.config import load_config
-from kmead.fusion import tracker_config as fusion_tracker_config
-from kmead.kmea_cli import main as kmea_main
+from kmead.config.layers import load_config
+from kmead.fusion.node import tracker_config as fusion_tracker_config
+from kmead.tools.kmea_cli import main as kmea_main
 
 # The tracking filter's settings that are [filter] keys (the rest are the library's own).
 KEYS = ("model", "accel_noise", "turn_noise", "gate_probability", "reacquire_n",

@@ -2,7 +2,7 @@
 
 The tracking detector (kmea.vision.tracking_detector) against full detection of the same
 frames and against the simulator's truth; the pipeline's incremental poses and
-leave-one-out errors (kmea.incremental) against recomputation. Frames are 820x616 (half
+leave-one-out errors (kmea.fixed_camera) against recomputation. Frames are 820x616 (half
 the Pi's 1640x1232) to keep the suite fast; markers are then ~30 px wide.
 """
 
@@ -272,7 +272,7 @@ def test_incremental_poses_and_leave_one_out_match_recomputation(default_frames)
             other = s.robots[name]
             assert math.hypot(fix.x - other.x, fix.y - other.y) < 1e-3, (f.index, name)
     assert reused >= 5
-    assert inc.inc_poses.reused > inc.inc_poses.posed
+    assert inc.session.poses.reused > inc.session.poses.posed
 
 
 def test_robots_are_sent_before_the_floor_is_refitted(default_frames):
@@ -289,7 +289,7 @@ def test_robots_are_sent_before_the_floor_is_refitted(default_frames):
         sent: list[tuple[bool, dict]] = []
         # When the relay runs: is the floor of this frame still waiting to be posed?
         def relay(t, fx, sent=sent, det=det):
-            sent.append((p.inc_poses.fixed_changed(det.ids, det.corners), dict(fx)))
+            sent.append((p.session.poses.fixed_changed(det.ids, det.corners), dict(fx)))
 
         r = p.process(FrameInput(f.index, f.timestamp, f.image, detections=det),
                       on_robots=relay)
@@ -388,8 +388,8 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
 
     from kmea.sim.scenes import scene_from_spec
     from kmea.sources.registry import register_source
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     scene = scene_from_spec("sim:default", width=WIDTH)
     # The bump at 0.8 s of the scene's 30 frames/s: frame 24.
@@ -459,8 +459,8 @@ def test_live_frame_time_is_the_sensor_timestamp():
 
     from kmea.sources.base import Frame, FrameSource
     from kmea.sources.registry import register_source
-    from kmead.config import load_config
-    from kmead.daemon import Daemon
+    from kmead.config.layers import load_config
+    from kmead.run.daemon import Daemon
 
     scene_src = SimSource("sim:default", width=WIDTH, frames=1)
     image = scene_src.read().image
@@ -510,7 +510,7 @@ def test_live_frame_time_is_the_sensor_timestamp():
 
 
 def test_tracking_is_on_for_live_sources_only_and_can_be_switched_off():
-    from kmead.config import load_config
+    from kmead.config.layers import load_config
 
     on = load_config(None, use_local=False).data
     assert on["detector"]["tracking"] is True  # the default
@@ -521,7 +521,7 @@ def test_tracking_is_on_for_live_sources_only_and_can_be_switched_off():
 
 
 def test_refit_pacing_is_a_detector_setting():
-    from kmead.config import ConfigError, load_config
+    from kmead.config.layers import ConfigError, load_config
 
     cfg = load_config(None, sets=["detector.track_refit_every=7"], use_local=False)
     assert PipelineSettings.from_config(cfg.data, live=True).refit_every == 7
@@ -698,12 +698,12 @@ def test_robots_are_placed_from_their_corners_before_any_pose(default_frames, mo
             monkeypatch.setattr(p.estimator, "place_on_planes", lambda *a, **k: None)
         out, before_pose = [], 0
         for f in frames[:16]:
-            posed = p.inc_poses.posed
+            posed = p.session.poses.posed
             got = []
 
             def relay(t, fixes, got=got, posed=posed):
                 got.append(({n: (x.x, x.y, x.theta, x.sigma) for n, x in fixes.items()},
-                            p.inc_poses.posed == posed))
+                            p.session.poses.posed == posed))
 
             p.process(FrameInput(f.index, f.timestamp, f.image), on_robots=relay)
             assert len(got) == 1
@@ -865,7 +865,7 @@ def test_a_floor_marker_pushed_by_two_pixels_is_noticed_within_the_drift_rotatio
 
 
 def test_a_floor_reference_averaged_once_more_keeps_its_pose_for_corner_fits(default_frames):
-    from kmea.incremental import IncrementalPoses
+    from kmea.fixed_camera import IncrementalPoses
 
     frames, src = default_frames
     p = _tracked_pipeline(src, algorithm="corner-pnp")
@@ -877,9 +877,9 @@ def test_a_floor_reference_averaged_once_more_keeps_its_pose_for_corner_fits(def
         posed.append([int(m) for m in i])
         return p.poses(i, c, w2c)
 
-    fixed = [m for m in ids.tolist() if m in p.inc_poses.fixed]
+    fixed = [m for m in ids.tolist() if m in p.session.poses.fixed]
     for reuse_px in (0.1, 0.0):
-        inc = IncrementalPoses(p.inc_poses.fixed, reuse_px=reuse_px)
+        inc = IncrementalPoses(p.session.poses.fixed, reuse_px=reuse_px)
         first, _ = inc.poses(pose, ids, corners)
         nudged = corners.copy()
         a, b = (ids.tolist().index(m) for m in fixed[:2])
@@ -898,16 +898,16 @@ def test_a_floor_reference_averaged_once_more_keeps_its_pose_for_corner_fits(def
             assert by_id[fixed[0]].marker2cam_t is old[fixed[0]].marker2cam_t
         else:
             assert fixed[0] in repose and inc.refreshed == 0
-    assert p.inc_poses.reuse_px == 0.1  # on for corner-pnp
+    assert p.session.poses.reuse_px == 0.1  # on for corner-pnp
     p.set_algorithm("kmea")
-    assert p.inc_poses.reuse_px == 0.0  # off for estimators that read the poses
+    assert p.session.poses.reuse_px == 0.0  # off for estimators that read the poses
     p.close()
 
 
 def test_leave_one_out_is_reused_for_the_same_floor_in_another_order(default_frames):
     # A full detection lists markers in its own order, a tracked frame by id: the same
     # observations must not recompute the errors (2-3 ms at 1640x1232).
-    from kmea.incremental import IncrementalLoo
+    from kmea.fixed_camera import IncrementalLoo
 
     frames, src = default_frames
     p = _tracked_pipeline(src)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from kmea.benchmarks.tracking import TUNE_HARD, make_measurements, trajectory
-from kmea.tracking import Track, Tracker, TrackerConfig
+from kmea.robots.tracking import Track, Tracker, TrackerConfig
 
 
 def _standing_then(chain: list[tuple[float, float]], cfg: TrackerConfig) -> list[str]:

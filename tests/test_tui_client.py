@@ -10,7 +10,7 @@ import zmq
 import zmq.asyncio
 from deadlines import DEADLINE
 
-from kmea import protocol
+from kmea.wire import protocol
 from kmea_tui.client import DaemonClient
 
 

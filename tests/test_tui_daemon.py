@@ -265,7 +265,7 @@ async def test_config_edits_apply_live_and_save_writes_the_overlay(daemon: Daemo
         # Started without --config: Save writes the per-user overlay, which the next plain
         # start reads (kmead --check shows the effective configuration without starting).
         overlay = daemon.cwd / "config-home" / "kmead" / "kmead.local.toml"
-        # The changes are on trial for 20 frames (kmead.rollback): saved once it passed.
+        # The changes are on trial for 20 frames (kmead.run.rollback): saved once it passed.
         await wait_for(pilot, lambda: overlay.exists() and "alpha = 0.5" in overlay.read_text(),
                        f"alpha = 0.5 in {overlay}")
         check = subprocess.run([sys.executable, "-m", "kmead.cli", "--check"], cwd=daemon.cwd,

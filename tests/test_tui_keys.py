@@ -12,7 +12,7 @@ from kmea_tui import cli as tui_cli
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
 from kmea_tui.widgets.status_bar import StatusBar
-from kmead import kmea_cli
+from kmead.tools import kmea_cli
 
 
 async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:

@@ -18,7 +18,7 @@ import zmq
 import zmq.asyncio
 from deadlines import DEADLINE
 
-from kmea import protocol
+from kmea.wire import protocol
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient
 from kmea_tui.widgets.markers import MarkersTable

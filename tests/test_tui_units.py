@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from kmea.protocol import PROTOCOL_VERSION
+from kmea.wire.protocol import PROTOCOL_VERSION
 from kmea_tui.app import connection_state, terminal_has_16_colours
 from kmea_tui.canvas import BrailleCanvas, Viewport, heading_arrow, nice_magnification
 from kmea_tui.cli import main as tui_main

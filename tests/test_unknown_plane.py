@@ -10,7 +10,7 @@ from synth_corners import observe, robot_marker, scenario1
 from kmea.estimators import get
 from kmea.estimators.corner_pnp import CornerPnP
 from kmea.estimators.unknown_plane import chi2_quantile, map_planes
-from kmea.maps import Marker, default_map
+from kmea.maps.files import Marker, default_map
 
 
 def test_chi2_quantile_matches_tables():

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from kmea.maps import default_map
+from kmea.maps.files import default_map
 from kmea.sim.renderer import Renderer
 from kmea.sim.scenes import DEFAULT_FLEET, WIDE_DX, scene_from_spec
 

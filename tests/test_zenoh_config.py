@@ -8,10 +8,10 @@ import sys
 import pytest
 
 from kmead import cli
-from kmead.config import ConfigError, load_config
-from kmead.plan import plan_startup, zenoh_plan
-from kmead.startup import StartupError
-from kmead.zenoh_settings import ros_token_problem, zenoh_exposure
+from kmead.config.layers import ConfigError, load_config
+from kmead.config.plan import plan_startup, zenoh_plan
+from kmead.config.zenoh import ros_token_problem, zenoh_exposure
+from kmead.run.startup import StartupError
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']
@@ -104,7 +104,7 @@ def test_this_machine_meets_on_a_loopback_rendezvous_without_endpoints() -> None
     pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
     import json
 
-    from kmead.zenoh_session import RENDEZVOUS, session_config
+    from kmead.outputs.zenoh_session import RENDEZVOUS, session_config
 
     conf = session_config(_cfg()["zenoh"])
     assert json.loads(conf.get_json("connect/endpoints")) == [RENDEZVOUS]
@@ -119,9 +119,9 @@ def test_this_machine_meets_on_a_loopback_rendezvous_without_endpoints() -> None
 
 
 def test_camera_ids_and_map_digests() -> None:
-    from kmea.maps import map_digest
+    from kmea.maps.files import map_digest
     from kmea.sim.scenes import get_scene, wide_map
-    from kmead.zenoh_camera import camera_id
+    from kmead.outputs.zenoh_camera import camera_id
 
     z = _cfg()["zenoh"]
     assert camera_id(z, "sim:wide?camera=1&speed=0.1") == "cam1"
@@ -137,7 +137,7 @@ def test_camera_ids_and_map_digests() -> None:
 
 def test_a_paced_wide_scene_runs_on_the_wall_clock() -> None:
     """Cameras started separately show the robots at the same place (docs/fusion.md)."""
-    from kmead.startup import source_options
+    from kmead.run.startup import source_options
 
     paced = load_config(None, ['source.spec="sim:wide?camera=1"'], use_local=False)
     assert source_options(paced, "sim")["clock"] == "wall"

@@ -35,9 +35,9 @@ pytest.importorskip("rosbags", reason="the zenoh extra is not installed")
 
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from kmead import ros2_messages as msgs  # noqa: E402
-from kmead import ros2_wire as wire  # noqa: E402
-from kmead.robot_pose_wire import STOPPING, TRACKED, unpack_pose  # noqa: E402
+from kmead.outputs import ros2_messages as msgs  # noqa: E402
+from kmead.outputs import ros2_wire as wire  # noqa: E402
+from kmead.outputs.robot_pose_wire import STOPPING, TRACKED, unpack_pose  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,5 +1,5 @@
 """Zenoh's mutual TLS on loopback, with certificates this test makes (openssl), through
-the session configuration kmead builds (kmead.zenoh_session): a peer with a certificate
+the session configuration kmead builds (kmead.outputs.zenoh_session): a peer with a certificate
 from the site's CA gets through; one with a certificate from another CA does not."""
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ zenoh = pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
 if shutil.which("openssl") is None:
     pytest.skip("no openssl command to make the test's certificates", allow_module_level=True)
 
-from kmead.config import load_config  # noqa: E402
-from kmead.zenoh_session import open_session  # noqa: E402
+from kmead.config.layers import load_config  # noqa: E402
+from kmead.outputs.zenoh_session import open_session  # noqa: E402
 
 
 def _openssl(*args: str, cwd: Path) -> None:

@@ -17,7 +17,7 @@ import time
 import cv2
 import numpy as np
 
-from kmea.maps import default_map
+from kmea.maps.files import default_map
 from kmea.pipeline import MarkerObserver
 from kmea.vision.detection import DetectorConfig, MarkerDetector
 

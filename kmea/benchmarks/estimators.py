@@ -20,7 +20,7 @@ from kmea.estimators import get
 from kmea.estimators.base import MarkerObservation
 from kmea.estimators.loo import loo_errors
 from kmea.geometry import rot_x, rot_z
-from kmea.maps import Marker, MarkerMap, default_map
+from kmea.maps.files import Marker, MarkerMap, default_map
 
 
 def _floor_map(n: int, seed: int = 0) -> MarkerMap:

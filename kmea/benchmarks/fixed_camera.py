@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from kmea.geometry.rotations import wrap_angle
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 
 FPS = 30.0
@@ -56,7 +57,7 @@ def run(quick: bool = False) -> None:
                 posed += spec.name in r.robots
         if k:
             prev = frames[k - 1].truth.robots
-            rates += [abs(math.remainder(f.truth.robots[m][2] - prev[m][2], math.tau)) * FPS
+            rates += [abs(wrap_angle(f.truth.robots[m][2] - prev[m][2])) * FPS
                       for m in prev]
     print(f"robots at 1.5 m/s (turning at up to {max(rates):.1f} rad/s), {n} frames "
           f"1640x1232 at 30 frames/s: {posed} poses for {visible} robot-frames visible; "

@@ -5,7 +5,7 @@ strip) render the same instants; each frame goes through what a camera's daemon 
 (detection, marker poses, the estimator, the robot poses with their sigmas). The robots
 drive across the overlap. Each camera's measurement reaches the fusion after a simulated
 network and processing delay (40-60 ms, jittered, so the two cameras arrive out of order),
-and :class:`kmea.fusion.Fusion` applies them in arrival order.
+and :class:`kmea.robots.fusion.Fusion` applies them in arrival order.
 
 Figures against the ground truth, per robot and over both:
 - RMSE in the overlap (instants where both cameras measured the robot): each camera alone
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kmea.fusion import Fusion, Measurement
-from kmea.tracking import Track, TrackerConfig
+from kmea.robots.fusion import Fusion, Measurement
+from kmea.robots.tracking import Track, TrackerConfig
 
 __all__ = ["WideRun", "record", "run"]
 

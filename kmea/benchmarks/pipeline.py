@@ -5,7 +5,7 @@ counted): bare ``detectMarkers`` with the default parameters and with one 13 px
 threshold window, the fast detector (:mod:`kmea.vision.fastdetect`), then
 :class:`kmea.pipeline.Pipeline` (detection, pose, estimator, leave-one-out, filter, robots)
 with the normal and the fast detector, then with tracking for a fixed camera
-(:mod:`kmea.vision.tracking_detector`, :mod:`kmea.incremental`) against full detection of
+(:mod:`kmea.vision.tracking_detector`, :mod:`kmea.fixed_camera`) against full detection of
 every frame, with the default estimator and with ``corner-pnp``, back to back on the same
 frames. Times are wall-clock and CPU (``time.process_time``: every thread of the process,
 the tracking detector's background full detection and OpenCV's worker threads included),
@@ -116,9 +116,9 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
                 inc = out["pipeline"]
                 extra = (f"; {det.tracked} tracked / {det.full} full frames, "
                          f"{det.background} background full detections, poses "
-                         f"{inc.inc_poses.posed} computed / {inc.inc_poses.reused} reused, "
-                         f"leave-one-out {inc.inc_loo.computed} computed / "
-                         f"{inc.inc_loo.reused} reused")
+                         f"{inc.session.poses.posed} computed / {inc.session.poses.reused} reused, "
+                         f"leave-one-out {inc.session.loo.computed} computed / "
+                         f"{inc.session.loo.reused} reused")
             wall = 1e3 / rate
             row[label] = (wall, out["cpu_ms"])
             print(f"{algo}, {label}: {wall:6.2f} ms/frame wall = "
@@ -138,7 +138,7 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
         (fw, fc), (tw, tc) = row["full detection"], row["tracking"]
         print(f"{algo}: tracking / full detection = {tw / fw:.2f} (wall), {tc / fc:.2f} (CPU)")
         # The library's default robot filter is the paper's IIR; the daemon's configuration
-        # defaults to the tracking filter (kmea.tracking), whose update runs per robot per
+        # defaults to the tracking filter (kmea.robots.tracking), whose update runs per robot per
         # frame: the same tracking run with it.
         out = {}
         adjacent = _adjacent_bare(images, dic)

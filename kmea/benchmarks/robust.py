@@ -23,7 +23,7 @@ from kmea.estimators import get
 from kmea.estimators.base import MarkerObservation
 from kmea.geometry import check_distortion as dist14
 from kmea.geometry import marker_corners_local, project
-from kmea.maps import MarkerMap, default_map
+from kmea.maps.files import MarkerMap, default_map
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
 NAMES = ("kmea", "lmea", "umeyama", "kmea-robust", "corner-pnp")

@@ -36,8 +36,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from kmea.filters import PoseFilter
-from kmea.tracking import Tracker, TrackerConfig
+from kmea.geometry.rotations import wrap_angle
+from kmea.robots.iir import PoseFilter
+from kmea.robots.tracking import Tracker, TrackerConfig
 
 __all__ = [
     "HELD_OUT",
@@ -119,7 +120,7 @@ def trajectory(seed: int, duration: float = 40.0, max_speed: float = 1.5,
         if k == kidnap_i:
             x[k] += kick[0]
             y[k] += kick[1]
-    th = (th + math.pi) % (2 * math.pi) - math.pi
+    th = wrap_angle(th)
     return Trajectory(np.arange(n) * dt, x, y, th, vv, ww, kidnap_i * dt)
 
 
@@ -180,7 +181,7 @@ def make_measurements(tr: Trajectory, seed: int, fps: float = 30.0, sigma: float
                 out[k + 1] = True
     z[out, 0] += dist[out] * np.cos(ang[out])
     z[out, 1] += dist[out] * np.sin(ang[out])
-    z[:, 2] = (z[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    z[:, 2] = wrap_angle(z[:, 2])
     return Measurements(t, z, sig, out)
 
 
@@ -300,10 +301,6 @@ def run_kalman(ms: Measurements, cfg: TrackerConfig, skip: np.ndarray | None = N
                  "sigma": sig, "cov": cov}
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 #: Frames after an outlier over which the jump it causes is measured (the outlier's own
 #: frame and the next ones: an outlier that got in pulls the track for a few frames).
 EFFECT_FRAMES = 4
@@ -347,7 +344,7 @@ def metrics(tr: Trajectory, ms: Measurements, out: np.ndarray, info: dict,
     gx, gy, gth = tr.at(t)
     keep = (t >= 1.0) & ~((t >= tr.kidnap_t) & (t < tr.kidnap_t + 0.5))
     ex, ey = out[:, 0] - gx, out[:, 1] - gy
-    eth = _wrap(out[:, 2] - gth)
+    eth = wrap_angle(out[:, 2] - gth)
     pos = float(np.sqrt(np.mean((ex ** 2 + ey ** 2)[keep])))
     # Calibration of the reported uncertainty: the position NEES e^T P^-1 e (2 dof, mean 2
     # when P is honest) and the fraction of outputs whose error exceeds 3 reported sigmas

@@ -8,13 +8,13 @@ from __future__ import annotations
 from importlib import import_module
 
 from kmea.estimators.base import (
-    CameraIntrinsics,
     Estimate,
     EstimateWithLoo,
     Estimator,
     MarkerEstimate,
     MarkerObservation,
 )
+from kmea.geometry.camera import CameraIntrinsics
 
 __all__ = [
     "DEFAULT_ALGORITHM",

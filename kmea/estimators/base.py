@@ -26,6 +26,7 @@ The daemon's statistics and the experiment tables both come from this call.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
@@ -34,10 +35,10 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
 
 __all__ = [
-    "CameraIntrinsics",
     "CheckedObservations",
     "Estimate",
     "EstimateWithLoo",
@@ -52,18 +53,8 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics with OpenCV distortion, as plain arrays (numpy only).
-
-    camera_matrix: (3, 3) K in pixels; dist_coeffs: (n,) OpenCV order (k1, k2, p1, p2, k3, ...).
-    width, height: image size in pixels the intrinsics belong to.
-    """
-
-    camera_matrix: np.ndarray
-    dist_coeffs: np.ndarray
-    width: int
-    height: int
+# Observation versions: itertools.count's next() is atomic under the GIL.
+_VERSIONS = itertools.count(1)
 
 
 @dataclass(frozen=True)
@@ -85,6 +76,10 @@ class MarkerObservation:
         suspect: the detected quadrilateral is not trustworthy (a corner hidden, e.g. by a
             passing robot, or at the image border: see ``docs/vision.md``). The marker is
             still estimated and published, but never used as an alignment reference.
+        version: unique to this measurement in this process, given at construction (also
+            by ``dataclasses.replace``: new corners are a new measurement). What a fixed
+            camera's caches key on: the same version is the same measurement
+            (:mod:`kmea.fixed_camera`, the estimators' warm starts).
     """
 
     id: int
@@ -99,6 +94,7 @@ class MarkerObservation:
     ambiguous: bool = False
     flipped: bool = False
     suspect: bool = False
+    version: int = field(init=False, compare=False, default_factory=lambda: next(_VERSIONS))
 
 
 @dataclass
@@ -316,7 +312,7 @@ class EstimatorBase:
 
     name: str
     # The fit reads the references' corners (their poses only seed it): a reference's pose
-    # may be reused while its corners move a little (kmea.incremental).
+    # may be reused while its corners move a little (kmea.fixed_camera).
     fits_corners: bool = False
 
     def estimate(self, observations, world_map, exclude=(), camera=None,
@@ -351,20 +347,21 @@ class EstimatorBase:
 
 class CheckedObservations:
     """:func:`check_observations` for a fixed camera's consecutive frames (an estimator's
-    warm start): an observation object the last call checked (a fixed marker's, reused by
-    :mod:`kmea.incremental`) is not checked again; the duplicate-id test covers them all,
-    and any failure is raised by the full check (the same error). ``reset()`` forgets."""
+    warm start): an observation whose version the last call checked (a fixed marker's,
+    reused by :mod:`kmea.fixed_camera`) is not checked again; the duplicate-id test covers
+    them all, and any failure is raised by the full check (the same error). ``reset()``
+    forgets."""
 
     def __init__(self) -> None:
-        self._checked: dict[int, MarkerObservation] = {}
+        self._checked: set[int] = set()
 
     def reset(self) -> None:
-        self._checked = {}
+        self._checked = set()
 
     def __call__(self, observations: Sequence[MarkerObservation]) -> list[MarkerObservation]:
         obs = list(observations)
         seen = self._checked
-        new = [o for o in obs if seen.get(id(o)) is not o]
+        new = [o for o in obs if o.version not in seen]
         if len({o.id for o in obs}) != len(obs):
             check_observations(obs)  # raises on the duplicate
         if new:
@@ -373,7 +370,7 @@ class CheckedObservations:
             except ValueError:
                 check_observations(obs)  # the error the full check gives
                 raise
-        self._checked = dict(zip(map(id, obs), obs, strict=True))  # held: ids stay theirs
+        self._checked = {o.version for o in obs}
         return obs
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from kmea.estimators.base import Estimate, MarkerEstimate, MarkerObservation
 from kmea.geometry import intersect_ray_height, make_transform, yaw_of
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 __all__ = [
     "COINCIDENT_TOL",

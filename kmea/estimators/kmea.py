@@ -27,7 +27,6 @@ from collections.abc import Collection, Mapping, Sequence
 import numpy as np
 
 from kmea.estimators.base import (
-    CameraIntrinsics,
     CheckedObservations,
     Estimate,
     EstimatorBase,
@@ -45,7 +44,8 @@ from kmea.estimators.common import (
 )
 from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import kabsch
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
 
 __all__ = ["KMEA", "kmea_align"]
 
@@ -89,7 +89,7 @@ class KMEA(EstimatorBase):
         self.seed = seed
         self._rng = np.random.default_rng(seed)
         # Warm start (a fixed live camera, set by kmea.pipeline): while the references'
-        # observations are the very objects of the last call (kmea.incremental reuses a
+        # observations are the very objects of the last call (kmea.fixed_camera reuses a
         # floor marker's), their alignment is the last one; only the markers are mapped.
         self.warm_start = False
         self._check = CheckedObservations()

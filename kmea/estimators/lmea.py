@@ -26,16 +26,11 @@ from collections.abc import Collection, Mapping, Sequence
 
 import numpy as np
 
-from kmea.estimators.base import (
-    CameraIntrinsics,
-    Estimate,
-    EstimatorBase,
-    MarkerObservation,
-    check_observations,
-)
+from kmea.estimators.base import Estimate, EstimatorBase, MarkerObservation, check_observations
 from kmea.estimators.common import COLLINEAR_TOL, References, finish_estimate
 from kmea.estimators.unknown_plane import check_mode
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
 
 __all__ = ["LMEA", "LMEAPrinted", "anchor_basis", "printed_basis"]
 

@@ -12,8 +12,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics, Estimator, MarkerObservation
-from kmea.map_model import MarkerMap
+from kmea.estimators.base import Estimator, MarkerObservation
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
 
 __all__ = ["loo_errors", "loo_positions"]
 

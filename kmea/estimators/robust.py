@@ -47,14 +47,7 @@ from itertools import combinations
 
 import numpy as np
 
-from kmea.chi2 import chi2_quantile
-from kmea.estimators.base import (
-    CameraIntrinsics,
-    Estimate,
-    EstimatorBase,
-    MarkerObservation,
-    check_observations,
-)
+from kmea.estimators.base import Estimate, EstimatorBase, MarkerObservation, check_observations
 from kmea.estimators.common import (
     References,
     finish_estimate,
@@ -66,7 +59,9 @@ from kmea.estimators.kmea import kmea_align
 from kmea.estimators.umeyama import umeyama_batch
 from kmea.estimators.unknown_plane import check_mode
 from kmea.geometry import ray_plane_parameter
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
+from kmea.stats.chi2 import chi2_quantile
 
 __all__ = ["KMEARobust", "describe_rejected", "footprints", "kmea_align", "plane_residuals",
            "umeyama_batch"]

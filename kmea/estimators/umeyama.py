@@ -12,16 +12,11 @@ from collections.abc import Collection, Mapping, Sequence
 
 import numpy as np
 
-from kmea.estimators.base import (
-    CameraIntrinsics,
-    Estimate,
-    EstimatorBase,
-    MarkerObservation,
-    check_observations,
-)
+from kmea.estimators.base import Estimate, EstimatorBase, MarkerObservation, check_observations
 from kmea.estimators.common import finish_estimate, reference_problem, select_references
 from kmea.estimators.unknown_plane import check_mode
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
 
 __all__ = ["Umeyama", "umeyama", "umeyama_batch"]
 

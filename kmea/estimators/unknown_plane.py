@@ -34,7 +34,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kmea.chi2 import chi2_quantile
 from kmea.geometry import (
     check_distortion,
     intersect_rays_planes,
@@ -46,7 +45,8 @@ from kmea.geometry import (
     undistort,
     yaw_of,
 )
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
+from kmea.stats.chi2 import chi2_quantile
 
 __all__ = ["MODES", "Plane", "PlaneChoice", "check_mode", "infer", "map_planes",
            "place_with_similarity"]

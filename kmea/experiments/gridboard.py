@@ -21,7 +21,7 @@ import numpy as np
 
 from kmea.estimators import get
 from kmea.estimators.loo import loo_errors
-from kmea.maps import Marker, MarkerMap
+from kmea.maps.files import Marker, MarkerMap
 from kmea.pipeline import MarkerObserver
 from kmea.vision.camera import CameraModel, load_camera
 from kmea.vision.detection import MarkerDetector

@@ -17,7 +17,10 @@ The split, fixed here and documented in ``docs/experiments.md``:
   tuning scene and from Parts I-IV.
 
 ``python -m kmea.experiments.heldout [--frames N] [--scenes a,b] [--split heldout|tuning]``
-prints the MAE table (mm) of the evaluated markers per estimator and scene.
+prints the MAE table (mm) of the evaluated markers per estimator and scene;
+``--loo [--width W] [--seed S] [--camera down,H,CX,CY,YAW,TILT]`` the default estimator's
+leave-one-out on the default floor, or on another scene of it (another noise seed and camera
+placement: a held-out scene when chosen before measuring).
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kmea.maps import Marker, default_map
+from kmea.maps.files import Marker, default_map
 
 __all__ = [
     "ESTIMATORS",
@@ -39,11 +42,13 @@ __all__ = [
     "TUNING",
     "HeldoutScene",
     "SceneResult",
+    "camera_pose",
     "evaluate_gridboard",
     "evaluate_scene",
     "format_table",
     "main",
     "moved_markers",
+    "parse_camera",
 ]
 
 _deg = math.radians
@@ -95,21 +100,40 @@ class HeldoutScene:
     seed: int = 0
 
     def cam2world(self) -> np.ndarray:
-        from kmea.geometry import rot_x
-        from kmea.sim import look_at, scenario1_camera
+        return camera_pose(self.camera, self.name)
 
-        kind = self.camera[0]
-        if kind == "down":
-            _, h, cx, cy, yaw, tilt = self.camera
-            T = scenario1_camera(h, center=(cx, cy), yaw=_deg(yaw))
-            if tilt:
-                T = T.copy()
-                # Tilt about the camera's own x axis, centred on the camera.
-                T[:3, :3] = rot_x(_deg(tilt)) @ T[:3, :3]
-            return T
-        if kind == "look_at":
-            return look_at(self.camera[1], self.camera[2])
-        raise ValueError(f"heldout scene {self.name}: unknown camera kind {kind!r}")
+
+def camera_pose(camera: tuple, name: str = "") -> np.ndarray:
+    """cam2world of a camera placement: ("down", height m, centre x m, centre y m, yaw deg,
+    tilt deg about the camera's x axis) or ("look_at", (x, y, z) m, (x, y, z) target m)."""
+    from kmea.geometry import rot_x
+    from kmea.sim import look_at, scenario1_camera
+
+    kind = camera[0]
+    if kind == "down":
+        _, h, cx, cy, yaw, tilt = camera
+        T = scenario1_camera(h, center=(cx, cy), yaw=_deg(yaw))
+        if tilt:
+            T = T.copy()
+            # Tilt about the camera's own x axis, centred on the camera.
+            T[:3, :3] = rot_x(_deg(tilt)) @ T[:3, :3]
+        return T
+    if kind == "look_at":
+        return look_at(camera[1], camera[2])
+    raise ValueError(f"heldout scene {name}: unknown camera kind {kind!r}")
+
+
+def parse_camera(text: str) -> tuple:
+    """``down,H,CX,CY,YAW_DEG,TILT_DEG`` or ``look_at,X,Y,Z,TX,TY,TZ`` (metres, degrees)
+    as a :class:`HeldoutScene` camera tuple."""
+    kind, *rest = [p.strip() for p in text.split(",")]
+    vals = [float(v) for v in rest]
+    if kind == "down" and len(vals) == 5:
+        return ("down", *vals)
+    if kind == "look_at" and len(vals) == 6:
+        return ("look_at", tuple(vals[:3]), tuple(vals[3:]))
+    raise ValueError(f"camera {text!r}: down,H,CX,CY,YAW_DEG,TILT_DEG or "
+                     f"look_at,X,Y,Z,TX,TY,TZ")
 
 
 _A = (1, 7, 9, 17, 20, 24, 31, 33)  # held-out evaluated set (interior and edge, no anchors)
@@ -311,17 +335,27 @@ def evaluate_gridboard(data_dir: Path, folds: int = 4,
 
 
 def default_floor_loo(frames: int = 8, width: int = 820, height: int = 616,
-                      algorithm: str | None = None) -> dict[int, list[float]]:
+                      algorithm: str | None = None, seed: int | None = None,
+                      camera: tuple | None = None) -> dict[int, list[float]]:
     """The daemon's leave-one-out errors (map markers, plane known) of the default
     estimator (``config.toml``'s, unless ``algorithm``) on the default simulated floor
-    (robots driving) at ``width`` x ``height``: id -> floor-plane errors (m), one per frame."""
+    (robots driving) at ``width`` x ``height``: id -> floor-plane errors (m), one per frame.
+
+    ``seed`` (the sensor noise's) and ``camera`` (a placement as in :class:`HeldoutScene`,
+    instead of the default 1.35 m over the origin) make another scene of the same floor: a
+    held-out one when neither was used while tuning."""
     from kmea.estimators import DEFAULT_ALGORITHM, get
     from kmea.estimators.loo import loo_errors
     from kmea.sim import Renderer, get_scene
     from kmea.vision.detection import DetectorConfig, MarkerDetector
     from kmea.vision.marker_pose import estimate_marker_poses
 
-    scene = get_scene("default", width=width, height=height)
+    opts: dict = {}
+    if seed is not None:
+        opts["seed"] = seed
+    if camera is not None:
+        opts["cam2world"] = camera_pose(camera)
+    scene = get_scene("default", width=width, height=height, **opts)
     renderer = Renderer(scene)
     detector = MarkerDetector(DetectorConfig(dictionary=scene.world_map.dictionary))
     lengths = {i: m.length for i, m in scene.world_map.markers.items()}
@@ -340,10 +374,10 @@ def default_floor_loo(frames: int = 8, width: int = 820, height: int = 616,
 
 def moved_markers(loo: dict[int, list[float]], min_offset: float = 0.01,
                   frames: int = 5) -> set[int]:
-    """Markers the daemon's moved-marker rule (:class:`kmea.moved.MovedMonitor`, with the
+    """Markers the daemon's moved-marker rule (:class:`kmea.stats.moved.MovedMonitor`, with the
     daemon's default ``stats.displaced_threshold`` and ``displaced_frames``) calls moved at
     some frame, fed these leave-one-out errors frame by frame."""
-    from kmea.moved import MovedMonitor
+    from kmea.stats.moved import MovedMonitor
 
     mon = MovedMonitor(min_offset, frames)
     n = max((len(v) for v in loo.values()), default=0)
@@ -382,18 +416,33 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", choices=("heldout", "tuning"), default="heldout")
     p.add_argument("--loo", action="store_true",
                    help="print the default estimator's leave-one-out figures on the default "
-                        "simulated floor at 820x616 instead")
+                        "simulated floor (820x616 unless --width) instead")
+    p.add_argument("--width", type=int, default=820,
+                   help="--loo: image width, the height at 4:3 of the sensor (default 820)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="--loo: the scene's noise seed (default: the default scene's, 0)")
+    p.add_argument("--camera", default=None,
+                   help="--loo: camera placement, down,H,CX,CY,YAW_DEG,TILT_DEG or "
+                        "look_at,X,Y,Z,TX,TY,TZ (default: 1.35 m over the origin, looking "
+                        "down)")
     p.add_argument("--scenes", default=None,
                    help="comma-separated scene names (default: every scene of the split, "
                         "plus 'gridboard' for the held-out split)")
     args = p.parse_args(argv)
     if args.loo:
-        loo = default_floor_loo(args.frames)
+        height = round(args.width * 1232 / 1640)
+        camera = parse_camera(args.camera) if args.camera else None
+        loo = default_floor_loo(args.frames, args.width, height, seed=args.seed,
+                                camera=camera)
         errs = np.array([e for v in loo.values() for e in v])
         moved = moved_markers(loo)
-        print(f"default estimator, default floor 820x616, {args.frames} frames, "
+        where = "" if args.seed is None and camera is None else (
+            f" (seed {args.seed if args.seed is not None else 0}, camera "
+            f"{args.camera or 'default'})")
+        print(f"default estimator, default floor {args.width}x{height}{where}, "
+              f"{args.frames} frames, "
               f"{len(loo)} map markers: LOO mean {errs.mean() * 1e3:.3f} mm, "
-              f"max {errs.max() * 1e3:.3f} mm; markers the daemon's rule (kmea.moved, "
+              f"max {errs.max() * 1e3:.3f} mm; markers the daemon's rule (kmea.stats.moved, "
               f"default thresholds) calls moved: {sorted(moved) or 'none'}")
         return 0
     pool = HELDOUT if args.split == "heldout" else TUNING

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kmea.experiments.motion import MotionCase, motion_scene
+from kmea.geometry.rotations import wrap_angle
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 from kmea.sim.renderer import Renderer
 
@@ -74,10 +75,6 @@ def rms(v: list[float] | np.ndarray) -> float:
     return float(np.sqrt(np.mean(a * a))) if a.size else math.nan
 
 
-def _wrap(a: float) -> float:
-    return math.remainder(a, math.tau)
-
-
 def evaluate_case(case: MotionCase, frames: int, start: int = 0) -> CaseResult:
     """Run ``frames`` frames of ``case`` from frame ``start``; see the module docstring."""
     import time
@@ -119,12 +116,12 @@ def evaluate_case(case: MotionCase, frames: int, start: int = 0) -> CaseResult:
                 t = f.timestamp if fix.t is None else fix.t
                 x, y, th = truth.robot_at(spec.name, t)
                 e.pos.append(math.hypot(fix.x - x, fix.y - y))
-                e.head.append(_wrap(fix.theta - th))
+                e.head.append(wrap_angle(fix.theta - th))
                 if fix.raw is not None:
                     e.raw_pos.append(math.hypot(fix.raw[0] - x, fix.raw[1] - y))
-                    e.raw_head.append(_wrap(fix.raw[2] - th))
+                    e.raw_head.append(wrap_angle(fix.raw[2] - th))
                     if len(spec.markers) == 1:
-                        e.single_head.append(_wrap(fix.raw[2] - th))
+                        e.single_head.append(wrap_angle(fix.raw[2] - th))
                 rate = getattr(paths[spec.name], "turn_rate", None)
                 e.turning.append(bool(rate is not None and abs(rate(t)) > 0.5 * case.omega))
     for p in pipes.values():

@@ -18,7 +18,7 @@ import math
 from functools import lru_cache
 from importlib import resources
 
-from kmea.metrics import percent_change
+from kmea.stats.metrics import percent_change
 
 __all__ = ["PAPER_SETTINGS", "comparison_markdown", "paper_table"]
 

@@ -1,9 +1,10 @@
 """``kmea experiment --replay FILE``: the same tables from a kmead recording.
 
-The recording (``kmea/recording.py``: JSON lines, a header with the camera model and the map,
-then one line per frame with every per-marker pose) is re-estimated with each algorithm, each
-evaluated marker left out of the references. The truth is the map's position of each marker,
-so only markers in the map are scored: a real floor whose markers were surveyed. The mode is
+The recording (``kmea/recordings/format.py``: JSON lines, a header with the camera model and
+the map, then one line per frame with every per-marker pose) is re-estimated with each
+algorithm, each evaluated marker left out of the references. The truth is the map's
+position of each marker, so only markers in the map are scored: a real floor whose markers
+were surveyed. The mode is
 "plane-known" (see :mod:`kmea.experiments.run`): each evaluated marker is left out of the
 references and every estimator is told its surveyed plane.
 """

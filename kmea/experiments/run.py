@@ -18,7 +18,7 @@ Two evaluation modes (``MODES``), so that every estimator gets the same informat
   paper; corner-pnp: its plane inferred from the map's planes, or free).
 
 Optionally (``iir_alpha`` < 1) every estimator's samples of a marker go through the paper's
-first-order IIR filter (:class:`kmea.filters.PoseFilter`) in frame order, as the paper ran
+first-order IIR filter (:class:`kmea.robots.iir.PoseFilter`) in frame order, as the paper ran
 both of its algorithms.
 ``--jobs`` spreads the frames over processes; each worker does render, detection and every
 estimate of its frames, so the results do not depend on the number of jobs.
@@ -34,10 +34,11 @@ from multiprocessing import get_context
 import numpy as np
 
 from kmea import estimators as est_registry
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
 from kmea.experiments import simscene
 from kmea.experiments.setup import MODES, ExperimentConfig
-from kmea.maps import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.files import MarkerMap
 
 __all__ = [
     "MODES",
@@ -175,9 +176,9 @@ def _without(world_map: MarkerMap, marker: int) -> MarkerMap:
 
 def iir_filter(samples: np.ndarray, alpha: float, fps: float = 30.0) -> np.ndarray:
     """The paper's first-order IIR filter over one marker's samples (n, 3) in frame order:
-    y_k = alpha x_k + (1 - alpha) y_(k-1) (:class:`kmea.filters.PoseFilter`, one definition
+    y_k = alpha x_k + (1 - alpha) y_(k-1) (:class:`kmea.robots.iir.PoseFilter`, one definition
     for the daemon and the experiments)."""
-    from kmea.filters import PoseFilter
+    from kmea.robots.iir import PoseFilter
 
     if alpha >= 1.0 or len(samples) == 0:
         return samples

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from kmea.experiments.setup import ExperimentConfig, miscalibrated
-from kmea.maps import MarkerMap, default_map
+from kmea.maps.files import MarkerMap, default_map
 
 __all__ = ["build", "build_scene", "describe", "observe"]
 

@@ -1,6 +1,6 @@
 """The paper's tables from a :class:`~kmea.experiments.run.RunResult`.
 
-Every number comes from :mod:`kmea.metrics` (no second implementation here): per marker
+Every number comes from :mod:`kmea.stats.metrics` (no second implementation here): per marker
 ``marker_metrics(samples, truth, reference_length)``, per algorithm ``mean_metrics`` over the
 evaluated markers, and ``percent_change`` of each averaged metric against the baseline.
 Text and Markdown show millimetres and percent (for people); the CSV keeps metres.
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from kmea.experiments.run import RunResult
-from kmea.metrics import MarkerMetrics, marker_metrics, mean_metrics, percent_change
+from kmea.stats.metrics import MarkerMetrics, marker_metrics, mean_metrics, percent_change
 
 __all__ = ["METRICS", "Scores", "modes_markdown", "score", "summary_markdown", "write_csv",
            "write_samples_csv"]
@@ -50,7 +50,7 @@ class Scores:
 
 
 def score(result: RunResult) -> Scores:
-    """Metrics of every (algorithm, marker) and their averages, from :mod:`kmea.metrics`."""
+    """Metrics of every (algorithm, marker) and their averages, from :mod:`kmea.stats.metrics`."""
     per: dict[tuple[str, int], MarkerMetrics] = {}
     for a in result.algorithms:
         for m in result.markers:

@@ -13,12 +13,14 @@ simulator's lens (``kmea.sim.lens``) call it. Numpy only; the tests compare it w
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal, overload
 
 import numpy as np
 
 __all__ = [
     "MAX_DISTORTION_STRETCH",
+    "CameraIntrinsics",
     "check_camera_matrix",
     "check_distortion",
     "distort",
@@ -32,6 +34,20 @@ __all__ = [
     "rotation_increment_jacobian",
     "undistort",
 ]
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics with OpenCV distortion, as plain arrays (numpy only).
+
+    camera_matrix: (3, 3) K in pixels; dist_coeffs: (n,) OpenCV order (k1, k2, p1, p2, k3, ...).
+    width, height: image size in pixels the intrinsics belong to.
+    """
+
+    camera_matrix: np.ndarray
+    dist_coeffs: np.ndarray
+    width: int
+    height: int
 
 
 def check_distortion(dist: np.ndarray) -> np.ndarray:
@@ -52,12 +68,21 @@ def check_distortion(dist: np.ndarray) -> np.ndarray:
 
 
 def check_camera_matrix(K: np.ndarray) -> np.ndarray:
-    """A (3, 3) camera matrix with finite, positive fx, fy; ``ValueError`` otherwise."""
+    """The one camera-matrix check: ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels,
+    finite, fx and fy > 0; (9,) row by row is accepted. Returns it (3, 3) float;
+    ``ValueError`` saying what is wrong otherwise."""
     K = np.asarray(K, dtype=float)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ValueError(f"camera matrix: expected finite (3, 3), got shape {K.shape}")
+    if K.shape == (9,):  # written row by row as one list
+        K = K.reshape(3, 3)
+    if K.shape != (3, 3):
+        raise ValueError(f"expected a 3x3 matrix, got shape {K.shape}")
+    if not np.all(np.isfinite(K)):
+        raise ValueError(f"non-finite entries in {K.tolist()}")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise ValueError("camera matrix: fx and fy must be > 0")
+        raise ValueError(f"focal lengths fx, fy must be > 0, got {K[0, 0]}, {K[1, 1]}")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
+        raise ValueError("not a camera matrix (expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]), "
+                         f"got {K.tolist()}")
     return K
 
 

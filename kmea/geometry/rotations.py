@@ -8,6 +8,7 @@ radians (axis times angle). Angles are radians unless a name ends in ``_deg``. N
 from __future__ import annotations
 
 import math
+from typing import overload
 
 import numpy as np
 
@@ -178,8 +179,13 @@ def kabsch(H: np.ndarray) -> np.ndarray:
     return V @ Ut
 
 
+@overload
+def wrap_angle(a: float) -> float: ...
+@overload
+def wrap_angle(a: np.ndarray) -> np.ndarray: ...
 def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
-    """Wrap radians to [-pi, pi); a float for a float, an array for an array."""
+    """The one angle wrap: radians to [-pi, pi); a float for a float, an array for an
+    array."""
     if isinstance(a, np.ndarray):
         return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi
     return (a + math.pi) % (2.0 * math.pi) - math.pi

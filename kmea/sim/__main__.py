@@ -15,9 +15,9 @@ from pathlib import Path
 
 import cv2
 
-from kmea.jsonsafe import to_jsonable
 from kmea.sim.renderer import FrameTruth, Renderer
 from kmea.sim.scenes import available_scenes, scene_from_spec
+from kmea.wire.jsonsafe import to_jsonable
 
 
 def truth_record(index: int, truth: FrameTruth) -> dict:

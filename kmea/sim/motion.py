@@ -15,6 +15,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from kmea.geometry.rotations import wrap_angle
+
 __all__ = ["CrossingPath", "LoopPath", "Path", "StadiumPath", "Stationary", "WallClock"]
 
 Pose2D = tuple[float, float, float]
@@ -120,7 +122,7 @@ class LoopPath:
         y = self._xy[i, 1] + frac * math.sin(h)
         if self.speed < 0:
             h += math.pi
-        return (float(x), float(y), math.atan2(math.sin(h), math.cos(h)))
+        return (float(x), float(y), float(wrap_angle(h)))
 
 
 @dataclass(frozen=True)
@@ -225,4 +227,4 @@ class StadiumPath:
         c, sn = math.cos(self.axis), math.sin(self.axis)
         cx, cy = float(self.center[0]), float(self.center[1])
         th += self.axis
-        return (cx + c * x - sn * y, cy + sn * x + c * y, math.atan2(math.sin(th), math.cos(th)))
+        return (cx + c * x - sn * y, cy + sn * x + c * y, float(wrap_angle(th)))

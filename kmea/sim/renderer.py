@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from kmea.geometry import unit_rays_plane_depth, yaw_of
-from kmea.maps import Marker
+from kmea.maps.files import Marker
 from kmea.sim import lens
 from kmea.sim.quads import Quad, Rect, box_quads, grow, overlap, union
 from kmea.sim.scene import PALETTE, Occluder, Scene, SimRobot, pose_matrix

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from kmea.geometry import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
-from kmea.maps import Marker, MarkerMap
+from kmea.maps.files import Marker, MarkerMap
 from kmea.sim.motion import CrossingPath, Path, Stationary
 from kmea.vision.camera import CameraModel
 
@@ -62,7 +62,7 @@ def pose_matrix(R: np.ndarray, t: Sequence[float]) -> np.ndarray:
 def marker_pose(value: Any, where: str = "pose") -> np.ndarray:
     """Normalise a marker pose to a (4, 4) marker2world transform.
 
-    Accepts a :class:`~kmea.maps.Marker`, a (4, 4) array, or a pair of a (3,) position and a
+    Accepts a :class:`~kmea.maps.files.Marker`, a (4, 4) array, or a pair of a (3,) position and a
     (3, 3) rotation in either order.
     """
     if isinstance(value, Marker):
@@ -408,9 +408,9 @@ class Scene:
         return out
 
     def robot_specs(self) -> list:
-        """The robots as :class:`kmea.robots.RobotSpec` (what the daemon's configuration
+        """The robots as :class:`kmea.robots.poses.RobotSpec` (what the daemon's configuration
         would say)."""
-        from kmea.robots import RobotSpec
+        from kmea.robots.poses import RobotSpec
 
         return [RobotSpec(r.name, tuple(r.markers), r.height, r.length, r.separation)
                 for r in self.robots]

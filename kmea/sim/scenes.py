@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from kmea.maps import MarkerMap, default_map
+from kmea.maps.files import MarkerMap, default_map
 from kmea.sim.motion import CrossingPath, LoopPath, WallClock
 from kmea.sim.scene import Effects, Occluder, Scene, SimRobot, look_at, pose_matrix
 from kmea.timing import imx219_line_time
@@ -148,7 +148,7 @@ def wide_map() -> MarkerMap:
     markers (walls included), floor B has its 33 floor markers as ids 66-98."""
     from dataclasses import replace
 
-    from kmea.maps import Marker
+    from kmea.maps.files import Marker
 
     base = default_map()
     markers = dict(base.markers)

@@ -1,4 +1,4 @@
-"""``replay:FILE``: a recording (:mod:`kmea.recording`) as a frame source: its detections
+"""``replay:FILE``: a recording (:mod:`kmea.recordings.format`) as a frame source: its detections
 and poses, no images. Plain or compressed, version 1 or 2; a recording cut by a kill (or
 one part of a recording cut into parts) replays up to its last whole line."""
 
@@ -10,7 +10,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from kmea.recording import (
+from kmea.recordings.format import (
     RecordingError,
     camera_from_json,
     frame_from_json,

@@ -15,8 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics
-from kmea.geometry.camera import check_distortion, distortion_problem
+from kmea.geometry.camera import (
+    CameraIntrinsics,
+    check_camera_matrix,
+    check_distortion,
+    distortion_problem,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -180,16 +184,10 @@ def _finite_array(value: object, where: str) -> np.ndarray:
 
 
 def _check_K(K: np.ndarray, where: str) -> np.ndarray:
-    if K.shape == (9,):  # written row by row as one list
-        K = K.reshape(3, 3)
-    if K.shape != (3, 3):
-        raise CameraError(f"{where}: expected a 3x3 matrix, got shape {K.shape}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise CameraError(f"{where}: focal lengths fx, fy must be > 0, got {K[0, 0]}, {K[1, 1]}")
-    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
-        raise CameraError(f"{where}: not a camera matrix (expected [[fx, s, cx], [0, fy, cy], "
-                          f"[0, 0, 1]]), got {K.tolist()}")
-    return K
+    try:
+        return check_camera_matrix(K)
+    except ValueError as e:
+        raise CameraError(f"{where}: {e}") from None
 
 
 _DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",

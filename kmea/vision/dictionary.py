@@ -1,6 +1,6 @@
 """ArUco dictionaries: OpenCV's predefined ones by name, or custom ones from a file.
 
-Names follow the one table of :mod:`kmea.aruco_names` (shared with map files).
+Names follow the one table of :mod:`kmea.maps.aruco_names` (shared with map files).
 
 A custom dictionary file is what ``cv2.aruco.Dictionary.writeDictionary`` writes (OpenCV
 FileStorage, YAML / XML / JSON): ``nmarkers``, ``markersize``, optional
@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from kmea.aruco_names import PREDEFINED, canonical_name, is_dictionary_file
+from kmea.maps.aruco_names import PREDEFINED, canonical_name, is_dictionary_file
 
 __all__ = ["DictionaryError", "get_dictionary", "predefined_names"]
 

@@ -42,9 +42,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
 from kmea.geometry import marker_corners_local
-from kmea.maps import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.files import MarkerMap
 from kmea.vision import pose_consensus
 from kmea.vision.camera import CameraModel
 from kmea.vision.ippe import (
@@ -197,7 +198,7 @@ def estimate_marker_poses(
     robots' markers lie flat); a None value means "no assumption" for that id.
     quality: when a marker is flagged ``suspect`` (:class:`QualitySettings`).
     world2cam_R: (3, 3) the scene's consensus rotation when known already (a fixed camera:
-    from an earlier frame, :mod:`kmea.incremental`); the markers' expected normals then
+    from an earlier frame, :mod:`kmea.fixed_camera`); the markers' expected normals then
     come from it instead of a vote among these markers.
     Returns the observations (in input order, minus ``failed_ids``) and the diagnostics.
     """

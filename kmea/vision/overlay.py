@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from kmea.geometry import check_distortion, project
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 from kmea.vision.camera import CameraModel
 
 __all__ = [

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kmea.geometry import project_to_so3
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 
 __all__ = ["DisambiguationSettings", "expected_normals", "rotation_angles", "vote"]
 

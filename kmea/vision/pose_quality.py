@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics
+from kmea.geometry.camera import CameraIntrinsics
 from kmea.vision.camera import CameraModel
 
 __all__ = ["QualitySettings", "suspect_mask"]

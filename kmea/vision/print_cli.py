@@ -13,7 +13,7 @@ import argparse
 import re
 import sys
 
-from kmea.map_model import DEFAULT_DICTIONARY
+from kmea.maps.model import DEFAULT_DICTIONARY
 
 __all__ = ["add_arguments", "run"]
 
@@ -58,7 +58,7 @@ def _err(msg: str) -> int:
 def _marker_size(args: argparse.Namespace) -> tuple[float, str]:
     """The side to print (mm) and a line saying where it came from: --size-mm, else the
     marker's side in the map (a wall marker of the built-in map is 40 mm), else 60."""
-    from kmea.maps import default_map, load_map
+    from kmea.maps.files import default_map, load_map
 
     if args.size_mm is not None:
         return args.size_mm, ""
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
                 print(note)
             out = args.out or f"marker_{args.id}.png"
         elif args.what == "floor":
-            from kmea.maps import MapError, default_map, load_map
+            from kmea.maps.files import MapError, default_map, load_map
 
             try:
                 mp = (load_map(args.map, dictionary=args.dict or DEFAULT_DICTIONARY)

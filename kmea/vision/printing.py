@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from kmea.maps import MarkerMap
+from kmea.maps.files import MarkerMap
 
 __all__ = ["Printable", "charuco_page", "floor_page", "marker_page", "px", "save_printable"]
 

@@ -12,7 +12,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.widgets import Button, DataTable, Input, Label, Select, Static
 
-from kmea.tomlvalue import parse_toml_value
+from kmea.wire.tomlvalue import parse_toml_value
 from kmea_tui.messages import ControlRequest
 
 

@@ -1,7 +1,7 @@
 """Markers tab: every marker the daemon reports, with its leave-one-out error.
 
 Whether a marker has moved is the daemon's decision (``markers[].moved``, with its evidence
-``moved_offset``/``moved_threshold``/``moved_frames``; see ``kmea/moved.py``): this tab only
+``moved_offset``/``moved_threshold``/``moved_frames``; see ``kmea/stats/moved.py``): this tab only
 shows it.
 """
 

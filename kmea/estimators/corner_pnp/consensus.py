@@ -13,7 +13,7 @@ from kmea.estimators.corner_noise import corner_outliers, robust_sigma, square_p
 from kmea.estimators.corner_pnp.fit import CameraFit, residuals
 from kmea.estimators.corner_pnp.planes import intersect
 from kmea.estimators.corner_pnp.uncertainty import marker_sigmas
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 
 @dataclass(frozen=True)

@@ -10,10 +10,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kmea.chi2 import chi2_quantile
 from kmea.estimators import unknown_plane as unknown_plane_mod
 from kmea.estimators.base import (
-    CameraIntrinsics,
     CheckedObservations,
     Estimate,
     EstimateWithLoo,
@@ -39,7 +37,9 @@ from kmea.geometry import (
     project,
     undistort,
 )
-from kmea.map_model import MarkerMap
+from kmea.geometry.camera import CameraIntrinsics
+from kmea.maps.model import MarkerMap
+from kmea.stats.chi2 import chi2_quantile
 
 # Placeholders of place_on_planes' observations: markers of known plane are placed from
 # their corners; their PnP pose is never read.
@@ -206,7 +206,7 @@ class CornerPnP(EstimatorBase):
                 and all(a is b for a, b in zip(w.ref_obs, ref_obs, strict=True))
                 and self._same_camera(w, camera)):
             # The very observations of the last fit (a fixed camera's floor, reused by
-            # kmea.incremental): the same fit, nothing to check or stack again.
+            # kmea.fixed_camera): the same fit, nothing to check or stack again.
             return Solution(w.fit, refs, list(w.inliers), w.dis, obs)
         for i in refs:
             c = np.asarray(obs[i].corners, dtype=float)
@@ -478,7 +478,7 @@ class CornerPnP(EstimatorBase):
                         dropped: dict[int, int], scale_refs: Sequence[int]
                         ) -> dict[int, MarkerEstimate]:
         """:func:`place_markers`, reusing the placements of the same fit for markers whose
-        observation is the same object (warm start only; see ``_placed``)."""
+        observation has the same version (warm start only; see ``_placed``)."""
         if not self.warm_start or self._warm is None or self._warm.fit is not fit:
             return place_markers(self._placing, self._corner_planes, fit, obs, world_map,
                                  plane_heights, inliers, planes, dropped=dropped,
@@ -489,7 +489,8 @@ class CornerPnP(EstimatorBase):
         for i, o in obs.items():
             hit = old.get(i)
             if hit is not None and hit.height == plane_heights.get(i) and (
-                    hit.obs is o or (hit.height is not None and _same_square(hit.obs, o))):
+                    hit.obs.version == o.version
+                    or (hit.height is not None and _same_square(hit.obs, o))):
                 out[i] = hit.estimate
                 if hit.plane is not None:
                     planes[i] = hit.plane

@@ -15,7 +15,7 @@ from kmea.estimators.corner_pnp.placement import square_poses
 from kmea.estimators.corner_pnp.planes import batched_plane_points, intersect, stack_corners
 from kmea.estimators.robust_lm import huber_weights
 from kmea.geometry import rotvecs_to_matrices, undistort
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 
 def loo_steps(fit: CameraFit, refs: Sequence[int], inliers: Sequence[int], J: np.ndarray,

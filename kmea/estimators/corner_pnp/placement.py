@@ -24,7 +24,7 @@ from kmea.estimators.corner_pnp.fit import CameraFit
 from kmea.estimators.corner_pnp.planes import CornerPlanes, plane_frames, stack_corners
 from kmea.estimators.corner_pnp.uncertainty import marker_sigmas
 from kmea.geometry import undistort, yaw_of
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 
 @dataclass(frozen=True)

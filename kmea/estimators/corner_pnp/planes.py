@@ -13,7 +13,7 @@ import numpy as np
 
 from kmea.estimators.base import MarkerObservation
 from kmea.geometry import intersect_rays_planes
-from kmea.map_model import MarkerMap
+from kmea.maps.model import MarkerMap
 
 EYE3 = np.eye(3)
 EYE3.flags.writeable = False  # shared: a horizontal plane's frame

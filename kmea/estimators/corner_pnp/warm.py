@@ -7,16 +7,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kmea.estimators.base import CameraIntrinsics, MarkerObservation
+from kmea.estimators.base import MarkerObservation
 from kmea.estimators.corner_pnp.fit import CameraFit
 from kmea.geometry import check_distortion
+from kmea.geometry.camera import CameraIntrinsics
 
 CameraKey = tuple[bytes, bytes]  # (camera matrix bytes, distortion bytes), float64
 
 
 @dataclass(frozen=True)
 class WarmFit:
-    """The last fit kept for the warm start (a fixed camera, :mod:`kmea.incremental`).
+    """The last fit kept for the warm start (a fixed camera, :mod:`kmea.fixed_camera`).
 
     map_id: id of the map it was solved for; camera: its intrinsics as checked
     (:data:`CameraKey`); refs, uv: its references and their stacked corners (4 rows each,

@@ -1,0 +1,1 @@
+"""Marker maps: the model, files, the built-in floor, ArUco dictionary names, the survey."""

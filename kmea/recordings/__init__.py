@@ -1,0 +1,1 @@
+"""Recordings (format, bytes on disk) and whole-record file writes."""

@@ -1,0 +1,1 @@
+"""Statistics: the paper's error metrics, the chi-square distribution, moved markers."""

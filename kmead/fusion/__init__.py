@@ -1,0 +1,1 @@
+"""The fusion node (``kmea fuse``) and its benchmark."""

@@ -1,0 +1,947 @@
+"""``kmea fuse``: the fusion node, one picture from several cameras (docs/fusion.md).
+
+Each camera runs ``kmead`` with ``[zenoh] enabled = true`` and publishes its robots'
+measurements under ``<site>/cam/<id>/...`` (:mod:`kmead.outputs.zenoh_camera`). The node finds the
+cameras by subscription, not configuration: a camera's liveliness token makes it known, its
+metadata (asked once) must carry the node's map digest or it is refused with a reason, its
+measurements are fused through the tracking filter (:class:`kmea.robots.fusion.Fusion`). A camera
+whose token goes (killed: at once; frozen or cut off: after the lease) or that sends nothing
+for the lease (its frame loop stuck) is dropped; it is used again when it comes back.
+
+Two or more nodes may run hot (:class:`Election`): each holds ``<site>/fusion/<id>/<role>``;
+one is active and speaks to the robots (UDP datagrams, ``<site>/robots/<robot>/pose``, ROS 2),
+the others fuse the same measurements with their relay muted. The node serves the same
+ZeroMQ outputs as a daemon: telemetry (``robot.NAME``, ``robots`` with the cameras that saw
+each robot, ``status``, ``event``, ``log``), control (the daemon's commands that make sense
+without a camera) and the CSV log in the daemon's format (``kind`` robot, ``algorithm``
+fusion, ``refs`` the number of cameras).
+
+Everything received over Zenoh is hostile: a key or payload that does not decode, a missing
+or non-finite field is counted and reported once per camera, never raised. Zenoh's callbacks
+only queue what arrives (bounded; the measurements wait in Zenoh's ring buffers); the node's
+loop owns every piece of state.
+
+Time: the fusion clock is the newest measurement time, advanced by the wall clock between
+measurements (so it works on the Pis' Unix time and on simulated time); robots go stale on
+it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import queue
+import re
+import threading
+import time
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import zmq
+
+from kmea.maps.files import MapError, map_digest
+from kmea.robots.fusion import Fusion, Measurement
+from kmea.robots.tracking import TrackerConfig
+from kmea.wire import protocol as P
+from kmea.wire.jsonlimits import safe_loads
+from kmead.config.layers import Config, ConfigError
+from kmead.config.plan import network_exposure
+from kmead.net.bodies import map_info
+from kmead.net.keys import CurveServer, KeysError
+from kmead.net.telemetry import Telemetry, TelemetryLogHandler
+from kmead.outputs.csvlog import CsvLog, row
+from kmead.outputs.datadir import DataDir
+from kmead.outputs.relay import Relay
+from kmead.run.log_ring import LogRing
+from kmead.run.startup import StartupError, configured_map
+
+log = logging.getLogger("kmead.fusion")
+
+__all__ = ["Camera", "Election", "FusionNode", "tracker_config"]
+
+MAX_CAMERAS = 64  # cameras known at once (gone ones make room first)
+MAX_SAMPLE_BYTES = 1024  # a measurement or heartbeat; larger ones are bad
+MAX_META_BYTES = 4096
+QUEUE_MAX = 20000  # samples waiting for the loop; beyond, the oldest are dropped
+POLL_S = 0.001  # s: the loop's sleep when nothing came
+_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+
+
+def tracker_config(cfg: Config) -> TrackerConfig:
+    """The tracking filter's configuration from the ``[filter]`` section."""
+    return TrackerConfig.from_table(cfg["filter"])
+
+
+@dataclass
+class Camera:
+    """One camera of the site: its id, state and counters.
+
+    state: ``waiting`` (for its metadata), ``used``, ``refused`` (``reason`` says why),
+    ``silent`` (alive but nothing for the lease), ``gone`` (its token went)."""
+
+    label: str
+    key: str
+    state: str = "waiting"
+    reason: str | None = None
+    received: int = 0
+    measurements: int = 0
+    bad: int = 0
+    dropped_old: int = 0
+    ignored: int = 0  # measurements while not used, or of robots not this node's
+    last_wall: float | None = None  # time.time() of its last sample
+    last_mono: float | None = None  # time.monotonic() of its last sample
+    last_t: float | None = None
+    delays: deque = field(default_factory=lambda: deque(maxlen=300))  # wall - t, s
+    bad_reported: bool = False
+    asked: float = -math.inf  # monotonic time of the last metadata query
+    meta: dict | None = None
+
+    def body(self, now_wall: float) -> P.InputState:
+        d = sorted(self.delays)
+        return {"label": self.label, "key": self.key, "state": self.state,
+                "reason": self.reason, "received": self.received,
+                "measurements": self.measurements, "bad": self.bad,
+                "dropped_old": self.dropped_old,
+                "silent_s": None if self.last_wall is None else now_wall - self.last_wall,
+                # Unix-time cameras: arrival minus capture = network + processing + offset.
+                "delay_s": d[len(d) // 2] if d else None}
+
+
+def check_meta(payload: bytes) -> dict:
+    """A camera's metadata (kmead.outputs.zenoh_camera.meta_body), checked; ValueError names what
+    is wrong."""
+    body = safe_loads(payload, MAX_META_BYTES, 4)
+    if not isinstance(body, dict):
+        raise ValueError("metadata: expected a JSON object")
+    for k in ("camera", "map_digest", "map_name", "model", "source"):
+        if not isinstance(body.get(k), str) or len(body[k]) > 256:
+            raise ValueError(f"metadata field {k!r}: expected a string")
+    for k in ("width", "height"):
+        v = body.get(k)
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 < v < 100000:
+            raise ValueError(f"metadata field {k!r}: expected a size in pixels")
+    return body
+
+
+_NUM = (int, float)
+
+
+def measurement_from(label: str, body: dict, names: set[str]) -> Measurement | None:
+    """A measurement from a ``robot.NAME`` body (its ``raw`` measurement when the camera's
+    daemon filters with the tracking filter), None for a valid=0 (stale) message;
+    ``ValueError`` names the bad field."""
+    name = body.get("name")
+    if not isinstance(name, str) or name not in names:
+        raise ValueError(f"field 'name': unknown robot {name!r}")
+    valid = body.get("valid")
+    if not isinstance(valid, bool):
+        raise ValueError("field 'valid': expected true or false")
+    if not valid:
+        return None
+    raw = body.get("raw")
+    # A daemon with the tracking filter sends its filtered pose and the measurement ("raw"):
+    # fuse the measurement (filtering filtered poses again would count the noise twice).
+    src = {**body, **raw} if isinstance(raw, dict) else body
+    vals = {}
+    for k in ("t", "x", "y", "theta"):
+        v = src.get(k)
+        if isinstance(v, bool) or not isinstance(v, _NUM) or not math.isfinite(v):
+            raise ValueError(f"field {k!r}: expected a finite number, got {v!r}")
+        vals[k] = float(v)
+    sigma = src.get("sigma")
+    if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, _NUM)
+                              or not math.isfinite(sigma) or sigma < 0):
+        raise ValueError(f"field 'sigma': expected a number >= 0 or null, got {sigma!r}")
+    return Measurement(label, name, vals["t"], vals["x"], vals["y"], vals["theta"],
+                       None if sigma is None else float(sigma))
+
+
+class _NoStats:
+    """The statistics a fusion node does not have (no markers): an empty window."""
+
+    window = 0
+    mean_error = None
+    max_error = None
+
+    def per_marker(self) -> dict:
+        return {}
+
+    def reset(self) -> None:
+        pass
+
+
+class _NoPipeline:
+    algorithm = "fusion"
+
+
+class Election:
+    """Which of the site's fusion nodes speaks to the robots; the node's loop calls it.
+
+    Each node holds one liveliness token ``<site>/fusion/<id>/<role>``: ``id`` its Zenoh
+    session id, ``role`` one of ``starting`` (the first ``grace_s`` after its start, two
+    leases: it watches the site for the tokens of nodes already there; the peers retry a
+    lost connection every half lease, kmead.outputs.zenoh_session), ``standby`` or
+    ``active``. The rule, the same in every node, so that nodes that see the same tokens agree:
+
+    - a standby claims the voice when no active token is alive and it has the lowest id of
+      the standbys: a node that starts never takes the voice from a running active one,
+      whatever its id, and never claims before it has watched the site for ``grace_s``;
+    - an active node that sees another active one with a lower id steps down to standby
+      (two nodes cut off from each other both claim; when they meet again one voice is
+      left);
+    - an active node that finds it has not run for longer than the lease (the machine or
+      the process was frozen; a standby has taken over meanwhile) steps down before it
+      sends anything, and starts over (``grace_s`` of watching).
+    """
+
+    def __init__(self, node_id: str, grace_s: float, now: float) -> None:
+        self.id = node_id
+        self.grace_s = grace_s
+        self.role = "starting"
+        self.since = now  # start of "starting"
+        self.others: dict[str, set[str]] = {}  # node id -> its roles' tokens alive
+
+    def token(self, node_id: str, role: str, alive: bool) -> None:
+        if node_id == self.id:
+            return
+        roles = self.others.setdefault(node_id, set())
+        (roles.add if alive else roles.discard)(role)
+        if not roles:
+            del self.others[node_id]
+
+    def decide(self, now: float, stalled: bool = False) -> str | None:
+        """The new role when it changes, else None."""
+        actives = {n for n, roles in self.others.items() if "active" in roles}
+        if self.role == "active":
+            if stalled:
+                self.role, self.since = "starting", now
+            elif any(n < self.id for n in actives):
+                self.role = "standby"
+            else:
+                return None
+            return self.role
+        if self.role == "starting":
+            if now - self.since < self.grace_s:
+                return None
+            self.role = "standby"
+            return self.role
+        standbys = {n for n, roles in self.others.items() if "standby" in roles}
+        if actives or min([self.id, *standbys]) != self.id:
+            return None
+        self.role = "active"
+        return self.role
+
+
+class FusionNode:
+    """The fusion node; :meth:`run` until ``max_outputs`` fused outputs or :meth:`stop`.
+
+    Serves :class:`kmead.net.control.ControlServer` as a daemon does (it satisfies its
+    :class:`kmead.net.control.Host` protocol).
+    """
+
+    def __init__(self, cfg: Config, max_outputs: int | None = None,
+                 context: zmq.Context | None = None, session: Any = None) -> None:
+        self.cfg = cfg
+        self.max_outputs = max_outputs
+        self.lock = threading.RLock()
+        self.stop_event = threading.Event()
+        self.t0 = time.time()
+        self.curve: CurveServer | None = None
+        self.control: Any = None
+        self.telemetry: Telemetry | None = None
+        self.relay: Relay | None = None
+        self.csv: CsvLog | None = None
+        self.session: Any = None
+        self.zenoh_out: Any = None  # kmead.outputs.zenoh.ZenohOutput while active
+        self._subs: list[Any] = []
+        self._data: list[Any] = []  # the data subscribers (ring channels)
+        self._token: Any = None
+        self._log_handler: TelemetryLogHandler | None = None
+        self._own_ctx: zmq.Context | None = None
+        self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
+        self.guard = None  # no change on trial: nothing of a camera to roll back
+        net = cfg["network"]
+        self.z = {**cfg["zenoh"], "enabled": True}  # the node lives on Zenoh
+        try:
+            warnings = network_exposure(cfg)
+            from kmead.config.plan import zenoh_plan
+
+            warnings += zenoh_plan(cfg, self.z)
+        except StartupError as e:
+            raise ConfigError(str(e)) from None
+        for w in warnings:
+            log.warning("%s", w)
+        self.lease_s = float(self.z["lease_s"])
+        self.site = self.z["site"]
+        # A keyed node has its own context: one ZAP handler per context (kmead.net.keys).
+        self._own_ctx = zmq.Context() if net["keys"] else None
+        self.ctx = self._own_ctx or context or zmq.Context.instance()
+        try:
+            if net["keys"]:
+                try:
+                    self.curve = CurveServer(self.ctx, net["keys"])
+                except KeysError as e:
+                    raise ConfigError(str(e)) from None
+            self.data_dir = DataDir(cfg["log"]["dir"])
+            try:  # the floor the robots are on: map.file, else the first camera's
+                self.world_map = configured_map(cfg, None)
+            except MapError as e:
+                raise ConfigError(f"map: {e}") from None
+            # Without map.file the node takes the map of the first camera it uses; the
+            # others must have the same.
+            self.map_digest: str | None = map_digest(self.world_map) \
+                if cfg["map"]["file"] else None
+            self.map_name = self.world_map.name if cfg["map"]["file"] else None
+            self.fusion = Fusion(tracker_config(cfg), cfg["fusion"]["max_age_s"])
+            self.names = {r["name"] for r in cfg["robots"]}
+            self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx, curve=self.curve)
+            self._log_handler = TelemetryLogHandler(self.telemetry)
+            logging.getLogger("kmead").addHandler(self._log_handler)
+            logging.getLogger("kmead").addHandler(self.log_ring)
+            self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
+                               cfg["relay"]["stale_repeat_s"], publish=self.publish,
+                               extra_fields=cfg["relay"]["extra_fields"])
+            self.relay.muted = True  # until this node is the active one
+            self.cameras: dict[str, Camera] = {}
+            self.queue: queue.Queue = queue.Queue(QUEUE_MAX)
+            self.overflow = 0  # events dropped: the loop fell behind by QUEUE_MAX
+            self.foreign = 0  # samples on keys that do not parse (bad camera id, key)
+            if cfg["log"]["csv"]:
+                self.start_csv(cfg["log"]["csv"])
+            self.outputs = 0
+            self.rejected_events = 0
+            self.latency_ms: deque = deque(maxlen=100000)
+            self._clock_t = -math.inf  # fusion clock at _clock_wall
+            self._clock_wall = time.monotonic()
+            self._last_robots_pub = 0.0
+            self._open_zenoh(session)
+            self.election = Election(self.node_id, 2 * self.lease_s, time.monotonic())
+            self.role_changes: list[tuple[float, str]] = []  # (time.time(), role)
+            self._declare_role()
+            if cfg["network"]["control"]:
+                from kmead.net.control import ControlServer
+
+                self.control = ControlServer(cfg["network"]["control"], self, self.ctx,
+                                             curve=self.curve)
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ Zenoh
+    def _open_zenoh(self, session: Any) -> None:
+        from kmead.outputs.zenoh_session import open_session
+
+        self._owns_session = session is None
+        self.session = session if session is not None else open_session(self.z)
+        self.node_id = str(self.session.info.zid())
+        q, site = self.queue, self.site
+        from kmead.outputs.zenoh_session import import_zenoh
+
+        ring = import_zenoh().handlers.RingChannel
+
+        def on_liveliness(kind: str) -> Any:
+            def cb(sample: Any) -> None:
+                alive = str(sample.kind).rsplit(".", 1)[-1] == "PUT"
+                try:
+                    q.put_nowait((kind, str(sample.key_expr), alive, 0.0))
+                except queue.Full:
+                    self.overflow += 1
+            return cb
+
+        live = self.session.liveliness()
+        # The measurements wait in Zenoh's own ring buffers (no Python on Zenoh's threads
+        # per sample: that cost a third of the node's capacity); when the loop falls behind
+        # by QUEUE_MAX the oldest go.
+        self._data = [
+            self.session.declare_subscriber(f"{site}/cam/*/robots/*", ring(QUEUE_MAX)),
+            self.session.declare_subscriber(f"{site}/cam/*/frame", ring(QUEUE_MAX))]
+        self._subs = [
+            *self._data,
+            live.declare_subscriber(f"{site}/cam/*", on_liveliness("camera"), history=True),
+            live.declare_subscriber(f"{site}/fusion/*/*", on_liveliness("node"),
+                                    history=True)]
+
+    def _declare_role(self) -> None:
+        """The token of this node's role: the new one first, then the old one goes (a
+        camera watching the site never sees no fusion node while this one runs)."""
+        old = self._token
+        self._token = self.session.liveliness().declare_token(
+            f"{self.site}/fusion/{self.node_id}/{self.election.role}")
+        if old is not None:
+            old.undeclare()
+
+    def _set_role(self, role: str) -> None:
+        """Called in the loop, under the lock, when the election changed this node's role."""
+        assert self.relay is not None
+        self.role_changes.append((time.time(), role))
+        if role == "active":
+            from kmead.outputs.zenoh import FUSION_NODE_NAME, ZenohOutput
+
+            self.zenoh_out = ZenohOutput.open(self.z, self.session, FUSION_NODE_NAME)
+            self.relay.sink = self.zenoh_out.send
+            self.relay.muted = False
+        elif self.zenoh_out is not None:
+            self.relay.muted = True
+            self.relay.sink = None
+            self.zenoh_out.close()
+            self.zenoh_out = None
+        self._declare_role()
+        text = {"active": "active: this node speaks to the robots",
+                "standby": "standby: another node speaks to the robots, or this one will "
+                           "when none does",
+                "starting": "stepped down (it did not run for longer than the lease); "
+                            "watching the site again"}[role]
+        self.event("warning" if role == "starting" else "info", f"fusion node "
+                   f"{self.node_id[:8]}: {text}")
+
+    # ------------------------------------------------------------------ clock
+    def clock(self) -> float:
+        """The fusion clock: newest measurement time + wall time since it arrived."""
+        if not math.isfinite(self._clock_t):
+            return -math.inf
+        return self._clock_t + (time.monotonic() - self._clock_wall)
+
+    # ------------------------------------------------------------------ what arrives
+    def handle(self, kind: str, key: str, value: Any, t_recv: float) -> bool:
+        """One queued item; True when it produced a fused output. Never raises on input."""
+        if kind == "data":
+            return self._sample(key, value, t_recv)
+        parts = key.split("/")
+        if kind == "camera" and len(parts) == 3 and _ID_RE.match(parts[2]):
+            self._camera_token(parts[2], value)
+        elif kind == "node" and len(parts) == 4:
+            self.election.token(parts[2], parts[3], value)
+        elif kind == "meta":
+            self._meta(key, value)
+        return False
+
+    def _camera(self, cam_id: str) -> Camera | None:
+        cam = self.cameras.get(cam_id)
+        if cam is None:
+            if len(self.cameras) >= MAX_CAMERAS:
+                gone = [c for c, v in self.cameras.items() if v.state == "gone"]
+                if not gone:
+                    return None
+                del self.cameras[gone[0]]
+            cam = self.cameras[cam_id] = Camera(cam_id, f"{self.site}/cam/{cam_id}")
+        return cam
+
+    def _camera_token(self, cam_id: str, alive: bool) -> None:
+        cam = self._camera(cam_id)
+        if cam is None:
+            self.foreign += 1
+            return
+        if alive:
+            if cam.state in ("gone", "silent") or cam.meta is None:
+                cam.state, cam.reason = "waiting", None
+                cam.meta = None
+                self._ask(cam)
+        elif cam.state != "gone":
+            was = cam.state
+            cam.state, cam.reason = "gone", "its liveliness token went (stopped, or cut off)"
+            if was == "used":
+                self._drop_sources(cam)
+            self.event("warning", f"camera {cam.label}: gone (its session closed or its "
+                                  "lease ran out): dropped")
+
+    def _ask(self, cam: Camera) -> None:
+        """Ask the camera's metadata; the answer comes back through the queue."""
+        cam.asked = time.monotonic()
+        q = self.queue
+
+        def on_reply(reply: Any) -> None:
+            ok = reply.ok
+            try:
+                q.put_nowait(("meta", cam.label, ok.payload.to_bytes() if ok is not None
+                              else None, 0.0))
+            except queue.Full:
+                self.overflow += 1
+
+        try:
+            self.session.get(f"{cam.key}/meta", on_reply, timeout=self.lease_s)
+        except Exception as e:  # a session closing
+            log.debug("zenoh: metadata query of %s failed: %s", cam.label, e)
+
+    def _meta(self, cam_id: str, payload: bytes | None) -> None:
+        cam = self.cameras.get(cam_id)
+        if cam is None or cam.state != "waiting" or payload is None:
+            return
+        try:
+            meta = check_meta(payload)
+        except ValueError as e:
+            self._refuse(cam, f"metadata: {e}")
+            return
+        cam.meta = meta
+        if self.map_digest is None:
+            self.map_digest, self.map_name = meta["map_digest"], meta["map_name"]
+            log.info("map: %s (%s), the first camera's (%s); the other cameras must have the "
+                     "same (or set map.file)", self.map_name, self.map_digest, cam.label)
+        if meta["map_digest"] != self.map_digest:
+            self._refuse(cam, f"its map {meta['map_name']!r} ({meta['map_digest']}) is not "
+                              f"the node's {self.map_name!r} ({self.map_digest})")
+            return
+        cam.state, cam.reason = "used", None
+        cam.last_mono = time.monotonic()  # the data timeout starts now
+        self.event("info", f"camera {cam.label}: used ({meta['width']}x{meta['height']}, "
+                           f"{meta['source']})")
+
+    def _refuse(self, cam: Camera, reason: str) -> None:
+        cam.state, cam.reason = "refused", reason
+        self.event("warning", f"camera {cam.label}: refused: {reason}")
+
+    def _drop_sources(self, cam: Camera) -> None:
+        """A dropped camera no longer counts among the robots' sources."""
+        for seen in self.fusion.seen.values():
+            seen.last.pop(cam.label, None)
+
+    def _sample(self, key: str, payload: bytes, t_recv: float) -> bool:
+        parts = key.split("/")
+        if len(parts) < 4 or not _ID_RE.match(parts[2]):
+            self.foreign += 1
+            return False
+        cam = self._camera(parts[2])
+        if cam is None:
+            self.foreign += 1
+            return False
+        cam.received += 1
+        now_wall, now_mono = time.time(), time.monotonic()
+        cam.last_wall, cam.last_mono = now_wall, now_mono
+        if cam.state == "silent":
+            cam.state, cam.reason = "used", None
+            self.event("info", f"camera {cam.label}: sends again: used")
+        try:
+            body = safe_loads(payload, MAX_SAMPLE_BYTES, 2)
+            if not isinstance(body, dict):
+                raise ValueError("expected a JSON object")
+            if parts[3] == "frame" and len(parts) == 4:
+                t = body.get("t")
+                if isinstance(t, bool) or not isinstance(t, _NUM) or not math.isfinite(t):
+                    raise ValueError(f"frame field 't': expected a finite number, got {t!r}")
+                return False
+            if parts[3] != "robots" or len(parts) != 5 or body.get("name") != parts[4]:
+                raise ValueError(f"key {key!r}: not <site>/cam/<id>/robots/<its name>")
+            if parts[4] not in self.names:  # another node's robot (a region of its own)
+                cam.ignored += 1
+                return False
+            m = measurement_from(cam.label, body, self.names)
+        except ValueError as e:  # JsonLimitError is a ValueError
+            cam.bad += 1
+            if not cam.bad_reported:
+                cam.bad_reported = True
+                self.event("warning", f"camera {cam.label}: bad message ignored: {e} "
+                                      "(further ones are only counted)")
+            return False
+        if m is None:
+            return False
+        if cam.state != "used":
+            cam.ignored += 1
+            if cam.state == "waiting" and now_mono - cam.asked >= self.lease_s:
+                self._ask(cam)  # the first answer was lost, or the token came late
+            return False
+        cam.measurements += 1
+        cam.last_t = m.t
+        cam.delays.append(now_wall - m.t)
+        out = self.fusion.add(m)
+        if out is None:
+            cam.dropped_old += 1
+            return False
+        if m.t >= self._clock_t or not math.isfinite(self._clock_t):
+            self._clock_t, self._clock_wall = m.t, time.monotonic()
+        if out.kind == "rejected":
+            self.rejected_events += 1
+            self.event("warning", f"robot {m.name}: measurement of {cam.label} rejected: "
+                                  f"{out.reason}")
+            return False
+        if out.kind == "reacquired":
+            self.event("warning", f"robot {m.name}: re-acquired from {cam.label}: "
+                                  f"{out.reason}")
+        self._output(m, t_recv)
+        return True
+
+    def _watch_cameras(self, now_mono: float) -> None:
+        """Drop a used camera silent for the lease (alive, but its frame loop is stuck);
+        ask again the metadata of a waiting one."""
+        for cam in self.cameras.values():
+            if cam.state == "used" and cam.last_mono is not None \
+                    and now_mono - cam.last_mono >= self.lease_s:
+                cam.state = "silent"
+                cam.reason = f"nothing for {self.lease_s:g} s (the lease)"
+                self._drop_sources(cam)
+                self.event("warning", f"camera {cam.label}: silent for {self.lease_s:g} s: "
+                                      "dropped")
+            elif cam.state == "waiting" and now_mono - cam.asked >= self.lease_s:
+                self._ask(cam)
+
+    def _output(self, m: Measurement, t_recv: float) -> None:
+        assert self.relay is not None
+        tr = self.fusion.tracker.tracks[m.name]
+        t_meas = tr.t if tr.t is not None else m.t  # the newest measurement time
+        t_out = t_meas
+        if self.cfg["filter"]["predict"]:
+            t_out = max(t_out, self.clock())
+        st = tr.predict(t_out)
+        if st is None:
+            return
+        srcs = self.fusion.sources(m.name, self.cfg["relay"]["stale_after_s"])
+        extra = {"vx": st.vx, "vy": st.vy, "omega": st.omega, "age": st.t - t_meas,
+                 "source": "+".join(srcs), "t_capture": t_meas}
+        self.relay.update(m.name, st.t, st.x, st.y, st.theta, st.sigma, extra, cov=st.cov)
+        self.outputs += 1
+        if self.csv is not None:
+            self.csv.write_rows([row(self.outputs, st.t, "fusion", "robot", m.name, st.x, st.y,
+                                     None, st.theta, st.sigma, len(srcs))])
+        self.latency_ms.append((time.perf_counter() - t_recv) * 1e3)
+        now = time.perf_counter()
+        if now - self._last_robots_pub >= 1.0 / 30.0:
+            self._last_robots_pub = now
+            self.publish(P.TOPIC_ROBOTS, self.robots_body())
+
+    # ------------------------------------------------------------------ bodies
+    def robots_body(self) -> dict:
+        assert self.relay is not None
+        now = self.clock()
+        out = []
+        for tr in self.relay.tracks.values():
+            seen = tr.last_seen is not None
+            srcs = self.fusion.sources(tr.name, self.cfg["relay"]["stale_after_s"])
+            last = self.fusion.seen.get(tr.name)
+            track = self.fusion.tracker.tracks.get(tr.name)
+            st = track.state() if track is not None and track.started else None
+            out.append({"name": tr.name, "markers": tr.markers,
+                        "x": tr.x if seen else None, "y": tr.y if seen else None,
+                        "theta": tr.theta if seen else None, "sigma": tr.sigma,
+                        "valid": seen and not tr.stale,
+                        "age_s": (now - tr.last_seen) if tr.last_seen is not None else None,
+                        "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
+                        "seq": tr.seq, "send_errors": tr.errors,
+                        "send_refused": tr.refused, "refused": tr.refused_now(),
+                        "source": "+".join(srcs),
+                        "sources": {s: now - t for s, t in last.last.items()} if last else {},
+                        "vx": st.vx if st else None, "vy": st.vy if st else None,
+                        "omega": st.omega if st else None})
+        return {"t": now if math.isfinite(now) else time.time(), "frame": self.outputs,
+                "robots": out}
+
+    def status(self) -> P.StatusBody:
+        """The ``status`` body: a daemon's, without camera (zeros) and map (its robots),
+        plus ``inputs`` (the cameras) and ``fusion``."""
+        c = self.csv
+        now_wall = time.time()
+        lat = sorted(self.latency_ms)
+        cams = list(self.cameras.values())
+        return {
+            "t": now_wall, "uptime": now_wall - self.t0,
+            "source": f"fusion on zenoh site {self.site!r}: " + (", ".join(
+                f"{c.label} {c.state}" for c in cams) or "no camera yet"),
+            "config_file": self.cfg.user_file or "<default config>",
+            "config_files": self.cfg.files, "algorithm": "fusion", "algorithms": ["fusion"],
+            "logging": {"active": c is not None, "path": str(c.path) if c else None,
+                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
+            "recording": {"active": False, "path": None, "frames": 0, "bytes": 0},
+            "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
+            "map": map_info(self.world_map),
+            "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
+            "bad_frames": sum(i.bad for i in cams),
+            "inputs": [i.body(now_wall) for i in cams],
+            "fusion": {"accepted": self.fusion.accepted,
+                       "rejected": self.fusion.tracker.counts["rejected"],
+                       "reacquired": self.fusion.tracker.counts["reacquired"],
+                       "dropped_old": self.fusion.dropped_old,
+                       "latency_ms_p50": lat[len(lat) // 2] if lat else None,
+                       "latency_ms_p99": lat[min(len(lat) - 1, int(0.99 * len(lat)))]
+                       if lat else None,
+                       "node": self.node_id, "role": self.election.role,
+                       "map_digest": self.map_digest, "overflow": self.overflow},
+            "telemetry": self.telemetry.bound if self.telemetry else "",
+            "control": self.control.bound if self.control else "",
+        }
+
+    # ------------------------------------------------------------------ daemon interface
+    def publish(self, topic: str, body: Mapping[str, Any]) -> None:
+        if self.telemetry is not None:
+            self.telemetry.publish(topic, body)
+
+    def event(self, level: str, text: str) -> None:
+        getattr(log, "warning" if level == "warning" else level, log.info)(text)
+
+    # No frames, no marker statistics, no camera: what the control thread reads.
+    last_frame_body: dict = {}  # never mutated
+    last_result = None
+    pipeline = _NoPipeline()
+    stats = _NoStats()
+    camera_feed = None
+    replay = False
+
+    def tick(self) -> None:
+        """Stale robots on the fusion clock (called by the control thread and the loop)."""
+        now = self.clock()
+        if not math.isfinite(now):
+            return
+        with self.lock:
+            relay = self.relay  # close() sets it to None under the lock
+            if relay is None:
+                return
+            for name in relay.tick(now):
+                self.event("warning", f"robot {name} not seen for "
+                                      f"{relay.stale_after_s:g} s: stale (valid=0 sent)")
+                self.publish(P.TOPIC_ROBOTS, self.robots_body())
+
+    def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
+        if self.csv is not None:
+            self.csv.close()
+        if remote:  # over control: a new plain name in the data directory (kmead.outputs.datadir)
+            path = str(self.data_dir.create(path, "log"))
+        try:
+            self.csv = CsvLog(path)
+        except OSError as e:
+            raise OSError(f"log.csv: cannot open {path}: {e.strerror or e}") from None
+        return self.csv
+
+    def stop_csv(self) -> dict:
+        c = self.csv
+        if c is None:
+            return {"path": None, "rows": 0}
+        c.close()
+        self.csv = None
+        return {"path": str(c.path), "rows": c.rows}
+
+    def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
+        if key not in ("relay.stale_after_s", "relay.stale_repeat_s", "log.level"):
+            raise ValueError(f"{key}: not settable on a fusion node (restart it with --set)")
+        v = self.cfg.set(key, value, remote=remote)
+        if self.relay is not None:
+            self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
+            self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
+        return v
+
+    @staticmethod
+    def _unsupported() -> ValueError:
+        return ValueError("not available on a fusion node (no camera)")
+
+    def start_recording(self, path: str, remote: bool = False, keep: bool = False) -> Any:
+        raise self._unsupported()
+
+    def stop_recording(self) -> dict:
+        raise self._unsupported()
+
+    def reload_map(self) -> Any:
+        raise self._unsupported()
+
+    def save_config(self, path: str | None = None) -> dict:
+        raise self._unsupported()
+
+    def snapshot(self, overlay: bool = False) -> dict:
+        raise self._unsupported()
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> int:
+        if self.control is not None:
+            self.control.start()
+        self.publish(P.TOPIC_STATUS, self.status())
+        log.info("fusion node %s on zenoh site %r (lease %g s), telemetry %s",
+                 self.node_id[:8], self.site, self.lease_s,
+                 self.telemetry.bound if self.telemetry else "off")
+        next_tick = last_status = last_loop = time.monotonic()
+        while not self.stop_event.is_set() and not self.done():
+            now = time.monotonic()
+            # The election before anything is sent: a node that did not run for the lease
+            # (frozen) steps down first.
+            stalled = now - last_loop > self.lease_s
+            last_loop = now
+            with self.lock:
+                self._elect(now, stalled)
+                n = self._pump()
+            if not n:
+                time.sleep(POLL_S)
+            if now >= next_tick:
+                next_tick = now + 0.05
+                with self.lock:
+                    self._elect(now)
+                    self._watch_cameras(now)
+                self.tick()
+            if self.control is None and now - last_status >= \
+                    self.cfg["network"]["status_period_s"]:
+                last_status = now
+                self.publish(P.TOPIC_STATUS, self.status())
+        return 0
+
+    def _pump(self, limit: int = 1000) -> int:
+        """Handle what is there, oldest first: the queued events (cameras, nodes,
+        metadata), then up to ``limit`` samples; ``--frames N`` is checked before each
+        (the Nth output must be the last one). Returns how many were handled."""
+        n = 0
+        while n < limit and not self.done():
+            try:
+                item = self.queue.get_nowait()
+            except queue.Empty:
+                break
+            self.handle(*item)
+            n += 1
+        for sub in self._data:
+            while n < limit and not self.done():
+                sample = sub.try_recv()
+                if sample is None:
+                    break
+                self.handle("data", str(sample.key_expr), sample.payload.to_bytes(),
+                            time.perf_counter())
+                n += 1
+        return n
+
+    def _elect(self, now: float, stalled: bool = False) -> None:
+        role = self.election.decide(now, stalled)
+        while role is not None:
+            self._set_role(role)
+            role = self.election.decide(now)
+
+    def done(self) -> bool:
+        """True once ``max_outputs`` fused outputs have been made."""
+        return self.max_outputs is not None and self.outputs >= self.max_outputs
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def close(self) -> None:
+        with self.lock:
+            self._close()
+
+    def _close(self) -> None:
+        if self.control is not None:
+            self.control.stop()
+            self.control = None
+        if self.csv is not None:
+            self.csv.close()
+            self.csv = None
+        if self._log_handler is not None:
+            logging.getLogger("kmead").removeHandler(self._log_handler)
+            self._log_handler = None
+        logging.getLogger("kmead").removeHandler(self.log_ring)
+        if self.relay is not None:
+            try:  # robots must not keep following the last fused pose (active node only)
+                self.relay.shutdown(time.time())
+            except Exception:
+                log.exception("relay shutdown")
+            self.relay.close()
+            self.relay = None
+        if self.zenoh_out is not None:
+            self.zenoh_out.close()
+            self.zenoh_out = None
+        for entity in (*self._subs, self._token):
+            if entity is not None:
+                with contextlib.suppress(Exception):  # a session already closed
+                    entity.undeclare()
+        self._subs, self._token = [], None
+        if self.session is not None and getattr(self, "_owns_session", False):
+            try:
+                self.session.close()
+            except Exception as e:  # zenoh.ZError: "close operation timed out"
+                log.warning("zenoh: closing the session: %s", str(e).splitlines()[0])
+        self.session = None
+        if self.telemetry is not None:
+            self.telemetry.close()
+            self.telemetry = None
+        if self.curve is not None:
+            self.curve.stop()
+            self.curve = None
+        if self._own_ctx is not None:
+            self._own_ctx.term()
+            self._own_ctx = None
+
+    def summary(self) -> str:
+        lat = sorted(self.latency_ms)
+        p99 = f"{lat[min(len(lat) - 1, int(0.99 * len(lat)))]:.2f} ms" if lat else "-"
+        per = ", ".join(f"{i.label} ({i.state}): {i.measurements} measurements, {i.bad} bad, "
+                        f"{i.dropped_old} too old" for i in self.cameras.values())
+        return (f"kmea fuse: {self.outputs} fused outputs; {per or 'no camera'}; rejected "
+                f"{self.fusion.tracker.counts['rejected']}, re-acquired "
+                f"{self.fusion.tracker.counts['reacquired']}; added latency p99 {p99}")
+
+
+# ---------------------------------------------------------------------------- command line
+def add_arguments(p: Any) -> None:
+    """``kmea fuse`` options (as for kmead)."""
+    p.add_argument("--config", metavar="FILE", help="configuration file overlaid on the default")
+    p.add_argument("--set", metavar="SECTION.KEY=VALUE", action="append", default=[],
+                   help="override any configuration key; VALUE is TOML (repeatable)")
+    p.add_argument("--log", metavar="FILE.csv", help="CSV log of every fused pose (log.csv)")
+    p.add_argument("--map", metavar="FILE", help="the floor's map: cameras with another are "
+                                                 "refused (map.file; default: the first "
+                                                 "camera's)")
+    p.add_argument("--headless", action="store_true", help="no terminal UI")
+    p.add_argument("--frames", metavar="N", type=int, help="stop after N fused outputs")
+
+
+def run(args: Any) -> int:
+    """Run the fusion node; exit codes as kmead's (0 done, 1 runtime failure, 2 config)."""
+    import sys
+
+    from kmead.cli import stderr_logging
+    from kmead.config.layers import load_config
+
+    if args.frames is not None and args.frames < 1:
+        print("kmea fuse: --frames: must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        overrides = {k: v for k, v in (("log.csv", args.log), ("map.file", args.map)) if v}
+        cfg = load_config(args.config, args.set, overrides or None)
+        with stderr_logging(cfg["log"]["level"]):
+            node = FusionNode(cfg, max_outputs=args.frames)
+    except ConfigError as e:
+        print(f"kmea fuse: configuration error: {e}", file=sys.stderr)
+        return 2
+    except StartupError as e:  # Zenoh cannot open its session
+        print(f"kmea fuse: {e}", file=sys.stderr)
+        return e.code
+    except OSError as e:
+        print(f"kmea fuse: {e}", file=sys.stderr)
+        return 1
+    with stderr_logging(cfg["log"]["level"]):
+        return _serve(node, args)
+
+
+def _serve(node: FusionNode, args: Any) -> int:
+    """The node's run (with the UI or headless), then its summary; closes the node."""
+    import signal
+    import sys
+
+    from kmead.cli import _run_with_ui
+
+    print(f"kmea fuse: telemetry {node.telemetry.bound if node.telemetry else 'off'}, control "
+          f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
+    ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
+    code = 0
+    try:
+        if ui:
+            code = _run_with_ui(node)
+        else:
+            previous = {s: signal.signal(s, lambda *_: node.stop())
+                        for s in (signal.SIGINT, signal.SIGTERM)}
+            try:
+                code = node.run()
+            finally:
+                for s, h in previous.items():
+                    signal.signal(s, h)
+    except KeyboardInterrupt:
+        node.stop()
+    finally:
+        summary = node.summary()
+        node.close()
+    print(summary, flush=True)
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m kmead.fusion.node [options]``: ``kmea fuse`` in a process of its own (the
+    fusion-node benchmark starts it so)."""
+    import argparse
+    import sys
+
+    p = argparse.ArgumentParser(prog="kmea fuse", description=add_arguments.__doc__)
+    add_arguments(p)
+    return run(p.parse_args(sys.argv[1:] if argv is None else argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Telemetry and control over ZeroMQ, CURVE keys, the message bodies."""

@@ -1,0 +1,78 @@
+"""Every key is declared once (kmead.config.schema.KEYS); config.toml, the key table of
+docs/daemon.md, the live keys and the tracking filter's defaults follow from it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+import pytest
+import tomllib
+
+from kmea.robots.tracking import TrackerConfig
+from kmead.config.layers import load_config
+from kmead.config.schema import (
+    KEYS,
+    LIVE_KEYS,
+    default_config,
+    default_config_text,
+    keys_table,
+    validate_setting,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+FIX = "run `make config` (it writes config.toml and docs/daemon.md from the declarations)"
+
+
+def test_config_toml_is_the_declarations() -> None:
+    assert (ROOT / "config.toml").read_text() == default_config_text(), FIX
+
+
+def test_the_docs_key_table_is_the_declarations() -> None:
+    assert keys_table() in (ROOT / "docs" / "daemon.md").read_text(), FIX
+
+
+def test_the_documented_text_parses_back_to_the_defaults() -> None:
+    assert tomllib.loads(default_config_text()) == default_config()
+    loaded = load_config(None, use_local=False).to_dict()
+    assert loaded == {**default_config(), "robots": validate_setting(
+        "robots", default_config()["robots"], "test")}
+
+
+@pytest.mark.parametrize("key", [f"{s}.{n}" for s, keys in KEYS.items() for n in keys])
+def test_every_default_passes_its_own_check(key: str) -> None:
+    section, _, name = key.partition(".")
+    default = KEYS[section][name].default
+    assert validate_setting(key, default, "test") == default
+
+
+def test_every_section_opens_with_a_meaning() -> None:
+    # A key without a summary joins the table row above it; without a doc it shares the
+    # comment above it: neither can open a section.
+    for section, keys in KEYS.items():
+        first = next(iter(keys.values()))
+        assert first.summary and first.doc, section
+
+
+def test_the_tracking_filter_defaults_are_the_declared_ones() -> None:
+    # The library's TrackerConfig() is what a script gets; the daemon gets the declared
+    # defaults. Fields without a key (e.g. min_sigma) are the filter's own constants.
+    cfg = TrackerConfig()
+    shared = [f.name for f in fields(TrackerConfig) if f.name in KEYS["filter"]]
+    assert len(shared) >= 12, shared
+    for name in shared:
+        assert getattr(cfg, name) == KEYS["filter"][name].default, name
+
+
+def test_live_keys_are_the_declared_ones() -> None:
+    assert "robots" in LIVE_KEYS and "filter.accel_noise" in LIVE_KEYS
+    assert "detector.workers" not in LIVE_KEYS and "network.control" not in LIVE_KEYS
+
+
+def test_kmead_prints_the_documented_default() -> None:
+    code = "from kmead.cli import main; raise SystemExit(main(['--default-config']))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out == default_config_text()
