@@ -20,17 +20,17 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("kmea.vision.calibrate_cli", "calibrate a camera from board views"),
     "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
     "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
-    "bench": ("kmea.benchmarks.cli", "benchmarks that print figures"),
+    "bench": ("kmea.benchmarks.cli", "every benchmark, by name (kmea bench --list)"),
 }
 
 
 def main(argv: list[str] | None = None,
          commands: Mapping[str, tuple[str, str]] | None = None,
-         extra_benches: Mapping[str, str] | None = None,
+         extra_benches: Mapping[str, tuple[str, str]] | None = None,
          description: str | None = None) -> int:
     """Run one subcommand. ``commands``: name -> (module, help), by default the library's
     :data:`COMMANDS`; ``extra_benches``: more benchmarks for ``bench`` to offer (name ->
-    "module:function"; the daemon's, from ``kmead.tools.kmea_cli``)."""
+    ("module:function", description); the daemon's, from ``kmead.tools.kmea_cli``)."""
     from kmea import __version__
 
     parser = argparse.ArgumentParser(prog="kmea",

@@ -9,12 +9,12 @@ placements are taken from ``place_on_planes``) is a "same fit" call; the others 
 camera (one more averaged look at the references, a reference back in view). Also prints
 the pipeline's own wall-clock ``timings["estimate"]``. Prints figures; no asserts.
 
-    .venv/bin/python benchmarks/corner_pnp_frame.py [FRAMES]
+    kmea bench corner-pnp-frame [FRAMES]
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
 
 import numpy as np
@@ -23,7 +23,7 @@ from kmea.benchmarks.pipeline import render
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 
 
-def main(n: int = 240) -> None:
+def measure(n: int = 240) -> None:
     frames, scene = render(n)
     p = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
         algorithm="corner-pnp", robots=tuple(scene.robot_specs()), tracking=True))
@@ -82,5 +82,13 @@ def main(n: int = 240) -> None:
     print(f"  timings['estimate'] (wall):  {stats(wall[5:])}")
 
 
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="kmea bench corner-pnp-frame",
+                                description=(__doc__ or "").split("\n\n")[0])
+    p.add_argument("frames", nargs="?", type=int, default=240, metavar="FRAMES")
+    measure(p.parse_args(argv).frames)
+    return 0
+
+
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 240)
+    raise SystemExit(main())

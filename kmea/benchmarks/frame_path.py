@@ -7,12 +7,12 @@ daemon's latency pays, without its thread hand-offs and the scheduler), and to t
 the frame (the floor's update, leave-one-out). CPU time, so a busy machine inflates it
 less than wall time. Prints figures; no asserts.
 
-    .venv/bin/python benchmarks/frame_path.py [FRAMES] [ESTIMATOR]
+    kmea bench frame-path [FRAMES] [ESTIMATOR]
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
 
 import numpy as np
@@ -21,7 +21,7 @@ from kmea.benchmarks.pipeline import render
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 
 
-def main(n: int = 240, algorithm: str = "corner-pnp") -> None:
+def measure(n: int = 240, algorithm: str = "corner-pnp") -> None:
     frames, scene = render(n)
     p = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
         algorithm=algorithm, robots=tuple(scene.robot_specs()), tracking=True))
@@ -52,6 +52,15 @@ def main(n: int = 240, algorithm: str = "corner-pnp") -> None:
     print(f"  the whole frame:           {stats(whole)}")
 
 
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="kmea bench frame-path",
+                                description=(__doc__ or "").split("\n\n")[0])
+    p.add_argument("frames", nargs="?", type=int, default=240, metavar="FRAMES")
+    p.add_argument("algorithm", nargs="?", default="corner-pnp", metavar="ESTIMATOR")
+    a = p.parse_args(argv)
+    measure(a.frames, a.algorithm)
+    return 0
+
+
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 240,
-         sys.argv[2] if len(sys.argv) > 2 else "corner-pnp")
+    raise SystemExit(main())

@@ -1,9 +1,9 @@
 """Issue 27's table: robot poses at 0.5-1.5 m/s under the IMX219's rolling shutter, on the
 held-out motion scenes (kmea/experiments/motion.py), truth at each pose's own time.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/motion.py --jobs 2            # the table
-    PYTHONPATH=. .venv/bin/python benchmarks/motion.py --split tuning \\
-        --sweep-only --exposures 1,2,3,4 --widths 1640                    # what chose it
+    kmea bench motion --jobs 2            # the table
+    kmea bench motion --split tuning --sweep-only --exposures 1,2,3,4 --widths 1640
+                                          # what chose it
 
 Columns (each over robot-frames after the first WARMUP frames of a run): posed = frames in
 which a visible robot got a valid pose; "meas" = the robot measurement (the pose the
@@ -71,7 +71,8 @@ HEADER = ("| case | posed / visible | meas. pos RMSE mm | no time: pos RMSE mm "
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="kmea bench motion",
+                                 description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--split", choices=("heldout", "tuning"), default="heldout")
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--seeds", type=int, default=1, help="seeds per case")

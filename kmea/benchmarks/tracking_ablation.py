@@ -9,7 +9,7 @@ re-acquisition after a kidnap, and the lag. The requirement (issue 26): at most 
 outliers moves the output by more than 3 sigma, none by more than 10 sigma, at a lag no
 larger than the IIR filter's. Prints figures; no asserts.
 
-    .venv/bin/python benchmarks/tracking_ablation.py [--jobs 2] [--variants shipped,...]
+    kmea bench tracking-ablation [--jobs 2] [--variants shipped,...]
 """
 
 from __future__ import annotations
@@ -42,8 +42,9 @@ def _one(args: tuple[str, int]) -> tuple[str, list[dict]]:
     return name, drive_metrics(mset, "kalman", TUNED.with_(**VARIANTS[name]))
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="kmea bench tracking-ablation",
+                                description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--variants", default="all",
                    help="comma-separated names of VARIANTS (default: all of them)")
@@ -68,6 +69,7 @@ def main(argv: list[str] | None = None) -> None:
               f"| {a['pos'] * 1e3:.2f} | {a['head'] * 57.29578:.2f} | {a['false_rej']} "
               f"| {a['reacquired']}/{a['drives']} ({_slowest(rows[n])}) "
               f"| {abs(a['lag']) * 1e3:.0f} |")
+    return 0
 
 
 def _slowest(rows: list[dict]) -> str:
@@ -78,4 +80,4 @@ def _slowest(rows: list[dict]) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

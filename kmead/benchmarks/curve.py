@@ -1,6 +1,6 @@
 """Telemetry throughput and latency over loopback TCP, plain and with CURVE, in one run.
 
-    .venv/bin/python benchmarks/curve.py [--messages N] [--size BYTES] [--rate HZ]
+    kmea bench curve [--messages N] [--size BYTES] [--rate HZ]
 
 Both modes use the daemon's own set-up: a PUB socket made a CURVE server by
 ``kmead.net.keys.CurveServer`` (ZAP handler, key directory from ``kmead.net.keys.init_keys``) and a
@@ -133,7 +133,8 @@ def _pct(xs: list[float], q: float) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="kmea bench curve",
+                                description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--messages", type=int, default=20000, help="throughput messages")
     p.add_argument("--latency-messages", type=int, default=2000)
     p.add_argument("--rate", type=float, default=500.0, help="latency send rate, Hz")

@@ -1,4 +1,5 @@
-"""Daemon benchmarks (``kmea bench daemon`` / ``kmea bench latency``): figures, no asserts.
+"""The daemon's own benchmarks (``kmea bench daemon`` / ``latency`` / ``tui``): figures, no
+asserts.
 
 daemon: frames/s of the whole daemon (detection, pose, estimator, leave-one-out, filter,
 robots, relay, CSV, telemetry) on pre-rendered 1640x1232 simulator frames (rendering not
@@ -7,6 +8,8 @@ detection threads (``detector.workers``). The library's own figures (detection v
 the pipeline in one thread) are ``kmea bench pipeline`` (:mod:`kmea.benchmarks.pipeline`).
 latency: frame-to-UDP-datagram latency at 1640x1232 and 30 frames/s, full detection vs
 tracking, measured by a UDP listener process (arrival time minus the datagram's ``t``).
+tui: CPU of ``kmea-tui`` at 120x40 on each tab, and the daemon's frame rate with the UI
+connected and without.
 """
 
 from __future__ import annotations

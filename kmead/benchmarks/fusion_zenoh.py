@@ -1,7 +1,7 @@
 """Figures for the fusion node on Zenoh: time to drop a killed and a frozen camera, and the
 failover between two fusion nodes (the time it takes and the largest gap a robot saw).
 
-    .venv/bin/python benchmarks/fusion_zenoh.py [--lease S]
+    kmea bench fusion-zenoh [--lease S]
 
 Everything on this machine, on loopback, as in the field: each fusion node is
 ``kmea fuse --headless`` in its own process (a Zenoh peer; the first listens on a port, the
@@ -36,7 +36,7 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]  # the directory that holds kmead
 SITE = "kmea"
 
 
@@ -147,8 +147,8 @@ class Node:
 
 
 def _camera(zport: int, cam_id: str, lease: float) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, __file__, "--camera", str(zport), cam_id,
-                             str(lease)],
+    return subprocess.Popen([sys.executable, "-m", "kmead.benchmarks.fusion_zenoh", "--camera",
+                             str(zport), cam_id, str(lease)],
                             env=dict(os.environ, PYTHONPATH=str(ROOT)))
 
 
@@ -260,12 +260,13 @@ def failover(lease: float) -> None:
           f"{len(valid)} valid poses over {valid[-1][0] - valid[0][0]:.1f} s")
 
 
-def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="kmea bench fusion-zenoh",
+                                description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--lease", type=float, default=1.0, help="zenoh.lease_s (s)")
     p.add_argument("--camera", nargs=3, metavar=("PORT", "ID", "LEASE"),
                    help=argparse.SUPPRESS)
-    args = p.parse_args()
+    args = p.parse_args(argv)
     if args.camera:
         camera_main(int(args.camera[0]), args.camera[1], float(args.camera[2]))
         return 0

@@ -1,6 +1,6 @@
 """What a recording costs: bytes a frame, bytes an hour at 30 frames/s, CPU a frame written.
 
-    .venv/bin/python benchmarks/recording_size.py [--frames N] [--candidates]
+    kmea bench recording-size [--frames N] [--candidates]
 
 The same frames are written in every format (like with like): what a real daemon (in this
 process, on the simulated floor: 1640x1232, 35-40 markers, two robots) hands its recorder,
@@ -157,7 +157,8 @@ def measure(write, run: Run, out: Path, runs: int) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="kmea bench recording-size",
+                                 description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--candidates", action="store_true",

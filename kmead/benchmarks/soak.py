@@ -1,6 +1,6 @@
 """Soak: a real kmead for a given time with everything a venue day has, and what it did.
 
-    .venv/bin/python benchmarks/soak.py --minutes 60 [--idle 10] [--every 60] [--source sim]
+    kmea bench soak --minutes 60 [--idle 10] [--every 60] [--source sim]
 
 One ``kmead --headless`` process (the simulated floor by default, two robots) with a CSV log
 and a compressed recording, its robots' datagrams going to a real UDP listener here, a real
@@ -143,7 +143,8 @@ def _rss(pid: int) -> int | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="kmea bench soak",
+                                 description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=60.0)
     ap.add_argument("--idle", type=int, default=10, help="subscribers that never read")
     ap.add_argument("--every", type=float, default=60.0, help="seconds between samples")

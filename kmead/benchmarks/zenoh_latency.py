@@ -1,7 +1,7 @@
 """Figures for the Zenoh output: latency frame -> Zenoh subscriber vs frame -> UDP datagram,
 and the daemon's CPU per robot for the ROS 2 output.
 
-    .venv/bin/python benchmarks/zenoh_latency.py [--frames N] [--sends N]
+    kmea bench zenoh-latency [--frames N] [--sends N]
 
 Latency: a real kmead (subprocess) on the default floor (``sim``, paced at 30 frames/s like
 a camera, default configuration, two robots) sends each robot's pose by UDP to this
@@ -38,7 +38,7 @@ from kmead.outputs.relay import RobotTrack, parse_datagram
 from kmead.outputs.robot_pose_wire import unpack_pose
 from kmead.outputs.zenoh import ZenohOutput
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]  # the directory that holds kmead
 
 
 def _free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -175,15 +175,17 @@ def cpu(sends: int) -> None:
         out.close()
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="kmea bench zenoh-latency",
+                                 description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--sends", type=int, default=3000)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     latency(a.frames)
     cpu(a.sends)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

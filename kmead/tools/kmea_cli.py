@@ -10,6 +10,7 @@ from __future__ import annotations
 import sys
 
 from kmea import cli
+from kmead.benchmarks import BENCHES
 
 # name -> (module, one-line help), imported only when run.
 DAEMON_COMMANDS: dict[str, tuple[str, str]] = {
@@ -23,12 +24,8 @@ DAEMON_COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-# The daemon's benchmarks (threads, sockets, files) for ``kmea bench``: name ->
-# "module:function", imported only when run.
-DAEMON_BENCHES: dict[str, str] = {
-    "daemon": "kmead.tools.bench:run_daemon", "latency": "kmead.tools.bench:run_latency",
-    "fusion-node": "kmead.fusion.bench:run", "tui": "kmead.tools.bench:run_tui",
-}
+# The daemon's benchmarks (kmead/benchmarks/) for ``kmea bench``, beside the library's.
+DAEMON_BENCHES = BENCHES
 
 
 def main(argv: list[str] | None = None) -> int:
