@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import pytest
 
+from kmead.benchmarks.fusion_node import _load
 from kmead.config.checks import MAX_ROBOTS
-from kmead.fusion.bench import _load
 
 
 def test_a_node_that_does_not_start_is_reported_with_its_reason() -> None:

@@ -2,8 +2,8 @@
 waits; the active one killed (SIGKILL), the standby takes over and the robot hears one voice
 at a time; the killed one restarted does not take the voice back. Real ``kmea fuse``
 processes, a camera played by the test on Zenoh (loopback, explicit endpoints), the robot a
-UDP listener. No timing is asserted: only the order of the voices (benchmarks/fusion_zenoh.py
-measures the times)."""
+UDP listener. No timing is asserted: only the order of the voices (``kmea bench
+fusion-zenoh`` measures the times)."""
 
 from __future__ import annotations
 

@@ -1,23 +1,17 @@
-"""benchmarks/soak.py: its datagram bookkeeping and its /proc parsing (not its timing)."""
+"""``kmea bench soak`` (kmead/benchmarks/soak.py): its datagram bookkeeping and its /proc
+parsing (not its timing)."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import socket
-import sys
 import threading
 from pathlib import Path
 
 import pytest
 
+from kmead.benchmarks import soak
 from kmead.outputs.relay import datagram
-
-_spec = importlib.util.spec_from_file_location(
-    "soak", Path(__file__).parent.parent / "benchmarks" / "soak.py")
-soak = importlib.util.module_from_spec(_spec)
-sys.modules["soak"] = soak  # dataclasses look their module up there
-_spec.loader.exec_module(soak)
 
 
 def test_seq_gaps_missing_reordering_and_the_longest_silence() -> None:

@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from kmea.benchmarks.pipeline import render
+from kmea.estimators.corner_pnp.estimator import CornerPnP
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 
 
@@ -28,16 +29,17 @@ def measure(n: int = 240) -> None:
     p = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
         algorithm="corner-pnp", robots=tuple(scene.robot_specs()), tracking=True))
     est = p.estimator
+    assert isinstance(est, CornerPnP)
     calls: list[tuple[int, float, bool]] = []  # (frame, CPU ms, same fit as the last call)
     frame = [0]
-    last = [None]
+    last: list[object] = [None]
 
     def timed(method):
         def call(*args, **kwargs):
             t0 = time.thread_time()
             out = method(*args, **kwargs)
             ms = (time.thread_time() - t0) * 1e3
-            fit = est._warm.fit if est._warm is not None else None
+            fit = est.warm_fit
             calls.append((frame[0], ms, fit is not None and fit is last[0]))
             last[0] = fit
             return out

@@ -237,7 +237,7 @@ def report(d: Path, elapsed: float, code: int, samples: list[tuple[float, int | 
            status: dict, listener: Listener, topics: dict[str, int], t0: float) -> None:
     log_b, rec_b = _sizes(d)
     counts = summary_counts((d / "kmead.out").read_text())
-    frames = counts.get("frames", status.get("frames", 0))
+    frames = counts["frames"] if "frames" in counts else int(status.get("frames", 0))
     rss = [r for _, r in samples if r]
     print(f"\nsoak: {elapsed / 60:.1f} min, kmead exit code {code}, {frames} frames "
           f"({frames / elapsed:.1f}/s; dropped {counts.get('dropped', '?')}, bad "

@@ -28,6 +28,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -76,7 +77,7 @@ def latency(frames: int) -> None:
 
     def on_ros(s) -> None:
         now = time.time()
-        m = msgs.decode(s.payload.to_bytes(), msgs.POSE_TYPE)
+        m: Any = msgs.decode(s.payload.to_bytes(), msgs.POSE_TYPE)  # a rosbags message
         with lock:
             ros_ms.append((now - m.header.stamp.sec - m.header.stamp.nanosec * 1e-9) * 1e3)
 
