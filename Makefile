@@ -87,6 +87,8 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(if $(PYRIGHT),$(PYRIGHT))
 
+# The benchmarks without options of their own; every benchmark is `kmea bench NAME`
+# (`kmea bench --list`).
 bench: $(STAMP)
 	$(BIN)/kmea bench
 

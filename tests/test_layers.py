@@ -11,8 +11,8 @@
   under ``TYPE_CHECKING``), with no exception.
 
 Imports are read from the AST of every module, and dynamic imports by name
-(``import_module("kmead.tools.bench")``, ``"kmead.tools.bench:run"`` tables) are found as string
-constants that name a module of the other layer.
+(``import_module("kmead.benchmarks.daemon")``, ``"kmead.benchmarks.daemon:run"`` tables) are
+found as string constants that name a module of the other layer.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ where on them each robot starts, and the sensor noise.
 
 The split: ``TUNING_SEEDS`` (2601...) were the only seeds used while choosing anything
 (the default exposure, the blur warning level); ``HELDOUT_SEEDS`` (2701...) give every
-figure reported (benchmarks/motion.py). A case never shares a seed with the other split.
+figure reported (``kmea bench motion``). A case never shares a seed with the other split.
 """
 
 from __future__ import annotations

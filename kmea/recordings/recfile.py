@@ -4,7 +4,7 @@ A name ending in ``.zst`` (``run.jsonl.zst``) is written as one zstd stream in w
 line is flushed as a complete block (``COMPRESSOBJ_FLUSH_BLOCK``): whatever a kill or a
 full disk leaves on disk decompresses to a prefix of the lines, and every line written
 before the last flush is whole. The same file is ``zstdcat``-readable. Any other name is
-plain JSON lines, as the first recordings were (``benchmarks/recording_size.py`` measures
+plain JSON lines, as the first recordings were (``kmea bench recording-size`` measures
 both: zstd keeps about 1/3 of a frame whose numbers all change and 1/40 of a fast-path
 frame, at a fraction of a millisecond a frame).
 
