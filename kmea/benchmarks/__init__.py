@@ -1,1 +1,3 @@
-"""Benchmarks behind ``kmea bench`` (they print figures)."""
+"""The library's benchmarks behind ``kmea bench`` (they print figures; numpy and OpenCV
+only, never kmead), and its dispatcher (:mod:`kmea.benchmarks.cli`). The daemon's
+benchmarks are in ``kmead/benchmarks/``."""
