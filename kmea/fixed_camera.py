@@ -99,9 +99,9 @@ class IncrementalPoses:
             hit = self._cache.get(mid)
             if hit is not None and hit[0] == corners[k].tobytes():
                 reuse[mid] = hit[1]
-            elif (known is not None and mid in known and known[mid].corners is not None
-                  and np.array_equal(known[mid].corners, corners[k])):
-                reuse[mid] = known[mid]
+            elif (known is not None and (seen := known.get(mid)) is not None
+                  and seen.corners is not None and np.array_equal(seen.corners, corners[k])):
+                reuse[mid] = seen
             elif (hit is not None and self.reuse_px > 0.0
                   and float(np.abs(corners[k] - hit[2]).max()) <= self.reuse_px):
                 o = replace(hit[1], corners=np.array(corners[k], dtype=float))

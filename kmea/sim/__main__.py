@@ -29,7 +29,8 @@ def truth_record(index: int, truth: FrameTruth) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m kmea.sim", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m kmea.sim",
+                                description=(__doc__ or "").partition("\n")[0])
     p.add_argument("spec", nargs="?", default="sim",
                    help="scene spec: sim, sim:NAME, sim:NAME?key=value&... (scenes: "
                         f"{', '.join(available_scenes())})")
