@@ -201,8 +201,8 @@ def run(quick: bool = False, frames: int | None = None) -> None:
     if n < 2:
         raise SystemExit("kmea bench pipeline: --frames must be at least 2")
     t0 = time.perf_counter()
-    frames, scene = render(n)
-    images = [f.image for f in frames]
+    rendered, scene = render(n)
+    images = [f.pixels for f in rendered]
     print(f"pre-rendered {n} frames {scene.size[0]}x{scene.size[1]} (default scene, 2 robots) "
           f"in {time.perf_counter() - t0:.1f} s (not counted); cv2 threads "
           f"{cv2.getNumThreads()}, {len(os.sched_getaffinity(0))} cores")
@@ -225,10 +225,10 @@ def run(quick: bool = False, frames: int | None = None) -> None:
           f"{fast.full} full frames, {lost} markers of the default detection lost")
     robots = tuple(scene.robot_specs())
     for label, fast_on in (("default detection", False), ("fast detection", True)):
-        rate, ms = pipeline_rate(frames, scene, PipelineSettings(fast=fast_on, robots=robots))
+        rate, ms = pipeline_rate(rendered, scene, PipelineSettings(fast=fast_on, robots=robots))
         total = sum(ms.values())
         print(f"library pipeline, {label}: {rate:6.1f} frames/s = {rate / bare * 100:5.1f} % "
               "of bare default detection; stage ms/frame: "
               + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
               + f"; all stages {total:.2f} ms")
-    compare_tracking(frames, scene, bare, cpu[0], ("kmea", "corner-pnp"))
+    compare_tracking(rendered, scene, bare, cpu[0], ("kmea", "corner-pnp"))

@@ -78,6 +78,7 @@ class RunResult:
     truth: marker id -> (2,) true world x, y, metres.
     samples: (algorithm, marker id) -> (n, 2) estimated x, y of the n frames where that
         marker was detected and estimated, metres, in frame order.
+    heights: (algorithm, marker id) -> (n,) the estimated z of those samples, metres.
     frames: number of frames (N); ``n < frames`` means some frames gave no estimate.
     rejected: algorithm -> reference id -> list of disagreements (m), one per frame it was
         rejected in.
@@ -95,7 +96,7 @@ class RunResult:
     failures: dict[tuple[str, int], dict[str, int]] = field(default_factory=dict)
     rejected: dict[str, dict[int, list[float]]] = field(default_factory=dict)
     settings: dict[str, object] = field(default_factory=dict)
-    heights: dict[int, np.ndarray] = field(default_factory=dict)
+    heights: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
     mode: str = "plane-known"
 
     def n(self, algorithm: str, marker: int) -> int:

@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         for k in range(args.frames):
             i = args.start + k * args.step
             frame = r.render(i)
-            cv2.imwrite(str(args.out / f"frame_{i:06d}.png"), frame.image)
+            cv2.imwrite(str(args.out / f"frame_{i:06d}.png"), frame.pixels)
             f.write(json.dumps(truth_record(i, frame.truth)) + "\n")
     print(f"{args.frames} frames of {scene.name} ({scene.size[0]}x{scene.size[1]}) in {args.out}")
     return 0

@@ -745,7 +745,7 @@ class TrackingDetector:
         # The cornerSubPix window of these references (the same for a marker at every
         # look, whichever share is measured).
         self._floor = fc = _FloorCheck(key, ref, _subpix_window(ref), CodeSampler(
-            ref, np.stack([self._code(m) for m in st]), shape[:2]), sub0)
+            ref, np.stack([self._code(m) for m in st]), (shape[0], shape[1])), sub0)
         return fc
 
     def _drift_share(self, n: int) -> np.ndarray:
@@ -805,6 +805,8 @@ class TrackingDetector:
                     # Reported at its reference, found elsewhere (> 0.5 px) by a full
                     # detection of the whole marker that reads at least as well: the
                     # reference was taken while something covered part of the marker.
+                    if t is None:  # every reported id is tracked: cannot happen
+                        raise RuntimeError(f"marker {mid} reported without a track")
                     if np.abs(c - t.corners).max() < 0.5:
                         continue
                     old = float(code_scores(gray, t.corners[None], self._code(mid)[None])[0])

@@ -35,6 +35,7 @@ import errno
 import logging
 import math
 import socket
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -118,7 +119,7 @@ def _resolve(host: str, port: int) -> tuple[str, int] | None:
         log.warning("relay destination udp:%s:%d does not resolve; datagrams to it are "
                     "counted as errors", host, port)
         return None
-    return info[0][4][0], port
+    return str(info[0][4][0]), port  # AF_INET: the address is (host, port)
 
 
 class Relay:
@@ -186,11 +187,18 @@ class Relay:
             self._socks.pop(addr).close()
 
     @staticmethod
+    def _fix_time(tr: RobotTrack) -> float:
+        """The time of robot ``tr``'s last fix (:meth:`publish_fix` follows :meth:`update`)."""
+        if tr.last_seen is None:
+            raise ValueError(f"relay: robot {tr.name!r} has no fix to publish")
+        return tr.last_seen
+
+    @staticmethod
     def _t(tr: RobotTrack, t: float | None) -> float:
         return t if t is not None else (tr.last_seen if tr.last_seen is not None else 0.0)
 
     def _send(self, tr: RobotTrack, t: float, valid: bool,
-              addrs: list[tuple[str, int] | None] | None = None,
+              addrs: Sequence[tuple[str, int] | None] | None = None,
               publish: bool = True) -> None:
         tr.seq += 1
         extra = None
@@ -247,7 +255,7 @@ class Relay:
     def publish_fix(self, name: str) -> None:
         """The telemetry body of robot ``name``'s last fix."""
         tr = self.tracks[name]
-        self._publish(tr, tr.last_seen, True)
+        self._publish(tr, self._fix_time(tr), True)
 
     def publish_fixes(self, names: list[str]) -> None:
         """:meth:`publish_fix` for a frame's robots: every sink message first, then the
@@ -256,9 +264,9 @@ class Relay:
         tracks = [self.tracks[n] for n in names]
         if self.sink is not None and not self.muted:
             for tr in tracks:
-                self.sink(tr, tr.last_seen, True, self._stopping)
+                self.sink(tr, self._fix_time(tr), True, self._stopping)
         for tr in tracks:
-            self._publish(tr, tr.last_seen, True, sink=False)
+            self._publish(tr, self._fix_time(tr), True, sink=False)
 
     def tick(self, now: float) -> list[str]:
         """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.
