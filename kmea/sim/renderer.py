@@ -171,7 +171,7 @@ class Renderer:
                 wall.append(m)
             elif sc.supports and mid in sc.overrides and m.position[2] > 0.005:
                 side = m.length * 9 / 7 + 0.03  # a 1.5 cm rim around the paper
-                yaw = yaw_of(m.rotation)
+                yaw = float(yaw_of(m.rotation))  # one matrix: a float
                 quads += box_quads((m.position[0], m.position[1]), yaw, side, side, 0.0,
                                     m.position[2], PALETTE["support"], PALETTE["side"])
         quads += self._wall_panels(wall)
