@@ -30,11 +30,12 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing import get_context
+from typing import Any
 
 import numpy as np
 
 from kmea import estimators as est_registry
-from kmea.estimators.base import MarkerObservation
+from kmea.estimators.base import Estimator, MarkerObservation
 from kmea.experiments import simscene
 from kmea.experiments.setup import MODES, ExperimentConfig
 from kmea.geometry.camera import CameraIntrinsics
@@ -108,7 +109,7 @@ class RunResult:
 def estimate_frame(
     index: int,
     observations: Sequence[MarkerObservation],
-    estimators: Mapping[str, object],
+    estimators: Mapping[str, Estimator],
     world_map: MarkerMap,
     evaluated: Collection[int],
     camera: CameraIntrinsics | None = None,
@@ -217,10 +218,10 @@ def collect(frames: Sequence[FrameResult], algorithms: Sequence[str],
 
 # ------------------------------------------------------------------ simulation
 
-_WORKER: dict[str, object] = {}
+_WORKER: dict[str, Any] = {}  # simscene.build's state, plus estimators and maps_without
 
 
-def _setup(config: ExperimentConfig) -> dict[str, object]:
+def _setup(config: ExperimentConfig) -> dict[str, Any]:
     """Per-process state: scene, renderer, detector, estimators (built once per config)."""
     key = repr(config)
     if _WORKER.get("key") == key:
