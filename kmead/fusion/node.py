@@ -50,11 +50,13 @@ from kmea.wire.jsonlimits import safe_loads
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
 from kmead.net.bodies import map_info
-from kmead.net.keys import CurveServer, KeysError
+from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
 from kmead.outputs.csvlog import CsvLog, row
 from kmead.outputs.datadir import DataDir
+from kmead.outputs.files import FileOutputs, LowSpace
 from kmead.outputs.relay import Relay
+from kmead.outputs.totals import RunTotals
 from kmead.run.log_ring import LogRing
 from kmead.run.startup import StartupError, configured_map
 
@@ -253,7 +255,7 @@ class FusionNode:
         self.control: Any = None
         self.telemetry: Telemetry | None = None
         self.relay: Relay | None = None
-        self.csv: CsvLog | None = None
+        self.files: FileOutputs | None = None  # the CSV log (no recording: no frames)
         self.session: Any = None
         self.zenoh_out: Any = None  # kmead.outputs.zenoh.ZenohOutput while active
         self._subs: list[Any] = []
@@ -276,15 +278,13 @@ class FusionNode:
             log.warning("%s", w)
         self.lease_s = float(self.z["lease_s"])
         self.site = self.z["site"]
-        # A keyed node has its own context: one ZAP handler per context (kmead.net.keys).
-        self._own_ctx = zmq.Context() if net["keys"] else None
+        if net["keys"]:  # the daemon's one set-up: a context of its own with the ZAP handler
+            try:
+                self._own_ctx, self.curve = keyed_context(net["keys"])
+            except KeysError as e:
+                raise ConfigError(str(e)) from None
         self.ctx = self._own_ctx or context or zmq.Context.instance()
         try:
-            if net["keys"]:
-                try:
-                    self.curve = CurveServer(self.ctx, net["keys"])
-                except KeysError as e:
-                    raise ConfigError(str(e)) from None
             self.data_dir = DataDir(cfg["log"]["dir"])
             try:  # the floor the robots are on: map.file, else the first camera's
                 self.world_map = configured_map(cfg, None)
@@ -309,8 +309,16 @@ class FusionNode:
             self.queue: queue.Queue = queue.Queue(QUEUE_MAX)
             self.overflow = 0  # events dropped: the loop fell behind by QUEUE_MAX
             self.foreign = 0  # samples on keys that do not parse (bad camera id, key)
+            # The daemon's rules for its files (never truncating, the data directory over
+            # control, the free-space floor, a failing disk stops the log only).
+            self.files = FileOutputs(cfg["log"], self.data_dir, RunTotals(), self.event)
             if cfg["log"]["csv"]:
-                self.start_csv(cfg["log"]["csv"])
+                try:
+                    self.files.start_csv(cfg["log"]["csv"])
+                except LowSpace as e:
+                    self.files.refused("log", str(e))
+                except ValueError as e:
+                    raise ConfigError(f"key 'log.csv': {e}") from None
             self.outputs = 0
             self.rejected_events = 0
             self.latency_ms: deque = deque(maxlen=100000)
@@ -590,9 +598,11 @@ class FusionNode:
                  "source": "+".join(srcs), "t_capture": t_meas}
         self.relay.update(m.name, st.t, st.x, st.y, st.theta, st.sigma, extra, cov=st.cov)
         self.outputs += 1
-        if self.csv is not None:
-            self.csv.write_rows([row(self.outputs, st.t, "fusion", "robot", m.name, st.x, st.y,
-                                     None, st.theta, st.sigma, len(srcs))])
+        files = self.files
+        if files is not None and files.csv is not None:
+            files.watch_space()
+            files.write_csv([row(self.outputs, st.t, "fusion", "robot", m.name, st.x, st.y,
+                                 None, st.theta, st.sigma, len(srcs))])
         self.latency_ms.append((time.perf_counter() - t_recv) * 1e3)
         now = time.perf_counter()
         if now - self._last_robots_pub >= 1.0 / 30.0:
@@ -639,8 +649,10 @@ class FusionNode:
             "config_file": self.cfg.user_file or "<default config>",
             "config_files": self.cfg.files, "algorithm": "fusion", "algorithms": ["fusion"],
             "logging": {"active": c is not None, "path": str(c.path) if c else None,
-                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
-            "recording": {"active": False, "path": None, "frames": 0, "bytes": 0},
+                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0,
+                        "error": self.files.errors["log"] if self.files else None},
+            "recording": {"active": False, "path": None, "frames": 0, "bytes": 0,
+                          "error": None},
             "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
             "map": map_info(self.world_map),
             "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
@@ -689,24 +701,19 @@ class FusionNode:
                                       f"{relay.stale_after_s:g} s: stale (valid=0 sent)")
                 self.publish(P.TOPIC_ROBOTS, self.robots_body())
 
+    @property
+    def csv(self) -> CsvLog | None:
+        return self.files.csv if self.files is not None else None
+
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
-        if self.csv is not None:
-            self.csv.close()
-        if remote:  # over control: a new plain name in the data directory (kmead.outputs.datadir)
-            path = str(self.data_dir.create(path, "log"))
-        try:
-            self.csv = CsvLog(path)
-        except OSError as e:
-            raise OSError(f"log.csv: cannot open {path}: {e.strerror or e}") from None
-        return self.csv
+        if self.files is None:
+            raise ValueError("log: the node is closed")
+        return self.files.start_csv(path, remote, keep)
 
     def stop_csv(self) -> dict:
-        c = self.csv
-        if c is None:
-            return {"path": None, "rows": 0}
-        c.close()
-        self.csv = None
-        return {"path": str(c.path), "rows": c.rows}
+        if self.files is None:
+            raise ValueError("not logging")
+        return self.files.stop_csv()
 
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
         if key not in ("relay.stale_after_s", "relay.stale_repeat_s", "log.level"):
@@ -811,9 +818,9 @@ class FusionNode:
         if self.control is not None:
             self.control.stop()
             self.control = None
-        if self.csv is not None:
-            self.csv.close()
-            self.csv = None
+        if self.files is not None:
+            self.files.close()
+            self.files = None
         if self._log_handler is not None:
             logging.getLogger("kmead").removeHandler(self._log_handler)
             self._log_handler = None
@@ -903,28 +910,15 @@ def run(args: Any) -> int:
 
 def _serve(node: FusionNode, args: Any) -> int:
     """The node's run (with the UI or headless), then its summary; closes the node."""
-    import signal
     import sys
 
-    from kmead.cli import _run_with_ui
+    from kmead.run.host import run_host
 
     print(f"kmea fuse: telemetry {node.telemetry.bound if node.telemetry else 'off'}, control "
           f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
-    code = 0
     try:
-        if ui:
-            code = _run_with_ui(node)
-        else:
-            previous = {s: signal.signal(s, lambda *_: node.stop())
-                        for s in (signal.SIGINT, signal.SIGTERM)}
-            try:
-                code = node.run()
-            finally:
-                for s, h in previous.items():
-                    signal.signal(s, h)
-    except KeyboardInterrupt:
-        node.stop()
+        code = run_host(node, ui)
     finally:
         summary = node.summary()
         node.close()

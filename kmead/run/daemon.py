@@ -248,13 +248,10 @@ class Daemon:
         """CURVE on both sockets when keys are configured (the plan judged the exposure)."""
         net = self.cfg["network"]
         if net["keys"]:
-            import zmq
+            from kmead.net.keys import KeysError, keyed_context
 
-            from kmead.net.keys import CurveServer, KeysError
-
-            self.zmq_context = zmq.Context()
             try:
-                self.curve = CurveServer(self.zmq_context, net["keys"])
+                self.zmq_context, self.curve = keyed_context(net["keys"])
             except KeysError as e:
                 raise StartupError(str(e), EXIT_CONFIG) from None
             log.info("CURVE on: keys %s (%d operator(s), %d viewer(s))", net["keys"],
