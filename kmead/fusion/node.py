@@ -1,20 +1,21 @@
 """``kmea fuse``: the fusion node, one picture from several cameras (docs/fusion.md).
 
 Each camera runs ``kmead`` with ``[zenoh] enabled = true`` and publishes its robots'
-measurements under ``<site>/cam/<id>/...`` (:mod:`kmead.outputs.zenoh_camera`). The node finds the
-cameras by subscription, not configuration: a camera's liveliness token makes it known, its
-metadata (asked once) must carry the node's map digest or it is refused with a reason, its
-measurements are fused through the tracking filter (:class:`kmea.robots.fusion.Fusion`). A camera
-whose token goes (killed: at once; frozen or cut off: after the lease) or that sends nothing
-for the lease (its frame loop stuck) is dropped; it is used again when it comes back.
+measurements under ``<site>/cam/<id>/...`` (:mod:`kmead.outputs.zenoh_camera`). The node
+finds the cameras by subscription, not configuration: a camera's liveliness token makes it
+known, its metadata (asked once) must carry the node's map digest or it is refused with a
+reason (:mod:`kmead.fusion.cameras`), its measurements are fused through the tracking filter
+(:class:`kmea.robots.fusion.Fusion`). A camera whose token goes (killed: at once; frozen or
+cut off: after the lease) or that sends nothing for the lease (its frame loop stuck) is
+dropped; it is used again when it comes back.
 
-Two or more nodes may run hot (:class:`Election`): each holds ``<site>/fusion/<id>/<role>``;
-one is active and speaks to the robots (UDP datagrams, ``<site>/robots/<robot>/pose``, ROS 2),
-the others fuse the same measurements with their relay muted. The node serves the same
-ZeroMQ outputs as a daemon: telemetry (``robot.NAME``, ``robots`` with the cameras that saw
-each robot, ``status``, ``event``, ``log``), control (the daemon's commands that make sense
-without a camera) and the CSV log in the daemon's format (``kind`` robot, ``algorithm``
-fusion, ``refs`` the number of cameras).
+Two or more nodes may run hot (:mod:`kmead.fusion.election`): each holds
+``<site>/fusion/<id>/<role>``; one is active and speaks to the robots (UDP datagrams,
+``<site>/robots/<robot>/pose``, ROS 2), the others fuse the same measurements with their
+relay muted. The node serves the same ZeroMQ outputs as a daemon: telemetry (``robot.NAME``,
+``robots`` with the cameras that saw each robot, ``status``, ``event``, ``log``), control
+(the daemon's commands that make sense without a camera) and the CSV log in the daemon's
+format (``kind`` robot, ``algorithm`` fusion, ``refs`` the number of cameras).
 
 Everything received over Zenoh is hostile: a key or payload that does not decode, a missing
 or non-finite field is counted and reported once per camera, never raised. Zenoh's callbacks
@@ -37,7 +38,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import zmq
@@ -49,6 +49,8 @@ from kmea.wire import protocol as P
 from kmea.wire.jsonlimits import safe_loads
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
+from kmead.fusion.cameras import NUMBER, Camera, check_meta, measurement_from
+from kmead.fusion.election import Election
 from kmead.net.bodies import map_info
 from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
@@ -62,11 +64,10 @@ from kmead.run.startup import StartupError, configured_map
 
 log = logging.getLogger("kmead.fusion")
 
-__all__ = ["Camera", "Election", "FusionNode", "tracker_config"]
+__all__ = ["FusionNode", "tracker_config"]
 
 MAX_CAMERAS = 64  # cameras known at once (gone ones make room first)
 MAX_SAMPLE_BYTES = 1024  # a measurement or heartbeat; larger ones are bad
-MAX_META_BYTES = 4096
 QUEUE_MAX = 20000  # samples waiting for the loop; beyond, the oldest are dropped
 POLL_S = 0.001  # s: the loop's sleep when nothing came
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
@@ -75,90 +76,6 @@ _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 def tracker_config(cfg: Config) -> TrackerConfig:
     """The tracking filter's configuration from the ``[filter]`` section."""
     return TrackerConfig.from_table(cfg["filter"])
-
-
-@dataclass
-class Camera:
-    """One camera of the site: its id, state and counters.
-
-    state: ``waiting`` (for its metadata), ``used``, ``refused`` (``reason`` says why),
-    ``silent`` (alive but nothing for the lease), ``gone`` (its token went)."""
-
-    label: str
-    key: str
-    state: str = "waiting"
-    reason: str | None = None
-    received: int = 0
-    measurements: int = 0
-    bad: int = 0
-    dropped_old: int = 0
-    ignored: int = 0  # measurements while not used, or of robots not this node's
-    last_wall: float | None = None  # time.time() of its last sample
-    last_mono: float | None = None  # time.monotonic() of its last sample
-    last_t: float | None = None
-    delays: deque = field(default_factory=lambda: deque(maxlen=300))  # wall - t, s
-    bad_reported: bool = False
-    asked: float = -math.inf  # monotonic time of the last metadata query
-    meta: dict | None = None
-
-    def body(self, now_wall: float) -> P.InputState:
-        d = sorted(self.delays)
-        return {"label": self.label, "key": self.key, "state": self.state,
-                "reason": self.reason, "received": self.received,
-                "measurements": self.measurements, "bad": self.bad,
-                "dropped_old": self.dropped_old,
-                "silent_s": None if self.last_wall is None else now_wall - self.last_wall,
-                # Unix-time cameras: arrival minus capture = network + processing + offset.
-                "delay_s": d[len(d) // 2] if d else None}
-
-
-def check_meta(payload: bytes) -> dict:
-    """A camera's metadata (kmead.outputs.zenoh_camera.meta_body), checked; ValueError names what
-    is wrong."""
-    body = safe_loads(payload, MAX_META_BYTES, 4)
-    if not isinstance(body, dict):
-        raise ValueError("metadata: expected a JSON object")
-    for k in ("camera", "map_digest", "map_name", "model", "source"):
-        if not isinstance(body.get(k), str) or len(body[k]) > 256:
-            raise ValueError(f"metadata field {k!r}: expected a string")
-    for k in ("width", "height"):
-        v = body.get(k)
-        if isinstance(v, bool) or not isinstance(v, int) or not 0 < v < 100000:
-            raise ValueError(f"metadata field {k!r}: expected a size in pixels")
-    return body
-
-
-_NUM = (int, float)
-
-
-def measurement_from(label: str, body: dict, names: set[str]) -> Measurement | None:
-    """A measurement from a ``robot.NAME`` body (its ``raw`` measurement when the camera's
-    daemon filters with the tracking filter), None for a valid=0 (stale) message;
-    ``ValueError`` names the bad field."""
-    name = body.get("name")
-    if not isinstance(name, str) or name not in names:
-        raise ValueError(f"field 'name': unknown robot {name!r}")
-    valid = body.get("valid")
-    if not isinstance(valid, bool):
-        raise ValueError("field 'valid': expected true or false")
-    if not valid:
-        return None
-    raw = body.get("raw")
-    # A daemon with the tracking filter sends its filtered pose and the measurement ("raw"):
-    # fuse the measurement (filtering filtered poses again would count the noise twice).
-    src = {**body, **raw} if isinstance(raw, dict) else body
-    vals = {}
-    for k in ("t", "x", "y", "theta"):
-        v = src.get(k)
-        if isinstance(v, bool) or not isinstance(v, _NUM) or not math.isfinite(v):
-            raise ValueError(f"field {k!r}: expected a finite number, got {v!r}")
-        vals[k] = float(v)
-    sigma = src.get("sigma")
-    if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, _NUM)
-                              or not math.isfinite(sigma) or sigma < 0):
-        raise ValueError(f"field 'sigma': expected a number >= 0 or null, got {sigma!r}")
-    return Measurement(label, name, vals["t"], vals["x"], vals["y"], vals["theta"],
-                       None if sigma is None else float(sigma))
 
 
 class _NoStats:
@@ -177,64 +94,6 @@ class _NoStats:
 
 class _NoPipeline:
     algorithm = "fusion"
-
-
-class Election:
-    """Which of the site's fusion nodes speaks to the robots; the node's loop calls it.
-
-    Each node holds one liveliness token ``<site>/fusion/<id>/<role>``: ``id`` its Zenoh
-    session id, ``role`` one of ``starting`` (the first ``grace_s`` after its start, two
-    leases: it watches the site for the tokens of nodes already there; the peers retry a
-    lost connection every half lease, kmead.outputs.zenoh_session), ``standby`` or
-    ``active``. The rule, the same in every node, so that nodes that see the same tokens agree:
-
-    - a standby claims the voice when no active token is alive and it has the lowest id of
-      the standbys: a node that starts never takes the voice from a running active one,
-      whatever its id, and never claims before it has watched the site for ``grace_s``;
-    - an active node that sees another active one with a lower id steps down to standby
-      (two nodes cut off from each other both claim; when they meet again one voice is
-      left);
-    - an active node that finds it has not run for longer than the lease (the machine or
-      the process was frozen; a standby has taken over meanwhile) steps down before it
-      sends anything, and starts over (``grace_s`` of watching).
-    """
-
-    def __init__(self, node_id: str, grace_s: float, now: float) -> None:
-        self.id = node_id
-        self.grace_s = grace_s
-        self.role = "starting"
-        self.since = now  # start of "starting"
-        self.others: dict[str, set[str]] = {}  # node id -> its roles' tokens alive
-
-    def token(self, node_id: str, role: str, alive: bool) -> None:
-        if node_id == self.id:
-            return
-        roles = self.others.setdefault(node_id, set())
-        (roles.add if alive else roles.discard)(role)
-        if not roles:
-            del self.others[node_id]
-
-    def decide(self, now: float, stalled: bool = False) -> str | None:
-        """The new role when it changes, else None."""
-        actives = {n for n, roles in self.others.items() if "active" in roles}
-        if self.role == "active":
-            if stalled:
-                self.role, self.since = "starting", now
-            elif any(n < self.id for n in actives):
-                self.role = "standby"
-            else:
-                return None
-            return self.role
-        if self.role == "starting":
-            if now - self.since < self.grace_s:
-                return None
-            self.role = "standby"
-            return self.role
-        standbys = {n for n, roles in self.others.items() if "standby" in roles}
-        if actives or min([self.id, *standbys]) != self.id:
-            return None
-        self.role = "active"
-        return self.role
 
 
 class FusionNode:
@@ -526,7 +385,7 @@ class FusionNode:
                 raise ValueError("expected a JSON object")
             if parts[3] == "frame" and len(parts) == 4:
                 t = body.get("t")
-                if isinstance(t, bool) or not isinstance(t, _NUM) or not math.isfinite(t):
+                if isinstance(t, bool) or not isinstance(t, NUMBER) or not math.isfinite(t):
                     raise ValueError(f"frame field 't': expected a finite number, got {t!r}")
                 return False
             if parts[3] != "robots" or len(parts) != 5 or body.get("name") != parts[4]:
