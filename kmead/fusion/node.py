@@ -473,7 +473,7 @@ class FusionNode:
         assert self.relay is not None
         now = self.clock()
         out = []
-        for tr in self.relay.tracks.values():
+        for tr in self.relay.channels.values():
             seen = tr.last_seen is not None
             srcs = self.fusion.sources(tr.name, self.cfg["relay"]["stale_after_s"])
             last = self.fusion.seen.get(tr.name)

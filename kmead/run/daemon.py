@@ -143,9 +143,9 @@ class Daemon:
         check_camera(cfg, camera)
         if isinstance(self.source, ReplaySource) and self.source.header.get("fast_path"):
             log.warning("replay: %s was recorded with the fixed-camera fast path "
-                        "(detector.tracking on a live source), which refits the floor every "
-                        "detector.track_refit_every frames; the replay refits every frame, so "
-                        "its rows differ slightly (record with --set detector.tracking=false "
+                        "(detector.fixed_camera on a live source), which refits the floor every "
+                        "detector.fixed_refit_every frames; the replay refits every frame, so "
+                        "its rows differ slightly (record with --set detector.fixed_camera=false "
                         "for rows identical to the recorded run's)", self.source_spec)
         try:
             self.data_dir = DataDir(cfg["log"]["dir"])
@@ -296,7 +296,7 @@ class Daemon:
     def _new_recorder(self, path: str | Path, part: int = 1,
                       previous: str | None = None) -> Recorder:
         return Recorder(path, self.pipeline.camera, self.world_map, self.source_spec,
-                        self.cfg.to_dict(), fast_path=self.pipeline.settings.tracking,
+                        self.cfg.to_dict(), fast_path=self.pipeline.settings.fixed_camera,
                         part=part, previous=previous)
 
     # ------------------------------------------------------------------ live settings
@@ -383,7 +383,7 @@ class Daemon:
             return self._progress()
 
     def _progress(self) -> dict:
-        tracks = self.relay.tracks.values()
+        tracks = self.relay.channels.values()
         loo = self.stats.mean_error
         return {"frames": self.totals.frames, "fps": self.fps(),
                 "robots_tracked": sum(1 for tr in tracks
@@ -507,7 +507,7 @@ class Daemon:
                                   "suspect" if mid in suspect else "detected")
                        for mid, (p, yaw) in res.markers.items()]
             robots = [RobotView(tr.name, tr.x, tr.y, tr.theta, tr.name in res.robots)
-                      for tr in self.relay.tracks.values() if tr.last_seen is not None]
+                      for tr in self.relay.channels.values() if tr.last_seen is not None]
             self.foxglove.publish(FrameView(res.timestamp, res.index, image, marks, markers,
                                             robots, res.estimate.cam2world))
 
@@ -559,7 +559,7 @@ class Daemon:
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
                                                           self.monitor.get))
-        self.publish(P.TOPIC_ROBOTS, bodies.robots_body(res, self.relay.tracks.values()))
+        self.publish(P.TOPIC_ROBOTS, bodies.robots_body(res, self.relay.channels.values()))
         now = time.perf_counter()
         if self.control is None and now - self._last_status_pub >= \
                 self.cfg["network"]["status_period_s"]:
