@@ -26,7 +26,7 @@ from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 def main(n: int = 240) -> None:
     frames, scene = render(n)
     p = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
-        algorithm="corner-pnp", robots=tuple(scene.robot_specs()), tracking=True))
+        algorithm="corner-pnp", robots=tuple(scene.robot_specs()), fixed_camera=True))
     est = p.estimator
     calls: list[tuple[int, float, bool]] = []  # (frame, CPU ms, same fit as the last call)
     frame = [0]

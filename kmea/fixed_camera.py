@@ -1,6 +1,6 @@
 """A fixed live camera across frames: recompute only what changed (:class:`FixedCameraSession`).
 
-With :mod:`kmea.vision.tracking_detector` a floor marker that did not move is reported
+With :mod:`kmea.vision.fixed_camera_detector` a floor marker that did not move is reported
 with the same corners, bit for bit, frame after frame. What depends only on those corners
 is then the same too, and is reused instead of recomputed:
 
@@ -235,7 +235,7 @@ class FixedCameraSession:
     reused leave-one-out errors (:attr:`loo`), the floor of the last camera fit
     (:attr:`floor`) and the age of that fit (refitted at most every ``host.refit_every``
     frames). The pipeline keeps one beside its plain path and uses it only with
-    ``settings.tracking``."""
+    ``settings.fixed_camera``."""
 
     def __init__(self, loo_every: int = 30) -> None:
         self.poses = IncrementalPoses()

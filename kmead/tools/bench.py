@@ -134,8 +134,8 @@ def run_latency(quick: bool = False) -> None:
     print(f"{n} pre-rendered frames {scene.size[0]}x{scene.size[1]} served at 30 frames/s "
           f"(default scene, 2 moving robots); {cores} core(s)")
     rows = {}
-    for label, sets in (("full detection every frame (detector.tracking=false)",
-                         ["detector.tracking=false"]),
+    for label, sets in (("full detection every frame (detector.fixed_camera=false)",
+                         ["detector.fixed_camera=false"]),
                         ("tracking (default)", [])):
         proc, port = _listen()
         robots = (f'robots=[{{name="amr1", markers=[40, 41], '
