@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None,
     from kmea import __version__
 
     parser = argparse.ArgumentParser(prog="kmea",
-                                     description=description or __doc__.splitlines()[0])
+                                     description=description or (__doc__ or "").partition("\n")[0])
     parser.add_argument("--version", action="version", version=f"kmea {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     modules = {}

@@ -1,6 +1,6 @@
 """A fixed live camera across frames: recompute only what changed (:class:`FixedCameraSession`).
 
-With :mod:`kmea.vision.tracking_detector` a floor marker that did not move is reported
+With :mod:`kmea.vision.fixed_camera_detector` a floor marker that did not move is reported
 with the same corners, bit for bit, frame after frame. What depends only on those corners
 is then the same too, and is reused instead of recomputed:
 
@@ -99,9 +99,9 @@ class IncrementalPoses:
             hit = self._cache.get(mid)
             if hit is not None and hit[0] == corners[k].tobytes():
                 reuse[mid] = hit[1]
-            elif (known is not None and mid in known and known[mid].corners is not None
-                  and np.array_equal(known[mid].corners, corners[k])):
-                reuse[mid] = known[mid]
+            elif (known is not None and (seen := known.get(mid)) is not None
+                  and seen.corners is not None and np.array_equal(seen.corners, corners[k])):
+                reuse[mid] = seen
             elif (hit is not None and self.reuse_px > 0.0
                   and float(np.abs(corners[k] - hit[2]).max()) <= self.reuse_px):
                 o = replace(hit[1], corners=np.array(corners[k], dtype=float))
@@ -235,7 +235,7 @@ class FixedCameraSession:
     reused leave-one-out errors (:attr:`loo`), the floor of the last camera fit
     (:attr:`floor`) and the age of that fit (refitted at most every ``host.refit_every``
     frames). The pipeline keeps one beside its plain path and uses it only with
-    ``settings.tracking``."""
+    ``settings.fixed_camera``."""
 
     def __init__(self, loo_every: int = 30) -> None:
         self.poses = IncrementalPoses()

@@ -116,13 +116,13 @@ class FrameResult:
     meta: dict = field(default_factory=dict)
     #: robot name -> why the tracking filter rejected its measurement in this frame
     robot_rejections: dict[str, str] = field(default_factory=dict)
-    # What the detection noticed (a tracking detector: "camera moved: ..."); restart: the
-    # estimation restarted in this frame. detect_mode: "full" or "tracked".
+    # What the detection noticed (a fixed-camera detector: "camera moved: ..."); restart: the
+    # estimation restarted in this frame. detect_mode: "full" or "followed".
     events: tuple[str, ...] = ()
     restart: bool = False
     detect_mode: str = "full"
     loo_fresh: bool = True
-    #: fixed markers placed with the last floor fit, not references yet (tracking: the
+    #: fixed markers placed with the last floor fit, not references yet (fixed camera: the
     #: floor's refits are paced, see Pipeline.process)
     deferred: tuple[int, ...] = ()
 
@@ -144,9 +144,9 @@ class PipelineSettings:
     alpha, reset_after_s: the pose filter; filter_kind: the robots' filter, "iir" (the
     paper's, with alpha) or "kalman" (:mod:`kmea.robots.tracking`, configured by ``tracker``);
     loo: compute leave-one-out errors; robots: the robots carrying markers.
-    tracking: a fixed live camera (:mod:`kmea.fixed_camera`): the tracking detector
-    (:mod:`kmea.vision.tracking_detector`, a background full detection every
-    ``track_full_every`` frames), marker poses and leave-one-out errors reused while the
+    fixed_camera: a fixed live camera (:mod:`kmea.fixed_camera`): the fixed-camera detector
+    (:mod:`kmea.vision.fixed_camera_detector`, a background full detection every
+    ``fixed_full_every`` frames), marker poses and leave-one-out errors reused while the
     floor's detections do not change (recomputed at least every ``loo_every`` frames),
     the floor's camera fit updated at most every ``refit_every`` frames (see
     :meth:`Pipeline.process`); False: every frame from scratch (file sources: frame-exact).
@@ -167,8 +167,8 @@ class PipelineSettings:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     loo: bool = True
     robots: tuple[RobotSpec, ...] = ()
-    tracking: bool = False
-    track_full_every: int = 6
+    fixed_camera: bool = False
+    fixed_full_every: int = 6
     loo_every: int = 30
     refit_every: int = 30
 
@@ -176,7 +176,7 @@ class PipelineSettings:
     def from_config(cls, data: Mapping[str, Any], live: bool = False) -> PipelineSettings:
         """From a configuration dict shaped like kmead's (``Config.data``: sections
         ``detector``, ``estimator``, ``filter``, ``stats`` and the ``robots`` tables).
-        live: the source is a live camera (``detector.tracking`` applies to live sources
+        live: the source is a live camera (``detector.fixed_camera`` applies to live sources
         only)."""
         d, f = data["detector"], data["filter"]
         return cls(dictionary=d["dictionary"], corner_refinement=d["corner_refinement"],
@@ -192,9 +192,9 @@ class PipelineSettings:
                                           height=r["height"], length=r["length"],
                                           separation=r["separation"])
                                 for r in data["robots"]),
-                   tracking=bool(live and d.get("tracking", False)),
-                   track_full_every=int(d.get("track_full_every", 6)),
-                   refit_every=int(d.get("track_refit_every", 30)))
+                   fixed_camera=bool(live and d.get("fixed_camera", False)),
+                   fixed_full_every=int(d.get("fixed_full_every", 6)),
+                   refit_every=int(d.get("fixed_refit_every", 30)))
 
 
 def tracker_config(f: Mapping[str, Any]) -> TrackerConfig:
@@ -266,7 +266,7 @@ class Pipeline:
     def __init__(self, camera: CameraModel, world_map: MarkerMap,
                  settings: PipelineSettings | None = None,
                  executor: Executor | None = None) -> None:
-        """executor: where a tracking detector's background detection runs (the caller's,
+        """executor: where a fixed-camera detector's background detection runs (the caller's,
         e.g. the daemon's one low-priority thread); None: in the frame path itself."""
         self.executor = executor
         self.base_camera = camera
@@ -278,7 +278,7 @@ class Pipeline:
         # detection waits for it, so it runs in the gap between frames.
         self.robots_sent = threading.Event()
         self.observer = MarkerObserver(None, camera, world_map)
-        # A fixed live camera (settings.tracking): what carries over from frame to frame.
+        # A fixed live camera (settings.fixed_camera): what carries over from frame to frame.
         self.session = FixedCameraSession(self.settings.loo_every)
         self._times: dict[int, float] = {}  # this frame's robot markers' times (process)
         self._rates: dict[int, tuple[float, float]] = {}  # and their row time gradients
@@ -312,21 +312,22 @@ class Pipeline:
         self.session.reset(set(self.world_map.markers) - robot_ids, self.settings.loo_every)
         est = getattr(self, "estimator", None)  # (None while __init__ builds the pipeline)
         if isinstance(est, WarmStart):
-            est.warm_start = self.settings.tracking
+            est.warm_start = self.settings.fixed_camera
             est.reset_warm()
 
     def new_detector(self):
         """A fresh detector as configured (one per detection thread); with
-        ``settings.tracking`` a :class:`kmea.vision.tracking_detector.TrackingDetector` told
-        which markers are fixed (the map's, minus the robots')."""
+        ``settings.fixed_camera`` a
+        :class:`kmea.vision.fixed_camera_detector.FixedCameraDetector` told which markers
+        are fixed (the map's, minus the robots')."""
         s = self.settings
-        if s.tracking:
-            from kmea.vision.tracking_detector import TrackingConfig, TrackingDetector
+        if s.fixed_camera:
+            from kmea.vision.fixed_camera_detector import FixedCameraConfig, FixedCameraDetector
 
             robot_ids = {m for r in s.robots for m in r.markers}
             static = frozenset(set(self.world_map.markers) - robot_ids)
-            return TrackingDetector(self.detector_config, TrackingConfig(
-                full_every=s.track_full_every, static_ids=static), executor=self.executor,
+            return FixedCameraDetector(self.detector_config, FixedCameraConfig(
+                full_every=s.fixed_full_every, static_ids=static), executor=self.executor,
                 gate=self.robots_sent)
         return new_detector(self.detector_config, s.fast, s.fast_window, s.full_every)
 
@@ -354,7 +355,7 @@ class Pipeline:
         self.algorithm = name
         if isinstance(self.estimator, WarmStart):
             # Tracking (a fixed live camera): the camera fit starts from the previous one.
-            self.estimator.warm_start = self.settings.tracking
+            self.estimator.warm_start = self.settings.fixed_camera
         self.session.loo.reset()
         # A floor reference averaged once more keeps its pose when the estimator fits the
         # corners (see IncrementalPoses).
@@ -415,7 +416,7 @@ class Pipeline:
         on_robots(t, fixes): called as soon as the robot poses are known, before the
         leave-one-out estimates (the relay's latency must not pay for the statistics).
 
-        With ``settings.tracking`` the floor's camera fit is updated at most every
+        With ``settings.fixed_camera`` the floor's camera fit is updated at most every
         ``settings.refit_every`` frames: in between, a fixed marker whose corners changed
         (one more averaged look) keeps the observation of the last fit, and a fixed marker
         new to the floor (found, or uncovered for the first time) is placed with the last
@@ -432,7 +433,7 @@ class Pipeline:
         events: tuple[str, ...] = ()
         restart = False
         mode = "full"
-        incremental = self.settings.tracking
+        incremental = self.settings.fixed_camera
         deferred: tuple[int, ...] = ()
         self._times, self._rates = {}, {}
         if on_robots is not None:

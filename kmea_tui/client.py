@@ -146,7 +146,8 @@ class DaemonClient:
             raise RuntimeError("DaemonClient.recv before open()")
         poller = zmq.asyncio.Poller()
         poller.register(self._sub, zmq.POLLIN)
-        if not await poller.poll(timeout * 1000):
+        # pyzmq's stubs give Poller.poll an int timeout; the asyncio poller takes float ms.
+        if not await poller.poll(timeout * 1000):  # pyright: ignore[reportArgumentType]
             return []
         return self.drain_raw()
 
@@ -209,7 +210,9 @@ class DaemonClient:
             req = self._req
             try:
                 await req.send(protocol.encode_body({"cmd": cmd, **args}))
-                if not await req.poll(wait * 1000, zmq.POLLIN):
+                # pyzmq's _future.pyi copies Poller.poll(timeout) for the asyncio
+                # Socket.poll, which takes (timeout, flags) at run time.
+                if not await req.poll(wait * 1000, zmq.POLLIN):  # pyright: ignore[reportCallIssue]
                     raise TimeoutError
                 data = await req.recv()
             except (TimeoutError, zmq.ZMQError):
@@ -379,20 +382,20 @@ async def record_stream(telemetry: str, control: str, path: str | Path, seconds:
     ``keep_frames`` > 0 trims the file with :func:`trim_messages`.
     Returns the number of messages written.
     """
-    client = DaemonClient(telemetry, control, keys=keys, client=client)
-    await client.open()
+    daemon = DaemonClient(telemetry, control, keys=keys, client=client)
+    await daemon.open()
     wanted = tuple(topics)
     try:
         header: dict[str, Any] = {"telemetry": telemetry}
         for cmd in ("get_config", "get_state"):
-            reply = await client.request(cmd)
+            reply = await daemon.request(cmd)
             if reply.get("ok"):
                 header[cmd] = reply
         records: list[dict[str, Any]] = []
         end = time.monotonic() + seconds
         last: float | None = None
         while (now := time.monotonic()) < end:
-            for topic, body in await client.recv(min(0.1, end - now)):
+            for topic, body in await daemon.recv(min(0.1, end - now)):
                 if not topic.startswith(wanted):
                     continue
                 t = time.monotonic()
@@ -400,7 +403,7 @@ async def record_stream(telemetry: str, control: str, path: str | Path, seconds:
                 last = t
                 records.append({"topic": topic, "body": body, "dt": round(dt, 4)})
     finally:
-        client.close()
+        daemon.close()
     if keep_frames > 0:
         records = trim_messages(records, keep_frames)
     lines = [json.dumps({"header": header}, separators=(",", ":"))]

@@ -10,9 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import signal
 import sys
-import threading
 from typing import Any
 
 from kmead.config.layers import ConfigError, load_config, parse_set
@@ -191,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
     """The daemon's run, its UI or headless status line, and its summary."""
+    from kmead.run.host import run_host
     from kmead.run.status_line import StatusReporter
 
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
@@ -231,20 +230,8 @@ def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
                               on_line=notifier.status if notifier.enabled else None)
     if (not ui and args.status_every > 0) or notifier.enabled:
         reporter.start()
-    code = 0
     try:
-        if ui:
-            code = _run_with_ui(daemon)
-        else:
-            previous = {s: signal.signal(s, lambda *_: daemon.stop())
-                        for s in (signal.SIGINT, signal.SIGTERM)}
-            try:
-                code = daemon.run()
-            finally:
-                for s, h in previous.items():
-                    signal.signal(s, h)
-    except KeyboardInterrupt:
-        daemon.stop()
+        code = run_host(daemon, ui)
     finally:
         reporter.stop()
         notifier.stopping("stopping")
@@ -258,59 +245,6 @@ def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
              if code == 0 else f"stopped with an error: exit code {code}")
     print(reporter.stamp(final), file=sys.stderr, flush=True)
     return code
-
-
-def _run_with_ui(daemon) -> int:
-    """Daemon in a background thread, the Textual UI in the foreground on its sockets."""
-    try:
-        from kmea_tui.app import KmeaTui
-        from kmea_tui.client import DaemonClient
-    except ImportError as e:
-        logging.getLogger("kmead").warning("terminal UI unavailable (%s); running headless", e)
-        signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
-        return daemon.run()
-    # A keyed daemon's own UI connects as the operator of its key directory.
-    from kmea.wire.curve_client import CurveKeyError
-
-    try:
-        client = DaemonClient(_connectable(daemon.telemetry.bound),
-                              _connectable(daemon.control.bound if daemon.control else ""),
-                              keys=daemon.cfg["network"]["keys"] or None)
-    except CurveKeyError as e:
-        logging.getLogger("kmead").warning("terminal UI unavailable (%s); running headless", e)
-        signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
-        return daemon.run()
-    result: dict[str, int] = {}
-    # The UI owns the terminal: log lines go to its Log tab (telemetry "log"), not stderr.
-    root = logging.getLogger("kmead")
-    quiet = [h for h in root.handlers if getattr(h, "_kmead", False)]
-    for h in quiet:
-        root.removeHandler(h)
-    app = KmeaTui(client)
-    t = threading.Thread(target=lambda: result.setdefault("code", daemon.run()),
-                         name="kmead-main", daemon=True)
-    t.start()
-
-    def terminate(*_: object) -> None:
-        daemon.stop()
-        app.exit()
-
-    previous = signal.signal(signal.SIGTERM, terminate)
-    try:
-        app.run()  # until the user quits (q) or SIGTERM
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        daemon.stop()
-        t.join(timeout=5.0)
-        for h in quiet:
-            root.addHandler(h)
-    return result.get("code", 0)
-
-
-def _connectable(endpoint: str) -> str:
-    # A daemon bound to every interface is reached on loopback.
-    return endpoint.replace("tcp://0.0.0.0:", "tcp://127.0.0.1:").replace(
-        "tcp://*:", "tcp://127.0.0.1:")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ except ImportError:  # a checkout from before kmea/sources/
 import kmea
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 from kmea.vision.detection import DetectorConfig
-from kmea.vision.tracking_detector import TrackingConfig, TrackingDetector
+from kmea.vision.fixed_camera_detector import FixedCameraConfig, FixedCameraDetector
 
 src = SimSource("sim:default", width=820, frames=90)
 frames = [src.read() for _ in range(90)]
@@ -25,14 +25,14 @@ robot_ids = {m for r in src.scene.robot_specs() for m in r.markers}
 static = frozenset(set(src.world_map.markers) - robot_ids)
 for algo in ("kmea", "corner-pnp"):
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
-        robots=tuple(src.scene.robot_specs()), tracking=True, algorithm=algo))
+        robots=tuple(src.scene.robot_specs()), fixed_camera=True, algorithm=algo))
     p.observer.detector.close()
     # The background detection in the calling thread: executor=None (background=False
     # before the executor came from the caller).
-    sync = ({"executor": None} if "executor" in inspect.signature(TrackingDetector).parameters
+    sync = ({"executor": None} if "executor" in inspect.signature(FixedCameraDetector).parameters
             else {"background": False})
-    p.observer.detector = TrackingDetector(DetectorConfig(src.world_map.dictionary),
-                                           TrackingConfig(static_ids=static), **sync)
+    p.observer.detector = FixedCameraDetector(DetectorConfig(src.world_map.dictionary),
+                                           FixedCameraConfig(static_ids=static), **sync)
     h = hashlib.sha256()
     n = 0
     for f in frames:

@@ -26,7 +26,9 @@ from kmea.maps.files import map_digest, save_map_toml
 from kmea.sim.scenes import get_scene
 from kmea.wire import protocol as P
 from kmead.config.layers import load_config
-from kmead.fusion.node import Election, FusionNode, measurement_from
+from kmead.fusion.cameras import measurement_from
+from kmead.fusion.election import Election
+from kmead.fusion.node import FusionNode
 from kmead.outputs.csvlog import HEADER
 from kmead.outputs.relay import datagram, parse_datagram
 from kmead.outputs.robot_pose_wire import TRACKED, unpack_pose

@@ -54,7 +54,7 @@ def test_fixes_then_stale_over_udp(udp: socket.socket) -> None:
     assert msgs[0]["x"] == 0.25 and msgs[0]["y"] == -0.125
     assert msgs[2]["x"] == 0.26 and msgs[2]["t"] == 10.6  # last known pose, stale time
     assert [t for t, _ in published] == ["robot.amr1"] * 4
-    assert relay.tracks["amr1"].sent == 4 and relay.tracks["amr1"].stale
+    assert relay.channels["amr1"].sent == 4 and relay.channels["amr1"].stale
 
 
 def test_unreachable_destination_never_raises(udp: socket.socket) -> None:
@@ -64,7 +64,7 @@ def test_unreachable_destination_never_raises(udp: socket.socket) -> None:
     try:
         relay.update("r", 0.0, 1.0, 2.0, 0.0)
         assert parse_datagram(udp.recv(1024))["name"] == "r"
-        assert relay.tracks["r"].errors == 1 and relay.tracks["r"].sent == 1
+        assert relay.channels["r"].errors == 1 and relay.channels["r"].sent == 1
     finally:
         relay.close()
 
@@ -116,7 +116,7 @@ def test_refused_destination_is_counted_as_errors() -> None:
     try:
         for i in range(20):
             relay.update("r", float(i), 0.0, 0.0, 0.0)
-        tr = relay.tracks["r"]
+        tr = relay.channels["r"]
         assert tr.sent + tr.errors == 20
         assert tr.errors >= 9, (tr.sent, tr.errors)  # at least every other send refused
         # Refusals, told apart from other errors: the UI says "no listener".

@@ -342,8 +342,8 @@ def test_refused_udp_sends_are_counted_as_errors(tmp_path: Path) -> None:
     closed.close()
     d = LiveDaemon(tmp_path, site=robots_toml({"amr1": port}))
     try:
-        assert d.wait(lambda: d.daemon.relay.tracks["amr1"].errors >= 5)
-        tr = d.daemon.relay.tracks["amr1"]
+        assert d.wait(lambda: d.daemon.relay.channels["amr1"].errors >= 5)
+        tr = d.daemon.relay.channels["amr1"]
         assert tr.errors >= tr.sent - 1
     finally:
         d.close()

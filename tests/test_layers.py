@@ -172,10 +172,16 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
             if len(comp) > 1 or v in edges.get(v, ()):
                 out.append(sorted(comp))
 
-    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10000))
-    for v in sorted(edges):
-        if v not in index:
-            strong(v)
+    # Restored after: a raised limit would leak into later tests of this worker (a TOML
+    # file nested 3000 deep would then parse instead of being refused as too deep).
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(limit, 10000))
+    try:
+        for v in sorted(edges):
+            if v not in index:
+                strong(v)
+    finally:
+        sys.setrecursionlimit(limit)
     return out
 
 

@@ -206,7 +206,7 @@ def test_the_daemon_cuts_a_recording_into_parts_that_each_replay(tmp_path: Path)
     rec = tmp_path / "run.jsonl"  # plain: 1 MB (the smallest part) is ~30 frames
     (tmp_path / "run-part2.jsonl").write_text("someone else's file\n")
     assert cli.main(["--headless", "--frames", "90", "--record", str(rec), *SMALL,
-                     "--set", "detector.tracking=false", "--set", "log.record_part_mb=1",
+                     "--set", "detector.fixed_camera=false", "--set", "log.record_part_mb=1",
                      *NET]) == 0
     assert (tmp_path / "run-part2.jsonl").read_text() == "someone else's file\n"
     parts = [rec, *sorted(tmp_path.glob("run-part[3-9].jsonl"))]

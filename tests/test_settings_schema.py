@@ -76,3 +76,13 @@ def test_kmead_prints_the_documented_default() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out == default_config_text()
+
+
+@pytest.mark.parametrize("old", ["detector.tracking", "detector.track_full_every"])
+def test_a_renamed_key_is_one_line_naming_the_new_one(old: str) -> None:
+    from kmead.config.layers import ConfigError
+    from kmead.config.schema import RENAMED
+
+    with pytest.raises(ConfigError) as e:
+        load_config(None, sets=[f"{old}=true"], use_local=False)
+    assert RENAMED[old] in str(e.value) and "\n" not in str(e.value)

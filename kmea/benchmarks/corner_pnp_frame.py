@@ -27,7 +27,7 @@ from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 def measure(n: int = 240) -> None:
     frames, scene = render(n)
     p = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
-        algorithm="corner-pnp", robots=tuple(scene.robot_specs()), tracking=True))
+        algorithm="corner-pnp", robots=tuple(scene.robot_specs()), fixed_camera=True))
     est = p.estimator
     assert isinstance(est, CornerPnP)
     calls: list[tuple[int, float, bool]] = []  # (frame, CPU ms, same fit as the last call)

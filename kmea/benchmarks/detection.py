@@ -61,7 +61,7 @@ def run(quick: bool = False) -> None:
                     t_frame, c_frame = [], []
                     for _ in range(reps):
                         c0, t0 = time.thread_time(), time.perf_counter()
-                        ids_found, corners_found = observer.detect(f.image)
+                        ids_found, corners_found = observer.detect(f.pixels)
                         t_frame.append(time.perf_counter() - t0)
                         c_frame.append(time.thread_time() - c0)
                     times.append(statistics.median(t_frame))

@@ -1,7 +1,7 @@
 """``kmea bench fixed-camera``: nothing lost with the tracking detector (1640x1232 sim).
 
 Frames are rendered beforehand, then fed to :class:`kmea.pipeline.Pipeline` with tracking
-(:mod:`kmea.vision.tracking_detector`, background detection on its thread) at the camera's
+(:mod:`kmea.vision.fixed_camera_detector`, background detection on its thread) at the camera's
 30 frames/s (the loop waits for each frame's due time), so the background detection has the
 time it would have live. Printed, per scene:
 
@@ -32,7 +32,7 @@ def _run(spec: str, n: int):
     src = SimSource(spec, frames=n)
     frames = src.take(n)
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
-        robots=tuple(src.scene.robot_specs()), tracking=True))
+        robots=tuple(src.scene.robot_specs()), fixed_camera=True))
     out = []
     t0 = time.perf_counter()
     for f in frames:

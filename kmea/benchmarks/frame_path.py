@@ -24,7 +24,7 @@ from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 def measure(n: int = 240, algorithm: str = "corner-pnp") -> None:
     frames, scene = render(n)
     p = Pipeline(scene.camera, scene.effective_map(), PipelineSettings(
-        algorithm=algorithm, robots=tuple(scene.robot_specs()), tracking=True))
+        algorithm=algorithm, robots=tuple(scene.robot_specs()), fixed_camera=True))
     detect, path, whole = [], [], []
     try:
         for f in frames:

@@ -102,7 +102,8 @@ def fused_outputs(run: WideRun, cfg: TrackerConfig, seed: int = 0,
     fu = Fusion(cfg, max_age_s=0.5)
     arr = _arrivals(run, seed, offset, stop)
     names = sorted(run.truth[0])
-    out = {n: [None] * len(run.t) for n in names}
+    out: dict[str, list[tuple[float, float, float] | None]] = {
+        n: [None] * len(run.t) for n in names}
     last_ok = dict.fromkeys(names, -math.inf)
     j = 0
     for k, t in enumerate(run.t):
@@ -128,6 +129,8 @@ def _single(run: WideRun, cam: int, name: str, cfg: TrackerConfig) -> list:
         if m is not None:
             tr.update(t, m[0], m[1], m[2], m[3])
             st = tr.state()
+            if st is None:  # cannot happen: the track has just had a measurement
+                raise RuntimeError(f"{name}: no track state after an update")
             out.append((st.x, st.y, st.theta))
         else:
             out.append(None)
@@ -180,7 +183,7 @@ def handover_jumps(run: WideRun, cfg: TrackerConfig) -> dict[str, tuple[float, i
                    and run.t[k] >= 1.0 and (any(seen[k]) and any(seen[k - 1]))]
         count += len(changes)
         # Naive: every measurement relayed as it comes; camera 1's arrives after camera 0's.
-        naive: list[tuple[float, tuple]] = []
+        naive: list[tuple[int, tuple]] = []  # (frame, measurement)
         for k in range(len(run.t)):
             for cam in (0, 1):
                 m = run.meas[cam][k].get(name)

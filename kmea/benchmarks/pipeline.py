@@ -5,7 +5,7 @@ counted): bare ``detectMarkers`` with the default parameters and with one 13 px
 threshold window, the fast detector (:mod:`kmea.vision.fastdetect`), then
 :class:`kmea.pipeline.Pipeline` (detection, pose, estimator, leave-one-out, filter, robots)
 with the normal and the fast detector, then with tracking for a fixed camera
-(:mod:`kmea.vision.tracking_detector`, :mod:`kmea.fixed_camera`) against full detection of
+(:mod:`kmea.vision.fixed_camera_detector`, :mod:`kmea.fixed_camera`) against full detection of
 every frame, with the default estimator and with ``corner-pnp``, back to back on the same
 frames. Times are wall-clock and CPU (``time.process_time``: every thread of the process,
 the tracking detector's background full detection and OpenCV's worker threads included),
@@ -103,7 +103,7 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
             if tracking:
                 adjacent = _adjacent_bare(images, dic)
             rate, ms = pipeline_rate(frames, scene, PipelineSettings(
-                algorithm=algo, robots=robots, tracking=tracking), out)
+                algorithm=algo, robots=robots, fixed_camera=tracking), out)
             res = out["results"]
             loo = [e for r in res for e in r.loo.values()]
             n_robot_frames = sum(len(r.robots) for r in res)
@@ -114,7 +114,7 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
             extra = ""
             if tracking:
                 inc = out["pipeline"]
-                extra = (f"; {det.tracked} tracked / {det.full} full frames, "
+                extra = (f"; {det.followed_frames} followed / {det.full} full frames, "
                          f"{det.background} background full detections, poses "
                          f"{inc.session.poses.posed} computed / {inc.session.poses.reused} reused, "
                          f"leave-one-out {inc.session.loo.computed} computed / "
@@ -143,7 +143,7 @@ def compare_tracking(frames, scene, bare_fps: float, bare_cpu: float, algorithms
         out = {}
         adjacent = _adjacent_bare(images, dic)
         rate, _ = pipeline_rate(frames, scene, PipelineSettings(
-            algorithm=algo, robots=robots, tracking=True, filter_kind="kalman"), out)
+            algorithm=algo, robots=robots, fixed_camera=True, filter_kind="kalman"), out)
         wall = 1e3 / rate
         print(f"{algo}, tracking, robots' tracking filter (filter.kind = kalman): "
               f"{wall:6.2f} ms/frame wall = {wall / (1e3 / bare_fps) * 100:5.1f} % of bare "
@@ -201,8 +201,8 @@ def run(quick: bool = False, frames: int | None = None) -> None:
     if n < 2:
         raise SystemExit("kmea bench pipeline: --frames must be at least 2")
     t0 = time.perf_counter()
-    frames, scene = render(n)
-    images = [f.image for f in frames]
+    rendered, scene = render(n)
+    images = [f.pixels for f in rendered]
     print(f"pre-rendered {n} frames {scene.size[0]}x{scene.size[1]} (default scene, 2 robots) "
           f"in {time.perf_counter() - t0:.1f} s (not counted); cv2 threads "
           f"{cv2.getNumThreads()}, {len(os.sched_getaffinity(0))} cores")
@@ -225,10 +225,10 @@ def run(quick: bool = False, frames: int | None = None) -> None:
           f"{fast.full} full frames, {lost} markers of the default detection lost")
     robots = tuple(scene.robot_specs())
     for label, fast_on in (("default detection", False), ("fast detection", True)):
-        rate, ms = pipeline_rate(frames, scene, PipelineSettings(fast=fast_on, robots=robots))
+        rate, ms = pipeline_rate(rendered, scene, PipelineSettings(fast=fast_on, robots=robots))
         total = sum(ms.values())
         print(f"library pipeline, {label}: {rate:6.1f} frames/s = {rate / bare * 100:5.1f} % "
               "of bare default detection; stage ms/frame: "
               + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
               + f"; all stages {total:.2f} ms")
-    compare_tracking(frames, scene, bare, cpu[0], ("kmea", "corner-pnp"))
+    compare_tracking(rendered, scene, bare, cpu[0], ("kmea", "corner-pnp"))

@@ -43,7 +43,7 @@ def _fidelity(width: int, height: int, indices: list[int]) -> tuple[int, int, fl
     errs, expected, found_n = [], 0, 0
     for i in indices:
         f = r.render(i)
-        corners, ids, _ = det.detectMarkers(f.image)
+        corners, ids, _ = det.detectMarkers(f.pixels)
         found = {} if ids is None else {int(k): c.reshape(4, 2)
                                         for k, c in zip(ids.ravel(), corners, strict=True)}
         for mid in f.truth.visible:

@@ -108,7 +108,7 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def write_outputs(result, out: Path, plots: bool = True, quiet: bool = False,
-                  others: dict | None = None) -> dict:
+                  others: dict | None = None) -> dict[str, Path | list[Path]]:
     """Write the Part's Markdown, CSVs and figures; returns name -> path.
 
     ``result`` is the primary mode's; ``others`` (mode -> result) the other modes', whose
@@ -119,15 +119,16 @@ def write_outputs(result, out: Path, plots: bool = True, quiet: bool = False,
     out.mkdir(parents=True, exist_ok=True)
     scores = tables.score(result)
     stem = f"part-{result.part}"
-    paths = {
-        "markdown": out / f"{stem}.md",
+    markdown = out / f"{stem}.md"
+    paths: dict[str, Path | list[Path]] = {
+        "markdown": markdown,
         "csv": tables.write_csv(result, out / f"{stem}-markers.csv", scores),
         "samples": tables.write_samples_csv(result, out / f"{stem}-samples.csv"),
     }
     for mode, r in (others or {}).items():
         paths[f"csv-{mode}"] = tables.write_csv(r, out / f"{stem}-{mode}-markers.csv")
         paths[f"samples-{mode}"] = tables.write_samples_csv(r, out / f"{stem}-{mode}-samples.csv")
-    paths["markdown"].write_text(
+    markdown.write_text(
         tables.modes_markdown({result.mode: result, **(others or {})}) + "\n")
     if plots:
         from kmea.experiments import plots as plots_mod

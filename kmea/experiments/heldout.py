@@ -411,7 +411,7 @@ def _gridboard_dir() -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m kmea.experiments.heldout",
-                                description=__doc__.splitlines()[0])
+                                description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--frames", "-n", type=int, default=8, help="frames per scene (default 8)")
     p.add_argument("--split", choices=("heldout", "tuning"), default="heldout")
     p.add_argument("--loo", action="store_true",

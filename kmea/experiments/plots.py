@@ -111,8 +111,8 @@ def write_plots(result: RunResult, out_dir: str | Path, scores: Scores | None = 
     tr = np.array([result.truth[m] for m in result.markers])
     ax.scatter(tr[:, 0], tr[:, 1], marker="+", s=80, color="k", label="truth")
     for m in result.markers:
-        ax.annotate(str(m), result.truth[m], textcoords="offset points", xytext=(5, 5),
-                    fontsize=8)
+        tx, ty = result.truth[m][:2]
+        ax.annotate(str(m), (tx, ty), textcoords="offset points", xytext=(5, 5), fontsize=8)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")

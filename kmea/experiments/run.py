@@ -30,11 +30,12 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing import get_context
+from typing import Any
 
 import numpy as np
 
 from kmea import estimators as est_registry
-from kmea.estimators.base import MarkerObservation
+from kmea.estimators.base import Estimator, MarkerObservation
 from kmea.experiments import simscene
 from kmea.experiments.setup import MODES, ExperimentConfig
 from kmea.geometry.camera import CameraIntrinsics
@@ -78,6 +79,7 @@ class RunResult:
     truth: marker id -> (2,) true world x, y, metres.
     samples: (algorithm, marker id) -> (n, 2) estimated x, y of the n frames where that
         marker was detected and estimated, metres, in frame order.
+    heights: (algorithm, marker id) -> (n,) the estimated z of those samples, metres.
     frames: number of frames (N); ``n < frames`` means some frames gave no estimate.
     rejected: algorithm -> reference id -> list of disagreements (m), one per frame it was
         rejected in.
@@ -95,7 +97,7 @@ class RunResult:
     failures: dict[tuple[str, int], dict[str, int]] = field(default_factory=dict)
     rejected: dict[str, dict[int, list[float]]] = field(default_factory=dict)
     settings: dict[str, object] = field(default_factory=dict)
-    heights: dict[int, np.ndarray] = field(default_factory=dict)
+    heights: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
     mode: str = "plane-known"
 
     def n(self, algorithm: str, marker: int) -> int:
@@ -107,7 +109,7 @@ class RunResult:
 def estimate_frame(
     index: int,
     observations: Sequence[MarkerObservation],
-    estimators: Mapping[str, object],
+    estimators: Mapping[str, Estimator],
     world_map: MarkerMap,
     evaluated: Collection[int],
     camera: CameraIntrinsics | None = None,
@@ -216,10 +218,10 @@ def collect(frames: Sequence[FrameResult], algorithms: Sequence[str],
 
 # ------------------------------------------------------------------ simulation
 
-_WORKER: dict[str, object] = {}
+_WORKER: dict[str, Any] = {}  # simscene.build's state, plus estimators and maps_without
 
 
-def _setup(config: ExperimentConfig) -> dict[str, object]:
+def _setup(config: ExperimentConfig) -> dict[str, Any]:
     """Per-process state: scene, renderer, detector, estimators (built once per config)."""
     key = repr(config)
     if _WORKER.get("key") == key:

@@ -28,7 +28,7 @@ from kmea.maps.files import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = __doc__.splitlines()[0].replace("``", "")
+    p.description = (__doc__ or "").partition("\n")[0].replace("``", "")
     p.add_argument("action", nargs="?", choices=("show", "check", "convert", "survey"),
                    default="show", help="show the table (default), check the file, convert "
                    "CSV to TOML, or survey the markers a camera sees")

@@ -261,11 +261,12 @@ def map_from_dict(data: dict, source: str, lines: list[int] | None = None) -> Ma
     rows = data.get("markers")
     if not isinstance(rows, list) or not rows:
         raise MapError(f"{source}: markers: expected a non-empty array of tables [[markers]]")
-    use_lines = lines is not None and len(lines) == len(rows)
+    row_lines = lines if lines is not None and len(lines) == len(rows) else None
     markers: dict[int, Marker] = {}
     wheres: dict[int, str] = {}
     for i, row in enumerate(rows):
-        where = f"{source}: markers[{i}]" + (f" (line {lines[i]})" if use_lines else "")
+        where = f"{source}: markers[{i}]" + (
+            f" (line {row_lines[i]})" if row_lines is not None else "")
         if not isinstance(row, dict):
             raise MapError(f"{where}: expected a table")
         bad = set(row) - _MARKER_KEYS

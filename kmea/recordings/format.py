@@ -171,7 +171,7 @@ class Recorder:
     """Writes a recording; one ``write_frame`` per frame, flushed (whole lines survive a
     kill; compressed when the name ends in ``.zst``).
 
-    fast_path: the run used the fixed-camera fast path (``detector.tracking`` on a live
+    fast_path: the run used the fixed-camera fast path (``detector.fixed_camera`` on a live
     source); the header says so, so that a replay can say its rows will differ.
     part, previous: this file's part number and the file before it, when a recording is
     cut into parts (kmead's ``log.record_part_mb`` / ``log.record_part_min``)."""

@@ -29,7 +29,8 @@ def truth_record(index: int, truth: FrameTruth) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m kmea.sim", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m kmea.sim",
+                                description=(__doc__ or "").partition("\n")[0])
     p.add_argument("spec", nargs="?", default="sim",
                    help="scene spec: sim, sim:NAME, sim:NAME?key=value&... (scenes: "
                         f"{', '.join(available_scenes())})")
@@ -51,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         for k in range(args.frames):
             i = args.start + k * args.step
             frame = r.render(i)
-            cv2.imwrite(str(args.out / f"frame_{i:06d}.png"), frame.image)
+            cv2.imwrite(str(args.out / f"frame_{i:06d}.png"), frame.pixels)
             f.write(json.dumps(truth_record(i, frame.truth)) + "\n")
     print(f"{args.frames} frames of {scene.name} ({scene.size[0]}x{scene.size[1]}) in {args.out}")
     return 0

@@ -46,14 +46,18 @@ def undistort_pixels(u: np.ndarray, v: np.ndarray, camera: CameraModel,
 
     OpenCV's iterative undistortion gives the start; Newton steps on the forward model (with a
     finite-difference Jacobian) make it exact. ``jacobian``: also return dx/du, dx/dv, dy/du,
-    dy/dv (per pixel).
+    dy/dv (per pixel), from the last Newton step (so ``newton_steps`` >= 1).
     """
+    if jacobian and newton_steps < 1:
+        raise ValueError(f"undistort_pixels: the jacobian needs newton_steps >= 1, got "
+                         f"{newton_steps}")
     shape = np.shape(u)
     pts = np.column_stack([np.ravel(u), np.ravel(v)]).astype(np.float64)
     und = cv2.undistortPoints(pts.reshape(-1, 1, 2), camera.camera_matrix,
                               np.asarray(camera.dist_coeffs, dtype=float)).reshape(-1, 2)
     x, y = und[:, 0].copy(), und[:, 1].copy()
     h = 1e-6
+    a = b = c = d = det = np.ones_like(x)  # the Jacobian: set again by every Newton step
     for _ in range(newton_steps):
         fu, fv = distort(x, y, camera)
         eu, ev = fu - pts[:, 0], fv - pts[:, 1]

@@ -56,9 +56,7 @@ class Quad:
         q.n = np.cross(ex, ey)
         q.nc = float(q.n @ c)
         q.exc, q.eyc = float(ex @ c), float(ey @ c)
-        q._n = tuple(float(v) for v in q.n)
-        q._ex = tuple(float(v) for v in ex)
-        q._ey = tuple(float(v) for v in ey)
+        q._n, q._ex, q._ey = _floats3(q.n), _floats3(ex), _floats3(ey)
         if self.tex is not None:
             if abs(self.hx - self.hl * (self.tex.shape[0] + 2) / self.tex.shape[0]) > 1e-12:
                 raise ValueError("marker quad: the quiet zone must be one cell wide")
@@ -99,6 +97,8 @@ class Quad:
             return t, np.full(np.shape(x), self.albedo, dtype=np.float32)
         # The texture with its one-cell quiet zone maps uniformly onto the whole quad.
         tex = self._padded
+        if tex is None:
+            raise ValueError("Quad.hit: a textured quad is hit in the camera frame (to_cam)")
         cells = tex.shape[0]
         k = cells / (2.0 * self.hx)
         a += self.hx
@@ -108,6 +108,11 @@ class Quad:
         col = np.clip(a.astype(np.int32), 0, cells - 1)
         row = np.clip(b.astype(np.int32), 0, cells - 1)
         return t, tex[row, col]
+
+
+def _floats3(v: np.ndarray) -> tuple[float, float, float]:
+    """A (3,) vector as three Python floats."""
+    return float(v[0]), float(v[1]), float(v[2])
 
 
 def box_quads(center_xy: tuple[float, float], yaw: float, lx: float, ly: float,

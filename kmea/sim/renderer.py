@@ -38,8 +38,14 @@ def _fib_pattern(n: int, g: int) -> tuple[np.ndarray, np.ndarray]:
     return ((k + 0.5) / n - 0.5), (((k * g) % n) + 0.5) / n - 0.5
 
 
-_STATIC_SAMPLES = tuple(a.astype(np.float32) for a in _fib_pattern(89, 55))
-_DYNAMIC_SAMPLES = tuple(a.astype(np.float32) for a in _fib_pattern(34, 21))
+def _fib_pattern32(n: int, g: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_fib_pattern` in float32."""
+    du, dv = _fib_pattern(n, g)
+    return du.astype(np.float32), dv.astype(np.float32)
+
+
+_STATIC_SAMPLES = _fib_pattern32(89, 55)
+_DYNAMIC_SAMPLES = _fib_pattern32(34, 21)
 
 
 def _edges(a: np.ndarray) -> np.ndarray:
@@ -171,7 +177,7 @@ class Renderer:
                 wall.append(m)
             elif sc.supports and mid in sc.overrides and m.position[2] > 0.005:
                 side = m.length * 9 / 7 + 0.03  # a 1.5 cm rim around the paper
-                yaw = yaw_of(m.rotation)
+                yaw = float(yaw_of(m.rotation))  # one matrix: a float
                 quads += box_quads((m.position[0], m.position[1]), yaw, side, side, 0.0,
                                     m.position[2], PALETTE["support"], PALETTE["side"])
         quads += self._wall_panels(wall)
@@ -317,6 +323,8 @@ class Renderer:
         elif t is None:
             t = np.full(x.shape, np.inf, dtype=x.dtype)
             alb = np.zeros(x.shape, dtype=np.float32)
+        if alb is None:
+            raise ValueError("_cast_samples: t and alb go together")
         for q, qr in zip(quads, rects, strict=True):
             if qr is None:
                 continue
@@ -418,6 +426,8 @@ class Renderer:
         bv = s2 * ((f0 * xv + f1 * yv) * D - F * Dv)
         du, dv = _DYNAMIC_SAMPLES
         tex = q._padded
+        if tex is None:
+            raise ValueError("_decal_pixels: the quad has no texture in the camera frame")
         cells = tex.shape[0]
         k = cells / (2.0 * q.hx)
         A = ((a + q.hx) * k).astype(np.float32)[:, None] + \
@@ -732,7 +742,7 @@ class Renderer:
                 continue
             tq, _ = q.hit(x, y)
             hidden |= tq < zc * (1 - 1e-7)
-        return hidden.reshape(-1, 5).any(axis=1)
+        return np.any(hidden.reshape(-1, 5), axis=1)
 
     def _static_truth(self) -> None:
         """What does not change between frames: static markers, corners, static occlusion."""

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from kmea.geometry import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
 from kmea.maps.files import Marker, MarkerMap
@@ -51,7 +52,7 @@ PALETTE: dict[str, float] = {
 }
 
 
-def pose_matrix(R: np.ndarray, t: Sequence[float]) -> np.ndarray:
+def pose_matrix(R: np.ndarray, t: ArrayLike) -> np.ndarray:
     """(4, 4) rigid transform from a (3, 3) rotation and a (3,) translation."""
     T = np.eye(4)
     T[:3, :3] = R
@@ -93,7 +94,7 @@ def _offset(value: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
     if off.shape != (3,) or not np.all(np.isfinite(off)):
         raise ValueError(f"{where}: offset must be 3 finite metres, got {value!r}")
     if rot.shape == (3,):
-        rot = euler_zyx_fixed_deg(*rot)
+        rot = euler_zyx_fixed_deg(float(rot[0]), float(rot[1]), float(rot[2]))
     elif rot.shape != (3, 3):
         raise ValueError(f"{where}: rotation must be (3, 3) or (rx, ry, rz) degrees")
     return off, check_rotation(rot, name=where)
@@ -195,7 +196,7 @@ class Occluder:
                 raise ValueError(f"Occluder.covering: marker {mid} is not in the map")
             m = world_map[mid]
             side = m.length * 9 / 7 + 2 * margin
-            yaw = yaw_of(m.rotation)
+            yaw = float(yaw_of(m.rotation))  # one matrix: a float
             out.append(cls((side, side), (m.position[2], m.position[2] + height),
                            Stationary(m.position[0], m.position[1], yaw),
                            name=f"sheet over {mid}"))

@@ -220,16 +220,26 @@ def _effects(opts: dict[str, Any], height: int) -> Effects:
     return e
 
 
+def _resized(camera: CameraModel, width: Any, height: Any) -> CameraModel:
+    """``camera`` scaled to the options ``width`` and/or ``height`` (one alone keeps the
+    aspect ratio; neither: ``camera`` itself)."""
+    if width is not None:
+        w = int(width)
+        h = int(height) if height is not None else round(w * camera.height / camera.width)
+    elif height is not None:
+        h = int(height)
+        w = round(h * camera.width / camera.height)
+    else:
+        return camera
+    return camera.scaled_to(w, h)
+
+
 def _build(name: str, cam2world: Callable[[CameraModel], np.ndarray], robots: bool,
            opts: dict[str, Any]) -> Scene:
     opts = dict(opts)
     world_map = opts.pop("world_map", None) or default_map()
     camera = opts.pop("camera", None) or pi_camera_v2()
-    width, height = opts.pop("width", None), opts.pop("height", None)
-    if width is not None or height is not None:
-        w = int(width) if width is not None else round(int(height) * camera.width / camera.height)
-        h = int(height) if height is not None else round(int(width) * camera.height / camera.width)
-        camera = camera.scaled_to(w, h)
+    camera = _resized(camera, opts.pop("width", None), opts.pop("height", None))
     pose = opts.pop("cam2world", None)
     if pose is None:
         pose = cam2world(camera)
@@ -253,6 +263,8 @@ def _build(name: str, cam2world: Callable[[CameraModel], np.ndarray], robots: bo
     covered = opts.pop("covered", None)
     if isinstance(covered, int) and not isinstance(covered, bool):
         covered = [covered]  # ?covered=4 parses as one number, not a list
+    elif covered is True:
+        raise ValueError(f"scene {name!r}: covered: expected marker ids, got {covered!r}")
     if covered:
         effects.occluders += Occluder.covering(world_map, covered)
     kw = {k: opts.pop(k) for k in ("misplaced", "extra_markers", "seed", "fps", "floor",
@@ -379,11 +391,7 @@ def apply_options(scene: Scene, **options: Any) -> Scene:
                          f"a named scene; only {sorted(_SIMPLE)} apply to a custom one")
     opts = dict(options)
     camera = scene.camera
-    width, height = opts.pop("width", None), opts.pop("height", None)
-    if width is not None or height is not None:
-        w = int(width) if width is not None else round(int(height) * camera.width / camera.height)
-        h = int(height) if height is not None else round(int(width) * camera.height / camera.width)
-        camera = camera.scaled_to(w, h)
+    camera = _resized(camera, opts.pop("width", None), opts.pop("height", None))
     changes: dict[str, Any] = {"camera": camera}
     if "fps" in opts:
         changes["fps"] = float(opts.pop("fps"))

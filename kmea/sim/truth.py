@@ -56,12 +56,20 @@ class FrameTruth:
 class SimFrame(Frame):
     """A rendered frame: a :class:`kmea.sources.base.Frame` with its truth.
 
-    index; timestamp = index / fps seconds (also ``t``); image: (H, W) uint8 greyscale;
-    truth: :class:`FrameTruth` (also in ``meta["truth"]``).
+    index; timestamp = index / fps seconds (also ``t``); image: (H, W) uint8 greyscale
+    (never None: :attr:`pixels` is the same array, typed so); truth: :class:`FrameTruth`
+    (also in ``meta["truth"]``), a required keyword.
     """
 
-    truth: FrameTruth | None = None
+    truth: FrameTruth = field(kw_only=True)
 
     @property
     def t(self) -> float:
         return self.timestamp
+
+    @property
+    def pixels(self) -> np.ndarray:
+        """``image``, which a rendered frame always has."""
+        if self.image is None:
+            raise ValueError(f"simulated frame {self.index} has no image")
+        return self.image

@@ -108,11 +108,12 @@ class SimSource(FrameSource):
         if self.rendered is not None:
             return self.rendered[i - self.start]
         renderer = self.renderer
-        if self.bumped_renderer is not None and i / self.fps >= self.bump_at:
+        if (self.bumped_renderer is not None and self.bump_at is not None
+                and i / self.fps >= self.bump_at):
             renderer = self.bumped_renderer
         frame = renderer.render(i)
         if not self.gray:
-            frame.image = cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
+            frame.image = cv2.cvtColor(frame.pixels, cv2.COLOR_GRAY2BGR)
         return frame
 
     def seek(self, index: int) -> None:

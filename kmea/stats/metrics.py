@@ -29,6 +29,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "MarkerMetrics",
@@ -73,7 +74,7 @@ def _check_ref(reference_length: float) -> float:
     return r
 
 
-def planar_errors(estimates: np.ndarray, truth: np.ndarray) -> np.ndarray:
+def planar_errors(estimates: ArrayLike, truth: ArrayLike) -> np.ndarray:
     """(N,) floor-plane distances (m) of estimates (N, 2) or (N, 3) to truth (2,) or (3,);
     only x and y are used."""
     est = np.asarray(estimates, dtype=float)

@@ -15,7 +15,7 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = __doc__.splitlines()[0].split(": ", 1)[1]
+    p.description = (__doc__ or "").partition("\n")[0].partition(": ")[2]
     p.add_argument("--source", required=True, metavar="SPEC",
                    help="images:DIR, video:PATH, camera:INDEX or picamera "
                         "(options after '?', e.g. camera:0?width=1280&height=960)")

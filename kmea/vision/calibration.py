@@ -54,6 +54,9 @@ class Board:
         return np.hstack([g * self.square, np.zeros((len(g), 1))]).astype(np.float32)
 
     def cv_charuco(self) -> cv2.aruco.CharucoBoard:
+        if self.marker is None:
+            raise BoardError(f"{self.kind}:{self.cols}x{self.rows}: a ChArUco board needs "
+                             "its marker size")
         return cv2.aruco.CharucoBoard((self.cols, self.rows), float(self.square),
                                       float(self.marker), aruco_dictionary(self.dictionary or ""))
 
@@ -165,7 +168,10 @@ class BoardDetector:
         ch_corners, ch_ids, _mc, _mi = self._detector.detectBoard(gray)
         if ch_ids is None or len(ch_ids) < 6:
             return None
-        obj, img = self._cv_board.matchImagePoints(ch_corners, ch_ids)
+        # The stubs type detectedCorners as Sequence[MatLike] (the generic Board's); for a
+        # ChArUco board it is detectBoard's (N, 1, 2) array, which OpenCV takes.
+        obj, img = self._cv_board.matchImagePoints(  # pyright: ignore[reportCallIssue]
+            ch_corners, ch_ids)  # pyright: ignore[reportArgumentType]
         if obj is None or len(obj) < 6:
             return None
         return (img.reshape(-1, 2).astype(np.float32), obj.reshape(-1, 3).astype(np.float32),

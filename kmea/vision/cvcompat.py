@@ -58,7 +58,7 @@ def undistort_points(src: np.ndarray, camera_matrix: np.ndarray, dist_coeffs: np
     """
     if criteria is None:
         return cv2.undistortPoints(src, camera_matrix, dist_coeffs)
-    if _CRITERIA_KW:
+    if _CRITERIA_KW or _ITER_FN is None:  # (the second test only narrows _ITER_FN)
         return cv2.undistortPoints(src, camera_matrix, dist_coeffs, criteria=criteria)
     # 4.x: R and P empty = identity rotation and normalised output, as undistortPoints.
     return _ITER_FN(src, camera_matrix, dist_coeffs, None, None, criteria)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, cast
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -39,5 +39,6 @@ def to_jsonable(obj: Any) -> Any:
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if hasattr(obj, "tolist"):  # numpy arrays and scalars, without importing numpy
-        return to_jsonable(obj.tolist())
+        # (cast: the is_dataclass test above left obj narrowed to type[DataclassInstance])
+        return to_jsonable(cast(Any, obj).tolist())
     return str(obj)

@@ -59,7 +59,7 @@ def run_daemon(quick: bool = False) -> None:
     n = 20 if quick else 90
     frames, scene = render(n)
     _BENCH.update(frames=frames, scene=scene)
-    bare, _ = bare_detection([f.image for f in frames], {}, scene.world_map.dictionary)
+    bare, _ = bare_detection([f.pixels for f in frames], {}, scene.world_map.dictionary)
     print(f"{n} pre-rendered frames {scene.size[0]}x{scene.size[1]}; bare detectMarkers "
           f"{bare:6.1f} frames/s")
     with tempfile.TemporaryDirectory() as tmp:
@@ -108,6 +108,8 @@ while True:
 def _listen() -> tuple[subprocess.Popen, int]:
     proc = subprocess.Popen([sys.executable, "-c", LISTENER], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
+    if proc.stdout is None:  # cannot happen with stdout=PIPE
+        raise RuntimeError("kmea bench: the listener has no stdout pipe")
     return proc, int(proc.stdout.readline())
 
 
@@ -135,8 +137,8 @@ def run_latency(quick: bool = False) -> None:
     print(f"{n} pre-rendered frames {scene.size[0]}x{scene.size[1]} served at 30 frames/s "
           f"(default scene, 2 moving robots); {cores} core(s)")
     rows = {}
-    for label, sets in (("full detection every frame (detector.tracking=false)",
-                         ["detector.tracking=false"]),
+    for label, sets in (("full detection every frame (detector.fixed_camera=false)",
+                         ["detector.fixed_camera=false"]),
                         ("tracking (default)", [])):
         proc, port = _listen()
         robots = (f'robots=[{{name="amr1", markers=[40, 41], '
@@ -213,10 +215,12 @@ def run_tui(quick: bool = False) -> None:
         time.sleep(settle)
         alone = _frames_in(d, window)
         print(f"daemon alone: {alone:.1f} frames/s (1640x1232, 30 frames/s paced, tracking)")
+        telemetry, control = d.telemetry, d.control
+        if telemetry is None or control is None:  # NET binds both
+            raise RuntimeError("kmea bench: the daemon has no telemetry or control socket")
         pid, fd = pty.fork()
         if pid == 0:  # the UI, in a 120x40 pseudo-terminal
-            os.execv(exe, [exe, "--telemetry", d.telemetry.bound, "--control",
-                           d.control.bound])
+            os.execv(exe, [exe, "--telemetry", telemetry.bound, "--control", control.bound])
         fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
         stop = threading.Event()
 

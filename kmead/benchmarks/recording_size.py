@@ -6,10 +6,10 @@ The same frames are written in every format (like with like): what a real daemon
 process, on the simulated floor: 1640x1232, 35-40 markers, two robots) hands its recorder,
 in two cases:
 
-- ``fast path``: the daemon's default on a live source (``detector.tracking``): a fixed
+- ``fast path``: the daemon's default on a live source (``detector.fixed_camera``): a fixed
   marker keeps its observation between the floor's refits, so most of a frame repeats the
   last one;
-- ``every frame new``: ``detector.tracking = false``: every corner and every pose is
+- ``every frame new``: ``detector.fixed_camera = false``: every corner and every pose is
   measured afresh, every number changes (the worst case for compression).
 
 Formats: ``v1`` is the first format's writer (every marker's corners and flags, plain JSON
@@ -42,7 +42,7 @@ from kmead.outputs.totals import truth_record
 from kmead.run.daemon import Daemon
 
 FPS = 30.0
-CASES = {"fast path": [], "every frame new": ["detector.tracking=false"]}
+CASES = {"fast path": [], "every frame new": ["detector.fixed_camera=false"]}
 
 
 class Run(NamedTuple):

@@ -35,7 +35,7 @@ import zenoh
 
 from kmead.config.layers import load_config
 from kmead.outputs import ros2_messages as msgs
-from kmead.outputs.relay import RobotTrack, parse_datagram
+from kmead.outputs.relay import RobotChannel, parse_datagram
 from kmead.outputs.robot_pose_wire import unpack_pose
 from kmead.outputs.zenoh import ZenohOutput
 
@@ -151,7 +151,7 @@ def cpu(sends: int) -> None:
         sub_session = zenoh.open(sub_conf)
         # A channel, no Python callback: the subscriber takes no GIL from the timed thread.
         sub = sub_session.declare_subscriber("**", zenoh.handlers.RingChannel(100000))
-        tr = RobotTrack("amr1", [40, 41], [], [], x=0.5, y=0.25, theta=1.0, sigma=0.003,
+        tr = RobotChannel("amr1", [40, 41], [], [], x=0.5, y=0.25, theta=1.0, sigma=0.003,
                         cov=np.diag([9e-6, 9e-6, 4e-4]),
                         extra={"vx": 0.1, "vy": 0.0, "omega": 0.2, "age": 0.0})
         time.sleep(1.0)  # the subscriber's declaration reaches the publisher

@@ -231,7 +231,9 @@ def dictionary_size(cfg: Config, world_map: MarkerMap) -> tuple[str, int | None]
 def robot_ids_problem(cfg: Config, world_map: MarkerMap, robots: list[dict]) -> str | None:
     """A robot marker the detector's dictionary cannot hold, as one line, else None."""
     name, size = dictionary_size(cfg, world_map)
-    for r in robots if size is not None else ():
+    if size is None:  # a custom dictionary file: its ids are not checked here
+        return None
+    for r in robots:
         bad = [m for m in r["markers"] if m >= size]
         if bad:
             return (f"robots: robot {r['name']!r} marker {bad[0]} is outside {name} "

@@ -187,26 +187,26 @@ newly entering the view may wait for the next full detection. Off by default."""
         "full_every": Key(30, integer(1, 100000),
                   'fast detection: a full detection every N frames',
                   live=True),
-        "tracking": Key(True, flag,
-                  ('tracking for a fixed camera, live sources only: markers followed where they'
-                   ' were, a full detection in the background (see Performance)'),
+        "fixed_camera": Key(True, flag,
+                  ('a fixed camera, live sources only: markers followed where they were, a full'
+                   ' detection in the background (see Performance)'),
                   doc="""\
-Tracking for a fixed camera, live sources only (camera, Pi camera, paced simulator):
-floor markers are checked where they were, robot markers detected near where their track
-predicts them, a full detection runs in the background every track_full_every frames
-(markers new in the view) and at once when the camera is bumped; marker poses and
-leave-one-out statistics are recomputed only when something changed (docs/speed.md).
+A fixed camera, live sources only (camera, Pi camera, paced simulator): floor markers are
+checked where they were, robot markers detected near where their motion predicts them, a
+full detection runs in the background every fixed_full_every frames (markers new in the
+view) and at once when the camera is bumped; marker poses and leave-one-out statistics
+are recomputed only when something changed (docs/speed.md).
 false = full detection of every frame. File sources (images:, video:, replay:, the
 unpaced simulator) always use full detection: their results stay frame-exact.""",
                   live=True),
-        "track_full_every": Key(6, integer(1, 100000),
-                  'tracking: a full detection every N frames',
+        "fixed_full_every": Key(6, integer(1, 100000),
+                  'fixed camera: a full detection every N frames',
                   live=True),
-        "track_refit_every": Key(30, integer(1, 100000),
-                  ("tracking: the floor's camera fit updated at most every N frames"
+        "fixed_refit_every": Key(30, integer(1, 100000),
+                  ("fixed camera: the floor's camera fit updated at most every N frames"
                    " (1 = at every change)"),
                   doc="""\
-With tracking, the floor's camera fit is updated at most every track_refit_every frames:
+With a fixed camera, the floor's camera fit is updated at most every fixed_refit_every frames:
 in between, a floor marker whose corners were averaged with one more look keeps those of
 the last fit, and a floor marker new in the view is placed with the last fit without
 being a reference yet (a refit costs 10-40 ms of CPU and moves the fit by micrometres).
@@ -587,6 +587,12 @@ DEFAULT_ROBOTS: list[dict[str, Any]] = [
      "destinations": ["udp:127.0.0.1:9002"]},
 ]
 
+# Keys that changed their name: a file or request that uses the old one is told the new.
+# ("track" names the robots' tracking filter only; the fixed camera's keys say so.)
+RENAMED = {"detector.tracking": "detector.fixed_camera",
+           "detector.track_full_every": "detector.fixed_full_every",
+           "detector.track_refit_every": "detector.fixed_refit_every"}
+
 # ---------------------------------------------------------------------------- derived
 
 SCHEMA: dict[str, dict[str, Check]] = {
@@ -617,6 +623,8 @@ def validate_setting(key: Any, value: Any, where: str, remote: bool = False) -> 
     if not name or "." in name:
         raise ConfigError(f"{where}: key {shown(key)} must be SECTION.KEY")
     if name not in SCHEMA[section]:
+        if key in RENAMED:
+            raise ConfigError(f"{where}: key {key!r} is now {RENAMED[key]!r} (same meaning)")
         raise ConfigError(f"{where}: unknown key {shown(key)} (known in [{section}]: "
                           f"{', '.join(SCHEMA[section])})")
     try:

@@ -1,20 +1,21 @@
 """``kmea fuse``: the fusion node, one picture from several cameras (docs/fusion.md).
 
 Each camera runs ``kmead`` with ``[zenoh] enabled = true`` and publishes its robots'
-measurements under ``<site>/cam/<id>/...`` (:mod:`kmead.outputs.zenoh_camera`). The node finds the
-cameras by subscription, not configuration: a camera's liveliness token makes it known, its
-metadata (asked once) must carry the node's map digest or it is refused with a reason, its
-measurements are fused through the tracking filter (:class:`kmea.robots.fusion.Fusion`). A camera
-whose token goes (killed: at once; frozen or cut off: after the lease) or that sends nothing
-for the lease (its frame loop stuck) is dropped; it is used again when it comes back.
+measurements under ``<site>/cam/<id>/...`` (:mod:`kmead.outputs.zenoh_camera`). The node
+finds the cameras by subscription, not configuration: a camera's liveliness token makes it
+known, its metadata (asked once) must carry the node's map digest or it is refused with a
+reason (:mod:`kmead.fusion.cameras`), its measurements are fused through the tracking filter
+(:class:`kmea.robots.fusion.Fusion`). A camera whose token goes (killed: at once; frozen or
+cut off: after the lease) or that sends nothing for the lease (its frame loop stuck) is
+dropped; it is used again when it comes back.
 
-Two or more nodes may run hot (:class:`Election`): each holds ``<site>/fusion/<id>/<role>``;
-one is active and speaks to the robots (UDP datagrams, ``<site>/robots/<robot>/pose``, ROS 2),
-the others fuse the same measurements with their relay muted. The node serves the same
-ZeroMQ outputs as a daemon: telemetry (``robot.NAME``, ``robots`` with the cameras that saw
-each robot, ``status``, ``event``, ``log``), control (the daemon's commands that make sense
-without a camera) and the CSV log in the daemon's format (``kind`` robot, ``algorithm``
-fusion, ``refs`` the number of cameras).
+Two or more nodes may run hot (:mod:`kmead.fusion.election`): each holds
+``<site>/fusion/<id>/<role>``; one is active and speaks to the robots (UDP datagrams,
+``<site>/robots/<robot>/pose``, ROS 2), the others fuse the same measurements with their
+relay muted. The node serves the same ZeroMQ outputs as a daemon: telemetry (``robot.NAME``,
+``robots`` with the cameras that saw each robot, ``status``, ``event``, ``log``), control
+(the daemon's commands that make sense without a camera) and the CSV log in the daemon's
+format (``kind`` robot, ``algorithm`` fusion, ``refs`` the number of cameras).
 
 Everything received over Zenoh is hostile: a key or payload that does not decode, a missing
 or non-finite field is counted and reported once per camera, never raised. Zenoh's callbacks
@@ -37,7 +38,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import zmq
@@ -49,22 +49,25 @@ from kmea.wire import protocol as P
 from kmea.wire.jsonlimits import safe_loads
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
+from kmead.fusion.cameras import NUMBER, Camera, check_meta, measurement_from
+from kmead.fusion.election import Election
 from kmead.net.bodies import map_info
-from kmead.net.keys import CurveServer, KeysError
+from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
 from kmead.outputs.csvlog import CsvLog, row
 from kmead.outputs.datadir import DataDir
+from kmead.outputs.files import FileOutputs, LowSpace
 from kmead.outputs.relay import Relay
+from kmead.outputs.totals import RunTotals
 from kmead.run.log_ring import LogRing
 from kmead.run.startup import StartupError, configured_map
 
 log = logging.getLogger("kmead.fusion")
 
-__all__ = ["Camera", "Election", "FusionNode", "tracker_config"]
+__all__ = ["FusionNode", "tracker_config"]
 
 MAX_CAMERAS = 64  # cameras known at once (gone ones make room first)
 MAX_SAMPLE_BYTES = 1024  # a measurement or heartbeat; larger ones are bad
-MAX_META_BYTES = 4096
 QUEUE_MAX = 20000  # samples waiting for the loop; beyond, the oldest are dropped
 POLL_S = 0.001  # s: the loop's sleep when nothing came
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
@@ -73,90 +76,6 @@ _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 def tracker_config(cfg: Config) -> TrackerConfig:
     """The tracking filter's configuration from the ``[filter]`` section."""
     return TrackerConfig.from_table(cfg["filter"])
-
-
-@dataclass
-class Camera:
-    """One camera of the site: its id, state and counters.
-
-    state: ``waiting`` (for its metadata), ``used``, ``refused`` (``reason`` says why),
-    ``silent`` (alive but nothing for the lease), ``gone`` (its token went)."""
-
-    label: str
-    key: str
-    state: str = "waiting"
-    reason: str | None = None
-    received: int = 0
-    measurements: int = 0
-    bad: int = 0
-    dropped_old: int = 0
-    ignored: int = 0  # measurements while not used, or of robots not this node's
-    last_wall: float | None = None  # time.time() of its last sample
-    last_mono: float | None = None  # time.monotonic() of its last sample
-    last_t: float | None = None
-    delays: deque = field(default_factory=lambda: deque(maxlen=300))  # wall - t, s
-    bad_reported: bool = False
-    asked: float = -math.inf  # monotonic time of the last metadata query
-    meta: dict | None = None
-
-    def body(self, now_wall: float) -> P.InputState:
-        d = sorted(self.delays)
-        return {"label": self.label, "key": self.key, "state": self.state,
-                "reason": self.reason, "received": self.received,
-                "measurements": self.measurements, "bad": self.bad,
-                "dropped_old": self.dropped_old,
-                "silent_s": None if self.last_wall is None else now_wall - self.last_wall,
-                # Unix-time cameras: arrival minus capture = network + processing + offset.
-                "delay_s": d[len(d) // 2] if d else None}
-
-
-def check_meta(payload: bytes) -> dict:
-    """A camera's metadata (kmead.outputs.zenoh_camera.meta_body), checked; ValueError names what
-    is wrong."""
-    body = safe_loads(payload, MAX_META_BYTES, 4)
-    if not isinstance(body, dict):
-        raise ValueError("metadata: expected a JSON object")
-    for k in ("camera", "map_digest", "map_name", "model", "source"):
-        if not isinstance(body.get(k), str) or len(body[k]) > 256:
-            raise ValueError(f"metadata field {k!r}: expected a string")
-    for k in ("width", "height"):
-        v = body.get(k)
-        if isinstance(v, bool) or not isinstance(v, int) or not 0 < v < 100000:
-            raise ValueError(f"metadata field {k!r}: expected a size in pixels")
-    return body
-
-
-_NUM = (int, float)
-
-
-def measurement_from(label: str, body: dict, names: set[str]) -> Measurement | None:
-    """A measurement from a ``robot.NAME`` body (its ``raw`` measurement when the camera's
-    daemon filters with the tracking filter), None for a valid=0 (stale) message;
-    ``ValueError`` names the bad field."""
-    name = body.get("name")
-    if not isinstance(name, str) or name not in names:
-        raise ValueError(f"field 'name': unknown robot {name!r}")
-    valid = body.get("valid")
-    if not isinstance(valid, bool):
-        raise ValueError("field 'valid': expected true or false")
-    if not valid:
-        return None
-    raw = body.get("raw")
-    # A daemon with the tracking filter sends its filtered pose and the measurement ("raw"):
-    # fuse the measurement (filtering filtered poses again would count the noise twice).
-    src = {**body, **raw} if isinstance(raw, dict) else body
-    vals = {}
-    for k in ("t", "x", "y", "theta"):
-        v = src.get(k)
-        if isinstance(v, bool) or not isinstance(v, _NUM) or not math.isfinite(v):
-            raise ValueError(f"field {k!r}: expected a finite number, got {v!r}")
-        vals[k] = float(v)
-    sigma = src.get("sigma")
-    if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, _NUM)
-                              or not math.isfinite(sigma) or sigma < 0):
-        raise ValueError(f"field 'sigma': expected a number >= 0 or null, got {sigma!r}")
-    return Measurement(label, name, vals["t"], vals["x"], vals["y"], vals["theta"],
-                       None if sigma is None else float(sigma))
 
 
 class _NoStats:
@@ -177,64 +96,6 @@ class _NoPipeline:
     algorithm = "fusion"
 
 
-class Election:
-    """Which of the site's fusion nodes speaks to the robots; the node's loop calls it.
-
-    Each node holds one liveliness token ``<site>/fusion/<id>/<role>``: ``id`` its Zenoh
-    session id, ``role`` one of ``starting`` (the first ``grace_s`` after its start, two
-    leases: it watches the site for the tokens of nodes already there; the peers retry a
-    lost connection every half lease, kmead.outputs.zenoh_session), ``standby`` or
-    ``active``. The rule, the same in every node, so that nodes that see the same tokens agree:
-
-    - a standby claims the voice when no active token is alive and it has the lowest id of
-      the standbys: a node that starts never takes the voice from a running active one,
-      whatever its id, and never claims before it has watched the site for ``grace_s``;
-    - an active node that sees another active one with a lower id steps down to standby
-      (two nodes cut off from each other both claim; when they meet again one voice is
-      left);
-    - an active node that finds it has not run for longer than the lease (the machine or
-      the process was frozen; a standby has taken over meanwhile) steps down before it
-      sends anything, and starts over (``grace_s`` of watching).
-    """
-
-    def __init__(self, node_id: str, grace_s: float, now: float) -> None:
-        self.id = node_id
-        self.grace_s = grace_s
-        self.role = "starting"
-        self.since = now  # start of "starting"
-        self.others: dict[str, set[str]] = {}  # node id -> its roles' tokens alive
-
-    def token(self, node_id: str, role: str, alive: bool) -> None:
-        if node_id == self.id:
-            return
-        roles = self.others.setdefault(node_id, set())
-        (roles.add if alive else roles.discard)(role)
-        if not roles:
-            del self.others[node_id]
-
-    def decide(self, now: float, stalled: bool = False) -> str | None:
-        """The new role when it changes, else None."""
-        actives = {n for n, roles in self.others.items() if "active" in roles}
-        if self.role == "active":
-            if stalled:
-                self.role, self.since = "starting", now
-            elif any(n < self.id for n in actives):
-                self.role = "standby"
-            else:
-                return None
-            return self.role
-        if self.role == "starting":
-            if now - self.since < self.grace_s:
-                return None
-            self.role = "standby"
-            return self.role
-        standbys = {n for n, roles in self.others.items() if "standby" in roles}
-        if actives or min([self.id, *standbys]) != self.id:
-            return None
-        self.role = "active"
-        return self.role
-
-
 class FusionNode:
     """The fusion node; :meth:`run` until ``max_outputs`` fused outputs or :meth:`stop`.
 
@@ -253,7 +114,7 @@ class FusionNode:
         self.control: Any = None
         self.telemetry: Telemetry | None = None
         self.relay: Relay | None = None
-        self.csv: CsvLog | None = None
+        self.files: FileOutputs | None = None  # the CSV log (no recording: no frames)
         self.session: Any = None
         self.zenoh_out: Any = None  # kmead.outputs.zenoh.ZenohOutput while active
         self._subs: list[Any] = []
@@ -276,15 +137,13 @@ class FusionNode:
             log.warning("%s", w)
         self.lease_s = float(self.z["lease_s"])
         self.site = self.z["site"]
-        # A keyed node has its own context: one ZAP handler per context (kmead.net.keys).
-        self._own_ctx = zmq.Context() if net["keys"] else None
+        if net["keys"]:  # the daemon's one set-up: a context of its own with the ZAP handler
+            try:
+                self._own_ctx, self.curve = keyed_context(net["keys"])
+            except KeysError as e:
+                raise ConfigError(str(e)) from None
         self.ctx = self._own_ctx or context or zmq.Context.instance()
         try:
-            if net["keys"]:
-                try:
-                    self.curve = CurveServer(self.ctx, net["keys"])
-                except KeysError as e:
-                    raise ConfigError(str(e)) from None
             self.data_dir = DataDir(cfg["log"]["dir"])
             try:  # the floor the robots are on: map.file, else the first camera's
                 self.world_map = configured_map(cfg, None)
@@ -309,8 +168,16 @@ class FusionNode:
             self.queue: queue.Queue = queue.Queue(QUEUE_MAX)
             self.overflow = 0  # events dropped: the loop fell behind by QUEUE_MAX
             self.foreign = 0  # samples on keys that do not parse (bad camera id, key)
+            # The daemon's rules for its files (never truncating, the data directory over
+            # control, the free-space floor, a failing disk stops the log only).
+            self.files = FileOutputs(cfg["log"], self.data_dir, RunTotals(), self.event)
             if cfg["log"]["csv"]:
-                self.start_csv(cfg["log"]["csv"])
+                try:
+                    self.files.start_csv(cfg["log"]["csv"])
+                except LowSpace as e:
+                    self.files.refused("log", str(e))
+                except ValueError as e:
+                    raise ConfigError(f"key 'log.csv': {e}") from None
             self.outputs = 0
             self.rejected_events = 0
             self.latency_ms: deque = deque(maxlen=100000)
@@ -518,7 +385,7 @@ class FusionNode:
                 raise ValueError("expected a JSON object")
             if parts[3] == "frame" and len(parts) == 4:
                 t = body.get("t")
-                if isinstance(t, bool) or not isinstance(t, _NUM) or not math.isfinite(t):
+                if isinstance(t, bool) or not isinstance(t, NUMBER) or not math.isfinite(t):
                     raise ValueError(f"frame field 't': expected a finite number, got {t!r}")
                 return False
             if parts[3] != "robots" or len(parts) != 5 or body.get("name") != parts[4]:
@@ -590,9 +457,11 @@ class FusionNode:
                  "source": "+".join(srcs), "t_capture": t_meas}
         self.relay.update(m.name, st.t, st.x, st.y, st.theta, st.sigma, extra, cov=st.cov)
         self.outputs += 1
-        if self.csv is not None:
-            self.csv.write_rows([row(self.outputs, st.t, "fusion", "robot", m.name, st.x, st.y,
-                                     None, st.theta, st.sigma, len(srcs))])
+        files = self.files
+        if files is not None and files.csv is not None:
+            files.watch_space()
+            files.write_csv([row(self.outputs, st.t, "fusion", "robot", m.name, st.x, st.y,
+                                 None, st.theta, st.sigma, len(srcs))])
         self.latency_ms.append((time.perf_counter() - t_recv) * 1e3)
         now = time.perf_counter()
         if now - self._last_robots_pub >= 1.0 / 30.0:
@@ -604,7 +473,7 @@ class FusionNode:
         assert self.relay is not None
         now = self.clock()
         out = []
-        for tr in self.relay.tracks.values():
+        for tr in self.relay.channels.values():
             seen = tr.last_seen is not None
             srcs = self.fusion.sources(tr.name, self.cfg["relay"]["stale_after_s"])
             last = self.fusion.seen.get(tr.name)
@@ -639,8 +508,10 @@ class FusionNode:
             "config_file": self.cfg.user_file or "<default config>",
             "config_files": self.cfg.files, "algorithm": "fusion", "algorithms": ["fusion"],
             "logging": {"active": c is not None, "path": str(c.path) if c else None,
-                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0},
-            "recording": {"active": False, "path": None, "frames": 0, "bytes": 0},
+                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0,
+                        "error": self.files.errors["log"] if self.files else None},
+            "recording": {"active": False, "path": None, "frames": 0, "bytes": 0,
+                          "error": None},
             "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
             "map": map_info(self.world_map),
             "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
@@ -689,24 +560,19 @@ class FusionNode:
                                       f"{relay.stale_after_s:g} s: stale (valid=0 sent)")
                 self.publish(P.TOPIC_ROBOTS, self.robots_body())
 
+    @property
+    def csv(self) -> CsvLog | None:
+        return self.files.csv if self.files is not None else None
+
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
-        if self.csv is not None:
-            self.csv.close()
-        if remote:  # over control: a new plain name in the data directory (kmead.outputs.datadir)
-            path = str(self.data_dir.create(path, "log"))
-        try:
-            self.csv = CsvLog(path)
-        except OSError as e:
-            raise OSError(f"log.csv: cannot open {path}: {e.strerror or e}") from None
-        return self.csv
+        if self.files is None:
+            raise ValueError("log: the node is closed")
+        return self.files.start_csv(path, remote, keep)
 
     def stop_csv(self) -> dict:
-        c = self.csv
-        if c is None:
-            return {"path": None, "rows": 0}
-        c.close()
-        self.csv = None
-        return {"path": str(c.path), "rows": c.rows}
+        if self.files is None:
+            raise ValueError("not logging")
+        return self.files.stop_csv()
 
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
         if key not in ("relay.stale_after_s", "relay.stale_repeat_s", "log.level"):
@@ -811,9 +677,9 @@ class FusionNode:
         if self.control is not None:
             self.control.stop()
             self.control = None
-        if self.csv is not None:
-            self.csv.close()
-            self.csv = None
+        if self.files is not None:
+            self.files.close()
+            self.files = None
         if self._log_handler is not None:
             logging.getLogger("kmead").removeHandler(self._log_handler)
             self._log_handler = None
@@ -903,28 +769,15 @@ def run(args: Any) -> int:
 
 def _serve(node: FusionNode, args: Any) -> int:
     """The node's run (with the UI or headless), then its summary; closes the node."""
-    import signal
     import sys
 
-    from kmead.cli import _run_with_ui
+    from kmead.run.host import run_host
 
     print(f"kmea fuse: telemetry {node.telemetry.bound if node.telemetry else 'off'}, control "
           f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
-    code = 0
     try:
-        if ui:
-            code = _run_with_ui(node)
-        else:
-            previous = {s: signal.signal(s, lambda *_: node.stop())
-                        for s in (signal.SIGINT, signal.SIGTERM)}
-            try:
-                code = node.run()
-            finally:
-                for s, h in previous.items():
-                    signal.signal(s, h)
-    except KeyboardInterrupt:
-        node.stop()
+        code = run_host(node, ui)
     finally:
         summary = node.summary()
         node.close()

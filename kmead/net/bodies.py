@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from kmea.pipeline import FrameResult
     from kmea.stats.metrics import WindowStats
     from kmea.vision.camera import CameraModel
-    from kmead.outputs.relay import RobotTrack
+    from kmead.outputs.relay import RobotChannel
 
 
 def frame_body(res: FrameResult, *, source: str, fps: float, dropped: int,
@@ -91,7 +91,7 @@ def markers_body(res: FrameResult, world_map: MarkerMap,
             "markers": out}
 
 
-def robots_body(res: FrameResult, tracks: Iterable[RobotTrack]) -> RobotsBody:
+def robots_body(res: FrameResult, tracks: Iterable[RobotChannel]) -> RobotsBody:
     """``robots``: every configured robot's last pose and relay counters."""
     out: list[RobotRow] = []
     for tr in tracks:

@@ -48,17 +48,29 @@ class Host(Protocol):
     the reason). Declared here so this module imports neither (they create the server);
     pyright checks that both satisfy it where they hand themselves to the server."""
 
-    cfg: Any
-    lock: Any
-    stats: Any
-    pipeline: Any
-    last_frame_body: dict
-    last_result: Any
-    guard: Any  # kmead.run.rollback.ChangeGuard
-    data_dir: Any  # kmead.outputs.datadir.DataDir
-    camera_feed: Any  # kmead.run.camera_feed.CameraFeed; None on a fusion node (no camera)
-    log_ring: Any  # kmead.run.log_ring.LogRing
-    replay: bool
+    # Read-only properties: a plain attribute or a property of the host satisfies each.
+    @property
+    def cfg(self) -> Any: ...
+    @property
+    def lock(self) -> Any: ...
+    @property
+    def stats(self) -> Any: ...
+    @property
+    def pipeline(self) -> Any: ...
+    @property
+    def last_frame_body(self) -> Mapping[str, Any]: ...
+    @property
+    def last_result(self) -> Any: ...
+    @property
+    def guard(self) -> Any: ...  # kmead.run.rollback.ChangeGuard
+    @property
+    def data_dir(self) -> Any: ...  # kmead.outputs.datadir.DataDir
+    @property
+    def camera_feed(self) -> Any: ...  # kmead.run.camera_feed.CameraFeed; None: fusion node
+    @property
+    def log_ring(self) -> Any: ...  # kmead.run.log_ring.LogRing
+    @property
+    def replay(self) -> bool: ...
 
     def status(self) -> P.StatusBody: ...
     def publish(self, topic: str, body: Mapping[str, Any]) -> None: ...

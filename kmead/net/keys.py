@@ -38,7 +38,7 @@ from kmea.wire.curve_client import (
 )
 
 __all__ = ["OPERATOR", "VIEWER", "CurveServer", "KeyRing", "KeysError", "add_client",
-           "connect_client", "init_keys", "read_client_keys"]
+           "connect_client", "init_keys", "keyed_context", "read_client_keys"]
 
 log = logging.getLogger("kmead.keys")
 
@@ -286,3 +286,16 @@ def exposure(endpoints: dict[str, str], keys: str, insecure: bool) -> tuple[str 
     return (f"{open_[0]}: refusing to bind beyond loopback without keys; make them with "
             "`kmea keys init DIR` and set network.keys = \"DIR\" (docs/security.md), or set "
             "network.insecure = true"), None
+
+
+def keyed_context(keys_dir: str | Path) -> tuple[zmq.Context, CurveServer]:
+    """A ZeroMQ context of its own and the CURVE server of ``keys_dir`` on it: the one
+    set-up of the daemon and the fusion node (a context has one ZAP handler, so a keyed
+    process never shares ``zmq.Context.instance()``). :class:`KeysError` when the keys
+    cannot be used (the context is terminated then)."""
+    ctx = zmq.Context()
+    try:
+        return ctx, CurveServer(ctx, keys_dir)
+    except BaseException:
+        ctx.term()
+        raise

@@ -49,8 +49,8 @@ class Telemetry:
                 self.sock = None
                 raise OSError(f"network.telemetry: cannot bind {endpoint}: {e}") from None
             self.bound = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
-            self._thread = threading.Thread(target=self._run, name="kmead-telemetry",
-                                            daemon=True)
+            self._thread = threading.Thread(target=self._run, args=(self.sock,),
+                                            name="kmead-telemetry", daemon=True)
             self._thread.start()
 
     def publish(self, topic: str, body: Mapping[str, Any]) -> None:
@@ -61,7 +61,7 @@ class Telemetry:
         except queue.Full:
             self.dropped += 1
 
-    def _run(self) -> None:
+    def _run(self, sock: zmq.Socket) -> None:
         while True:
             item = self._queue.get()
             if item is None:
@@ -72,7 +72,7 @@ class Telemetry:
                 self.dropped += 1
                 continue
             try:
-                self.sock.send_multipart(frames, flags=zmq.NOBLOCK)
+                sock.send_multipart(frames, flags=zmq.NOBLOCK)
                 self.sent += 1
             except zmq.ZMQError:
                 self.dropped += 1  # HWM reached: telemetry is best effort

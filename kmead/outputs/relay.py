@@ -24,7 +24,7 @@ filter); sigma: 1-sigma position m (0 when unknown); age: s from the newest meas
 Each destination has its own connected UDP socket, so a destination that refuses (ICMP port
 unreachable, e.g. nothing listening) is reported by the kernel at the next send and counted
 in ``errors`` rather than ``sent``; such refusals are also counted in ``refused``, and
-:meth:`RobotTrack.refused_now` names the destinations refused among the last messages (the
+:meth:`RobotChannel.refused_now` names the destinations refused among the last messages (the
 UI's "no listener": with nothing listening about every other send fails, the others go
 out and draw the next refusal).
 """
@@ -35,6 +35,7 @@ import errno
 import logging
 import math
 import socket
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,7 +46,7 @@ log = logging.getLogger("kmead.relay")
 
 
 @dataclass
-class RobotTrack:
+class RobotChannel:
     """Relay state of one robot."""
 
     name: str
@@ -118,7 +119,7 @@ def _resolve(host: str, port: int) -> tuple[str, int] | None:
         log.warning("relay destination udp:%s:%d does not resolve; datagrams to it are "
                     "counted as errors", host, port)
         return None
-    return info[0][4][0], port
+    return str(info[0][4][0]), port  # AF_INET: the address is (host, port)
 
 
 class Relay:
@@ -138,7 +139,7 @@ class Relay:
         self.extra_fields = extra_fields
         self.publish = publish
         self._socks: dict[tuple[str, int], socket.socket] = {}
-        self.tracks: dict[str, RobotTrack] = {}
+        self.channels: dict[str, RobotChannel] = {}
         self.withdrawn = 0  # valid=0 messages for removed robots and destinations
         self.configure(robots)
 
@@ -161,8 +162,8 @@ class Relay:
         A robot that goes, and each destination a robot loses, gets one ``valid=0`` message
         (at time ``t``, default its last-seen time): it must not keep following a stale pose.
         """
-        old = self.tracks
-        self.tracks = {}
+        old = self.channels
+        self.channels = {}
         for r in robots:
             addrs = [_resolve(*parse_destination(d, f"robot {r['name']}"))
                      for d in r["destinations"]]
@@ -173,24 +174,31 @@ class Relay:
                     self._send(tr, self._t(tr, t), False, gone)
                     self.withdrawn += 1
             if tr is None or tr.markers != r["markers"]:
-                tr = RobotTrack(r["name"], list(r["markers"]), list(r["destinations"]), addrs,
+                tr = RobotChannel(r["name"], list(r["markers"]), list(r["destinations"]), addrs,
                                 seq=tr.seq if tr else 0)
             else:
                 tr.destinations, tr.addrs = list(r["destinations"]), addrs
-            self.tracks[r["name"]] = tr
+            self.channels[r["name"]] = tr
         for tr in old.values():  # removed robots
             self._send(tr, self._t(tr, t), False)
             self.withdrawn += 1
-        live = {a for tr in self.tracks.values() for a in tr.addrs if a is not None}
+        live = {a for tr in self.channels.values() for a in tr.addrs if a is not None}
         for addr in [a for a in self._socks if a not in live]:
             self._socks.pop(addr).close()
 
     @staticmethod
-    def _t(tr: RobotTrack, t: float | None) -> float:
+    def _fix_time(tr: RobotChannel) -> float:
+        """The time of robot ``tr``'s last fix (:meth:`publish_fix` follows :meth:`update`)."""
+        if tr.last_seen is None:
+            raise ValueError(f"relay: robot {tr.name!r} has no fix to publish")
+        return tr.last_seen
+
+    @staticmethod
+    def _t(tr: RobotChannel, t: float | None) -> float:
         return t if t is not None else (tr.last_seen if tr.last_seen is not None else 0.0)
 
-    def _send(self, tr: RobotTrack, t: float, valid: bool,
-              addrs: list[tuple[str, int] | None] | None = None,
+    def _send(self, tr: RobotChannel, t: float, valid: bool,
+              addrs: Sequence[tuple[str, int] | None] | None = None,
               publish: bool = True) -> None:
         tr.seq += 1
         extra = None
@@ -217,7 +225,7 @@ class Relay:
         if publish:
             self._publish(tr, t, valid)
 
-    def _publish(self, tr: RobotTrack, t: float, valid: bool, sink: bool = True) -> None:
+    def _publish(self, tr: RobotChannel, t: float, valid: bool, sink: bool = True) -> None:
         if sink and self.sink is not None and not self.muted:
             self.sink(tr, t, valid, self._stopping)
         if self.publish is not None:
@@ -236,7 +244,7 @@ class Relay:
         tracking filter's (3, 3) covariance of (x, y, theta) (the ROS 2 output's).
         ``publish=False``: the telemetry body waits for :meth:`publish_fix` (a frame's
         datagrams all go out before its telemetry wakes the telemetry thread)."""
-        tr = self.tracks[name]
+        tr = self.channels[name]
         tr.x, tr.y, tr.theta, tr.sigma, tr.cov = x, y, theta, sigma, cov
         tr.extra = dict(extra) if extra else {}
         tr.last_seen = t
@@ -246,19 +254,19 @@ class Relay:
 
     def publish_fix(self, name: str) -> None:
         """The telemetry body of robot ``name``'s last fix."""
-        tr = self.tracks[name]
-        self._publish(tr, tr.last_seen, True)
+        tr = self.channels[name]
+        self._publish(tr, self._fix_time(tr), True)
 
     def publish_fixes(self, names: list[str]) -> None:
         """:meth:`publish_fix` for a frame's robots: every sink message first, then the
         telemetry bodies (the first body wakes the telemetry thread, which would take the
         GIL from the next robot's Zenoh message)."""
-        tracks = [self.tracks[n] for n in names]
+        tracks = [self.channels[n] for n in names]
         if self.sink is not None and not self.muted:
             for tr in tracks:
-                self.sink(tr, tr.last_seen, True, self._stopping)
+                self.sink(tr, self._fix_time(tr), True, self._stopping)
         for tr in tracks:
-            self._publish(tr, tr.last_seen, True, sink=False)
+            self._publish(tr, self._fix_time(tr), True, sink=False)
 
     def tick(self, now: float) -> list[str]:
         """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.
@@ -266,7 +274,7 @@ class Relay:
         Returns the names that just became stale (for an event).
         """
         newly = []
-        for tr in self.tracks.values():
+        for tr in self.channels.values():
             if tr.last_seen is None:
                 continue  # never seen: nothing to withdraw
             if now - tr.last_seen < self.stale_after_s:
@@ -286,7 +294,7 @@ class Relay:
         """One ``valid=0`` message to every robot: the daemon stops (SIGTERM, SIGINT, end of
         frames); robots must not keep following their last pose."""
         self._stopping = True
-        for tr in self.tracks.values():
+        for tr in self.channels.values():
             tr.stale = True
             self._send(tr, t, False)
 

@@ -146,7 +146,7 @@ class ZenohOutput:
         return rp
 
     def send(self, tr: Any, t: float, valid: bool, stopping: bool = False) -> None:
-        """One relay message of robot track ``tr`` (a :class:`kmead.outputs.relay.RobotTrack`) at
+        """One relay message of robot track ``tr`` (a :class:`kmead.outputs.relay.RobotChannel`) at
         time ``t`` (s). Never raises: a failure is counted and logged once."""
         try:
             self._send(tr, t, valid, stopping)

@@ -27,6 +27,7 @@ from kmea.estimators import available as available_algorithms
 from kmea.maps.files import MarkerMap
 from kmea.pipeline import FrameInput, FrameResult, Pipeline, PipelineSettings
 from kmea.recordings.format import Recorder
+from kmea.sources.base import FrameSource
 from kmea.sources.replay import ReplaySource
 from kmea.stats.metrics import WindowStats
 from kmea.stats.moved import MovedMonitor
@@ -72,6 +73,11 @@ STARTUP_FAILURES = 30
 class Daemon:
     """A configured daemon; :meth:`run` processes frames until the end, --frames or stop()."""
 
+    # Made by _build, before anything can use them (close() copes with a partial build).
+    files: FileOutputs
+    relay: Relay
+    source: FrameSource
+
     def __init__(self, cfg: Config, max_frames: int | None = None) -> None:
         self.cfg = cfg
         self.max_frames = max_frames
@@ -79,14 +85,12 @@ class Daemon:
         self.stop_event = threading.Event()
         self.totals = RunTotals()
         self.t0 = time.time()
-        self.files: FileOutputs | None = None
         self.telemetry: Telemetry | None = None
         self.control = None
-        self.relay: Relay | None = None
         self.capture: Capture | None = None
         self.feed = None
         self.gc_pacing: GcPacing | None = None
-        self.last_frame_body: dict = {}
+        self.last_frame_body: Mapping[str, Any] = {}
         self.last_result: FrameResult | None = None
         self.frame_times: collections.deque[float] = collections.deque(maxlen=31)
         self.displaced: dict[int, float] = {}
@@ -96,6 +100,7 @@ class Daemon:
         self._t_capture = 0.0
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
+        self._closed = False
         self._log_handler: logging.Handler | None = None
         # Field kit: liveness, the UI's camera view and log on attach, snapshots, Foxglove.
         self.state = "starting"  # running, then stopped: in the status telemetry
@@ -124,7 +129,6 @@ class Daemon:
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
         cfg = self.cfg
-        self.source = None
         # Every configuration problem is found here, as `kmead --check` finds it (exit 2);
         # what follows can fail only at opening (exit 1).
         plan = plan_startup(cfg)
@@ -137,11 +141,11 @@ class Daemon:
         self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(cfg)
         camera = fit_camera(cfg, plan.camera, self.source)
         check_camera(cfg, camera)
-        if self.replay and self.source.header.get("fast_path"):
+        if isinstance(self.source, ReplaySource) and self.source.header.get("fast_path"):
             log.warning("replay: %s was recorded with the fixed-camera fast path "
-                        "(detector.tracking on a live source), which refits the floor every "
-                        "detector.track_refit_every frames; the replay refits every frame, so "
-                        "its rows differ slightly (record with --set detector.tracking=false "
+                        "(detector.fixed_camera on a live source), which refits the floor every "
+                        "detector.fixed_refit_every frames; the replay refits every frame, so "
+                        "its rows differ slightly (record with --set detector.fixed_camera=false "
                         "for rows identical to the recorded run's)", self.source_spec)
         try:
             self.data_dir = DataDir(cfg["log"]["dir"])
@@ -248,13 +252,10 @@ class Daemon:
         """CURVE on both sockets when keys are configured (the plan judged the exposure)."""
         net = self.cfg["network"]
         if net["keys"]:
-            import zmq
+            from kmead.net.keys import KeysError, keyed_context
 
-            from kmead.net.keys import CurveServer, KeysError
-
-            self.zmq_context = zmq.Context()
             try:
-                self.curve = CurveServer(self.zmq_context, net["keys"])
+                self.zmq_context, self.curve = keyed_context(net["keys"])
             except KeysError as e:
                 raise StartupError(str(e), EXIT_CONFIG) from None
             log.info("CURVE on: keys %s (%d operator(s), %d viewer(s))", net["keys"],
@@ -273,11 +274,11 @@ class Daemon:
     # summary reach them through these.
     @property
     def csv(self) -> CsvLog | None:
-        return self.files.csv if self.files is not None else None
+        return self.files.csv
 
     @property
     def recorder(self) -> Recorder | None:
-        return self.files.recorder if self.files is not None else None
+        return self.files.recorder
 
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
         return self.files.start_csv(path, remote, keep)
@@ -295,7 +296,7 @@ class Daemon:
     def _new_recorder(self, path: str | Path, part: int = 1,
                       previous: str | None = None) -> Recorder:
         return Recorder(path, self.pipeline.camera, self.world_map, self.source_spec,
-                        self.cfg.to_dict(), fast_path=self.pipeline.settings.tracking,
+                        self.cfg.to_dict(), fast_path=self.pipeline.settings.fixed_camera,
                         part=part, previous=previous)
 
     # ------------------------------------------------------------------ live settings
@@ -368,7 +369,7 @@ class Daemon:
             config_file=self.cfg.user_file or "<default config>",
             config_files=self.cfg.files, algorithm=self.pipeline.algorithm,
             algorithms=available_algorithms(), csv=self.csv, recorder=self.recorder,
-            output_errors=self.files.errors if self.files is not None else None,
+            output_errors=self.files.errors,
             camera=self.pipeline.camera, world_map=self.world_map,
             frames=self.totals.frames, dropped=self.dropped,
             bad_frames=self.totals.bad_frames,
@@ -382,7 +383,7 @@ class Daemon:
             return self._progress()
 
     def _progress(self) -> dict:
-        tracks = self.relay.tracks.values() if self.relay is not None else ()
+        tracks = self.relay.channels.values()
         loo = self.stats.mean_error
         return {"frames": self.totals.frames, "fps": self.fps(),
                 "robots_tracked": sum(1 for tr in tracks
@@ -494,7 +495,7 @@ class Daemon:
                                             self.world_map))
             return cache[0]
 
-        if lease is not None:
+        if lease is not None and image is not None:
             self.publish(P.TOPIC_CAMERA, camera_body(image, marks(), lease.width, lease.height,
                                                      res.index, res.timestamp))
         if self.foxglove is not None:
@@ -506,7 +507,7 @@ class Daemon:
                                   "suspect" if mid in suspect else "detected")
                        for mid, (p, yaw) in res.markers.items()]
             robots = [RobotView(tr.name, tr.x, tr.y, tr.theta, tr.name in res.robots)
-                      for tr in self.relay.tracks.values() if tr.last_seen is not None]
+                      for tr in self.relay.channels.values() if tr.last_seen is not None]
             self.foxglove.publish(FrameView(res.timestamp, res.index, image, marks, markers,
                                             robots, res.estimate.cam2world))
 
@@ -558,7 +559,7 @@ class Daemon:
         # 4. telemetry
         self.publish(P.TOPIC_MARKERS, bodies.markers_body(res, self.world_map,
                                                           self.monitor.get))
-        self.publish(P.TOPIC_ROBOTS, bodies.robots_body(res, self.relay.tracks.values()))
+        self.publish(P.TOPIC_ROBOTS, bodies.robots_body(res, self.relay.channels.values()))
         now = time.perf_counter()
         if self.control is None and now - self._last_status_pub >= \
                 self.cfg["network"]["status_period_s"]:
@@ -596,10 +597,11 @@ class Daemon:
             if fix.vx is not None:
                 extra = {"vx": fix.vx, "vy": fix.vy, "omega": fix.omega, "age": 0.0}
                 if fix.raw is not None:  # the measurement itself, for a fusion node
-                    extra["raw"] = dict(zip(("x", "y", "theta", "sigma"), fix.raw,
-                                            strict=True))
-                    extra["raw"]["t"] = t_pose  # its own instant, also when t is predicted
-                if predict:
+                    raw: dict[str, float] = dict(zip(("x", "y", "theta", "sigma"), fix.raw,
+                                                     strict=True))
+                    raw["t"] = t_pose  # its own instant, also when t is predicted
+                    extra["raw"] = raw
+                if predict and tracker is not None:
                     now = time.time()
                     st = tracker.predict(fix.name, now)
                     if st is not None and now >= t_pose:
@@ -640,6 +642,8 @@ class Daemon:
         bad = self.monitor.update(figures)
         now = time.monotonic()
         for mid, ev in sorted(bad.items()):
+            if ev.offset is None or ev.threshold is None:
+                continue  # (a moved marker has both)
             if now - self.displaced.get(mid, -math.inf) >= DISPLACED_QUIET_S:
                 self.displaced[mid] = now
                 self.event("warning", f"marker {mid} looks displaced by "
@@ -650,7 +654,7 @@ class Daemon:
     # ------------------------------------------------------------------ service thread hooks
     def tick(self) -> None:
         """Called by the service thread about every 100 ms."""
-        if self.live and self.relay is not None:
+        if self.live:
             # No frame for a while (camera stalled): robots still go stale on the wall clock.
             now = time.time()
             if now - self._last_frame_wall >= self.cfg["relay"]["stale_after_s"]:
@@ -742,8 +746,11 @@ class Daemon:
         self.stop_event.set()
 
     def close(self) -> None:
-        """Flush and close everything (idempotent)."""
+        """Flush and close everything (idempotent; also after a build that failed half way)."""
         with self.lock:
+            if self._closed:
+                return
+            self._closed = True
             self.live_settings.settle()
             if self.control is not None:
                 self.control.stop()
@@ -757,18 +764,17 @@ class Daemon:
                 self.capture.close()
             elif getattr(self, "source", None) is not None:
                 self.source.close()
-            if self.files is not None:
+            if getattr(self, "files", None) is not None:
                 self.files.close()
             if self.foxglove is not None:
                 self.foxglove.close()
                 self.foxglove = None
-            if self.relay is not None:
+            if getattr(self, "relay", None) is not None:
                 try:  # robots must not keep following the last pose of a stopped daemon
                     self.relay.shutdown(self._now())
                 except Exception:
                     log.exception("relay shutdown")
                 self.relay.close()
-                self.relay = None
             if self.zenoh_camera is not None:
                 self.zenoh_camera.close()
                 self.zenoh_camera = None

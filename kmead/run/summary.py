@@ -13,13 +13,20 @@ class Daemon(Protocol):
     """What the summary reads of the daemon (``kmead.run.daemon.Daemon``; declared here so
     this module does not import the daemon, which calls it)."""
 
-    totals: Any  # kmead.run.daemon.RunTotals
-    world_map: MarkerMap
-    source_spec: str
-    pipeline: Any
-    dropped: int
-    cfg: Any
-    csv: Any
+    @property
+    def totals(self) -> Any: ...  # kmead.outputs.totals.RunTotals
+    @property
+    def world_map(self) -> MarkerMap: ...
+    @property
+    def source_spec(self) -> str: ...
+    @property
+    def pipeline(self) -> Any: ...
+    @property
+    def dropped(self) -> int: ...
+    @property
+    def cfg(self) -> Any: ...
+    @property
+    def csv(self) -> Any: ...
 
 
 def format_summary(d: Daemon) -> str:

@@ -67,6 +67,7 @@ from foxglove.messages import (
     Timestamp,
     Vector3,
 )
+from foxglove.websocket import ServerListener  # (foxglove re-exports it, not statically)
 
 from kmea.maps.files import MarkerMap
 from kmea.vision.camera import CameraModel
@@ -323,7 +324,8 @@ class FoxgloveLog:
 
     def poses_message(self, t: float, robots: Sequence[RobotView]) -> PosesInFrame:
         poses = [Pose(position=Vector3(x=r.x, y=r.y, z=0.0), orientation=_yaw_q(r.theta))
-                 for r in robots if r.valid and None not in (r.x, r.y, r.theta)]
+                 for r in robots
+                 if r.valid and r.x is not None and r.y is not None and r.theta is not None]
         return PosesInFrame(timestamp=_stamp(t), frame_id=WORLD, poses=poses)
 
     def transforms_message(self, t: float, cam2world: np.ndarray | None,
@@ -340,7 +342,7 @@ class FoxgloveLog:
                                           translation=Vector3(x=tr[0], y=tr[1], z=tr[2]),
                                           rotation=quaternion(A / s)))
         for r in robots:
-            if r.valid and None not in (r.x, r.y, r.theta):
+            if r.valid and r.x is not None and r.y is not None and r.theta is not None:
                 out.append(FrameTransform(timestamp=stamp, parent_frame_id=WORLD,
                                           child_frame_id=f"robot/{r.name}",
                                           translation=Vector3(x=r.x, y=r.y, z=0.0),
@@ -381,7 +383,7 @@ class FoxgloveLog:
         return sent
 
 
-class _Listener(foxglove.ServerListener):
+class _Listener(ServerListener):
     """Re-sends the static map scene when a client subscribes to it."""
 
     def __init__(self) -> None:

@@ -1,6 +1,6 @@
 """Tracking for a fixed camera: real ArUco detection on rendered simulator frames.
 
-The tracking detector (kmea.vision.tracking_detector) against full detection of the same
+The tracking detector (kmea.vision.fixed_camera_detector) against full detection of the same
 frames and against the simulator's truth; the pipeline's incremental poses and
 leave-one-out errors (kmea.fixed_camera) against recomputation. Frames are 820x616 (half
 the Pi's 1640x1232) to keep the suite fast; markers are then ~30 px wide.
@@ -22,9 +22,9 @@ from deadlines import DEADLINE, JOIN
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 from kmea.sources.sim import SimSource
 from kmea.vision.detection import DetectorConfig, MarkerDetector
-from kmea.vision.tracking_detector import (
-    TrackingConfig,
-    TrackingDetector,
+from kmea.vision.fixed_camera_detector import (
+    FixedCameraConfig,
+    FixedCameraDetector,
     code_scores,
     marker_codes,
 )
@@ -42,18 +42,18 @@ def _static_ids(src: SimSource) -> frozenset[int]:
     return frozenset(set(src.world_map.markers) - robot_ids)
 
 
-def _tracker(src: SimSource, **kw) -> TrackingDetector:
+def _tracker(src: SimSource, **kw) -> FixedCameraDetector:
     # No executor: the background detection runs in the calling thread, so the
     # frame at which a discovery is merged is deterministic.
-    return TrackingDetector(DetectorConfig(src.world_map.dictionary),
-                            TrackingConfig(static_ids=_static_ids(src), **kw))
+    return FixedCameraDetector(DetectorConfig(src.world_map.dictionary),
+                            FixedCameraConfig(static_ids=_static_ids(src), **kw))
 
 
 def _tracked_pipeline(src: SimSource, algorithm: str | None = None, **tracker) -> Pipeline:
     """A tracking pipeline of ``src``'s robots with a deterministic tracker (``_tracker``)."""
     extra = {} if algorithm is None else {"algorithm": algorithm}
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
-        robots=tuple(src.scene.robot_specs()), tracking=True, **extra))
+        robots=tuple(src.scene.robot_specs()), fixed_camera=True, **extra))
     p.observer.detector.close()
     p.observer.detector = _tracker(src, **tracker)
     return p
@@ -102,11 +102,12 @@ def test_tracked_detection_matches_full_detection(pi_frames):
     assert np.mean(err_tracked) <= np.mean(err_full) + 0.05, (np.mean(err_tracked),
                                                               np.mean(err_full))
     assert np.median(diff) < 0.2
-    assert modes[0] == "full" and modes[1:].count("tracked") >= len(frames) - 3, modes
+    assert modes[0] == "full" and modes[1:].count("followed") >= len(frames) - 3, modes
     assert tracker.background >= 2  # the periodic background discovery ran
 
 
-def _robot_corner_gaps(spec: str, n: int, width: int, **kw) -> tuple[list[float], TrackingDetector]:
+def _robot_corner_gaps(spec: str, n: int, width: int, **kw
+                       ) -> tuple[list[float], FixedCameraDetector]:
     """Per robot marker look of a tracker over ``n`` frames of ``spec``: the largest corner
     gap (px) to a full detection of the same frame."""
     frames, src = _frames(spec, n, width)
@@ -149,7 +150,7 @@ def test_code_scores_tell_a_marker_from_its_absence(default_frames):
     codes = marker_codes(MarkerDetector(DetectorConfig(src.world_map.dictionary)).dictionary,
                          d.ids.tolist())
     own = code_scores(frames[0].image, d.corners, np.stack([codes[m] for m in d.ids.tolist()]))
-    assert own.min() > 0.6  # TrackingConfig.min_score
+    assert own.min() > 0.6  # FixedCameraConfig.min_score
     # The same places with another marker's code, and a blank frame, do not pass.
     wrong = code_scores(frames[0].image, d.corners,
                         np.stack([codes[m] for m in np.roll(d.ids, 1).tolist()]))
@@ -159,7 +160,7 @@ def test_code_scores_tell_a_marker_from_its_absence(default_frames):
     assert np.all(blank == 0.0)
     # The samples are bilinear: the same scores as a plain numpy bilinear interpolation at
     # the same points (OpenCV's remap weighs in 1/32 px steps and rounds to gray levels).
-    from kmea.vision.tracking_detector import CodeSampler, _homographies
+    from kmea.vision.fixed_camera_detector import CodeSampler, _homographies
 
     gray = frames[0].image if frames[0].image.ndim == 2 else frames[0].image[..., 1]
     gray = np.ascontiguousarray(gray)
@@ -202,7 +203,7 @@ def test_bumped_camera_restarts_detection_and_estimation_with_an_event():
     frames, src = _frames("sim:default?bump_at=0.4&bump_deg=1.5", 30)
     bump_frame = math.ceil(0.4 * fps)
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
-        robots=tuple(src.scene.robot_specs()), tracking=True))
+        robots=tuple(src.scene.robot_specs()), fixed_camera=True))
     p.observer.detector.close()
     p.observer.detector = _tracker(src)
     full = MarkerDetector(DetectorConfig(src.world_map.dictionary))
@@ -231,7 +232,7 @@ def test_robots_at_speed_keep_their_pose_every_frame():
     # 1.5 m/s along the default loops (their curves turn the robots at up to several rad/s).
     frames, src = _frames("sim:default?speed=1.5", 30)
     specs = tuple(src.scene.robot_specs())
-    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs, tracking=True))
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=specs, fixed_camera=True))
     p.observer.detector.close()
     p.observer.detector = _tracker(src)
     yaw_rates = []
@@ -249,7 +250,7 @@ def test_robots_at_speed_keep_their_pose_every_frame():
                                              math.tau)) * 30.0 for n in f.truth.robots]
         prev = f
     assert max(yaw_rates) >= 3.0  # the run did include turns at 3 rad/s or more
-    assert p.observer.detector.tracked >= 20
+    assert p.observer.detector.followed_frames >= 20
 
 
 def test_incremental_poses_and_leave_one_out_match_recomputation(default_frames):
@@ -414,7 +415,7 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
     cfg = load_config(None, ["source.spec=tracktest", 'network.telemetry=""',
                              'network.control=""'])
     d = Daemon(cfg)
-    assert d.live and d.pipeline.settings.tracking
+    assert d.live and d.pipeline.settings.fixed_camera
     orig = d._outputs
 
     def keep(res):
@@ -444,7 +445,7 @@ def test_live_daemon_tracks_and_reports_a_bumped_camera():
         d.close()
         logging.getLogger("kmead").removeHandler(caught)
     assert [r.index for r in results] == list(range(36))  # every frame, in order
-    assert sum(r.detect_mode == "tracked" for r in results) >= len(results) // 2
+    assert sum(r.detect_mode == "followed" for r in results) >= len(results) // 2
     moved = [r for r in caught.records if "camera moved" in r.getMessage()]
     assert len(moved) == 1, [r.getMessage() for r in caught.records]
     bumped = [r for r in results if r.restart]
@@ -513,21 +514,21 @@ def test_tracking_is_on_for_live_sources_only_and_can_be_switched_off():
     from kmead.config.layers import load_config
 
     on = load_config(None, use_local=False).data
-    assert on["detector"]["tracking"] is True  # the default
-    assert PipelineSettings.from_config(on, live=True).tracking
-    assert not PipelineSettings.from_config(on, live=False).tracking  # frame-exact files
-    off = load_config(None, sets=["detector.tracking=false"], use_local=False).data
-    assert not PipelineSettings.from_config(off, live=True).tracking
+    assert on["detector"]["fixed_camera"] is True  # the default
+    assert PipelineSettings.from_config(on, live=True).fixed_camera
+    assert not PipelineSettings.from_config(on, live=False).fixed_camera  # frame-exact files
+    off = load_config(None, sets=["detector.fixed_camera=false"], use_local=False).data
+    assert not PipelineSettings.from_config(off, live=True).fixed_camera
 
 
 def test_refit_pacing_is_a_detector_setting():
     from kmead.config.layers import ConfigError, load_config
 
-    cfg = load_config(None, sets=["detector.track_refit_every=7"], use_local=False)
+    cfg = load_config(None, sets=["detector.fixed_refit_every=7"], use_local=False)
     assert PipelineSettings.from_config(cfg.data, live=True).refit_every == 7
     assert PipelineSettings.from_config(load_config(None, use_local=False).data).refit_every == 30
-    with pytest.raises(ConfigError, match=r"detector\.track_refit_every"):
-        load_config(None, sets=["detector.track_refit_every=0"], use_local=False)
+    with pytest.raises(ConfigError, match=r"detector\.fixed_refit_every"):
+        load_config(None, sets=["detector.fixed_refit_every=0"], use_local=False)
 
 
 def test_half_resolution_discovery_uses_one_window_sized_for_the_markers(pi_frames):
@@ -550,8 +551,8 @@ def test_half_resolution_discovery_uses_one_window_sized_for_the_markers(pi_fram
     one = orig({}, used[0])
     seen = lost = 0
     for f in frames[::3]:
-        a = TrackingDetector._discover(full, f.image, True).ids.tolist()
-        b = TrackingDetector._discover(one, f.image, True).ids.tolist()
+        a = FixedCameraDetector._discover(full, f.image, True).ids.tolist()
+        b = FixedCameraDetector._discover(one, f.image, True).ids.tolist()
         seen += len(a)
         lost += len(set(a) - set(b))
     assert seen >= 100 and lost <= 0.02 * seen, (seen, lost)
@@ -565,7 +566,7 @@ def test_a_refit_keeps_the_intrinsics_model_unless_the_references_changed_much(p
     from kmea.estimators.corner_pnp import estimator as estimator_mod
 
     frames, src = pi_frames
-    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=(), tracking=False))
+    p = Pipeline(src.camera, src.world_map, PipelineSettings(robots=(), fixed_camera=False))
     r = p.process(FrameInput(0, 0.0, frames[0].image))
     p.close()
     floor = [o for o in r.observations if o.id in src.world_map]
@@ -595,14 +596,14 @@ def test_background_detection_waits_for_the_frames_robots(default_frames, monkey
     were sent (its gate), so it does not share the cores with the frame path."""
     import threading
 
-    from kmea.vision import tracking_detector
+    from kmea.vision import fixed_camera_detector
 
-    monkeypatch.setattr(tracking_detector, "GATE_WAIT_S", 60.0)  # a slow machine: no timeout
+    monkeypatch.setattr(fixed_camera_detector, "GATE_WAIT_S", 60.0)  # a slow machine: no timeout
     frames, src = default_frames
     gate = threading.Event()
     pool = ThreadPoolExecutor(1, thread_name_prefix="test-discover")
-    tracker = TrackingDetector(DetectorConfig(src.world_map.dictionary),
-                               TrackingConfig(static_ids=_static_ids(src)), executor=pool,
+    tracker = FixedCameraDetector(DetectorConfig(src.world_map.dictionary),
+                               FixedCameraConfig(static_ids=_static_ids(src)), executor=pool,
                                gate=gate)
     try:
         for f in frames:
@@ -628,7 +629,7 @@ def test_the_library_starts_no_thread(default_frames):
     frames, src = default_frames
     before = set(threading.enumerate())
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
-        robots=tuple(src.scene.robot_specs()), tracking=True))
+        robots=tuple(src.scene.robot_specs()), fixed_camera=True))
     try:
         for f in frames[:8]:
             p.process(FrameInput(f.index, f.timestamp, f.image))
@@ -641,7 +642,7 @@ def test_the_library_starts_no_thread(default_frames):
 def test_the_pipeline_opens_the_gate_once_the_robots_are_known(default_frames):
     frames, src = default_frames
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
-        robots=tuple(src.scene.robot_specs()), tracking=True))
+        robots=tuple(src.scene.robot_specs()), fixed_camera=True))
     seen = []
     try:
         assert p.detector.gate is p.robots_sent
@@ -804,7 +805,7 @@ def test_code_sampler_homographies_are_opencvs_and_a_degenerate_quad_spoils_only
     (a batched linear solve used to fail for all of them)."""
     import cv2
 
-    from kmea.vision.tracking_detector import CodeSampler, _homographies
+    from kmea.vision.fixed_camera_detector import CodeSampler, _homographies
 
     rng = np.random.default_rng(7)
     quads = (np.array([[0, 0], [40, 2], [42, 41], [-1, 39]], float)[None]
@@ -847,10 +848,10 @@ def test_a_floor_marker_pushed_by_two_pixels_is_noticed_within_the_drift_rotatio
     every = tracker.settings.drift_every
     for f in frames[:6]:
         tracker.detect(f.image)
-    static = sorted(m for m, t in tracker.tracks.items() if t.static)
+    static = sorted(m for m, t in tracker.known.items() if t.static)
     assert len(static) > 3 * tracker.settings.drift_min  # a share, not all, per frame
     mid = static[len(static) // 2]
-    c = tracker.tracks[mid].corners
+    c = tracker.known[mid].corners
     x0, y0 = (np.floor(c.min(axis=0)) - 6).astype(int)
     x1, y1 = (np.ceil(c.max(axis=0)) + 6).astype(int)
     events = []

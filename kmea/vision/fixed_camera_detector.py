@@ -2,7 +2,7 @@
 
 The camera is bolted above a static floor; only robots move. Full ``detectMarkers`` on
 every 1640x1232 frame thresholds two million pixels three times to find markers whose
-place is already known. :class:`TrackingDetector` keeps what the last frames found and,
+place is already known. :class:`FixedCameraDetector` keeps what the last frames found and,
 per frame:
 
 - **static markers** (the map's, minus robot markers): they are where they were. Their
@@ -54,12 +54,12 @@ import numpy as np
 
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector, as_gray
 
-__all__ = ["CodeSampler", "TrackingConfig", "TrackingDetector", "code_scores", "marker_codes",
+__all__ = ["CodeSampler", "FixedCameraConfig", "FixedCameraDetector", "code_scores", "marker_codes",
            "verify_codes"]
 
 
 @dataclass
-class TrackingConfig:
+class FixedCameraConfig:
     """Tracking settings (pixels, frames).
 
     full_every: a background full detection every this many frames (new markers), at half
@@ -221,7 +221,7 @@ def verify_codes(gray: np.ndarray, quads: np.ndarray, codes: np.ndarray,
 GATE_WAIT_S = 0.25
 
 # A followed marker's corners may leave the similarity image of its last corners by this much
-# (px); see TrackingDetector._follow.
+# (px); see FixedCameraDetector._follow.
 SHAPE_PX = 0.5
 
 
@@ -261,7 +261,7 @@ class _FloorCheck:
 
 
 @dataclass(eq=False)
-class _Track:
+class _Followed:
     corners: np.ndarray                     # (4, 2) last seen
     velocity: np.ndarray                    # (4, 2) px per frame
     static: bool
@@ -270,16 +270,16 @@ class _Track:
     steady: bool = False                    # velocity from two consecutive frames (moving)
 
 
-class TrackingDetector:
+class FixedCameraDetector:
     """``detect(image) -> Detections`` like :class:`MarkerDetector`, tracking what it knows
     (see the module docstring). ``Detections.mode`` is "full" (a full detection answered)
-    or "tracked"; ``Detections.events`` carries "camera moved" and friends.
+    or "followed"; ``Detections.events`` carries "camera moved" and friends.
 
     Counters: ``tracked`` / ``full`` frames, ``background`` full detections, ``bumps``,
     ``followed`` moving markers refined from their prediction (no region detection).
     """
 
-    def __init__(self, config: DetectorConfig, tracking: TrackingConfig | None = None,
+    def __init__(self, config: DetectorConfig, tracking: FixedCameraConfig | None = None,
                  executor: Executor | None = None, gate: threading.Event | None = None
                  ) -> None:
         """executor: where the background detection runs (one job at a time; the caller
@@ -288,7 +288,7 @@ class TrackingDetector:
         # Set by the pipeline once a frame's robots are sent, cleared when the next frame's
         # detection starts: the background detection waits for it (see _drain).
         self.gate = gate
-        self.settings = tracking or TrackingConfig()
+        self.settings = tracking or FixedCameraConfig()
         self.full_detector = MarkerDetector(config)
         self.roi_detector = MarkerDetector(config)._detector
         self.dictionary = self.full_detector.dictionary
@@ -300,9 +300,9 @@ class TrackingDetector:
         self._worker_tuned: dict[int, MarkerDetector] = {}
         self._half_ok = False
         self._side = 0.0  # median marker side (px) of the last full detection
-        self.tracks: dict[int, _Track] = {}
+        self.known: dict[int, _Followed] = {}  # id -> what is known of its corners
         self.frame = -1
-        self.tracked = 0
+        self.followed_frames = 0
         self.full = 0
         self.background = 0
         self.bumps = 0
@@ -426,20 +426,20 @@ class TrackingDetector:
 
     def _reset_from(self, det: Detections) -> None:
         """Every track from a full detection of the current frame."""
-        old = self.tracks
+        old = self.known
         # A static marker the detection missed (hidden now) keeps its place.
-        self.tracks = {m: t for m, t in old.items() if t.static}
+        self.known = {m: t for m, t in old.items() if t.static}
         sides = []
         for mid, c in zip(det.ids.tolist(), det.corners, strict=True):
             prev = old.get(mid)
             sides.append(float(np.linalg.norm(c[0] - c[2])) / np.sqrt(2.0))
             if prev is not None and prev.static and self._is_static(mid):
-                self.tracks[mid] = self._averaged(prev, c)
+                self.known[mid] = self._averaged(prev, c)
                 continue
             vel = np.zeros((4, 2))
             if prev is not None and not prev.static and self.frame > prev.seen:
                 vel = (c - prev.corners) / (self.frame - prev.seen)
-            self.tracks[mid] = _Track(c.copy(), vel, self._is_static(mid), self.frame,
+            self.known[mid] = _Followed(c.copy(), vel, self._is_static(mid), self.frame,
                                       steady=prev is not None and not prev.static
                                       and self.frame - prev.seen == 1)
         if sides:
@@ -449,16 +449,16 @@ class TrackingDetector:
         self._since_full = 0
         self._want_full = False
 
-    def _averaged(self, t: _Track, c: np.ndarray) -> _Track:
+    def _averaged(self, t: _Followed, c: np.ndarray) -> _Followed:
         """A fixed marker's reference with one more full-resolution look ``c`` (4, 2) px:
         the mean of up to ``average`` looks within ``move_px`` of it (single detections of
         a 30-60 px marker scatter by up to ~1 px), else ``c`` (it moved)."""
         if np.abs(c - t.corners).max() > 1.5 * self.settings.move_px:
-            return _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
+            return _Followed(c.copy(), np.zeros((4, 2)), True, self.frame)
         if np.abs(c - t.corners).max() < 1e-9:
             return t
         n = min(t.looks + 1, self.settings.average)
-        new = _Track(t.corners + (c - t.corners) / n, np.zeros((4, 2)), True, self.frame)
+        new = _Followed(t.corners + (c - t.corners) / n, np.zeros((4, 2)), True, self.frame)
         new.looks = n
         return new
 
@@ -558,14 +558,14 @@ class TrackingDetector:
         self.frame += 1
         self._since_full += 1
         events: list[str] = []
-        if self._want_full or not self.tracks:
+        if self._want_full or not self.known:
             return self._full(gray, events)
         s = self.settings
         out_ids: list[int] = []
         out_c: list[np.ndarray] = []
         lost = False
         # ---- static markers: code check and drift at the reference corners
-        st = [m for m, t in self.tracks.items() if t.static]
+        st = [m for m, t in self.known.items() if t.static]
         moved: list[int] = []
         if st:
             fc = self._floor_check(st, gray.shape)
@@ -604,7 +604,7 @@ class TrackingDetector:
                 events.append("floor marker(s) " + ", ".join(map(str, moved))
                               + f" moved more than {s.move_px:g} px in the image")
             for m, ok, f in zip(st, seen, far, strict=True):
-                t = self.tracks[m]
+                t = self.known[m]
                 if ok and not f:
                     out_ids.append(m)
                     out_c.append(t.corners)
@@ -615,7 +615,7 @@ class TrackingDetector:
                     lost = True
         # ---- moving markers: near their prediction, one detection per group of nearby
         # regions (a robot's two markers share one crop)
-        moving = [(m, t) for m, t in self.tracks.items() if not t.static]
+        moving = [(m, t) for m, t in self.known.items() if not t.static]
         found: dict[int, np.ndarray] = {}
         others: dict[int, np.ndarray] = {}
         preds = {m: t.corners + t.velocity * (self.frame - t.seen) for m, t in moving}
@@ -638,7 +638,7 @@ class TrackingDetector:
                     # frame must keep its pose, so look at the whole frame once.
                     return self._full(gray, events)
                 if self.frame - t.seen > 30:
-                    del self.tracks[m]
+                    del self.known[m]
                 continue
             t.steady = self.frame - t.seen == 1
             t.velocity = (c - t.corners) / max(1, self.frame - t.seen)
@@ -646,8 +646,8 @@ class TrackingDetector:
             out_ids.append(m)
             out_c.append(c)
         for i, oc in others.items():
-            if i not in self.tracks:
-                self.tracks[i] = _Track(oc, np.zeros((4, 2)), self._is_static(i), self.frame)
+            if i not in self.known:
+                self.known[i] = _Followed(oc, np.zeros((4, 2)), self._is_static(i), self.frame)
         # ---- discoveries of the background detection
         got = self._take_result()
         if got is not None:
@@ -655,8 +655,8 @@ class TrackingDetector:
         if lost or self._since_full >= s.full_every:
             self._since_full = 0
             self._submit(gray, full_res=lost)
-        self.tracked += 1
-        return self._result_of(out_ids, out_c, "tracked", events)
+        self.followed_frames += 1
+        return self._result_of(out_ids, out_c, "followed", events)
 
     def _follow(self, gray: np.ndarray, preds: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Corners (id -> (4, 2) px) of moving markers refined from their predicted corners
@@ -706,7 +706,7 @@ class TrackingDetector:
             # The shape held: the last corners map onto the new ones by a similarity (a
             # frame's perspective change is far below a pixel) - a corner caught by another
             # feature (the robot's other marker, an edge) breaks it by pixels.
-            z0 = [complex(x, y) for x, y in self.tracks[m].corners.tolist()]
+            z0 = [complex(x, y) for x, y in self.known[m].corners.tolist()]
             z1 = [complex(x, y) for x, y in g]
             c0, c1 = sum(z0) / 4.0, sum(z1) / 4.0
             z0 = [z - c0 for z in z0]
@@ -730,11 +730,11 @@ class TrackingDetector:
         """The floor check of the static markers ``st`` (their tracks as they are now),
         built again when a reference changed; a marker whose track did not change keeps
         its first look's refinement."""
-        key = (tuple(st), tuple(self.tracks[m] for m in st), shape)
+        key = (tuple(st), tuple(self.known[m] for m in st), shape)
         fc = self._floor
         if fc is not None and fc.key == key:
             return fc
-        ref = np.stack([self.tracks[m].corners for m in st])
+        ref = np.stack([self.known[m].corners for m in st])
         sub0 = np.full(ref.shape, np.nan)
         if fc is not None:
             old = {t: k for k, t in enumerate(fc.key[1])}
@@ -745,7 +745,7 @@ class TrackingDetector:
         # The cornerSubPix window of these references (the same for a marker at every
         # look, whichever share is measured).
         self._floor = fc = _FloorCheck(key, ref, _subpix_window(ref), CodeSampler(
-            ref, np.stack([self._code(m) for m in st]), shape[:2]), sub0)
+            ref, np.stack([self._code(m) for m in st]), (shape[0], shape[1])), sub0)
         return fc
 
     def _drift_share(self, n: int) -> np.ndarray:
@@ -777,14 +777,14 @@ class TrackingDetector:
         s = self.settings
         same_px = 2.0 if half else 0.5
         for mid, c0 in zip(det.ids.tolist(), det.corners, strict=True):
-            t = self.tracks.get(mid)
+            t = self.known.get(mid)
             static = self._is_static(mid)
             if (static and not half and mid in have and t is not None
                     and np.abs(c0 - t.corners).max() < 1.5 * s.move_px):
                 # Another full-resolution look at a fixed marker in place: averaged in.
                 nt = self._averaged(t, c0)
                 if nt is not t:
-                    self.tracks[mid] = nt
+                    self.known[mid] = nt
                     out_c[out_ids.index(mid)] = nt.corners
                 continue
             if t is not None and (t.seen > frame_no or mid in have) and (
@@ -805,20 +805,22 @@ class TrackingDetector:
                     # Reported at its reference, found elsewhere (> 0.5 px) by a full
                     # detection of the whole marker that reads at least as well: the
                     # reference was taken while something covered part of the marker.
+                    if t is None:  # every reported id is tracked: cannot happen
+                        raise RuntimeError(f"marker {mid} reported without a track")
                     if np.abs(c - t.corners).max() < 0.5:
                         continue
                     old = float(code_scores(gray, t.corners[None], self._code(mid)[None])[0])
                     if new < old:
                         continue
                     out_c[out_ids.index(mid)] = c
-                    self.tracks[mid] = _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
+                    self.known[mid] = _Followed(c.copy(), np.zeros((4, 2)), True, self.frame)
                     continue
-                self.tracks[mid] = _Track(c.copy(), np.zeros((4, 2)), True, self.frame)
+                self.known[mid] = _Followed(c.copy(), np.zeros((4, 2)), True, self.frame)
             else:
                 if mid in have:
                     continue
                 vel = (c - c0) / max(1, self.frame - frame_no)
-                self.tracks[mid] = _Track(c, vel, False, self.frame)
+                self.known[mid] = _Followed(c, vel, False, self.frame)
             out_ids.append(mid)
             out_c.append(c)
             have.add(mid)
@@ -829,7 +831,7 @@ class TrackingDetector:
         bumped = any(e.startswith("camera moved") for e in events)
         if bumped:
             self._take_result()  # a background result of the old view is worthless
-            self.tracks = {}
+            self.known = {}
         self._reset_from(det)
         return Detections(det.ids, det.corners, det.rejected, mode="full",
                           events=tuple(events), restart=bumped)
