@@ -196,3 +196,12 @@ def test_seeded_fuzzer_every_request_answered_and_the_daemon_keeps_working(
     print(f"{'kind':<18} {'sent':>5} {'ok':>5} {'error':>6} {'time ms':>8}")
     for kind, c in counts.items():
         print(f"{kind:<18} {c['sent']:>5} {c['ok']:>5} {c['error']:>6} {c['ms']:>8}")
+
+
+def test_every_command_has_its_handler_in_the_table(live: LiveDaemon) -> None:
+    from kmead.net.control import COMMANDS
+
+    control = live.daemon.control
+    assert control is not None
+    assert set(control.handlers) == set(COMMANDS)
+    assert len(set(COMMANDS)) == len(COMMANDS)  # a name listed twice would hide one

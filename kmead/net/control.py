@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -131,6 +131,17 @@ class ControlServer:
         self.bound = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.requests = 0
         self.errors = 0
+        # The command table: every command of COMMANDS and its handler (a test holds them
+        # equal), typed, instead of looking a method up by the request's text.
+        self.handlers: dict[str, Callable[[dict], dict]] = {
+            "ping": self._cmd_ping, "get_state": self._cmd_get_state,
+            "get_config": self._cmd_get_config, "set": self._cmd_set,
+            "log_start": self._cmd_log_start, "log_stop": self._cmd_log_stop,
+            "record_start": self._cmd_record_start, "record_stop": self._cmd_record_stop,
+            "reload_map": self._cmd_reload_map, "save_config": self._cmd_save_config,
+            "reset_stats": self._cmd_reset_stats, "camera_watch": self._cmd_camera_watch,
+            "snapshot": self._cmd_snapshot, "get_log": self._cmd_get_log,
+        }
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="kmead-control", daemon=True)
 
@@ -204,7 +215,7 @@ class ControlServer:
             if kind not in (None, "operator") and cmd not in READ_ONLY:
                 raise RequestError(f"control refused: {cmd} needs an operator key; this is "
                                    f"the key of {role} (read-only: {', '.join(READ_ONLY)})")
-            reply = getattr(self, f"_cmd_{cmd}")(req)
+            reply = self.handlers[cmd](req)
             if cmd == "ping":  # the UI says what its key may do
                 reply["role"] = kind
             return {"ok": True, "cmd": cmd, **reply}
