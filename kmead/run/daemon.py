@@ -42,6 +42,7 @@ from kmead.outputs.csvlog import CsvLog
 from kmead.outputs.datadir import DataDir, FileRefused
 from kmead.outputs.files import FileOutputs, LowSpace
 from kmead.outputs.relay import Relay
+from kmead.outputs.robots import RobotSender
 from kmead.outputs.totals import RunTotals, csv_lines, truth_record
 from kmead.run.camera_feed import CameraFeed, camera_body, frame_outlines
 from kmead.run.capture import Capture, CaptureEnded, open_feed
@@ -76,6 +77,7 @@ class Daemon:
     # Made by _build, before anything can use them (close() copes with a partial build).
     files: FileOutputs
     relay: Relay
+    robots: RobotSender
     source: FrameSource
 
     def __init__(self, cfg: Config, max_frames: int | None = None) -> None:
@@ -174,6 +176,7 @@ class Daemon:
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
                            cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish,
                            extra_fields=cfg["relay"]["extra_fields"])
+        self.robots = RobotSender(self.relay, self.totals, self.event)
         if net["control"]:
             try:
                 self.control = ControlServer(net["control"], self, context=self.zmq_context,
@@ -215,6 +218,7 @@ class Daemon:
         self.zenoh_camera = ZenohCamera(self.zenoh.session, z["site"],
                                         camera_id(z, self.source_spec), self._camera_meta(),
                                         on_fusion=self._fusion_nodes)
+        self.robots.camera = self.zenoh_camera
 
     def _camera_meta(self) -> dict:
         from kmea.maps.files import map_digest
@@ -582,53 +586,12 @@ class Daemon:
         self.last_result = res
 
     def _relay_robots(self, t: float, fixes: dict) -> None:
-        """Robot messages, sent from inside the pipeline as soon as the poses are known."""
-        tot = self.totals
-        tracker = self.pipeline.tracker
-        # Latency compensation: the pose predicted to the send time (live sources only: a
-        # file's timestamps are not the wall clock).
-        predict = self.cfg["filter"]["predict"] and self.live and tracker is not None
-        for fix in fixes.values():
-            extra = None
-            # The pose's own instant: its markers' mid-exposure when the source gives the
-            # frame's timing (kmea.timing), else the frame's time.
-            t_pose = t if fix.t is None else fix.t
-            t_fix, x, y, th, sigma, cov = t_pose, fix.x, fix.y, fix.theta, fix.sigma, fix.cov
-            if fix.vx is not None:
-                extra = {"vx": fix.vx, "vy": fix.vy, "omega": fix.omega, "age": 0.0}
-                if fix.raw is not None:  # the measurement itself, for a fusion node
-                    raw: dict[str, float] = dict(zip(("x", "y", "theta", "sigma"), fix.raw,
-                                                     strict=True))
-                    raw["t"] = t_pose  # its own instant, also when t is predicted
-                    extra["raw"] = raw
-                if predict and tracker is not None:
-                    now = time.time()
-                    st = tracker.predict(fix.name, now)
-                    if st is not None and now >= t_pose:
-                        t_fix, x, y, th, sigma = now, st.x, st.y, st.theta, st.sigma
-                        cov = st.cov
-                        extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t_pose)
-            # Every datagram first: a telemetry body wakes the telemetry thread, which
-            # would take the GIL from the next robot's datagram.
-            self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False,
-                              cov=cov)
-            tot.robots_seen.add(fix.name)
-        self.relay.publish_fixes(list(fixes))
-        cam = self.zenoh_camera
-        if cam is not None:  # the measurements, for the fusion nodes (after the datagrams)
-            for fix in fixes.values():
-                mx, my, mth, ms = fix.raw if fix.raw is not None else (
-                    fix.x, fix.y, fix.theta, fix.sigma)
-                cam.measurement(fix.name, t if fix.t is None else fix.t, mx, my, mth, ms)
-            cam.frame(t)
-        for name in self.relay.tick(t):
-            self.event("warning", f"robot {name} not seen for "
-                                  f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
-        t_cap = self._t_capture
-        if t_cap:
-            tot.latency_ms.append((time.perf_counter() - t_cap) * 1e3)
-            if len(tot.latency_ms) > 100000:
-                del tot.latency_ms[:50000]
+        """The pipeline's ``on_robots``: what the robots get, as soon as the poses are known
+        (kmead.outputs.robots); latency compensation on live sources only (a file's
+        timestamps are not the wall clock)."""
+        self.robots.send(t, fixes, self.pipeline.tracker,
+                         predict=bool(self.cfg["filter"]["predict"]) and self.live,
+                         t_capture=self._t_capture)
 
     def _displacement_events(self, res: FrameResult) -> None:
         # The moved-marker decision (kmea.stats.moved: persistence over the frames the marker was
@@ -778,6 +741,7 @@ class Daemon:
             if self.zenoh_camera is not None:
                 self.zenoh_camera.close()
                 self.zenoh_camera = None
+                self.robots.camera = None
             if self.zenoh is not None:
                 log.info("zenoh: %d messages published, %d failed", self.zenoh.sent,
                          self.zenoh.errors)

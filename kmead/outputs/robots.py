@@ -1,0 +1,80 @@
+"""What the robots get of each frame, sent from inside the pipeline as soon as their poses
+are known (before statistics, files or telemetry: docs/architecture.md, "One frame").
+
+Per robot: the pose at its own instant (its markers' mid-exposure, kmea.timing), or with
+latency compensation predicted to the send time; the filter's velocity, turn rate and
+covariance; the measurement itself (``raw``) for a fusion node. Every datagram goes first
+(a telemetry body wakes the telemetry thread, which would take the GIL from the next
+robot's datagram), then the telemetry, then the measurements for the fusion nodes on Zenoh.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+from kmead.outputs.relay import Relay
+from kmead.outputs.totals import RunTotals
+
+__all__ = ["RobotSender"]
+
+# Latencies kept for the summary: beyond, the oldest half goes.
+MAX_LATENCIES = 100000
+
+
+class RobotSender:
+    """The robots' outputs of one daemon: its :class:`Relay` (UDP, ``robot.NAME``
+    telemetry, Zenoh's sink), and ``camera`` (kmead.outputs.zenoh_camera.ZenohCamera, set
+    when Zenoh is on). ``event(level, text)`` reports a robot gone stale."""
+
+    def __init__(self, relay: Relay, totals: RunTotals,
+                 event: Callable[[str, str], None]) -> None:
+        self.relay = relay
+        self.totals = totals
+        self.event = event
+        self.camera: Any = None
+
+    def send(self, t: float, fixes: dict, tracker: Any, predict: bool,
+             t_capture: float) -> None:
+        """``fixes`` (name -> kmea.pipeline.RobotFix) of the frame at ``t`` (s); ``tracker``
+        the pipeline's tracking filter (None: the IIR filter); ``predict``: send each pose
+        predicted to now; ``t_capture``: the frame's capture (``perf_counter``), for the
+        capture-to-relay latency (0: unknown)."""
+        tot = self.totals
+        for fix in fixes.values():
+            extra = None
+            t_pose = t if fix.t is None else fix.t
+            t_fix, x, y, th, sigma, cov = t_pose, fix.x, fix.y, fix.theta, fix.sigma, fix.cov
+            if fix.vx is not None:
+                extra = {"vx": fix.vx, "vy": fix.vy, "omega": fix.omega, "age": 0.0}
+                if fix.raw is not None:  # the measurement itself, for a fusion node
+                    raw: dict[str, float] = dict(zip(("x", "y", "theta", "sigma"), fix.raw,
+                                                     strict=True))
+                    raw["t"] = t_pose  # its own instant, also when t is predicted
+                    extra["raw"] = raw
+                if predict and tracker is not None:
+                    now = time.time()
+                    st = tracker.predict(fix.name, now)
+                    if st is not None and now >= t_pose:
+                        t_fix, x, y, th, sigma = now, st.x, st.y, st.theta, st.sigma
+                        cov = st.cov
+                        extra.update(vx=st.vx, vy=st.vy, omega=st.omega, age=now - t_pose)
+            self.relay.update(fix.name, t_fix, x, y, th, sigma, extra, publish=False,
+                              cov=cov)
+            tot.robots_seen.add(fix.name)
+        self.relay.publish_fixes(list(fixes))
+        cam = self.camera
+        if cam is not None:  # the measurements, for the fusion nodes (after the datagrams)
+            for fix in fixes.values():
+                mx, my, mth, ms = fix.raw if fix.raw is not None else (
+                    fix.x, fix.y, fix.theta, fix.sigma)
+                cam.measurement(fix.name, t if fix.t is None else fix.t, mx, my, mth, ms)
+            cam.frame(t)
+        for name in self.relay.tick(t):
+            self.event("warning", f"robot {name} not seen for "
+                                  f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")
+        if t_capture:
+            tot.latency_ms.append((time.perf_counter() - t_capture) * 1e3)
+            if len(tot.latency_ms) > MAX_LATENCIES:
+                del tot.latency_ms[:MAX_LATENCIES // 2]
