@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Protocol
 
 from kmea.stats.moved import MovedEvidence
 from kmea.wire.protocol import (
@@ -28,7 +28,6 @@ from kmea.wire.protocol import (
 if TYPE_CHECKING:
     from kmea.maps.files import MarkerMap
     from kmea.pipeline import FrameResult
-    from kmea.stats.metrics import WindowStats
     from kmea.vision.camera import CameraModel
     from kmead.outputs.relay import RobotChannel
 
@@ -108,7 +107,21 @@ def robots_body(res: FrameResult, tracks: Iterable[RobotChannel]) -> RobotsBody:
     return {"t": res.timestamp, "frame": res.index, "robots": out}
 
 
-def stats_body(stats: WindowStats, algorithm: str, res: FrameResult | None) -> StatsBody:
+class StatsWindow(Protocol):
+    """The window statistics a ``stats`` body is made of (kmea.stats.metrics.WindowStats;
+    a fusion node's is an empty window)."""
+
+    @property
+    def window(self) -> int: ...
+    @property
+    def mean_error(self) -> float | None: ...
+    @property
+    def max_error(self) -> float | None: ...
+    def per_marker(self) -> Mapping[int, Any]: ...
+    def reset(self) -> None: ...
+
+
+def stats_body(stats: StatsWindow, algorithm: str, res: FrameResult | None) -> StatsBody:
     """``stats``: the window statistics; ``res`` the last frame (None before the first)."""
     pm = stats.per_marker()
     return {"t": res.timestamp if res else time.time(), "frame": res.index if res else None,

@@ -16,6 +16,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -26,7 +27,12 @@ from kmead.config.layers import LIVE_KEYS, ConfigError, validate_setting
 from kmead.net import bodies
 
 if TYPE_CHECKING:
+    from kmea.pipeline import FrameResult
+    from kmead.config.layers import Config
     from kmead.net.keys import CurveServer
+    from kmead.outputs.datadir import DataDir
+    from kmead.run.camera_feed import CameraFeed
+    from kmead.run.log_ring import LogRing
 
 log = logging.getLogger("kmead.control")
 
@@ -42,6 +48,11 @@ COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop", "
 READ_ONLY = ("ping", "get_state", "get_config", "camera_watch", "snapshot", "get_log")
 
 
+class HasAlgorithm(Protocol):
+    @property
+    def algorithm(self) -> str: ...
+
+
 class Host(Protocol):
     """What the control thread uses of its host: a daemon (``kmead.run.daemon.Daemon``) or a
     fusion node (``kmead.fusion.FusionNode``, whose camera commands raise ValueError with
@@ -50,25 +61,23 @@ class Host(Protocol):
 
     # Read-only properties: a plain attribute or a property of the host satisfies each.
     @property
-    def cfg(self) -> Any: ...
+    def cfg(self) -> Config: ...
     @property
-    def lock(self) -> Any: ...
+    def lock(self) -> AbstractContextManager[Any]: ...
     @property
-    def stats(self) -> Any: ...
+    def stats(self) -> bodies.StatsWindow: ...
     @property
-    def pipeline(self) -> Any: ...
+    def pipeline(self) -> HasAlgorithm: ...
     @property
     def last_frame_body(self) -> Mapping[str, Any]: ...
     @property
-    def last_result(self) -> Any: ...
+    def last_result(self) -> FrameResult | None: ...
     @property
-    def guard(self) -> Any: ...  # kmead.run.rollback.ChangeGuard
+    def data_dir(self) -> DataDir: ...
     @property
-    def data_dir(self) -> Any: ...  # kmead.outputs.datadir.DataDir
+    def camera_feed(self) -> CameraFeed | None: ...  # None on a fusion node (no camera)
     @property
-    def camera_feed(self) -> Any: ...  # kmead.run.camera_feed.CameraFeed; None: fusion node
-    @property
-    def log_ring(self) -> Any: ...  # kmead.run.log_ring.LogRing
+    def log_ring(self) -> LogRing: ...
     @property
     def replay(self) -> bool: ...
 
