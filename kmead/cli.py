@@ -189,15 +189,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
     """The daemon's run, its UI or headless status line, and its summary."""
-    from kmead.run.host import run_host
+    from kmead.run.host import serve
     from kmead.run.status_line import StatusReporter
 
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
 
     from kmead.run.daemon import Daemon, StartupError
-    from kmead.run.notify import Notifier, monotonic_alive
+    from kmead.run.notify import Notifier
 
-    notifier = Notifier()
     if ui:
         # The daemon is built before the UI can show anything (the simulator's floor takes
         # 15-20 s on a Pi): say what is happening rather than leave the terminal blank.
@@ -219,31 +218,26 @@ def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
     print(f"kmead: {', '.join(endpoints)}", file=sys.stderr, flush=True)
     if len(cfg.files) > 1:  # say which files, so a saved overlay never surprises anyone
         print(f"kmead: configuration: {', '.join(cfg.files)}", file=sys.stderr, flush=True)
-    # systemd (Type=notify): ready once the sockets are bound; the watchdog pings while the
-    # main loop shows signs of life; the status line doubles as STATUS=.
-    notifier.ready(f"running: {cfg['source']['spec']}")
-    if notifier.interval is not None:
-        notifier.start_watchdog(monotonic_alive(lambda: daemon.progress_t,
-                                                max(10.0, 4 * notifier.interval)))
-    reporter = StatusReporter(daemon.progress, args.status_every or STATUS_PERIOD_S,
-                              stream=None if ui else sys.stderr, timestamps=not journal,
-                              on_line=notifier.status if notifier.enabled else None)
-    if (not ui and args.status_every > 0) or notifier.enabled:
-        reporter.start()
-    try:
-        code = run_host(daemon, ui)
-    finally:
-        reporter.stop()
-        notifier.stopping("stopping")
-        daemon.close()
-        notifier.close()
+    holder: list[StatusReporter] = []
+
+    def status_line(notifier: Notifier) -> StatusReporter:
+        # The headless status line doubles as systemd's STATUS=.
+        r = StatusReporter(daemon.progress, args.status_every or STATUS_PERIOD_S,
+                           stream=None if ui else sys.stderr, timestamps=not journal,
+                           on_line=notifier.status if notifier.enabled else None)
+        if (not ui and args.status_every > 0) or notifier.enabled:
+            r.start()
+        holder.append(r)
+        return r
+
+    code = serve(daemon, ui, f"running: {cfg['source']['spec']}", status_line)
     print(daemon.summary(), flush=True)
     why = "stop requested" if daemon.stop_event.is_set() else (
         f"--frames {args.frames} reached" if args.frames is not None
         and daemon.frames_read >= args.frames else "the source ended")
     final = (f"stopped ({why}): {daemon.totals.frames} frames, exit code {code}"
              if code == 0 else f"stopped with an error: exit code {code}")
-    print(reporter.stamp(final), file=sys.stderr, flush=True)
+    print(holder[0].stamp(final) if holder else final, file=sys.stderr, flush=True)
     return code
 
 

@@ -419,3 +419,38 @@ def test_frames_n_stops_at_exactly_n_outputs_with_messages_queued() -> None:
         assert node.summary().startswith("kmea fuse: 5 fused outputs;")
     finally:
         node.close()
+
+
+def test_a_node_served_by_the_host_tells_systemd_ready_and_stopping(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """kmea fuse is served by the daemon's host (kmead.run.host.serve): READY=1 once its
+    sockets are bound, STOPPING=1 at the end, over a real notify socket."""
+    import socket as sk
+
+    from kmead.run.host import serve
+
+    path = str(tmp_path / "notify.sock")
+    listener = sk.socket(sk.AF_UNIX, sk.SOCK_DGRAM)
+    listener.bind(path)
+    listener.settimeout(DEADLINE)
+    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    wide, _ = _wide_map(tmp_path)
+    node = FusionNode(_node_cfg(free_port(), wide))
+    got: list[str] = []
+
+    def watch() -> None:  # READY, then stop the node as SIGTERM would
+        try:
+            got.append(listener.recv(4096).decode())
+        finally:
+            node.stop()
+
+    t = threading.Thread(target=watch)
+    t.start()
+    code = serve(node, False, "fusing")  # the main thread: it installs the signal handlers
+    t.join(JOIN)
+    assert code == 0 and not t.is_alive()
+    assert got and got[0].split("\n")[0] == "READY=1" and "STATUS=fusing" in got[0]
+    while "STOPPING=1" not in got[-1]:
+        got.append(listener.recv(4096).decode())
+    listener.close()
+    assert node.relay is None  # closed by the host

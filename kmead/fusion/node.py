@@ -123,6 +123,7 @@ class FusionNode:
         self._log_handler: TelemetryLogHandler | None = None
         self._own_ctx: zmq.Context | None = None
         self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
+        self.progress_t = time.monotonic()  # the loop's last sign of life (systemd watchdog)
         self.guard = None  # no change on trial: nothing of a camera to roll back
         net = cfg["network"]
         self.z = {**cfg["zenoh"], "enabled": True}  # the node lives on Zenoh
@@ -612,7 +613,7 @@ class FusionNode:
                  self.telemetry.bound if self.telemetry else "off")
         next_tick = last_status = last_loop = time.monotonic()
         while not self.stop_event.is_set() and not self.done():
-            now = time.monotonic()
+            now = self.progress_t = time.monotonic()
             # The election before anything is sent: a node that did not run for the lease
             # (frozen) steps down first.
             stalled = now - last_loop > self.lease_s
@@ -771,16 +772,13 @@ def _serve(node: FusionNode, args: Any) -> int:
     """The node's run (with the UI or headless), then its summary; closes the node."""
     import sys
 
-    from kmead.run.host import run_host
+    from kmead.run.host import serve
 
     print(f"kmea fuse: telemetry {node.telemetry.bound if node.telemetry else 'off'}, control "
           f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
-    try:
-        code = run_host(node, ui)
-    finally:
-        summary = node.summary()
-        node.close()
+    code = serve(node, ui, f"fusing on zenoh site {node.site!r}")
+    summary = node.summary()
     print(summary, flush=True)
     return code
 

@@ -1,15 +1,21 @@
-"""One host for a daemon or a fusion node: its run in the foreground (headless, with
-SIGINT and SIGTERM stopping it) or in a thread under the terminal UI, which talks to it over
-its own sockets. ``kmead`` and ``kmea fuse`` both serve through :func:`run_host`."""
+"""One host for a daemon or a fusion node: systemd (ready once its sockets are bound, a
+watchdog fed while its loop shows signs of life, stopping), its run in the foreground
+(headless, with SIGINT and SIGTERM stopping it) or in a thread under the terminal UI, which
+talks to it over its own sockets, then closing it. ``kmead`` and ``kmea fuse`` both serve
+through :func:`serve`."""
 
 from __future__ import annotations
 
 import logging
 import signal
 import threading
+from collections.abc import Callable
 from typing import Any, Protocol
 
-__all__ = ["Servable", "run_host"]
+from kmead.run.notify import Notifier, monotonic_alive
+from kmead.run.status_line import StatusReporter
+
+__all__ = ["Servable", "run_host", "serve"]
 
 
 class Servable(Protocol):
@@ -19,8 +25,33 @@ class Servable(Protocol):
     telemetry: Any
     control: Any
 
+    @property
+    def progress_t(self) -> float: ...  # time.monotonic() of the loop's last sign of life
+
     def run(self) -> int: ...
     def stop(self) -> None: ...
+    def close(self) -> None: ...
+
+
+def serve(host: Servable, ui: bool, ready: str,
+          reporter: Callable[[Notifier], StatusReporter | None] | None = None) -> int:
+    """Tell systemd ``ready`` (a no-op outside systemd), feed its watchdog from
+    ``host.progress_t``, run the host (:func:`run_host`), then say stopping and close it.
+    ``reporter(notifier)``: a started status-line reporter (stopped here), or None."""
+    notifier = Notifier()
+    notifier.ready(ready)
+    if notifier.interval is not None:
+        notifier.start_watchdog(monotonic_alive(lambda: host.progress_t,
+                                                max(10.0, 4 * notifier.interval)))
+    status = reporter(notifier) if reporter is not None else None
+    try:
+        return run_host(host, ui)
+    finally:
+        if status is not None:
+            status.stop()
+        notifier.stopping("stopping")
+        host.close()
+        notifier.close()
 
 
 def run_host(host: Servable, ui: bool) -> int:
