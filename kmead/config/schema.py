@@ -539,6 +539,13 @@ within it."""),
                   doc="""\
 ROS 2 output (rmw_zenoh): geometry_msgs/msg/PoseWithCovarianceStamped on
 <ros_namespace>/<robot>/pose and /tf from frame_id to <robot>/kmea, every frame."""),
+        "ros_distro": Key('jazzy', choice("humble", "jazzy", "kilted"),
+                  ("the robots' ROS 2 distro: `humble`, `jazzy` or `kilted` (Humble's "
+                   'rmw_zenoh has no type hashes in its keys: the others do)'),
+                  doc="""\
+The ROS 2 distro of the robots' rmw_zenoh: humble, jazzy or kilted. Humble's keys and
+publisher tokens carry TypeHashNotSupported where Jazzy's and Kilted's carry the message
+type's RIHS01 hash, so a Humble node hears only a Humble-form publisher (docs/ros2.md)."""),
         "ros_domain": Key(0, integer(0, 232),
                   'ROS domain id (0-232), topic namespace, world frame id'),
         "ros_namespace": Key('/kmea', ros_namespace,

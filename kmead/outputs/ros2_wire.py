@@ -1,10 +1,15 @@
 """rmw_zenoh's wire format: key expressions, liveliness tokens, the sample attachment.
 
-What a ROS 2 node on ``rmw_zenoh_cpp`` (Jazzy 0.2.4+, Kilted 0.6+) expects from a
-publisher, read from ``ros2/rmw_zenoh`` (``liveliness_utils.cpp``,
-``attachment_helpers.cpp``, ``type_support_common.cpp``, ``docs/design.md``; versions in
-docs/ros2.md). Pure functions on strings and bytes, no Zenoh import; the CDR payload is
-:mod:`kmead.outputs.ros2_messages` (rosbags).
+What a ROS 2 node on ``rmw_zenoh_cpp`` (Humble 0.1, Jazzy 0.2, Kilted 0.6) expects from a
+publisher, read from each distro's release of ``ros2/rmw_zenoh`` (``liveliness_utils.cpp``,
+``attachment_helpers.cpp``, ``rmw_publisher_data.cpp``; versions in docs/ros2.md) and held
+by tests/test_ros2_distros.py against bytes that source produced. Pure functions on strings
+and bytes, no Zenoh import; the CDR payload is :mod:`kmead.outputs.ros2_messages` (rosbags).
+
+The three distros differ in one place: Humble has no REP-2011 type hashes, and its
+rmw_zenoh puts ``TypeHashNotSupported`` where Jazzy and Kilted put the ``RIHS01_...``
+hash, in the data key and in the publisher's token. Everything else (token layout, QoS
+text, GID, attachment) is the same bytes in all three.
 
 - Data key: ``<domain>/<topic without its leading and trailing slash>/<dds type>/<RIHS01
   hash>``, e.g. ``0/kmea/amr1/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/
@@ -21,11 +26,14 @@ docs/ros2.md). Pure functions on strings and bytes, no Zenoh import; the CDR pay
 
 from __future__ import annotations
 
-import hashlib
 import struct
 from dataclasses import dataclass
 
+import xxhash
+
 ADMIN_SPACE = "@ros2_lv"
+DISTROS = ("humble", "jazzy", "kilted")
+HUMBLE_TYPE_HASH = "TypeHashNotSupported"  # rmw_zenoh 0.1 (Humble), rmw_publisher_data.cpp
 GID_SIZE = 16  # RMW_GID_STORAGE_SIZE
 ATTACHMENT = struct.Struct("<qqB16s")  # seq, source timestamp ns, len(gid) = 16, gid
 
@@ -101,11 +109,20 @@ def publisher_token(domain: int, zid: str, node_id: int, entity_id: int, namespa
             f"{dds_type_name(ros_type)}/{type_hash}/{qos_keyexpr(qos)}")
 
 
+def distro_type_hash(distro: str, rihs01: str) -> str:
+    """The type hash a ``distro``'s rmw_zenoh puts in keys and tokens: the REP-2011
+    ``rihs01`` hash, or Humble's placeholder."""
+    if distro not in DISTROS:
+        raise ValueError(f"ROS 2 distro {distro!r}: one of {', '.join(DISTROS)}")
+    return HUMBLE_TYPE_HASH if distro == "humble" else rihs01
+
+
 def gid_for(token: str) -> bytes:
-    """A publisher's 16-byte GID: a hash of its liveliness token, so it is unique and
-    stable for the publisher (rmw_zenoh hashes the same token with XXH3-128; subscribers
-    only report the GID, they do not check it against the token)."""
-    return hashlib.blake2b(token.encode(), digest_size=GID_SIZE).digest()
+    """A publisher's 16-byte GID as rmw_zenoh computes it (``Entity::Entity``): XXH3-128 of
+    its liveliness token, the low 64 bits then the high 64 bits, each little-endian. A
+    subscriber reports this GID per message and the graph reports it per publisher: equal
+    only if both are computed so."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
 
 
 def attachment(seq: int, source_timestamp_ns: int, gid: bytes) -> bytes:

@@ -119,7 +119,8 @@ class ZenohOutput:
             congestion_control=zenoh.CongestionControl.DROP)  # not express: it lost samples
 
     def _ros_publisher(self, topic: str, ros_type: str, qos: wire.Qos) -> RosPublisher:
-        z, h = self.z, msgs.type_hash(ros_type)
+        z = self.z
+        h = wire.distro_type_hash(z["ros_distro"], msgs.type_hash(ros_type))
         token_key = wire.publisher_token(z["ros_domain"], self.zid, 0, self._next_entity,
                                          self._namespace, self.node_name, topic, ros_type, h,
                                          qos)
