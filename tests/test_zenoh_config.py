@@ -11,6 +11,7 @@ from kmead import cli
 from kmead.config.layers import ConfigError, load_config
 from kmead.config.plan import plan_startup, zenoh_plan
 from kmead.config.zenoh import ros_token_problem, zenoh_exposure
+from kmead.net.site_tls import make_site
 from kmead.run.startup import StartupError
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
@@ -59,11 +60,17 @@ def test_listening_on_loopback_needs_no_tls_and_insecure_is_warned() -> None:
 
 
 def test_tls_with_certificate_files_may_listen_beyond_loopback(tmp_path) -> None:
-    for name in ("ca.pem", "cert.pem", "key.pem"):
-        (tmp_path / name).write_text("-----BEGIN CERTIFICATE-----\n")
+    pytest.importorskip("cryptography", reason="the zenoh extra is not installed")
+    make_site(tmp_path, "kmea", cameras=["cam0"])
     cfg = _cfg('zenoh.listen=["tls/0.0.0.0:7447"]', f'zenoh.tls_ca="{tmp_path}/ca.pem"',
-               f'zenoh.tls_cert="{tmp_path}/cert.pem"', f'zenoh.tls_key="{tmp_path}/key.pem"')
+               f'zenoh.tls_cert="{tmp_path}/cam0.pem"', f'zenoh.tls_key="{tmp_path}/cam0.key"')
     assert zenoh_plan(cfg) == []
+    # A file that is no certificate: one line at --check, not a failure at opening.
+    (tmp_path / "cert.pem").write_text("-----BEGIN CERTIFICATE-----\n")
+    with pytest.raises(StartupError, match=r"zenoh\.tls_cert.*cert\.pem: not a PEM"):
+        zenoh_plan(_cfg('zenoh.listen=["tls/0.0.0.0:7447"]', f'zenoh.tls_ca="{tmp_path}/ca.pem"',
+                        f'zenoh.tls_cert="{tmp_path}/cert.pem"',
+                        f'zenoh.tls_key="{tmp_path}/cam0.key"'))
 
 
 def test_the_refusal_is_the_same_line_from_check_and_start(capsys) -> None:

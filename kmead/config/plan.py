@@ -329,6 +329,7 @@ def zenoh_plan(cfg: Config, z: dict | None = None) -> list[str]:
     the exposure rule (:func:`zenoh_exposure`), the certificate files readable, robot names
     that can be ROS 2 topic tokens. Warnings."""
     from kmead.config.zenoh import ros_token_problem, zenoh_exposure
+    from kmead.net.site_tls import SiteTlsError, certificate_name, load_acl
 
     z = cfg.data.get("zenoh", {}) if z is None else z
     if not z.get("enabled"):
@@ -346,6 +347,23 @@ def zenoh_plan(cfg: Config, z: dict | None = None) -> list[str]:
         path = z[key]
         if path and not os.access(Path(path).expanduser(), os.R_OK):
             raise StartupError(f"key 'zenoh.{key}': cannot read {path}")
+    if z.get("acl"):
+        if not z["tls_cert"]:
+            raise StartupError("key 'zenoh.acl': access control is keyed by the peers' "
+                               "certificates: it needs zenoh.tls_ca, tls_cert and tls_key")
+        try:
+            load_acl(z["acl"])
+        except SiteTlsError as e:
+            raise StartupError(f"key 'zenoh.acl': {e}") from None
+    if z["tls_cert"]:
+        try:
+            name = certificate_name(z["tls_cert"])
+        except SiteTlsError as e:
+            raise StartupError(f"key 'zenoh.tls_cert': {e}") from None
+        if z.get("camera") and z["camera"] != name:
+            raise StartupError(f"key 'zenoh.camera': {z['camera']!r} is not this camera's "
+                               f"certificate name {name!r}: with TLS a camera's id is its "
+                               "certificate's common name (leave zenoh.camera empty)")
     if z["ros2"]:
         for r in cfg["robots"]:
             if (problem := ros_token_problem(r["name"])) is not None:

@@ -569,6 +569,14 @@ Mutual TLS: the CA certificate, this kmead's certificate and private key (PEM fi
                   ''),
         "tls_key": Key('', text_value,
                   ''),
+        "acl": Key('', text_value,
+                  ("the site's access control (`acl.json5` of `kmea keys site`): each peer may "
+                   'publish only its own keys ([security.md](security.md)); needs the TLS files'),
+                  doc="""\
+The site's Zenoh access control file (acl.json5, made by kmea keys site with the site's
+certificates): a camera may publish only under <site>/cam/<its id>/, a fusion node only
+under <site>/fusion/<its id>/, each besides the robots' outputs; keyed by the
+certificate's common name, so it needs tls_ca, tls_cert and tls_key (docs/security.md)."""),
         "insecure": Key(False, flag,
                   '`true` allows listening beyond loopback without TLS (warned at every start)',
                   doc="""\

@@ -53,6 +53,7 @@ from kmead.fusion.cameras import NUMBER, Camera, check_meta, measurement_from
 from kmead.fusion.election import Election
 from kmead.net.bodies import map_info
 from kmead.net.keys import CurveServer, KeysError, keyed_context
+from kmead.net.site_tls import certificate_name
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
 from kmead.outputs.csvlog import CsvLog, row
 from kmead.outputs.datadir import DataDir
@@ -204,7 +205,10 @@ class FusionNode:
 
         self._owns_session = session is None
         self.session = session if session is not None else open_session(self.z)
-        self.node_id = str(self.session.info.zid())
+        # With TLS a node's id is its certificate's name: the site's ACL lets it hold
+        # tokens under <site>/fusion/<that name>/ only.
+        self.node_id = (certificate_name(self.z["tls_cert"]) if self.z.get("tls_cert")
+                        else str(self.session.info.zid()))
         q, site = self.queue, self.site
         from kmead.outputs.zenoh_session import import_zenoh
 

@@ -36,6 +36,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from kmead.net.site_tls import certificate_name
 from kmead.outputs.zenoh_session import import_zenoh
 
 log = logging.getLogger("kmead.zenoh")
@@ -46,8 +47,11 @@ _ID_RE = re.compile(r"[^A-Za-z0-9_-]")
 
 
 def camera_id(z: dict, source_spec: str) -> str:
-    """``zenoh.camera``, else ``camN`` for the simulator's ``sim:wide?camera=N``, else the
-    host name (one camera per machine in the field)."""
+    """With TLS, its certificate's common name (``kmea keys site``: ids cannot collide
+    by accident); else ``zenoh.camera``, else ``camN`` for the simulator's
+    ``sim:wide?camera=N``, else the host name (one camera per machine in the field)."""
+    if z.get("tls_cert"):
+        return certificate_name(z["tls_cert"])
     if z.get("camera"):
         return z["camera"]
     base, _, query = source_spec.partition("?")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 
+from kmead.net.site_tls import load_acl
 from kmead.run.startup import EXIT_RUNTIME, StartupError
 
 #: The loopback rendezvous of the processes of one machine (Zenoh's own default port).
@@ -74,6 +75,8 @@ def session_config(z: dict):
             put(f"transport/link/tls/{side}_certificate", z["tls_cert"])
             put(f"transport/link/tls/{side}_private_key", z["tls_key"])
         put("transport/link/tls/enable_mtls", True)
+    if z.get("acl"):
+        put("access_control", load_acl(z["acl"]))
     return conf
 
 
