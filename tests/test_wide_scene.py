@@ -40,10 +40,30 @@ def test_wall_clock_robots_agree_across_cameras() -> None:
     epoch = time.time() - 10.0
     a = scene_from_spec(f"sim:wide?camera=0&clock=wall&epoch={epoch}&speed=0.02")
     b = scene_from_spec(f"sim:wide?camera=1&clock=wall&epoch={epoch}&speed=0.02")
-    pa, pb = a.robot_poses(0.0)["amr1"], b.robot_poses(123.0)["amr1"]
-    assert np.allclose(pa[:2], pb[:2], atol=0.01)  # frame times do not matter, Unix time does
-    frame = scene_from_spec("sim:wide?speed=0.02").robot_poses(10.0)["amr1"]
-    assert np.allclose(pa[:2], frame[:2], atol=0.01)
+    now = time.time()
+    pa, pb = a.robot_poses(now)["amr1"], b.robot_poses(now)["amr1"]
+    assert pa == pb  # one Unix time, one place, whichever camera draws it
+    frame = scene_from_spec("sim:wide?speed=0.02").robot_poses(now - epoch)["amr1"]
+    assert np.allclose(pa, frame)
+
+
+def test_a_wall_clock_frame_is_stamped_at_the_instant_its_robots_are_drawn() -> None:
+    from kmea.sources.sim import SimSource
+
+    epoch = time.time() - 30.0
+    src = SimSource(f"sim:wide?camera=0&clock=wall&epoch={epoch}&speed=1.5&width=320")
+    before = time.time()
+    f = src.read()
+    after = time.time()
+    assert f is not None and f.meta["unix_time"] is True
+    assert before <= f.timestamp <= after
+    truth = scene_from_spec("sim:wide?speed=1.5&width=320").robot_poses(f.timestamp - epoch)
+    assert f.truth.robots == truth  # the drawn pose is the one at the stamped instant
+    # The image shows them there too: the frame-clock scene rendered at that time.
+    from kmea.sim.renderer import Renderer
+    same = Renderer(scene_from_spec("sim:wide?speed=1.5&width=320")).render_image(
+        0, f.timestamp - epoch)
+    assert np.array_equal(same, f.image)
 
 
 @pytest.mark.parametrize("spec, match", [("sim:wide?camera=2", "camera must be 0 or 1"),

@@ -8,7 +8,6 @@ not entered the scene yet). Robots drive forwards: their heading is the path's t
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -161,16 +160,18 @@ class CrossingPath:
 
 @dataclass(frozen=True)
 class WallClock:
-    """``path`` driven by the Unix time, ``time.time() - epoch`` s, instead of the frame time:
-    several simulated cameras rendered by separate processes, started at different moments,
-    show the robots where they are at the same instant (a paced source's timestamps are
-    Unix times too). Not reproducible from frame indices: for live runs only."""
+    """``path`` driven by the Unix time: ``pose(t)`` is the path at ``t - epoch`` s, ``t`` a
+    Unix time. Several simulated cameras rendered by separate processes, started at
+    different moments, show the robots where they are at the same instant: the simulator
+    source renders a wall-clock scene's frame at the Unix time it reads it and stamps the
+    frame with that same time (:class:`kmea.sources.sim.SimSource`), so a frame's stamp is
+    the instant its robots were drawn at. Not reproducible from frame indices: live runs."""
 
     path: Path
     epoch: float = 0.0
 
     def pose(self, t: float) -> Pose2D | None:
-        return self.path.pose(time.time() - self.epoch)
+        return self.path.pose(t - self.epoch)
 
 
 @dataclass(frozen=True)

@@ -481,11 +481,16 @@ class Renderer:
         objs += [self._occluder_quads(o, t) for o in sc.effects.occluders if o.moving]
         return [[q.to_cam(self.world2cam) for q in obj] for obj in objs if obj]
 
-    def timing(self, index: int) -> FrameTiming:
+    def frame_time(self, index: int, t: float | None = None) -> float:
+        """Frame ``index``'s time, s: ``t`` when given (a wall-clock scene's Unix time),
+        else index / fps."""
+        return index / self.scene.fps if t is None else float(t)
+
+    def timing(self, index: int, t: float | None = None) -> FrameTiming:
         """When frame ``index``'s rows were exposed (exact): row 0 is read out at the
-        frame's timestamp index / fps."""
+        frame's time (:meth:`frame_time`)."""
         eff = self.scene.effects
-        return FrameTiming(index / self.scene.fps, eff.line_time_s, eff.exposure_time_s,
+        return FrameTiming(self.frame_time(index, t), eff.line_time_s, eff.exposure_time_s,
                            exact=True)
 
     def _regions(self, objs: list[list[Quad]]) -> list[tuple[Rect, list[Quad]]]:
@@ -509,15 +514,16 @@ class Renderer:
             regions.append((box, [q for m in merged for q in m]))
         return regions
 
-    def render_image(self, index: int) -> np.ndarray:
-        """(H, W) uint8 image of frame ``index``."""
+    def render_image(self, index: int, t: float | None = None) -> np.ndarray:
+        """(H, W) uint8 image of frame ``index`` (at time ``t``: :meth:`frame_time`)."""
         if index < 0:
             raise ValueError(f"frame index must be >= 0, got {index}")
-        t = index / self.scene.fps
+        timing = self.timing(index, t)
+        t = timing.t_read0
         frame = self.static_image.copy()
         if self.scene.effects.timed and (self.scene.robots or any(
                 o.moving for o in self.scene.effects.occluders)):
-            self._render_timed(frame, self.timing(index))
+            self._render_timed(frame, timing)
         else:
             for box, quads in self._regions(self.dynamic_quads(t)):
                 self._render_region(frame, box, quads)
@@ -756,10 +762,11 @@ class Renderer:
         self._truth_open = [m for m, k in zip(ids, keep, strict=True) if k]
         self._truth_probes = Pc.reshape(-1, 5, 3)[keep].reshape(-1, 3)
 
-    def truth(self, index: int) -> FrameTruth:
-        """Ground truth of frame ``index`` (cheap: no image)."""
+    def truth(self, index: int, t: float | None = None) -> FrameTruth:
+        """Ground truth of frame ``index`` at time ``t`` (:meth:`frame_time`; cheap: no
+        image)."""
         sc = self.scene
-        t = index / sc.fps
+        t = self.frame_time(index, t)
         robots = sc.robot_poses(t)
         markers = {mid: T.copy() for mid, T in self._truth_T.items()}
         lengths = dict(self._truth_len)
@@ -770,7 +777,7 @@ class Renderer:
                 lengths[mid] = r.length
         markers.update(moving)
         rc, rids, rPc = self._corners_and_probes(moving, lengths)
-        timing = self.timing(index)
+        timing = self.timing(index, t)
         if sc.effects.timed:
             for r in sc.robots:
                 if any(m in rc for m in r.markers):
@@ -796,9 +803,10 @@ class Renderer:
         return FrameTruth(self.cam2world.copy(), markers, lengths, corners, visible, robots, t,
                           timing, {r.name: r.path for r in sc.robots})
 
-    def render(self, index: int) -> SimFrame:
-        """Frame ``index``: image and truth."""
-        truth = self.truth(index)
-        return SimFrame(index=index, timestamp=index / self.scene.fps,
-                        image=self.render_image(index),
+    def render(self, index: int, t: float | None = None) -> SimFrame:
+        """Frame ``index`` at time ``t`` (:meth:`frame_time`): image and truth, both of that
+        one instant, and the frame stamped with it."""
+        t = self.frame_time(index, t)
+        truth = self.truth(index, t)
+        return SimFrame(index=index, timestamp=t, image=self.render_image(index, t),
                         meta={"truth": truth, "timing": truth.timing}, truth=truth)

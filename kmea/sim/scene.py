@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 
 from kmea.geometry import check_rotation, euler_zyx_fixed_deg, rot_z, yaw_of
 from kmea.maps.files import Marker, MarkerMap
-from kmea.sim.motion import CrossingPath, Path, Stationary
+from kmea.sim.motion import CrossingPath, Path, Stationary, WallClock
 from kmea.vision.camera import CameraModel
 
 __all__ = [
@@ -381,6 +381,12 @@ class Scene:
                 m = out[mid]
                 out[mid] = Marker(mid, m.position + off, m.rotation @ R, m.length)
         return out
+
+    @property
+    def wall_clock(self) -> bool:
+        """True when a robot is driven by the Unix time (:class:`kmea.sim.motion.WallClock`):
+        frames are then rendered and stamped at the Unix time they are read."""
+        return any(isinstance(r.path, WallClock) for r in self.robots)
 
     def robot_poses(self, t: float) -> dict[str, tuple[float, float, float]]:
         """Robot name -> true (x, y, theta) at ``t`` seconds."""

@@ -36,7 +36,9 @@ class Frame:
     index: 0-based frame number in the source. timestamp: seconds (file sources: index / fps;
     cameras: ``time.monotonic()`` at capture; picamera: sensor timestamp). image: (H, W) uint8
     greyscale or (H, W, 3) uint8 BGR, or None when the frame could not be decoded (then
-    ``meta["error"]`` says why). meta: source-specific extras (``path``, ``sensor_timestamp_ns``).
+    ``meta["error"]`` says why). meta: source-specific extras (``path``, ``sensor_timestamp_ns``;
+    ``unix_time``: True when ``timestamp`` is the Unix time of the exposure, as a
+    wall-clock simulator's frames are stamped).
     """
 
     index: int

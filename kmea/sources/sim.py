@@ -111,7 +111,13 @@ class SimSource(FrameSource):
         if (self.bumped_renderer is not None and self.bump_at is not None
                 and i / self.fps >= self.bump_at):
             renderer = self.bumped_renderer
-        frame = renderer.render(i)
+        # A wall-clock scene (robots driven by the Unix time, several camera processes)
+        # is drawn and stamped at one instant, the Unix time of this read: the frame's
+        # stamp is when its robots were where the image shows them.
+        t = time.time() if self.scene.wall_clock else None
+        frame = renderer.render(i, t)
+        if t is not None:
+            frame.meta["unix_time"] = True
         if not self.gray:
             frame.image = cv2.cvtColor(frame.pixels, cv2.COLOR_GRAY2BGR)
         return frame

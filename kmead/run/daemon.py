@@ -432,11 +432,13 @@ class Daemon:
     # ------------------------------------------------------------------ per frame
     def _frame_input(self, frame, capture_ms: float, t_cap: float) -> FrameInput:
         ts = frame.timestamp
-        age = time.time() - ts if "sensor_timestamp_ns" in frame.meta else -1.0
+        stamped = "sensor_timestamp_ns" in frame.meta or frame.meta.get("unix_time")
+        age = time.time() - ts if stamped else -1.0
         if self.live and 0.0 <= age < 60.0:
             # picamera: the frame's time is the sensor's (the start of readout as unix time,
-            # kmea.sources.picamera); the datagram's t and the latency count from it,
-            # not from when Python received the frame (docs/speed.md: the latency budget).
+            # kmea.sources.picamera); a wall-clock simulator's, the instant it drew the
+            # robots. The datagram's t and the latency count from it, not from when Python
+            # received the frame (docs/speed.md: the latency budget).
             # A stamp in the future or a minute old is not trusted.
             t_cap = time.perf_counter() - age
         elif self.live:
