@@ -25,6 +25,8 @@ BENCHES: dict[str, tuple[str, str]] = {
                       "frame to Zenoh vs frame to UDP; the ROS 2 output's CPU"),
     "fusion-zenoh": ("kmead.benchmarks.fusion_zenoh:main",
                      "fusion on Zenoh: a camera dropped, a node's failover"),
+    "fused-accuracy": ("kmead.benchmarks.fused_accuracy:main",
+                       "the fused stream's RMSE against truth beside each camera's"),
     "soak": ("kmead.benchmarks.soak:main",
              "a real kmead for an hour with a venue day's load"),
 }
