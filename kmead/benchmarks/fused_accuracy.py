@@ -185,37 +185,25 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
     for name, _ in ROBOTS:
         seen = {cam: np.asarray(raw_copy[(cam, name)].t) for cam in ("cam0", "cam1")
                 if (cam, name) in raw_copy}
-
-        def cams_at(t: float) -> frozenset[str]:
-            return frozenset(c for c, ts in seen.items()
-                             if ts.size and np.min(np.abs(ts - t)) <= window)
-
-        def region(t: float) -> str:
-            now = cams_at(t)
-            if any(cams_at(t + d) != now for d in (-0.5, -0.25, 0.25, 0.5)):
-                return "handover"
-            return "overlap" if len(now) == 2 else "one"
-
-        def score(label: str, st: Stream) -> None:
-            for t, x, y, th in zip(st.t, st.x, st.y, st.theta, strict=True):
-                if t < t_from:
-                    continue
-                tx, ty, tth = truth_scene.robot_poses(t - epoch)[name]
-                d_th = (th - tth + math.pi) % (2 * math.pi) - math.pi
-                errs[region(t)][label].append((math.hypot(x - tx, y - ty), d_th))
-
-        score("fused", fused[name])
+        streams = {"fused": fused[name]}
         for cam in ("cam0", "cam1"):
             st = raw_copy.get((cam, name))
             if st is None:
                 continue
-            score(f"{cam} raw", st)
+            streams[f"{cam} raw"] = st
             tracker, filt = Tracker(), Stream()
             for t, x, y, th in sorted(zip(st.t, st.x, st.y, st.theta, strict=True)):
                 out = tracker.update(name, t, x, y, th)
                 if out.state is not None and out.kind != "rejected":
                     filt.add(t, out.state.x, out.state.y, out.state.theta)
-            score(f"{cam} filt", filt)
+            streams[f"{cam} filt"] = filt
+        for label, st in streams.items():
+            for t, x, y, th in zip(st.t, st.x, st.y, st.theta, strict=True):
+                if t < t_from:
+                    continue
+                tx, ty, tth = truth_scene.robot_poses(t - epoch)[name]
+                d_th = (th - tth + math.pi) % (2 * math.pi) - math.pi
+                errs[_region(seen, t, window)][label].append((math.hypot(x - tx, y - ty), d_th))
     table: dict[str, dict[str, list[float]]] = {}
     for reg, by in errs.items():
         table[reg] = {}
@@ -224,6 +212,17 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
             table[reg][label] = [1e3 * math.sqrt(float(np.mean(a[:, 0] ** 2))),
                                  1e3 * math.sqrt(float(np.mean(a[:, 1] ** 2))), len(a)]
     return table
+
+
+def _region(seen: dict[str, np.ndarray], t: float, window: float) -> str:
+    """``one``, ``overlap`` or ``handover`` (module docstring) for a pose at ``t``."""
+    def cams_at(u: float) -> frozenset[str]:
+        return frozenset(c for c, ts in seen.items()
+                         if ts.size and np.min(np.abs(ts - u)) <= window)
+    now = cams_at(t)
+    if any(cams_at(t + d) != now for d in (-0.5, -0.25, 0.25, 0.5)):
+        return "handover"
+    return "overlap" if len(now) == 2 else "one"
 
 
 def main(argv: list[str] | None = None) -> int:
