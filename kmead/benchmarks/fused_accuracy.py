@@ -42,6 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kmead.outputs.relay import parse_datagram
+
 ROOT = Path(__file__).resolve().parents[2]
 SITE = "kmeabench"
 ROBOTS = (("amr1", "[40, 41]"), ("amr2", "[42]"))
@@ -126,10 +128,9 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
                 data = s.recv(2048)
             except OSError:
                 continue
-            parts = dict(p.partition("=")[::2] for p in data.decode().split(";"))
-            if parts.get("valid") == "1":
-                fused[name].add(float(parts["t"]), float(parts["x"]), float(parts["y"]),
-                                float(parts["theta"]))
+            d = parse_datagram(data)
+            if d["valid"]:
+                fused[name].add(d["t"], d["x"], d["y"], d["theta"])
 
     threads = [threading.Thread(target=listen, args=(n, s), daemon=True)
                for n, s in udp.items()]
