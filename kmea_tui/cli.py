@@ -16,10 +16,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Terminal UI for kmead: markers, robots, statistics, floor map, "
                     "configuration, log and camera. Keys: 1-7 tabs, q quit (Ctrl+Q from a "
                     "text field), ? help.")
-    p.add_argument("--telemetry", default=protocol.DEFAULT_TELEMETRY, metavar="ENDPOINT",
-                   help="the daemon's telemetry PUB socket (default %(default)s)")
-    p.add_argument("--control", default=protocol.DEFAULT_CONTROL, metavar="ENDPOINT",
-                   help="the daemon's control REP socket (default %(default)s)")
+    p.add_argument("--telemetry", metavar="ENDPOINT",
+                   help="the daemon's telemetry PUB socket (default: the newest kmead or kmea "
+                        f"fuse running on this machine, else {protocol.DEFAULT_TELEMETRY})")
+    p.add_argument("--control", metavar="ENDPOINT",
+                   help="the daemon's control REP socket (default: as --telemetry, else "
+                        f"{protocol.DEFAULT_CONTROL})")
     p.add_argument("--keys", metavar="DIR",
                    help="a kmead key directory (kmea keys init/add): connect with CURVE as "
                         "--client; needed when the daemon sets network.keys")
@@ -52,8 +54,31 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _endpoints(args: argparse.Namespace) -> None:
+    """Endpoints not given: the newest daemon announced on this machine
+    (:mod:`kmea.wire.runtime`: ``make run`` binds free ports), else the defaults."""
+    if args.telemetry is None and args.control is None:
+        from kmea.wire.runtime import live_daemons
+
+        found = live_daemons()
+        if found:
+            d = found[0]
+            args.telemetry, args.control = d["telemetry"], d["control"]
+            more = f" ({len(found) - 1} more running)" if len(found) > 1 else ""
+            print(f"kmea-tui: {d.get('kind', 'kmead')} pid {d['pid']} on {d['telemetry']}"
+                  f"{more}", file=sys.stderr)
+            if args.keys is None and d.get("keys"):
+                args.keys = d["keys"]
+    if args.telemetry is None:
+        args.telemetry = protocol.DEFAULT_TELEMETRY
+    if args.control is None:
+        args.control = protocol.DEFAULT_CONTROL
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if not args.replay:
+        _endpoints(args)
     from kmea.wire.curve_client import CurveKeyError, read_client_keys
     from kmea_tui.client import DaemonClient, RecordingClient, check_endpoint, record_stream
 

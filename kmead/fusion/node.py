@@ -781,7 +781,7 @@ def _serve(node: FusionNode, args: Any) -> int:
     print(f"kmea fuse: telemetry {node.telemetry.bound if node.telemetry else 'off'}, control "
           f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
-    code = serve(node, ui, f"fusing on zenoh site {node.site!r}")
+    code = serve(node, ui, f"fusing on zenoh site {node.site!r}", kind="kmea fuse")
     summary = node.summary()
     print(summary, flush=True)
     return code

@@ -12,6 +12,7 @@ import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from kmea.wire.runtime import announce, withdraw
 from kmead.run.notify import Notifier, monotonic_alive
 from kmead.run.status_line import StatusReporter
 
@@ -34,12 +35,21 @@ class Servable(Protocol):
 
 
 def serve(host: Servable, ui: bool, ready: str,
-          reporter: Callable[[Notifier], StatusReporter | None] | None = None) -> int:
+          reporter: Callable[[Notifier], StatusReporter | None] | None = None,
+          kind: str = "kmead") -> int:
     """Tell systemd ``ready`` (a no-op outside systemd), feed its watchdog from
     ``host.progress_t``, run the host (:func:`run_host`), then say stopping and close it.
-    ``reporter(notifier)``: a started status-line reporter (stopped here), or None."""
+    ``reporter(notifier)``: a started status-line reporter (stopped here), or None.
+    ``kind``: what the runtime file (:mod:`kmea.wire.runtime`) calls it."""
     notifier = Notifier()
     notifier.ready(ready)
+    # kmea-tui without endpoints finds this process (kmea.wire.runtime): make run binds
+    # free ports.
+    announced = None
+    if host.telemetry is not None and host.telemetry.bound:
+        announced = announce(kind, _connectable(host.telemetry.bound),
+                             _connectable(host.control.bound) if host.control else "",
+                             host.cfg["network"]["keys"] or "")
     if notifier.interval is not None:
         notifier.start_watchdog(monotonic_alive(lambda: host.progress_t,
                                                 max(10.0, 4 * notifier.interval)))
@@ -47,6 +57,7 @@ def serve(host: Servable, ui: bool, ready: str,
     try:
         return run_host(host, ui)
     finally:
+        withdraw(announced)
         if status is not None:
             status.stop()
         notifier.stopping("stopping")
