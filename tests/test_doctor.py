@@ -191,3 +191,21 @@ def test_doctor_bad_files_and_disk(tmp_path: Path) -> None:
     assert doc.load() is None
     (line,) = _lines(doc, "configuration")
     assert line.startswith("FIX  configuration: ") and "source.fps" in line
+
+
+def test_doctor_says_when_the_robots_poses_go_to_this_machine_only(tmp_path: Path) -> None:
+    """The built-in robots send to 127.0.0.1: a FIX on a Pi (the installed service reaches
+    no robot), fine off a Pi (the simulator); robots with addresses are OK."""
+    on_pi = Doctor(config=_config(tmp_path, NET_ANY), dev=tmp_path, board=PI4)
+    on_pi.run_all()
+    (line,) = _lines(on_pi, "robots")
+    assert line.startswith("FIX  robots: robots' UDP poses go to this machine only "
+                           "(udp:127.0.0.1:9001, udp:127.0.0.1:9002): set each [[robots]]")
+    off_pi = Doctor(config=_config(tmp_path, NET_ANY), dev=tmp_path, board="")
+    off_pi.run_all()
+    assert _lines(off_pi, "robots")[0].startswith("OK   robots: robots' UDP poses go to this")
+    robots = ('[[robots]]\nname = "amr1"\nmarkers = [40, 41]\nheight = 0.2\n'
+              'destinations = ["udp:192.168.1.21:9001"]\n')
+    fixed = Doctor(config=_config(tmp_path, NET_ANY + robots), dev=tmp_path, board=PI4)
+    fixed.run_all()
+    assert _lines(fixed, "robots") == ["OK   robots: 1 robots; UDP poses to udp:192.168.1.21:9001"]

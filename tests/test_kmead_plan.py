@@ -256,3 +256,18 @@ def test_a_saved_overlay_is_named_in_the_summary(tmp_path, capsys):
     assert f"configuration overlay in effect: {overlay}" in out
     assert "overlay" in status_text("connected", None, overlay=True).plain
     assert "overlay" not in status_text("connected", None).plain
+
+
+def test_a_camera_whose_robots_go_to_this_machine_only_is_warned(capsys):
+    """The installed service's configuration without [[robots]]: its poses reach no robot.
+    The simulator (make run) sends to loopback on purpose and is not warned."""
+    assert cli.main(["--check", "--source", "picamera", "--free-ports"]) == 0
+    err = capsys.readouterr().err
+    assert ("warning: robots: robots' UDP poses go to this machine only (udp:127.0.0.1:9001, "
+            "udp:127.0.0.1:9002): set each [[robots]] destinations") in err
+    assert cli.main(["--check", "--free-ports"]) == 0
+    assert "this machine only" not in capsys.readouterr().err
+    robots = ('robots=[{name="amr1", markers=[40, 41], height=0.2, '
+              'destinations=["udp:192.168.1.21:9001"]}]')
+    assert cli.main(["--check", "--source", "picamera", "--free-ports", "--set", robots]) == 0
+    assert "this machine only" not in capsys.readouterr().err

@@ -13,6 +13,7 @@ from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import Static
 
+from kmea.wire.destinations import THIS_MACHINE_ONLY, this_machine_only
 from kmea_tui.widgets.live_table import DASH, LiveTable, fmt, show_line
 
 COLUMNS = [
@@ -150,4 +151,5 @@ class RobotsPane(Vertical):
             (f"frame {body.get('frame', DASH)}", "bold"),
             f" · {len(robots)} robots · ",
             (f"{stale} stale", "bold red" if stale else ""),
+            (f" · {THIS_MACHINE_ONLY}" if this_machine_only(robots) else "", "yellow"),
             " · ", (table.sort_label() + " [s/S]", "italic")))

@@ -21,6 +21,7 @@ from kmea.maps.files import MapError, MarkerMap, check_map, check_spread, defaul
 from kmea.sources.base import SourceError
 from kmea.sources.registry import parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
+from kmea.wire.destinations import THIS_MACHINE_ONLY, this_machine_only
 from kmead.config.checks import check_intrinsics
 from kmead.config.layers import Config, ConfigError
 from kmead.run.startup import StartupError, configured_map
@@ -83,6 +84,11 @@ def plan_startup(cfg: Config) -> StartupPlan:
                                "(pip install 'kmea[foxglove]')") from None
     if prefix == "picamera":
         _exposure(cfg)
+    if prefix in ("picamera", "camera") and this_machine_only(cfg["robots"]):
+        dests = ", ".join(d for r in cfg["robots"] for d in r["destinations"])
+        warnings.append(f"robots: {THIS_MACHINE_ONLY} ({dests}): set each [[robots]] "
+                        "destinations to its robot's address, e.g. [\"udp:192.168.1.21:9001\"] "
+                        "(docs/pi.md, Robots)")
     warnings += zenoh_plan(cfg)
     if prefix in ("picamera", "camera"):
         warnings.append(f"source: {spec} is a live camera: not opened by --check "

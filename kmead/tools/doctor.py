@@ -25,6 +25,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from kmea.wire.destinations import THIS_MACHINE_ONLY, this_machine_only
+
 __all__ = ["Check", "Doctor", "add_arguments", "run"]
 
 SERVICE_CONFIG = Path("/etc/kmead/kmead.toml")
@@ -331,6 +333,19 @@ class Doctor:
                          f"'sport = :{port}'`): stop it, or choose another port with --set "
                          f"network.{key}=tcp://127.0.0.1:PORT")
 
+    def check_robots(self, cfg: Any, pi: bool) -> None:
+        """Where the robots' datagrams go: nowhere but this machine is a FIX on a Pi (the
+        built-in robots' destinations), fine for the simulator elsewhere."""
+        robots = cfg["robots"]
+        dests = ", ".join(d for r in robots for d in r["destinations"]) or "none"
+        if this_machine_only(robots):
+            fix = ("set each [[robots]] destinations in the configuration to its robot's "
+                   "address, e.g. [\"udp:192.168.1.21:9001\"] (docs/pi.md, Robots)")
+            self.add(not pi, "robots", f"{THIS_MACHINE_ONLY} ({dests})"
+                     + (f": {fix}" if pi else "; on the Pi: " + fix))
+        else:
+            self.add(True, "robots", f"{len(robots)} robots; UDP poses to {dests}")
+
     def check_disk(self, cfg: Any) -> None:
         target = Path(cfg["log"]["csv"]).parent if cfg and cfg["log"]["csv"] else (
             STATE_DIR if STATE_DIR.is_dir() else Path.cwd())
@@ -374,6 +389,7 @@ class Doctor:
             self.check_ports(cfg)
             self.check_files(cfg)
             self.check_motion(cfg)
+            self.check_robots(cfg, pi)
         self.check_disk(cfg)
         return self.results
 
