@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections import deque
 from typing import Any
 
 from rich.text import Text
@@ -10,6 +11,7 @@ from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
+from textual.events import Resize
 from textual.widgets import Button, Input, RichLog, Static
 
 from kmea_tui.messages import ControlRequest
@@ -43,6 +45,36 @@ def event_line(topic: str, body: dict[str, Any]) -> Text:
                          (f"{who}: ", "cyan"), str(body.get("text", "")))
 
 
+class EventLog(RichLog):
+    """The events, wrapped at the width they are shown at: inside the scrollbar's gutter
+    (reserved from the start, ``scrollbar-gutter: stable`` in app.tcss: a scrollbar that
+    appears later would cover the ends of lines wrapped before it), and wrapped again from
+    the kept entries when the terminal is resized (a line wrapped at 80 columns stays
+    wrapped so in a RichLog)."""
+
+    def __init__(self, max_lines: int = 2000, id: str | None = None) -> None:
+        super().__init__(id=id, max_lines=max_lines, wrap=True, markup=False,
+                         auto_scroll=True, min_width=20)
+        self.entries: deque[Text] = deque(maxlen=max_lines)
+        self._wrapped_at = 0
+
+    def add(self, text: Text) -> None:
+        self.entries.append(text)
+        # The width given, not measured: a measure is capped by the console's width, which
+        # need not follow the widget's (a log wrapped at 80 columns after a resize to 120).
+        self.write(text, width=self._wrapped_at or None)
+
+    def on_resize(self, event: Resize) -> None:
+        super().on_resize(event)
+        width = self.scrollable_content_region.width
+        if width and self._wrapped_at and width != self._wrapped_at:
+            self._wrapped_at = width
+            self.clear()
+            for text in self.entries:
+                self.write(text, width=width)
+        self._wrapped_at = width or self._wrapped_at
+
+
 class LogPane(Vertical):
     BINDINGS = [Binding("l", "toggle_log", "CSV log on/off"),
                 Binding("r", "toggle_record", "Record on/off")]
@@ -61,7 +93,7 @@ class LogPane(Vertical):
                         id="log-path", compact=True)
             yield Button("CSV log [l]", id="log-toggle")
             yield Button("Record [r]", id="record-toggle")
-        yield RichLog(id="events", max_lines=2000, wrap=True, markup=False, auto_scroll=True)
+        yield EventLog(id="events")
 
     @staticmethod
     def _state_line(what: str, s: dict[str, Any], count_label: str, count_key: str) -> Text:
@@ -88,7 +120,7 @@ class LogPane(Vertical):
     def add_events(self, events: list[tuple[str, dict[str, Any]]]) -> None:
         """Append events and log lines; a log line repeating an event shown within a
         second (the daemon publishes warnings both ways) is left out."""
-        log = self.query_one("#events", RichLog)
+        log = self.query_one("#events", EventLog)
         for topic, body in events:
             text, t = str(body.get("text", "")), body.get("t")
             other = "log" if topic == "event" else "event"
@@ -99,10 +131,10 @@ class LogPane(Vertical):
                 self._recent[(topic, text)] = t
                 if len(self._recent) > 200:
                     self._recent.pop(next(iter(self._recent)))
-            log.write(event_line(topic, body))
+            log.add(event_line(topic, body))
 
     def note(self, text: str, ok: bool = True) -> None:
-        self.query_one("#events", RichLog).write(
+        self.query_one("#events", EventLog).add(
             Text(("✓ " if ok else "✗ ") + text, style="green" if ok else "bold red"))
 
     def _path_args(self) -> dict[str, Any]:
