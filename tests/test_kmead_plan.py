@@ -271,3 +271,13 @@ def test_a_camera_whose_robots_go_to_this_machine_only_is_warned(capsys):
               'destinations=["udp:192.168.1.21:9001"]}]')
     assert cli.main(["--check", "--source", "picamera", "--free-ports", "--set", robots]) == 0
     assert "this machine only" not in capsys.readouterr().err
+
+
+def test_a_dictionary_of_another_family_than_the_maps_is_warned(capsys):
+    assert cli.main(["--check", "--free-ports", "--set", 'detector.dictionary="DICT_6X6_250"']) == 0
+    err = capsys.readouterr().err
+    assert ("warning: key 'detector.dictionary': DICT_6X6_250 is not the family of the map's "
+            "DICT_5X5_100") in err
+    assert "configuration OK (1 warning)" in err
+    assert cli.main(["--check", "--free-ports", "--set", 'detector.dictionary="DICT_5X5_100"']) == 0
+    assert "family" not in capsys.readouterr().err

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from deadlines import DEADLINE
 from test_tui_daemon import Daemon, wait_for
-from textual.widgets import Input, TabbedContent
+from textual.widgets import Button, Input, TabbedContent
 
 from kmea_tui.app import KmeaTui
 from kmea_tui.client import DaemonClient, RecordingClient
@@ -96,6 +96,10 @@ async def test_quit_with_unsaved_live_changes_asks_once(daemon) -> None:
         await pilot.press("q")
         await wait_for(pilot, lambda: isinstance(app.screen, QuitScreen), "the question")
         assert "filter.alpha" in str(app.screen.query_one("#quit-keys").render())
+        # Each answer's key is on its button, whole (a label is not read as markup).
+        labels = [str(b.label) for b in app.screen.query(Button)]
+        assert labels == ["Quit anyway [q]", "Save and quit [s]", "Cancel [Esc]"]
+        assert all(b.content_size.width >= len(str(b.label)) for b in app.screen.query(Button))
         await pilot.press("escape")
         await wait_for(pilot, lambda: not isinstance(app.screen, QuitScreen), "cancelled")
         assert app.is_running

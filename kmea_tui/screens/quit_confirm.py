@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from rich.text import Text
 from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding
@@ -34,9 +35,9 @@ class QuitScreen(ModalScreen[str]):
                          classes="form-title", markup=False)
             yield Static("They are lost when kmead restarts unless saved.", classes="note")
             with Horizontal(classes="form-row"):
-                yield Button("Quit anyway [q]", id="quit-anyway", variant="error")
-                yield Button("Save and quit [s]", id="quit-save", variant="primary")
-                yield Button("Cancel [Esc]", id="quit-cancel")
+                yield Button(Text("Quit anyway [q]"), id="quit-anyway", variant="error")
+                yield Button(Text("Save and quit [s]"), id="quit-save", variant="primary")
+                yield Button(Text("Cancel [Esc]"), id="quit-cancel")
 
     def on_mount(self) -> None:
         self.query_one("#quit-cancel", Button).focus()

@@ -36,6 +36,14 @@ def show_value(value: Any) -> str:
     return str(value)
 
 
+# Keys whose empty value means a default: the field is left empty and says which.
+DEFAULT_TEXT = {"dictionary": "the map's dictionary (empty = the map's)"}
+
+
+def _field_text(key: str, value: Any) -> str:
+    return "" if key in DEFAULT_TEXT and value == "" else show_value(value)
+
+
 def robot_row(r: dict[str, Any]) -> tuple[str, ...]:
     markers = r.get("markers")
     if isinstance(markers, list):
@@ -110,8 +118,8 @@ class ConfigPane(VerticalScroll):
                     markup=False)
         yield Vertical(id="detector-options")
         with Horizontal(classes="form-row"):
-            yield Button("Save [ctrl+s]", id="save", variant="primary")
-            yield Button("Re-read [ctrl+r]", id="reread")
+            yield Button(Text("Save [ctrl+s]"), id="save", variant="primary")
+            yield Button(Text("Re-read [ctrl+r]"), id="reread")
             yield Button("Reload map", id="reload-map")
 
     # -- showing the daemon's configuration ----------------------------------------------
@@ -164,13 +172,14 @@ class ConfigPane(VerticalScroll):
         if existing == set(options):
             for inp in box.query(Input):
                 if not inp.has_focus and inp.name in options:
-                    inp.value = show_value(options[inp.name])
+                    inp.value = _field_text(inp.name, options[inp.name])
             return
         box.remove_children()
         rows = []
         for key, value in options.items():
             rows.append(Horizontal(Label(key, classes="form-label"),
-                                   Input(show_value(value), name=key,
+                                   Input(_field_text(key, value), name=key,
+                                         placeholder=DEFAULT_TEXT.get(key, ""),
                                          id=f"detector-{key.replace('_', '-')}",
                                          classes="detector-option", compact=True),
                                    classes="form-row"))

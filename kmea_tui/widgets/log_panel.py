@@ -91,8 +91,8 @@ class LogPane(Vertical):
         with Horizontal(classes="form-row"):
             yield Input(placeholder="file for the next log/recording (empty: daemon's default)",
                         id="log-path", compact=True)
-            yield Button("CSV log [l]", id="log-toggle")
-            yield Button("Record [r]", id="record-toggle")
+            yield Button(Text("CSV log [l]"), id="log-toggle")
+            yield Button(Text("Record [r]"), id="record-toggle")
         yield EventLog(id="events")
 
     @staticmethod

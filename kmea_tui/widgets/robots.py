@@ -147,8 +147,9 @@ class RobotsPane(Vertical):
         table.sync({str(r["name"]): (r, robot_cells(r, self.frozen, since)) for r in robots})
         stale = sum(1 for r in robots if r.get("stale"))
         show_line(self.query_one("#robots-summary", Static), Text.assemble(
-            ("NOT LIVE: last known " if self.frozen else "", "bold red"),
-            (f"frame {body.get('frame', DASH)}", "bold"),
+            # Not live: the status line says the last frame (one number on the screen).
+            ("NOT LIVE: last known poses", "bold red") if self.frozen
+            else (f"frame {body.get('frame', DASH)}", "bold"),
             f" · {len(robots)} robots · ",
             (f"{stale} stale", "bold red" if stale else ""),
             (f" · {THIS_MACHINE_ONLY}" if this_machine_only(robots) else "", "yellow"),

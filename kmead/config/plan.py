@@ -253,12 +253,25 @@ def _dictionary_ids(cfg: Config, world_map: MarkerMap) -> list[str]:
     name, size = dictionary_size(cfg, world_map)
     if size is None or name == world_map.dictionary:
         return []
+    family = _family(name)
+    if family != _family(world_map.dictionary):
+        # DICT_5X5_50 and DICT_5X5_100 share their codes; DICT_6X6_250 shares none of them.
+        return [f"key 'detector.dictionary': {name} is not the family of the map's "
+                f"{world_map.dictionary} ({world_map.source}): markers printed from the map's "
+                "dictionary are never detected with it; leave it \"\" (the map's) or use "
+                "the map's family"]
     big = [i for i in world_map.ids if i >= size]
     if not big:
         return []
     shown = ", ".join(map(str, big[:10])) + (" ..." if len(big) > 10 else "")
     return [f"map {world_map.source}: ids {shown} are outside {name} (ids 0-{size - 1}) "
             "and can never be detected"]
+
+
+def _family(name: str) -> str:
+    """``DICT_5X5_100`` -> ``DICT_5X5``: dictionaries of one family share their first codes."""
+    head, _, tail = name.rpartition("_")
+    return head if head.startswith("DICT_") and tail.isdigit() else name
 
 
 def _pipeline_settings(cfg: Config, cam: CameraModel, world_map: MarkerMap) -> None:

@@ -35,7 +35,10 @@ def format_summary(d: Daemon) -> str:
     wall = max(t.t_end - t.t_start, 1e-9) if t.t_end else 0.0
     fps = t.frames / wall if wall else 0.0
     in_map = sorted(i for i in t.markers_seen if i in d.world_map)
-    other = sorted(i for i in t.markers_seen if i not in d.world_map)
+    robot_ids = {i for r in d.cfg["robots"]
+                 for i in (r["markers"] if isinstance(r["markers"], list) else [r["markers"]])}
+    on_robots = sorted(i for i in t.markers_seen if i not in d.world_map and i in robot_ids)
+    other = sorted(i for i in t.markers_seen if i not in d.world_map and i not in robot_ids)
     lines = [
         f"kmead summary: {t.frames} frames in {wall:.1f} s ({fps:.1f} frames/s), "
         f"source {d.source_spec}, algorithm {d.pipeline.algorithm}",
@@ -55,7 +58,8 @@ def format_summary(d: Daemon) -> str:
     lines += [f"    ({w})" for w in why]
     lines += [
         f"  markers seen: {len(t.markers_seen)} ({len(in_map)} in the map of {len(d.world_map)}"
-        f", {len(other)} others{': ' + ' '.join(map(str, other)) if other else ''})",
+        + (f", {len(on_robots)} on robots: {' '.join(map(str, on_robots))}" if on_robots else "")
+        + (f", {len(other)} unknown: {' '.join(map(str, other))}" if other else "") + ")",
         f"  robots tracked: {len(t.robots_seen)} of {len(d.cfg['robots'])}"
         f"{': ' + ', '.join(sorted(t.robots_seen)) if t.robots_seen else ''}",
     ]
