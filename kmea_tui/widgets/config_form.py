@@ -172,7 +172,7 @@ class ConfigPane(VerticalScroll):
         if existing == set(options):
             for inp in box.query(Input):
                 if not inp.has_focus and inp.name in options:
-                    inp.value = _field_text(inp.name, options[inp.name])
+                    inp.value = _field_text(inp.name or "", options[inp.name])
             return
         box.remove_children()
         rows = []
