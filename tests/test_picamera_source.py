@@ -323,3 +323,27 @@ def test_close_from_another_thread_while_a_read_waits(rig) -> None:
     t.join(timeout=JOIN)
     assert not t.is_alive() and out == [None]
     assert len(rig.instances) == 1 and not rig.instances[0].is_open
+
+
+def test_camera_busy_because_kmead_holds_it_says_how_to_stop_it(rig, tmp_path) -> None:
+    """kmea calibrate / kmea map survey on a Pi whose service holds the camera: the line says
+    the running kmead holds it and how to stop it, or to take its frames instead."""
+    import subprocess
+    import sys
+
+    from deadlines import JOIN
+
+    program = tmp_path / "kmead"  # a kmead as the service runs it: .../bin/kmead --source picamera
+    program.write_text("import sys\nsys.stdin.read()\n")
+    holder = subprocess.Popen([sys.executable, str(program), "--headless", "--source",
+                               "picamera"], stdin=subprocess.PIPE)
+    try:
+        rig.busy = True
+        with pytest.raises(SourceError) as e:
+            open_source("picamera")
+        msg = str(e.value)
+        assert msg.startswith(f"picamera: camera 0 is busy: kmead (pid {holder.pid}")
+        assert "sudo systemctl stop kmead" in msg and "kmea snapshot" in msg
+        assert "\n" not in msg
+    finally:
+        holder.communicate(timeout=JOIN)

@@ -50,6 +50,7 @@ import contextlib
 import importlib
 import inspect
 import logging
+import os
 import re
 import time
 from pathlib import Path
@@ -178,10 +179,36 @@ _MISSING_FIX = ("check the ribbon cable (both ends, contacts the right way round
                 "`rpicam-hello --list-cameras`")
 
 
+def kmead_holding_camera(proc: Path = Path("/proc")) -> int | None:
+    """The pid of a running ``kmead`` on a Pi camera (the service, or one by hand), else
+    None: from the processes' command lines (Linux)."""
+    try:
+        entries = [p for p in proc.iterdir() if p.name.isdigit() and int(p.name) != os.getpid()]
+    except OSError:
+        return None
+    for p in entries:
+        try:
+            argv = (p / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        # The program: kmead itself (/opt/kmea/bin/kmead), a Python running it, or -m kmead.cli.
+        program = argv[:2] + ([argv[argv.index(b"-m") + 1]] if b"-m" in argv[:-1] else [])
+        if (any(a.endswith(b"/kmead") or a in (b"kmead", b"kmead.cli") for a in program)
+                and any(a.startswith(b"picamera") for a in argv)):
+            return int(p.name)
+    return None
+
+
 def describe_open_error(exc: BaseException, camera: int = 0) -> str:
     """One line for an exception out of ``Picamera2(camera)``: busy, missing or other."""
     text = _chain_text(exc)
     if _BUSY_RE.search(text):
+        pid = kmead_holding_camera()
+        if pid is not None:
+            return (f"camera {camera} is busy: kmead (pid {pid}, the service when installed) "
+                    "holds it; `sudo systemctl stop kmead` first (`sudo systemctl start kmead` "
+                    "after), or take the running kmead's frames without stopping it: "
+                    "`kmea snapshot`, the terminal UI's Camera tab")
         return f"camera {camera} is busy: {_BUSY_FIX}"
     if isinstance(exc, IndexError) or _MISSING_RE.search(text):
         return f"no camera {camera} found by libcamera: {_MISSING_FIX}"
