@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 import zmq
-from deadlines import DEADLINE
+from deadlines import DEADLINE, JOIN
 from security_helpers import LiveDaemon, robots_toml, udp_listener
 
 from kmea.sim.renderer import Renderer
@@ -555,3 +555,27 @@ def test_fusion_node_has_the_same_rules(tmp_path: Path) -> None:
     finally:
         ctx.term()
         node.close()
+
+
+def test_robots_gone_stale_because_the_frames_stopped_say_so(tmp_path: Path) -> None:
+    """A live daemon whose frames stop (a stalled camera, a loaded machine): its robots go
+    stale on the wall clock, and the line says the frames stopped, not the robots."""
+    d = LiveDaemon(tmp_path, sets=["relay.stale_after_s=0.5"])
+    daemon = d.daemon
+    deadline = time.monotonic() + DEADLINE
+    while "amr1" not in daemon.totals.robots_seen and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert "amr1" in daemon.totals.robots_seen
+    daemon.stop()  # the frames stop; the service thread's watchdog goes on
+    d.thread.join(JOIN)
+    events: list[str] = []
+    daemon.event = lambda level, text: events.append(text)  # type: ignore[method-assign]
+    daemon.live = True
+    while not events and time.monotonic() < deadline + DEADLINE:
+        daemon._last_frame_wall = time.time() - 3.0
+        daemon.tick()  # robots go stale relay.stale_after_s after their last fix
+        time.sleep(0.05)
+    d.close()
+    stale = [e for e in events if "amr1" in e]
+    assert stale and stale[0].startswith("no frame for 3.0 s (the camera or this machine "
+                                         "stalled): robot amr1 stale (valid=0 sent)"), events

@@ -626,9 +626,10 @@ class Daemon:
                 with self.lock:
                     relay = self.relay  # close() sets it to None under the lock (SIGTERM)
                     for name in relay.tick(now) if relay is not None else ():
-                        self.event("warning", f"robot {name} not seen for "
-                                              f"{self.relay.stale_after_s:g} s: stale "
-                                              "(valid=0 sent)")
+                        # The frames stopped, not the robot: say which.
+                        self.event("warning", f"no frame for {now - self._last_frame_wall:.1f}"
+                                              f" s (the camera or this machine stalled): robot "
+                                              f"{name} stale (valid=0 sent)")
 
     # ------------------------------------------------------------------ public bodies
     # ------------------------------------------------------------------ main loop
