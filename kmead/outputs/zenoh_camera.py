@@ -58,12 +58,14 @@ def camera_id(z: dict, source_spec: str) -> str:
 
 
 def meta_body(cam_id: str, map_digest: str, map_name: str, camera: Any, source: str,
-              camera_file: str) -> dict:
-    """What the ``meta`` queryable answers."""
+              camera_file: str, extent: tuple[float, float, float, float] | None = None
+              ) -> dict:
+    """What the ``meta`` queryable answers; ``extent``: the map's markers' (xmin, xmax,
+    ymin, ymax), the floor a node without a map of its own checks positions against."""
     return {"camera": cam_id, "map_digest": map_digest, "map_name": map_name,
             "model": camera_file or "built-in", "width": int(camera.width),
             "height": int(camera.height), "fx": float(camera.fx), "fy": float(camera.fy),
-            "source": source}
+            "source": source, **({"extent": list(extent)} if extent else {})}
 
 
 class ZenohCamera:

@@ -175,7 +175,8 @@ class Daemon:
             raise StartupError(str(e), EXIT_RUNTIME) from None
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
                            cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish,
-                           extra_fields=cfg["relay"]["extra_fields"])
+                           extra_fields=cfg["relay"]["extra_fields"],
+                           max_sigma_m=cfg["relay"]["max_sigma_m"])
         self.robots = RobotSender(self.relay, self.totals, self.event)
         if net["control"]:
             try:
@@ -222,11 +223,13 @@ class Daemon:
 
     def _camera_meta(self) -> dict:
         from kmea.maps.files import map_digest
+        from kmead.fusion.inputs import map_extent
         from kmead.outputs.zenoh_camera import camera_id, meta_body
 
         return meta_body(camera_id(self.cfg["zenoh"], self.source_spec),
                          map_digest(self.world_map), self.world_map.name,
-                         self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
+                         self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"],
+                         map_extent(self.world_map))
 
     def _fusion_nodes(self, n: int) -> None:
         """Zenoh's thread: ``n`` fusion nodes alive on the site. While one is, it speaks to
