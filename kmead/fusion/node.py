@@ -176,7 +176,7 @@ class FusionNode:
             self.files = FileOutputs(cfg["log"], self.data_dir, RunTotals(), self.event)
             if cfg["log"]["csv"]:
                 try:
-                    self.files.start_csv(cfg["log"]["csv"])
+                    self.files.start_csv(cfg["log"]["csv"], keep=True)
                 except LowSpace as e:
                     self.files.refused("log", str(e))
                 except ValueError as e:

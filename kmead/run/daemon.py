@@ -190,8 +190,8 @@ class Daemon:
         for key, start in (("csv", self.start_csv), ("record", self.start_recording)):
             if not cfg["log"][key]:
                 continue
-            try:
-                start(cfg["log"][key])
+            try:  # an existing file is never written over (continued or a new name)
+                start(cfg["log"][key], keep=True)
             except LowSpace as e:
                 # A full disk is the moment's state, not a configuration error: the robots
                 # get their poses without this output (event, status "error").
