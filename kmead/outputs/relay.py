@@ -311,6 +311,17 @@ class Relay:
                 self._send(tr, now, False)
         return newly
 
+    def invalidate(self, t: float) -> list[str]:
+        """One ``valid=0`` message at ``t`` to every robot with a pose that is not stale
+        yet (its source's time broke); they are stale until their next fix. Their names."""
+        names = []
+        for tr in self.channels.values():
+            if tr.last_seen is not None and not tr.stale:
+                tr.stale, tr.last_stale_sent = True, t
+                self._send(tr, t, False)
+                names.append(tr.name)
+        return names
+
     def shutdown(self, t: float) -> None:
         """One ``valid=0`` message to every robot: the daemon stops (SIGTERM, SIGINT, end of
         frames); robots must not keep following their last pose."""

@@ -463,6 +463,7 @@ class Daemon:
                                   "; skipped")
             return None
         inp = self._frame_input(frame, capture_ms, t_cap)
+        self.robots.time_step(inp.timestamp, self.cfg["relay"]["max_time_step_s"], self.pipeline)
         if not self._blur_warned:
             self._check_blur(frame.meta)
         self._t_capture = inp.t_capture
