@@ -118,8 +118,8 @@ def kinds(root: Path) -> dict[str, Callable[[random.Random], bytes | list[bytes]
     def huge_numbers(r: random.Random) -> bytes:
         # Integers no float holds (valid JSON) and the largest floats, in every field.
         big = r.choice([10 ** 401, -10 ** 401, 10 ** 4000, 1e308, -1e308, 2 ** 64])
-        body: dict = {"v": V, "cmd": r.choice(COMMANDS + ["camera_watch", "snapshot",
-                                                          "get_log"])}
+        body: dict = {"v": V, "cmd": r.choice([*COMMANDS, "camera_watch", "snapshot",
+                                                "get_log"])}
         body[r.choice(["v", "key", "value", "path", "width", "height", "lease_s", "overlay",
                        "lines", "since"])] = big
         if body["cmd"] == "set" and "key" not in body:
