@@ -201,3 +201,59 @@ def test_fuzzed_camera_messages_are_refused_and_counted(tmp_path: Path) -> None:
     assert len(valid) >= 100 and all(math.hypot(m["x"] - AT[0], m["y"] - AT[1]) < NEAR
                                      for m in valid)
     assert node.fusion.tracker.counts["failed"] == 0 and node.fusion.accepted == n // 4
+
+
+def test_camera_clocks_estimated_reported_refused_and_back(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A camera 80 ms ahead: an event, still used; one an hour ahead: every measurement
+    refused, the camera refused for its clock, the other camera's robot unaffected; its clock
+    set right: used again. One 10 s behind: refused too."""
+    caplog.set_level(logging.INFO, logger="kmead")
+    wide, digest = _wide_map(tmp_path)
+    udp = Udp()
+    node = FusionNode(_node_cfg(free_port(), wide, _robots(udp.port), 'network.control=""'))
+    try:
+        for cam in ("good", "fast", "far", "slow"):
+            node.handle("camera", f"kmea/cam/{cam}", True, 0.0)
+            node.handle("meta", cam, json.dumps(meta(cam, digest)).encode(), 0.0)
+        node.election.role = "active"
+        assert node.relay is not None
+        node.relay.muted = False
+
+        def send(cam: str, offset: float, n: int) -> None:
+            for _ in range(n):
+                t = time.time()
+                node.handle("data", "kmea/cam/good/robots/amr1",
+                            json.dumps(_good(t - 0.01)).encode(), time.perf_counter())
+                node.handle("data", f"kmea/cam/{cam}/robots/amr1",
+                            json.dumps(_good(t + offset)).encode(), time.perf_counter())
+
+        send("fast", 0.08, 20)
+        fast = node.cameras["fast"]
+        assert fast.state == "used" and fast.bad == 0 and fast.clock_offset_s is not None
+        assert 0.07 < fast.clock_offset_s < 0.09
+        send("far", 3600.0, 20)
+        far = node.cameras["far"]
+        assert far.state == "refused" and "clock is 3600.0" in (far.reason or "")
+        assert far.bad == 20 and far.bad_fields == {"t": 20} and far.measurements == 0
+        send("far", 0.0, 60)  # its clock set right: the window forgets the hour
+        assert far.state == "used" and far.reason is None and far.measurements > 0
+        send("slow", -10.0, 20)
+        assert node.cameras["slow"].state == "refused" and node.cameras["slow"].measurements \
+            < 5 and "behind" in (node.cameras["slow"].reason or "")
+        status = node.status()
+        seen = udp.wait(lambda s: False, 0.5)
+    finally:
+        node.close()
+        udp.sock.close()
+    offsets = {i["label"]: i["clock_offset_s"] for i in status["inputs"]}
+    assert abs(offsets["good"]) < 0.05 and offsets["slow"] < -9.0
+    good = node.cameras["good"]
+    assert good.dropped_old == 0 and good.bad == 0 and good.measurements == 120
+    texts = [r.getMessage() for r in caplog.records]
+    assert any("camera fast: its clock is 0.0" in t and "ahead" in t for t in texts)
+    assert any("camera far: refused: its clock is 3600.0" in t for t in texts)
+    assert any("camera far: its clock is back within" in t for t in texts)
+    valid = [m for _, m in seen if m["valid"]]
+    assert valid and all(math.hypot(m["x"] - AT[0], m["y"] - AT[1]) < NEAR for m in valid)
+    assert all(m["t"] < time.time() + 1.0 for _, m in seen)

@@ -402,11 +402,13 @@ is refused and counted: a camera's clock ahead can never move the fusion clock."
                   doc="""\
 Each camera's clock offset against the node's is estimated from its messages (status
 inputs); beyond this (s) an event names the camera and the offset."""),
-        "max_clock_offset_s": Key(1.0, number(1e-3, 3600, unit=" s"),
+        "max_clock_offset_s": Key(5.0, number(1e-3, 3600, unit=" s"),
                   'a camera whose clock is off by more than this is refused until it is back',
                   doc="""\
 A camera whose estimated clock offset is beyond this (s) is refused (its state and
-reason say so) until its offset is back within it."""),
+reason say so) until its offset is back within it. Behind includes the camera's
+processing and network delay and the node's own backlog (a loaded node saw 1.1 s): keep
+it well above those."""),
         "max_sigma_m": Key(0.1, number(1e-4, 100, unit=" m"),
                   'a measurement whose sigma is beyond this is refused',
                   doc="""\
