@@ -234,7 +234,8 @@ def test_camera_clocks_estimated_reported_refused_and_back(
         assert 0.07 < fast.clock_offset_s < 0.09
         send("far", 3600.0, 20)
         far = node.cameras["far"]
-        assert far.state == "refused" and "clock is 3600.0" in (far.reason or "")
+        assert far.state == "refused" and "s ahead of the node's" in (far.reason or "")
+        assert far.clock_offset_s is not None and 3599.0 < far.clock_offset_s < 3600.1
         assert far.bad == 20 and far.bad_fields == {"t": 20} and far.measurements == 0
         send("far", 0.0, 60)  # its clock set right: the window forgets the hour
         assert far.state == "used" and far.reason is None and far.measurements > 0
@@ -252,7 +253,7 @@ def test_camera_clocks_estimated_reported_refused_and_back(
     assert good.dropped_old == 0 and good.bad == 0 and good.measurements == 120
     texts = [r.getMessage() for r in caplog.records]
     assert any("camera fast: its clock is 0.0" in t and "ahead" in t for t in texts)
-    assert any("camera far: refused: its clock is 3600.0" in t for t in texts)
+    assert any("camera far: refused: its clock is 3" in t for t in texts)
     assert any("camera far: its clock is back within" in t for t in texts)
     valid = [m for _, m in seen if m["valid"]]
     assert valid and all(math.hypot(m["x"] - AT[0], m["y"] - AT[1]) < NEAR for m in valid)
