@@ -258,3 +258,22 @@ def test_camera_clocks_estimated_reported_refused_and_back(
     valid = [m for _, m in seen if m["valid"]]
     assert valid and all(math.hypot(m["x"] - AT[0], m["y"] - AT[1]) < NEAR for m in valid)
     assert all(m["t"] < time.time() + 1.0 for _, m in seen)
+
+
+def test_the_camera_table_evicts_silent_strangers_never_a_used_camera() -> None:
+    from kmead.fusion.cameras import Camera, make_room
+
+    now = time.monotonic()
+    table = {f"s{k}": Camera(f"s{k}", f"kmea/cam/s{k}", since=now) for k in range(63)}
+    table["cam0"] = Camera("cam0", "kmea/cam/cam0", state="used", since=now - 100)
+    # Full, every stranger known for less than the lease: no room, nothing evicted.
+    assert not make_room(table, 64, now - 2.0) and len(table) == 64
+    # Later, the strangers that never answered for their metadata make room, one at a time.
+    assert make_room(table, 64, now + 1.0) and len(table) == 63 and "cam0" in table
+    table["new"] = Camera("new", "kmea/cam/new", state="used")
+    table["s1"].state = "gone"
+    assert make_room(table, 64, now - 2.0) and "s1" not in table  # a gone one first
+    table["new2"] = Camera("new2", "kmea/cam/new2")
+    for c in table.values():
+        c.state = "used"
+    assert len(table) == 64 and not make_room(table, 64, now + 1.0) and len(table) == 64
