@@ -27,13 +27,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from kmea.maps.model import MarkerMap
 from kmea.robots.fusion import Measurement
 from kmea.wire.jsonlimits import safe_loads
 
 __all__ = ["CLOCK_MIN", "CLOCK_WINDOW", "MAX_META_BYTES", "MAX_SAMPLE_BYTES", "MIN_SIGMA_M",
-           "BadField", "Limits", "admit", "check_meta", "clock_offset", "map_extent",
-           "measurement_from", "number"]
+           "BadField", "Limits", "admit", "check_meta", "clock_offset", "measurement_from",
+           "number"]
 
 MAX_META_BYTES = 4096
 MAX_SAMPLE_BYTES = 1024  # a measurement or heartbeat; larger ones are bad
@@ -90,13 +89,6 @@ class Limits:
         x0, x1, y0, y1 = extent
         return cls((x0 - m, x1 + m, y0 - m, y1 + m), float(fusion["max_sigma_m"]),
                    float(fusion["max_future_s"]))
-
-
-def map_extent(world_map: MarkerMap) -> tuple[float, float, float, float]:
-    """(xmin, xmax, ymin, ymax) of every marker's centre, m."""
-    p = world_map.positions()
-    return (float(p[:, 0].min()), float(p[:, 0].max()),
-            float(p[:, 1].min()), float(p[:, 1].max()))
 
 
 def check_meta(payload: bytes) -> dict:

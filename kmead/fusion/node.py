@@ -50,7 +50,7 @@ from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
 from kmead.fusion.cameras import Camera, check_meta, make_room
 from kmead.fusion.election import Election
-from kmead.fusion.inputs import Limits, admit, map_extent
+from kmead.fusion.inputs import Limits, admit
 from kmead.net.bodies import map_info
 from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
@@ -170,7 +170,7 @@ class FusionNode:
             self.overflow = 0  # events dropped: the loop fell behind by QUEUE_MAX
             self.foreign = 0  # samples of strangers: no camera of that id (no token)
             self.table_full_reported = False
-            self.limits = Limits.of(cfg["fusion"], map_extent(self.world_map))
+            self.limits = Limits.of(cfg["fusion"], self.world_map.extent())
             # The daemon's rules for its files (never truncating, the data directory over
             # control, the free-space floor, a failing disk stops the log only).
             self.files = FileOutputs(cfg["log"], self.data_dir, RunTotals(), self.event)

@@ -222,14 +222,10 @@ class Daemon:
         self.robots.camera = self.zenoh_camera
 
     def _camera_meta(self) -> dict:
-        from kmea.maps.files import map_digest
-        from kmead.fusion.inputs import map_extent
         from kmead.outputs.zenoh_camera import camera_id, meta_body
 
-        return meta_body(camera_id(self.cfg["zenoh"], self.source_spec),
-                         map_digest(self.world_map), self.world_map.name,
-                         self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"],
-                         map_extent(self.world_map))
+        return meta_body(camera_id(self.cfg["zenoh"], self.source_spec), self.world_map,
+                         self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
 
     def _fusion_nodes(self, n: int) -> None:
         """Zenoh's thread: ``n`` fusion nodes alive on the site. While one is, it speaks to
