@@ -219,8 +219,15 @@ def test_a_pose_no_robot_can_use_is_never_sent_as_valid(udp: socket.socket) -> N
         for k, (x, y, sigma) in enumerate(poses):
             relay.update("amr1", 10.0 + 0.1 * k, x, y, 0.0, sigma)
         got = [udp.recv(1024) for _ in poses]
+        # A live set of relay.max_sigma_m (the daemon's and the node's set requests).
+        relay.apply({"stale_after_s": 0.5, "stale_repeat_s": 1.0, "extra_fields": True,
+                     "max_sigma_m": 1.0})
+        relay.update("amr1", 11.0, 1.0, 1.0, 0.0, 0.678)
+        later = parse_datagram(udp.recv(1024))
     finally:
         relay.close()
+    assert later["valid"] and later["sigma"] == 0.678
+    published.pop()
     assert [parse_datagram(g)["valid"] for g in got] == [False] * 5 + [True]
     assert all(len(g) < 200 for g in got)
     assert [b["valid"] for b in published] == [False] * 5 + [True]

@@ -150,6 +150,13 @@ class Relay:
         self.withdrawn = 0  # valid=0 messages for removed robots and destinations
         self.configure(robots)
 
+    def apply(self, section: dict) -> None:
+        """The live ``[relay]`` keys (a ``set`` request)."""
+        self.stale_after_s = section["stale_after_s"]
+        self.stale_repeat_s = section["stale_repeat_s"]
+        self.extra_fields = section["extra_fields"]
+        self.max_sigma_m = section["max_sigma_m"]
+
     def _sock(self, addr: tuple[str, int]) -> socket.socket | None:
         s = self._socks.get(addr)
         if s is None:

@@ -337,9 +337,7 @@ class Daemon:
             if self.zenoh is not None:
                 self.zenoh.retain({r["name"] for r in v})
         elif key.startswith("relay."):
-            self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
-            self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
-            self.relay.extra_fields = self.cfg["relay"]["extra_fields"]
+            self.relay.apply(self.cfg["relay"])
         elif key == "stats.window":
             self.stats = WindowStats(v, self.world_map.ref_length())
         elif key in ("stats.displaced_threshold", "stats.displaced_frames"):
