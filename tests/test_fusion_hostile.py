@@ -23,6 +23,7 @@ pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
 from test_fusion_node import Udp, _node_cfg, _wait, _wide_map
 from zenoh_helpers import FakeCamera, free_port, meta
 
+from kmea.wire import protocol as P
 from kmead.fusion.node import FusionNode
 
 AT = (1.0, 0.3)  # where amr1 stands: the floor of the wide scene's map
@@ -118,9 +119,10 @@ def test_a_hostile_camera_cannot_crash_blind_or_misplace(
                 c.close()
         udp.sock.close()
     assert not alive
+    P.check_body(P.TOPIC_STATUS, status, exact=True)  # the declared status, new fields too
     evil_state = next(i for i in status["inputs"] if i["label"] == "evil")
     assert evil_state["bad"] == refused and evil_state["state"] == "used"
-    assert node.cameras["evil"].bad_fields == {"x": 24, "t": 2, "sigma": 3}
+    assert evil_state["bad_fields"] == {"x": 24, "t": 2, "sigma": 3}
     assert status["fusion"]["strangers"] >= 64 and status["fusion"]["reacquired"] == 0
     assert status["fusion"]["dropped_old"] == 0  # the future-stamped ones blinded nobody
     valid = [m for _, m in seen if m["valid"]]

@@ -289,6 +289,7 @@ class InputState(TypedDict):
     received: int
     measurements: int
     bad: int
+    bad_fields: dict[str, int]  # refused messages by the field that was wrong
     dropped_old: int
     silent_s: float | None
     delay_s: float | None

@@ -49,6 +49,7 @@ class Camera:
         return {"label": self.label, "key": self.key, "state": self.state,
                 "reason": self.reason, "received": self.received,
                 "measurements": self.measurements, "bad": self.bad,
+                "bad_fields": dict(self.bad_fields),
                 "dropped_old": self.dropped_old,
                 "silent_s": None if self.last_wall is None else now_wall - self.last_wall,
                 # Unix-time cameras: arrival minus capture = network + processing + offset.
