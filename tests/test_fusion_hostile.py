@@ -132,6 +132,7 @@ def test_a_hostile_camera_cannot_crash_blind_or_misplace(
     # One event per camera and field.
     events = [r.getMessage() for r in caplog.records if "evil: message refused" in r.getMessage()]
     assert sorted(re.search(r"field '(\w+)'", e)[1] for e in events) == ["sigma", "t", "x"]
+    assert sum("from no camera known" in r.getMessage() for r in caplog.records) == 1
 
 
 HOSTILE = {

@@ -377,6 +377,9 @@ class FusionNode:
         cam = self.cameras.get(parts[2]) if len(parts) >= 4 else None
         if cam is None:
             self.foreign += 1
+            if self.foreign == 1:
+                self.event("warning", f"data on {key[:80]!r} from no camera known (no token): "
+                                      "ignored (further ones counted: status strangers)")
             return False
         cam.received += 1
         now_wall, now_mono = time.time(), time.monotonic()
