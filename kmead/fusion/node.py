@@ -378,7 +378,7 @@ class FusionNode:
         if cam is None:
             self.foreign += 1
             if self.foreign == 1:
-                self.event("warning", f"data on {key[:80]!r} from no camera known (no token): "
+                self.event("info", f"data on {key[:80]!r} from no camera known (no token): "
                                       "ignored (further ones counted: status strangers)")
             return False
         cam.received += 1
