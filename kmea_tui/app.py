@@ -350,6 +350,8 @@ class KmeaTui(App[None]):
         if "fusion" in body and not self.fusion_node:
             self._became_fusion_node()
         self.query_one(LogPane).update_status(body)
+        if isinstance(body.get("inputs"), list):  # a fusion node's cameras and clocks
+            self.query_one(RobotsPane).inputs = body["inputs"]
         self.query_one(ConfigPane).set_algorithms(body["algorithms"])
         bar = self.query_one(StatusBar)
         alert = output_alert(body)

@@ -402,10 +402,11 @@ def test_frames_n_stops_at_exactly_n_outputs_with_messages_queued() -> None:
             node.handle("camera", f"kmea/cam/{cam}", True, 0.0)
             node.handle("meta", cam, json.dumps(meta(cam, "d" * 16)).encode(), 0.0)
         assert {c.state for c in node.cameras.values()} == {"used"}
+        t0 = time.time() - 1.0  # Unix time, as the cameras stamp it
         for k in range(10):
             for cam, name in (("c0", "amr1"), ("c1", "amr2")):
                 node.queue.put(("data", f"kmea/cam/{cam}/robots/{name}", json.dumps({
-                    "name": name, "valid": True, "t": 100.0 + 0.1 * k, "x": 0.5 + 0.001 * k,
+                    "name": name, "valid": True, "t": t0 + 0.01 * k, "x": 0.5 + 0.001 * k,
                     "y": 0.3, "theta": 0.0, "sigma": 0.002}).encode(), time.perf_counter()))
         tn = threading.Thread(target=node.run, daemon=True)
         tn.start()

@@ -84,3 +84,34 @@ def test_json_depth_and_limits() -> None:
                       (b'{"a": 1', "not UTF-8 JSON")):
         with pytest.raises(JsonLimitError, match=why):
             safe_loads(data, 1 << 16)
+
+
+def test_log_and_record_at_start_never_write_over_an_existing_file(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``--log`` and ``--record`` follow control's rule: a CSV log of this format is
+    continued, anything else is kept and the output goes to ``NAME-2``; an event says so."""
+    from kmead import cli
+
+    csv = tmp_path / "run.csv"
+    rec = tmp_path / "run.jsonl"
+    csv.write_text("not a log of kmead\n" * 50)
+    rec.write_text('{"an earlier": "recording"}\n' * 60)
+    before = csv.read_bytes(), rec.read_bytes()
+    code = cli.main(["--source", "sim:default", "--headless", "--frames", "3",
+                     "--set", "source.width=640", "--set", "source.height=480",
+                     "--set", "source.fps=0", "--set", 'network.telemetry="tcp://127.0.0.1:*"',
+                     "--set", 'network.control=""', "--log", str(csv), "--record", str(rec)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert (csv.read_bytes(), rec.read_bytes()) == before
+    assert (tmp_path / "run-2.csv").read_text().count("\n") > 3
+    assert (tmp_path / "run-2.jsonl").read_text().count("\n") >= 4
+    assert f"{csv} exists and is kept: writing {tmp_path / 'run-2.csv'}" in err
+    # A CSV log of kmead's own format is continued: the rows before it stay.
+    rows = (tmp_path / "run-2.csv").read_text().splitlines()
+    assert cli.main(["--source", "sim:default", "--headless", "--frames", "2",
+                     "--set", "source.width=640", "--set", "source.height=480",
+                     "--set", "source.fps=0", "--set", 'network.telemetry="tcp://127.0.0.1:*"',
+                     "--set", 'network.control=""', "--log", str(tmp_path / "run-2.csv")]) == 0
+    after = (tmp_path / "run-2.csv").read_text().splitlines()
+    assert after[:len(rows)] == rows and len(after) > len(rows)

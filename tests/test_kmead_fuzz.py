@@ -115,6 +115,17 @@ def kinds(root: Path) -> dict[str, Callable[[random.Random], bytes | list[bytes]
         return _json({"v": V, "cmd": r.choice(["log_start", "record_start", "save_config"]),
                       "path": r.choice(paths)})
 
+    def huge_numbers(r: random.Random) -> bytes:
+        # Integers no float holds (valid JSON) and the largest floats, in every field.
+        big = r.choice([10 ** 401, -10 ** 401, 10 ** 4000, 1e308, -1e308, 2 ** 64])
+        body: dict = {"v": V, "cmd": r.choice([*COMMANDS, "camera_watch", "snapshot",
+                                                "get_log"])}
+        body[r.choice(["v", "key", "value", "path", "width", "height", "lease_s", "overlay",
+                       "lines", "since"])] = big
+        if body["cmd"] == "set" and "key" not in body:
+            body["key"] = r.choice(KEYS)
+        return _json(body)
+
     def valid_commands(r: random.Random) -> bytes:
         i = r.randint(0, 10**9)
         return _json(r.choice([
@@ -129,7 +140,7 @@ def kinds(root: Path) -> dict[str, Callable[[random.Random], bytes | list[bytes]
     return {f.__name__: f for f in (random_bytes, huge, invalid_json, wrong_types,
                                     unknown_commands, multipart, deep_nesting, nan,
                                     long_strings, absurd_values, hostile_paths,
-                                    valid_commands)}
+                                    huge_numbers, valid_commands)}
 
 
 def _outside(root: Path) -> dict[str, bytes]:
@@ -174,6 +185,7 @@ def test_seeded_fuzzer_every_request_answered_and_the_daemon_keeps_working(
             else:
                 c["error"] += 1
                 assert reply["error"] and "\n" not in reply["error"], reply
+                assert "internal error" not in reply["error"], (kind, bytes(payload)[:80])
                 assert len(reply["error"]) <= 500
         c["ms"] = round((time.perf_counter() - t_kind) * 1e3)
         # After each kind: the control socket answers, frames flow, no file escaped.

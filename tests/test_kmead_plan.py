@@ -23,6 +23,15 @@ def _robots_config(tmp: Path) -> list[str]:
     return ["--config", str(p)]
 
 
+def _robot_on(markers: str):
+    """A robot carrying markers the map places (the built-in floor's 13, 16, 4)."""
+    def args(tmp: Path) -> list[str]:
+        p = tmp / "robots.toml"
+        p.write_text(f'[[robots]]\nname = "r1"\nmarkers = {markers}\n')
+        return ["--config", str(p)]
+    return args
+
+
 def _undecodable_images(tmp: Path) -> list[str]:
     d = tmp / "frames"
     d.mkdir()
@@ -84,6 +93,14 @@ REFUSALS = {
     "reachable telemetry without keys": lambda t: [
         "--set", 'network.telemetry="tcp://0.0.0.0:5555"'],
     "robot markers outside the dictionary": _robots_config,
+    "robot on a floor marker": _robot_on("[13]"),
+    "robot on a pair of floor markers": _robot_on("[16, 4]"),
+    "telemetry and control on one endpoint": lambda t: [
+        "--set", 'network.telemetry="tcp://127.0.0.1:5599"',
+        "--set", 'network.control="tcp://127.0.0.1:5599"'],
+    "telemetry and control on one port, one of them on every address": lambda t: [
+        "--set", 'network.telemetry="tcp://127.0.0.1:5599"',
+        "--set", 'network.control="tcp://*:5599"', "--set", "network.insecure=true"],
     "unknown sim scene": lambda t: ["--source", "sim:nosuchscene"],
     "missing image folder": lambda t: ["--source", f"images:{t / 'nodir'}"],
     "image folder without a decodable image": _undecodable_images,

@@ -199,3 +199,37 @@ def test_the_sink_gets_every_message_after_the_frames_datagrams(udp: socket.sock
                                                                 ("amr2", 3, False, True)]
     finally:
         relay.close()
+
+
+def test_a_pose_no_robot_can_use_is_never_sent_as_valid(udp: socket.socket) -> None:
+    """Not finite, absurdly far, or with a sigma beyond relay.max_sigma_m: valid=0 on the
+    wire and in the telemetry (the UI shows no fix, never "ok"), a short line; the next
+    usable pose is valid again."""
+    from kmea_tui.widgets.robots import robot_state
+
+    port = udp.getsockname()[1]
+    published = []
+    relay = Relay([{"name": "amr1", "markers": [40, 41],
+                    "destinations": [f"udp:127.0.0.1:{port}"]}],
+                  stale_after_s=0.5, stale_repeat_s=1.0, extra_fields=True, max_sigma_m=0.1,
+                  publish=lambda topic, body: published.append(body))
+    poses = [(1.0, 1.0, 0.678), (math.nan, 1.0, 0.002), (1e308, 1.0, 0.002),
+             (math.inf, 1.0, None), (1.0, 1.0, math.nan), (1.0, 1.0, 0.002)]
+    try:
+        for k, (x, y, sigma) in enumerate(poses):
+            relay.update("amr1", 10.0 + 0.1 * k, x, y, 0.0, sigma)
+        got = [udp.recv(1024) for _ in poses]
+        # A live set of relay.max_sigma_m (the daemon's and the node's set requests).
+        relay.apply({"stale_after_s": 0.5, "stale_repeat_s": 1.0, "extra_fields": True,
+                     "max_sigma_m": 1.0})
+        relay.update("amr1", 11.0, 1.0, 1.0, 0.0, 0.678)
+        later = parse_datagram(udp.recv(1024))
+    finally:
+        relay.close()
+    assert later["valid"] and later["sigma"] == 0.678
+    published.pop()
+    assert [parse_datagram(g)["valid"] for g in got] == [False] * 5 + [True]
+    assert all(len(g) < 200 for g in got)
+    assert [b["valid"] for b in published] == [False] * 5 + [True]
+    assert [robot_state(b) for b in published] == ["no fix"] * 5 + ["ok"]
+    assert relay.channels["amr1"].unfit is None

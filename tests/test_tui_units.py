@@ -205,3 +205,18 @@ def test_an_output_stopped_by_the_disk_shows_in_the_status_bar_and_the_log_tab()
     assert line.startswith("● connected  log and recording stopped (Log tab)  30.0 fps")
     shown = LogPane._state_line("CSV log", full["logging"], "rows", "rows").plain
     assert "stopped" in shown and "No space left on device" in shown
+
+
+def test_a_fusion_nodes_camera_clocks_show_and_one_far_off_is_an_alert() -> None:
+    from kmea_tui.widgets.robots import cameras_text
+    from kmea_tui.widgets.status_bar import output_alert
+
+    inputs = [{"label": "cam0", "state": "used", "clock_offset_s": 0.002},
+              {"label": "cam1", "state": "refused", "clock_offset_s": 3600.0},
+              {"label": "cam2", "state": "waiting", "clock_offset_s": None}]
+    assert output_alert({"inputs": inputs}) == "cam1 clock +3600.0 s"
+    assert output_alert({"inputs": inputs[:1]}) == ""
+    text = cameras_text(inputs)
+    assert text.plain == (" · cam0 used clock +2 ms · cam1 refused clock +3600.0 s"
+                          " · cam2 waiting clock -")
+    assert any("red" in str(span.style) for span in text.spans)

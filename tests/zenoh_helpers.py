@@ -74,4 +74,4 @@ class FakeCamera:
 def meta(cam_id: str, digest: str) -> dict:
     return {"camera": cam_id, "map_digest": digest, "map_name": "test map",
             "model": "built-in", "width": 640, "height": 480, "fx": 500.0, "fy": 500.0,
-            "source": "test"}
+            "source": "test", "extent": [-1.0, 4.0, -1.0, 2.0]}

@@ -157,6 +157,12 @@ class MarkerMap:
         return (float(p[:, 0].min()), float(p[:, 0].max()),
                 float(p[:, 1].min()), float(p[:, 1].max()))
 
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of every marker's centre, metres."""
+        p = self.positions()
+        return (float(p[:, 0].min()), float(p[:, 0].max()),
+                float(p[:, 1].min()), float(p[:, 1].max()))
+
     def ref_length(self) -> float:
         """Reference length for the MRE, metres."""
         if self.reference_length is not None:

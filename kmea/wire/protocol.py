@@ -279,7 +279,8 @@ class MapInfo(TypedDict, total=False):
 class InputState(TypedDict):
     """A fusion node's camera (found on Zenoh): its id, key, state (waiting for its
     metadata, used, refused with a reason, silent, gone), counters, seconds since its last
-    message, median delay (arrival - capture time, s)."""
+    message, median delay (arrival - capture time, s), its clock's estimated offset against
+    the node's (s, positive: ahead; None before a few messages)."""
 
     label: str
     key: str
@@ -288,9 +289,11 @@ class InputState(TypedDict):
     received: int
     measurements: int
     bad: int
+    bad_fields: dict[str, int]  # refused messages by the field that was wrong
     dropped_old: int
     silent_s: float | None
     delay_s: float | None
+    clock_offset_s: float | None
 
 
 class FusionState(TypedDict):
@@ -306,6 +309,7 @@ class FusionState(TypedDict):
     role: str  # starting, standby or active (the one that speaks to the robots)
     map_digest: str | None  # the map every camera must have (None: no camera yet)
     overflow: int  # samples dropped because the node fell behind
+    strangers: int  # samples of cameras the node does not know (no token) or has no room for
 
 
 class _StatusExtra(TypedDict, total=False):

@@ -15,6 +15,7 @@ from textual.widgets import Static
 
 from kmea.wire.destinations import THIS_MACHINE_ONLY, this_machine_only
 from kmea_tui.widgets.live_table import DASH, LiveTable, fmt, show_line
+from kmea_tui.widgets.status_bar import CLOCK_ALERT_S, clock_text
 
 COLUMNS = [
     ("name", "name"), ("markers", "markers"), ("x", "x m"), ("y", "y m"),
@@ -135,6 +136,7 @@ class RobotsTable(LiveTable):
 
 class RobotsPane(Vertical):
     frozen = False  # set by the app when the daemon is stopped or silent
+    inputs: list = []  # a fusion node's cameras (its status), never mutated: replaced
 
     def compose(self) -> ComposeResult:
         yield Static("waiting for telemetry…", id="robots-summary", classes="summary")
@@ -153,4 +155,18 @@ class RobotsPane(Vertical):
             f" · {len(robots)} robots · ",
             (f"{stale} stale", "bold red" if stale else ""),
             (f" · {THIS_MACHINE_ONLY}" if this_machine_only(robots) else "", "yellow"),
-            " · ", (table.sort_label() + " [s/S]", "italic")))
+            " · ", (table.sort_label() + " [s/S]", "italic"), cameras_text(self.inputs)))
+
+
+def cameras_text(inputs: list) -> Text:
+    """A fusion node's cameras with their state and clock offset (``cam0 used +2 ms``);
+    an offset beyond CLOCK_ALERT_S in red."""
+    t = Text()
+    for cam in inputs:
+        if not isinstance(cam, dict):
+            continue
+        off = cam.get("clock_offset_s")
+        far = isinstance(off, (int, float)) and abs(off) > CLOCK_ALERT_S
+        t.append(f" · {cam.get('label', '?')} {cam.get('state', '?')} ")
+        t.append(f"clock {clock_text(off)}", "bold red" if far else "")
+    return t

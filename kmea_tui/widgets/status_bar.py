@@ -20,13 +20,31 @@ SHORT = {"capture": "cap", "detect": "det", "pose": "pose", "estimate": "est", "
          "filter": "filt", "robots": "rob", "output": "out"}
 
 
+#: s: a camera clock further off than this is an alert (the fusion node's default
+#: fusion.clock_warn_s; the node's own event says when its bound is another)
+CLOCK_ALERT_S = 0.05
+
+
+def clock_text(offset: Any) -> str:
+    """A camera's clock offset (s, positive: ahead), as ``+2 ms`` or ``+3600.0 s``."""
+    if not isinstance(offset, (int, float)) or isinstance(offset, bool):
+        return "-"
+    return f"{offset * 1e3:+.0f} ms" if abs(offset) < 10 else f"{offset:+.1f} s"
+
+
 def output_alert(status: dict[str, Any] | None) -> str:
     """A few words when the CSV log or the recording stopped on its own (a write error, the
-    free-space floor: ``error`` in the status body), else ""."""
+    free-space floor: ``error`` in the status body), and a fusion node's cameras whose
+    clock is off by more than :data:`CLOCK_ALERT_S`, else ""."""
     body = status or {}
     stopped = [name for key, name in (("logging", "log"), ("recording", "recording"))
                if isinstance(body.get(key), dict) and body[key].get("error")]
-    return f"{' and '.join(stopped)} stopped (Log tab)" if stopped else ""
+    words = [f"{' and '.join(stopped)} stopped (Log tab)"] if stopped else []
+    for cam in body.get("inputs") or []:
+        off = cam.get("clock_offset_s") if isinstance(cam, dict) else None
+        if isinstance(off, (int, float)) and abs(off) > CLOCK_ALERT_S:
+            words.append(f"{cam.get('label', '?')} clock {clock_text(off)}")
+    return "; ".join(words)
 
 
 def status_text(state: str, frame: dict[str, Any] | None, width: int = 80,

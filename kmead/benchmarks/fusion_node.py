@@ -41,7 +41,8 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         zport = probe.getsockname()[1]
     meta = json.dumps({"camera": "c", "map_digest": "bench", "map_name": "bench",
                        "model": "bench", "width": 640, "height": 480, "fx": 500.0,
-                       "fy": 500.0, "source": "bench"}).encode()
+                       "fy": 500.0, "source": "bench",
+                       "extent": [0.0, 64.0, 0.0, 1.0]}).encode()  # the robots' floor
     sessions, pubs, kept = [], [], []
     for c in range(cameras):
         conf = zenoh.Config()
@@ -198,18 +199,19 @@ def loop_cost(cameras: int = 8, robots: int = 8, n: int = 20000) -> float:
     try:
         meta = json.dumps({"camera": "c", "map_digest": "b", "map_name": "b", "model": "b",
                            "width": 640, "height": 480, "fx": 1.0, "fy": 1.0,
-                           "source": "b"}).encode()
+                           "source": "b", "extent": [0.0, 64.0, 0.0, 1.0]}).encode()
         for c in range(cameras):
             node.handle("camera", f"kmea/cam/c{c}", True, 0.0)
             node.handle("meta", f"c{c}", meta, 0.0)
         node.election.role = "active"
         node.relay.muted = False  # type: ignore[union-attr]
         items = []
+        t0 = time.time() - 0.2  # Unix time, as the cameras stamp it (none in the future)
         for k in range(n // len(names)):
             for i, nm in enumerate(names):
                 c = i // robots
                 items.append((f"kmea/cam/c{c}/robots/{nm}", json.dumps({
-                    "name": nm, "valid": True, "t": 1000.0 + k / 30, "x": 0.001 * k + i,
+                    "name": nm, "valid": True, "t": t0 + k / 3000, "x": 0.001 * k + i,
                     "y": 0.1 * c, "theta": 0.0, "sigma": 0.002}).encode()))
         t0 = time.thread_time()
         for key, payload in items:

@@ -235,7 +235,15 @@ def dictionary_size(cfg: Config, world_map: MarkerMap) -> tuple[str, int | None]
 
 
 def robot_ids_problem(cfg: Config, world_map: MarkerMap, robots: list[dict]) -> str | None:
-    """A robot marker the detector's dictionary cannot hold, as one line, else None."""
+    """A robot marker the map places (on the floor or a wall: the robot would be reported
+    where that marker is fixed), or one the detector's dictionary cannot hold, as one line,
+    else None."""
+    for r in robots:
+        placed = [m for m in r["markers"] if m in world_map]
+        if placed:
+            where = "on the floor" if world_map[placed[0]].on_floor else "in the scene"
+            return (f"robots: robot {r['name']!r} marker {placed[0]} is a marker the map "
+                    f"{world_map.name!r} places {where}: a robot needs markers of its own")
     name, size = dictionary_size(cfg, world_map)
     if size is None:  # a custom dictionary file: its ids are not checked here
         return None
@@ -322,6 +330,21 @@ def _outputs(cfg: Config) -> None:
             raise StartupError(f"key 'log.{key}': cannot write {p}")
 
 
+def same_endpoint(a: str, b: str) -> bool:
+    """Whether two ZeroMQ endpoints would bind the same place: the same ``ipc://`` path,
+    or TCP on the same port (not ``*``) on the same or a wildcard address."""
+    if a.startswith("ipc://") or b.startswith("ipc://"):
+        return a == b
+    ha, _, pa = a.removeprefix("tcp://").rpartition(":")
+    hb, _, pb = b.removeprefix("tcp://").rpartition(":")
+    if pa != pb or pa == "*":
+        return False
+    wild = ("*", "0.0.0.0", "[::]", "::")
+    alias = {"localhost": "127.0.0.1", "[::1]": "127.0.0.1"}
+    ha, hb = alias.get(ha, ha), alias.get(hb, hb)
+    return ha == hb or ha in wild or hb in wild
+
+
 def network_exposure(cfg: Config) -> list[str]:
     """Keys (CURVE on both sockets) or loopback only, or an explicit insecure = true; the
     key directory is read as start-up reads it. The warnings (a reachable insecure socket);
@@ -330,6 +353,9 @@ def network_exposure(cfg: Config) -> list[str]:
     from kmead.net.keys import KeyRing, KeysError, exposure
 
     net = cfg["network"]
+    if net["telemetry"] and net["control"] and same_endpoint(net["telemetry"], net["control"]):
+        raise StartupError(f"key 'network.control': {net['control']} is the endpoint of "
+                           "network.telemetry: give each socket its own")
     error, warning = exposure({"network.telemetry": net["telemetry"],
                                "network.control": net["control"]},
                               net["keys"], net["insecure"])

@@ -373,6 +373,18 @@ While a robot stays unseen, repeat the valid=0 message this often (s); 0 = only 
 Append ;vx=..;vy=..;omega=..;sigma=.. (m/s, rad/s, m) to each datagram, after the
 existing fields (parsers that read the first seven fields are unaffected).""",
                   live=True),
+        "max_sigma_m": Key(0.1, number(1e-4, 100, unit=" m"),
+                  'a pose less certain than this (1-sigma) is sent as `valid=0`',
+                  doc="""\
+A pose whose 1-sigma position uncertainty (m) is beyond what a robot can use is sent with
+valid=0 (and shown as no fix), as is a pose that is not finite.""",
+                  live=True),
+        "max_time_step_s": Key(5.0, number(0.1, 3600, unit=" s"),
+                  ('a source whose time steps back, or forward by more than this, sends '
+                   'every robot `valid=0` at once'),
+                  doc="""\
+A source whose frame time steps back, or jumps forward by more than this (s), sends every
+robot valid=0 at once and restarts the robots' filters (an event says so)."""),
     },
     "fusion": {
         "max_age_s": Key(0.5, number(1e-3, 3600, unit=" s"),
@@ -380,6 +392,33 @@ existing fields (parsers that read the first seven fields are unaffected).""",
                   doc="""\
 `kmea fuse` only (docs/fusion.md; it finds the cameras on Zenoh, [zenoh] below): the age
 (s) behind the newest measurement beyond which a measurement is dropped."""),
+        "max_future_s": Key(0.1, number(0, 60, unit=" s"),
+                  'a measurement stamped later than the node\'s clock plus this is refused',
+                  doc="""\
+A measurement or heartbeat stamped later than the node's own (Unix) clock plus this (s)
+is refused and counted: a camera's clock ahead can never move the fusion clock."""),
+        "clock_warn_s": Key(0.05, number(1e-3, 3600, unit=" s"),
+                  'a camera whose clock is off by more than this gets an event',
+                  doc="""\
+Each camera's clock offset against the node's is estimated from its messages (status
+inputs); beyond this (s) an event names the camera and the offset."""),
+        "max_clock_offset_s": Key(5.0, number(1e-3, 3600, unit=" s"),
+                  'a camera whose clock is off by more than this is refused until it is back',
+                  doc="""\
+A camera whose estimated clock offset is beyond this (s) is refused (its state and
+reason say so) until its offset is back within it. Behind includes the camera's
+processing and network delay and the node's own backlog (a loaded node saw 1.1 s): keep
+it well above those."""),
+        "max_sigma_m": Key(0.1, number(1e-4, 100, unit=" m"),
+                  'a measurement whose sigma is beyond this is refused',
+                  doc="""\
+A camera's measurement with a 1-sigma position uncertainty beyond this (m) is refused and
+counted (below 0.1 mm it is taken as 0.1 mm)."""),
+        "margin_m": Key(1.0, number(0, 1000, unit=" m"),
+                  'a measurement this far outside the map\'s markers is refused',
+                  doc="""\
+A measurement further than this (m) outside the extent of the map's markers is refused
+and counted."""),
     },
     "network": {
         "telemetry": Key('tcp://127.0.0.1:5555', zmq_endpoint,

@@ -46,11 +46,11 @@ from kmea.maps.files import MapError, map_digest
 from kmea.robots.fusion import Fusion, Measurement
 from kmea.robots.tracking import TrackerConfig
 from kmea.wire import protocol as P
-from kmea.wire.jsonlimits import safe_loads
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
-from kmead.fusion.cameras import NUMBER, Camera, check_meta, measurement_from
+from kmead.fusion.cameras import Camera, check_meta, make_room
 from kmead.fusion.election import Election
+from kmead.fusion.inputs import Limits, admit
 from kmead.net.bodies import map_info
 from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.site_tls import certificate_name
@@ -68,7 +68,6 @@ log = logging.getLogger("kmead.fusion")
 __all__ = ["FusionNode", "tracker_config"]
 
 MAX_CAMERAS = 64  # cameras known at once (gone ones make room first)
-MAX_SAMPLE_BYTES = 1024  # a measurement or heartbeat; larger ones are bad
 QUEUE_MAX = 20000  # samples waiting for the loop; beyond, the oldest are dropped
 POLL_S = 0.001  # s: the loop's sleep when nothing came
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
@@ -164,18 +163,21 @@ class FusionNode:
             logging.getLogger("kmead").addHandler(self.log_ring)
             self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
                                cfg["relay"]["stale_repeat_s"], publish=self.publish,
-                               extra_fields=cfg["relay"]["extra_fields"])
+                               extra_fields=cfg["relay"]["extra_fields"],
+                               max_sigma_m=cfg["relay"]["max_sigma_m"])
             self.relay.muted = True  # until this node is the active one
             self.cameras: dict[str, Camera] = {}
             self.queue: queue.Queue = queue.Queue(QUEUE_MAX)
             self.overflow = 0  # events dropped: the loop fell behind by QUEUE_MAX
-            self.foreign = 0  # samples on keys that do not parse (bad camera id, key)
+            self.foreign = 0  # samples of strangers: no camera of that id (no token)
+            self.table_full_reported = False
+            self.limits = Limits.of(cfg["fusion"], self.world_map.extent())
             # The daemon's rules for its files (never truncating, the data directory over
             # control, the free-space floor, a failing disk stops the log only).
             self.files = FileOutputs(cfg["log"], self.data_dir, RunTotals(), self.event)
             if cfg["log"]["csv"]:
                 try:
-                    self.files.start_csv(cfg["log"]["csv"])
+                    self.files.start_csv(cfg["log"]["csv"], keep=True)
                 except LowSpace as e:
                     self.files.refused("log", str(e))
                 except ValueError as e:
@@ -293,11 +295,12 @@ class FusionNode:
     def _camera(self, cam_id: str) -> Camera | None:
         cam = self.cameras.get(cam_id)
         if cam is None:
-            if len(self.cameras) >= MAX_CAMERAS:
-                gone = [c for c, v in self.cameras.items() if v.state == "gone"]
-                if not gone:
-                    return None
-                del self.cameras[gone[0]]
+            if not make_room(self.cameras, MAX_CAMERAS, time.monotonic() - self.lease_s):
+                if not self.table_full_reported:
+                    self.table_full_reported = True
+                    self.event("warning", f"camera {cam_id}: not admitted: {MAX_CAMERAS} "
+                                          "cameras known, none gone or silent")
+                return None
             cam = self.cameras[cam_id] = Camera(cam_id, f"{self.site}/cam/{cam_id}")
         return cam
 
@@ -349,6 +352,8 @@ class FusionNode:
         cam.meta = meta
         if self.map_digest is None:
             self.map_digest, self.map_name = meta["map_digest"], meta["map_name"]
+            if meta.get("extent") is not None:  # the floor the measurements must be on
+                self.limits = Limits.of(self.cfg["fusion"], meta["extent"])
             log.info("map: %s (%s), the first camera's (%s); the other cameras must have the "
                      "same (or set map.file)", self.map_name, self.map_digest, cam.label)
         if meta["map_digest"] != self.map_digest:
@@ -371,12 +376,14 @@ class FusionNode:
 
     def _sample(self, key: str, payload: bytes, t_recv: float) -> bool:
         parts = key.split("/")
-        if len(parts) < 4 or not _ID_RE.match(parts[2]):
-            self.foreign += 1
-            return False
-        cam = self._camera(parts[2])
+        # Only a camera with a token has an entry: data under invented ids cannot fill the
+        # table (they are counted as strangers).
+        cam = self.cameras.get(parts[2]) if len(parts) >= 4 else None
         if cam is None:
             self.foreign += 1
+            if self.foreign == 1:
+                self.event("info", f"data on {key[:80]!r} from no camera known (no token): "
+                                      "ignored (further ones counted: status strangers)")
             return False
         cam.received += 1
         now_wall, now_mono = time.time(), time.monotonic()
@@ -384,28 +391,8 @@ class FusionNode:
         if cam.state == "silent":
             cam.state, cam.reason = "used", None
             self.event("info", f"camera {cam.label}: sends again: used")
-        try:
-            body = safe_loads(payload, MAX_SAMPLE_BYTES, 2)
-            if not isinstance(body, dict):
-                raise ValueError("expected a JSON object")
-            if parts[3] == "frame" and len(parts) == 4:
-                t = body.get("t")
-                if isinstance(t, bool) or not isinstance(t, NUMBER) or not math.isfinite(t):
-                    raise ValueError(f"frame field 't': expected a finite number, got {t!r}")
-                return False
-            if parts[3] != "robots" or len(parts) != 5 or body.get("name") != parts[4]:
-                raise ValueError(f"key {key!r}: not <site>/cam/<id>/robots/<its name>")
-            if parts[4] not in self.names:  # another node's robot (a region of its own)
-                cam.ignored += 1
-                return False
-            m = measurement_from(cam.label, body, self.names)
-        except ValueError as e:  # JsonLimitError is a ValueError
-            cam.bad += 1
-            if not cam.bad_reported:
-                cam.bad_reported = True
-                self.event("warning", f"camera {cam.label}: bad message ignored: {e} "
-                                      "(further ones are only counted)")
-            return False
+        m = admit(cam, parts, payload, now_wall, self.names, self.limits, self.cfg["fusion"],
+                  self.event)
         if m is None:
             return False
         if cam.state != "used":
@@ -415,14 +402,13 @@ class FusionNode:
             return False
         cam.measurements += 1
         cam.last_t = m.t
-        cam.delays.append(now_wall - m.t)
         out = self.fusion.add(m)
         if out is None:
             cam.dropped_old += 1
             return False
         if m.t >= self._clock_t or not math.isfinite(self._clock_t):
             self._clock_t, self._clock_wall = m.t, time.monotonic()
-        if out.kind == "rejected":
+        if not out.accepted:  # gated out, or refused (a non-finite or singular step)
             self.rejected_events += 1
             self.event("warning", f"robot {m.name}: measurement of {cam.label} rejected: "
                                   f"{out.reason}")
@@ -487,7 +473,7 @@ class FusionNode:
             out.append({"name": tr.name, "markers": tr.markers,
                         "x": tr.x if seen else None, "y": tr.y if seen else None,
                         "theta": tr.theta if seen else None, "sigma": tr.sigma,
-                        "valid": seen and not tr.stale,
+                        "valid": seen and not tr.stale and tr.unfit is None,
                         "age_s": (now - tr.last_seen) if tr.last_seen is not None else None,
                         "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
                         "seq": tr.seq, "send_errors": tr.errors,
@@ -530,7 +516,8 @@ class FusionNode:
                        "latency_ms_p99": lat[min(len(lat) - 1, int(0.99 * len(lat)))]
                        if lat else None,
                        "node": self.node_id, "role": self.election.role,
-                       "map_digest": self.map_digest, "overflow": self.overflow},
+                       "map_digest": self.map_digest, "overflow": self.overflow,
+                       "strangers": self.foreign},
             "telemetry": self.telemetry.bound if self.telemetry else "",
             "control": self.control.bound if self.control else "",
         }
@@ -580,12 +567,14 @@ class FusionNode:
         return self.files.stop_csv()
 
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
-        if key not in ("relay.stale_after_s", "relay.stale_repeat_s", "log.level"):
+        if key not in ("relay.stale_after_s", "relay.stale_repeat_s", "relay.max_sigma_m",
+                       "log.level"):
             raise ValueError(f"{key}: not settable on a fusion node (restart it with --set)")
         v = self.cfg.set(key, value, remote=remote)
         if self.relay is not None:
             self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
             self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
+            self.relay.max_sigma_m = self.cfg["relay"]["max_sigma_m"]
         return v
 
     @staticmethod

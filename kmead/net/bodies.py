@@ -99,7 +99,7 @@ def robots_body(res: FrameResult, tracks: Iterable[RobotChannel]) -> RobotsBody:
         out.append({"name": tr.name, "markers": list(tr.markers),
                     "x": tr.x if seen else None, "y": tr.y if seen else None,
                     "theta": tr.theta if seen else None, "sigma": tr.sigma,
-                    "valid": tr.name in res.robots,
+                    "valid": tr.name in res.robots and tr.unfit is None,
                     "age_s": (res.timestamp - last) if last is not None else None,
                     "stale": tr.stale, "destinations": list(tr.destinations),
                     "sent": tr.sent, "seq": tr.seq, "send_errors": tr.errors,

@@ -86,7 +86,7 @@ class FileOutputs:
         self._check_space(path, "log", remote)
         mode = "create"
         if keep and not remote:
-            path, mode = self._keep_existing(path, "log")
+            path, mode = self._keep_existing(path, "log", self.event)
         path = self._output_path(path, "log", self.recorder, remote)
         try:
             self.csv = CsvLog(path, append=mode == "append")
@@ -120,7 +120,7 @@ class FileOutputs:
         self._check_space(path, "record", remote)
         mode = "create"
         if keep and not remote:
-            path, mode = self._keep_existing(path, "record")
+            path, mode = self._keep_existing(path, "record", self.event)
         path = self._output_path(path, "record", self.csv, remote)
         try:
             self.recorder = self._recorder(path)
@@ -249,7 +249,8 @@ class FileOutputs:
                     os.unlink(path)
 
     @staticmethod
-    def _keep_existing(path: str, kind: str) -> tuple[str, str]:
+    def _keep_existing(path: str, kind: str, event: Callable[[str, str], None]
+                       ) -> tuple[str, str]:
         """Where a restarted output goes without truncating anything: (path, mode).
 
         mode "create": no file (or an empty one) there; "append": a CSV log of this format
@@ -270,6 +271,7 @@ class FileOutputs:
         for n in range(2, 10000):
             other = f"{base}-{n}{suffix}"
             if not os.path.lexists(other):
+                event("warning", f"{kind}: {path} exists and is kept: writing {other}")
                 return other, "new name"
         raise ValueError(f"{kind}: {base}-2{suffix} to -9999 all exist; give a path")
 

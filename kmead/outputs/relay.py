@@ -7,7 +7,9 @@ Datagram (one line of ASCII, no newline, ``;``-separated ``key=value``)::
 ``seq`` counts this robot's messages (all destinations share it), ``t`` is the time the
 pose refers to (s): the frame's capture time, or the send time when ``filter.predict`` is on
 (the pose is then predicted to it). x/y metres in the world frame, theta radians in
-[-pi, pi). ``valid=0``: the robot has not been seen for ``relay.stale_after_s``, or the daemon
+[-pi, pi). ``valid=0``: the pose is not finite or its sigma is beyond ``relay.max_sigma_m``
+(never a valid pose a robot cannot use), the robot has not been seen for
+``relay.stale_after_s``, or the daemon
 stops (SIGTERM, SIGINT, end of frames: one message to every robot), or the robot or one of
 its destinations was removed live (one message to what was removed); x/y/theta then repeat
 the last known pose (or 0 if never seen).
@@ -67,6 +69,7 @@ class RobotChannel:
     refused: int = 0  # of errors: refused by the destination (nothing listening)
     refused_seq: dict[str, int] = field(default_factory=dict)  # destination -> seq
     extra: dict = field(default_factory=dict)
+    unfit: str | None = None  # why the last pose went out as valid=0 (not finite, sigma)
 
     def refused_now(self) -> list[str]:
         """Destinations refused among the last :data:`REFUSED_WINDOW` messages.
@@ -79,6 +82,7 @@ class RobotChannel:
 
 
 REFUSED_WINDOW = 4
+MAX_COORD_M = 1e4  # m: a pose beyond is no floor's (and its datagram would not be a line)
 
 
 EXTRA_FIELDS = ("vx", "vy", "omega", "sigma", "age")
@@ -87,9 +91,10 @@ EXTRA_FIELDS = ("vx", "vy", "omega", "sigma", "age")
 def datagram(name: str, seq: int, t: float, x: float, y: float, theta: float,
              valid: bool, extra: dict[str, float] | None = None) -> bytes:
     """The ASCII datagram of one message (see the module docstring); ``extra``: the
-    :data:`EXTRA_FIELDS` to append (missing or non-finite ones are sent as 0)."""
+    :data:`EXTRA_FIELDS` to append (missing, non-finite or absurd ones, beyond
+    :data:`MAX_COORD_M`, are sent as 0: the line stays short)."""
     def f(v: float | None) -> str:
-        return f"{(v if v is not None and math.isfinite(v) else 0.0):.6f}"
+        return f"{(v if v is not None and abs(v) <= MAX_COORD_M else 0.0):.6f}"
     text = (f"name={name};seq={seq};t={t:.6f};x={f(x)};y={f(y)};theta={f(theta)};"
             f"valid={int(valid)}")
     if extra is not None:
@@ -126,8 +131,10 @@ class Relay:
     """Sends robot poses; ``publish`` is called with (topic, body) for the telemetry topic."""
 
     def __init__(self, robots: list[dict], stale_after_s: float, stale_repeat_s: float,
-                 publish=None, extra_fields: bool = False, sink=None) -> None:
+                 publish=None, extra_fields: bool = False, sink=None,
+                 max_sigma_m: float = math.inf) -> None:
         self.stale_after_s = stale_after_s
+        self.max_sigma_m = max_sigma_m
         # sink(track, t, valid, stopping): every message again for another output (Zenoh),
         # called where the telemetry body is, so after all of a frame's datagrams.
         self.sink = sink
@@ -142,6 +149,13 @@ class Relay:
         self.channels: dict[str, RobotChannel] = {}
         self.withdrawn = 0  # valid=0 messages for removed robots and destinations
         self.configure(robots)
+
+    def apply(self, section: dict) -> None:
+        """The live ``[relay]`` keys (a ``set`` request)."""
+        self.stale_after_s = section["stale_after_s"]
+        self.stale_repeat_s = section["stale_repeat_s"]
+        self.extra_fields = section["extra_fields"]
+        self.max_sigma_m = section["max_sigma_m"]
 
     def _sock(self, addr: tuple[str, int]) -> socket.socket | None:
         s = self._socks.get(addr)
@@ -250,12 +264,26 @@ class Relay:
         tr.last_seen = t
         tr.stale = False
         tr.last_stale_sent = None
-        self._send(tr, t, True, publish=publish)
+        unfit = self._unfit(x, y, theta, sigma)
+        if unfit != tr.unfit and unfit is not None:
+            log.warning("robot %s: %s: sent as valid=0", name, unfit)
+        tr.unfit = unfit
+        self._send(tr, t, unfit is None, publish=publish)
+
+    def _unfit(self, x: float, y: float, theta: float, sigma: float | None) -> str | None:
+        """Why a pose must not reach a robot as valid, or None."""
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(theta)):
+            return "pose not finite"
+        if abs(x) > MAX_COORD_M or abs(y) > MAX_COORD_M:
+            return f"pose beyond {MAX_COORD_M:g} m"
+        if sigma is not None and not sigma <= self.max_sigma_m:  # NaN too
+            return f"sigma {sigma:.3g} m beyond relay.max_sigma_m {self.max_sigma_m:g} m"
+        return None
 
     def publish_fix(self, name: str) -> None:
         """The telemetry body of robot ``name``'s last fix."""
         tr = self.channels[name]
-        self._publish(tr, self._fix_time(tr), True)
+        self._publish(tr, self._fix_time(tr), tr.unfit is None)
 
     def publish_fixes(self, names: list[str]) -> None:
         """:meth:`publish_fix` for a frame's robots: every sink message first, then the
@@ -264,9 +292,9 @@ class Relay:
         tracks = [self.channels[n] for n in names]
         if self.sink is not None and not self.muted:
             for tr in tracks:
-                self.sink(tr, self._fix_time(tr), True, self._stopping)
+                self.sink(tr, self._fix_time(tr), tr.unfit is None, self._stopping)
         for tr in tracks:
-            self._publish(tr, self._fix_time(tr), True, sink=False)
+            self._publish(tr, self._fix_time(tr), tr.unfit is None, sink=False)
 
     def tick(self, now: float) -> list[str]:
         """Stale messages for robots unseen for ``stale_after_s`` at time ``now``.
@@ -289,6 +317,17 @@ class Relay:
                 tr.last_stale_sent = now
                 self._send(tr, now, False)
         return newly
+
+    def invalidate(self, t: float) -> list[str]:
+        """One ``valid=0`` message at ``t`` to every robot with a pose that is not stale
+        yet (its source's time broke); they are stale until their next fix. Their names."""
+        names = []
+        for tr in self.channels.values():
+            if tr.last_seen is not None and not tr.stale:
+                tr.stale, tr.last_stale_sent = True, t
+                self._send(tr, t, False)
+                names.append(tr.name)
+        return names
 
     def shutdown(self, t: float) -> None:
         """One ``valid=0`` message to every robot: the daemon stops (SIGTERM, SIGINT, end of

@@ -34,6 +34,26 @@ class RobotSender:
         self.totals = totals
         self.event = event
         self.camera: Any = None
+        self.last_t: float | None = None  # the source's last frame time
+
+    def time_step(self, t: float, max_step_s: float, pipeline: Any) -> bool:
+        """Before the frame at ``t`` (s): a source whose time steps back, or forward by more
+        than ``max_step_s``, would have the robots follow poses of another time (and the
+        filters refuse every measurement as too old, or predict across the gap). Every
+        robot with a pose gets ``valid=0`` at once, the robots' filters (``pipeline``'s)
+        restart, one event. True when it stepped."""
+        last, self.last_t = self.last_t, t
+        if last is None or last <= t <= last + max_step_s:
+            return False
+        names = self.relay.invalidate(t)
+        pipeline.filter.reset()
+        if pipeline.tracker is not None:
+            pipeline.tracker.reset()
+        step = f"back {last - t:.3f} s" if t < last else f"forward {t - last:.3f} s"
+        self.event("warning", f"source time steps {step}: valid=0 sent to "
+                              f"{', '.join(names) or 'no robot'}, filters restarted "
+                              f"(relay.max_time_step_s {max_step_s:g} s)")
+        return True
 
     def send(self, t: float, fixes: dict, tracker: Any, predict: bool,
              t_capture: float) -> None:

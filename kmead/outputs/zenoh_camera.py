@@ -36,6 +36,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from kmea.maps.files import map_digest
+from kmea.maps.model import MarkerMap
 from kmead.net.site_tls import certificate_name
 from kmead.outputs.zenoh_session import import_zenoh
 
@@ -61,13 +63,15 @@ def camera_id(z: dict, source_spec: str) -> str:
     return _ID_RE.sub("-", socket.gethostname())[:32] or "cam"
 
 
-def meta_body(cam_id: str, map_digest: str, map_name: str, camera: Any, source: str,
+def meta_body(cam_id: str, world_map: MarkerMap, camera: Any, source: str,
               camera_file: str) -> dict:
-    """What the ``meta`` queryable answers."""
-    return {"camera": cam_id, "map_digest": map_digest, "map_name": map_name,
+    """What the ``meta`` queryable answers: with the map's digest and name, its markers'
+    extent (xmin, xmax, ymin, ymax: the floor a node without a map of its own checks
+    positions against)."""
+    return {"camera": cam_id, "map_digest": map_digest(world_map), "map_name": world_map.name,
             "model": camera_file or "built-in", "width": int(camera.width),
             "height": int(camera.height), "fx": float(camera.fx), "fy": float(camera.fy),
-            "source": source}
+            "source": source, "extent": list(world_map.extent())}
 
 
 class ZenohCamera:

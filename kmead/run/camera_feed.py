@@ -111,7 +111,7 @@ class CameraFeed:
                 return default
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v:
                 raise WatchError(f"field {name!r}: expected a number >= {lo:g}")
-            return min(float(v), hi)
+            return float(min(v, hi))  # an integer of any size: compared before converted
 
         w = int(number(width, "width", DEFAULT_WIDTH, 8, MAX_WIDTH))
         h = int(number(height, "height", DEFAULT_HEIGHT, 8, MAX_HEIGHT))

@@ -175,7 +175,8 @@ class Daemon:
             raise StartupError(str(e), EXIT_RUNTIME) from None
         self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
                            cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish,
-                           extra_fields=cfg["relay"]["extra_fields"])
+                           extra_fields=cfg["relay"]["extra_fields"],
+                           max_sigma_m=cfg["relay"]["max_sigma_m"])
         self.robots = RobotSender(self.relay, self.totals, self.event)
         if net["control"]:
             try:
@@ -189,8 +190,8 @@ class Daemon:
         for key, start in (("csv", self.start_csv), ("record", self.start_recording)):
             if not cfg["log"][key]:
                 continue
-            try:
-                start(cfg["log"][key])
+            try:  # an existing file is never written over (continued or a new name)
+                start(cfg["log"][key], keep=True)
             except LowSpace as e:
                 # A full disk is the moment's state, not a configuration error: the robots
                 # get their poses without this output (event, status "error").
@@ -221,11 +222,9 @@ class Daemon:
         self.robots.camera = self.zenoh_camera
 
     def _camera_meta(self) -> dict:
-        from kmea.maps.files import map_digest
         from kmead.outputs.zenoh_camera import camera_id, meta_body
 
-        return meta_body(camera_id(self.cfg["zenoh"], self.source_spec),
-                         map_digest(self.world_map), self.world_map.name,
+        return meta_body(camera_id(self.cfg["zenoh"], self.source_spec), self.world_map,
                          self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
 
     def _fusion_nodes(self, n: int) -> None:
@@ -338,9 +337,7 @@ class Daemon:
             if self.zenoh is not None:
                 self.zenoh.retain({r["name"] for r in v})
         elif key.startswith("relay."):
-            self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
-            self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
-            self.relay.extra_fields = self.cfg["relay"]["extra_fields"]
+            self.relay.apply(self.cfg["relay"])
         elif key == "stats.window":
             self.stats = WindowStats(v, self.world_map.ref_length())
         elif key in ("stats.displaced_threshold", "stats.displaced_frames"):
@@ -462,6 +459,7 @@ class Daemon:
                                   "; skipped")
             return None
         inp = self._frame_input(frame, capture_ms, t_cap)
+        self.robots.time_step(inp.timestamp, self.cfg["relay"]["max_time_step_s"], self.pipeline)
         if not self._blur_warned:
             self._check_blur(frame.meta)
         self._t_capture = inp.t_capture

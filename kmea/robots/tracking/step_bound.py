@@ -65,9 +65,8 @@ def step_weight(m: Modes, g: Gains, ky: np.ndarray, pred_xy: tuple[float, float]
         b = b_0 + w * b_1 + ww * b_2
         d = d_0 + w * d_1 + ww * d_2
         det = a * d - b * b
-        if not det > 0.0:
-            dp = np.array([x, y])
-            return float(dp @ np.linalg.solve(np.array([[a, b], [b, d]]), dp)) <= k2
+        if not det > 0.0:  # no covariance to measure the step by (or not finite): refused
+            return False
         return (d * x * x - 2.0 * b * x * y + a * y * y) / det <= k2
 
     if within(1.0):

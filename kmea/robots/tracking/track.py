@@ -30,7 +30,11 @@ from kmea.robots.tracking.reacquire import Candidates
 from kmea.robots.tracking.step_bound import step_weight
 from kmea.stats.chi2 import chi2_quantile
 
-__all__ = ["Outcome", "Rejection", "Track", "TrackState", "Tracker"]
+__all__ = ["MAX_POSITION", "Outcome", "Rejection", "Track", "TrackState", "Tracker"]
+
+#: m: a position beyond this is no floor's; its square (a covariance term) would overflow
+#: long before a float does.
+MAX_POSITION = 1e9
 
 
 @dataclass(frozen=True)
@@ -62,7 +66,9 @@ class Outcome:
 
     kind: "init" (track started), "update" (accepted), "rejected" (gated out or too old;
     ``reason`` says why), "reacquired" (the track restarted from consistent rejected
-    measurements), "reset" (restarted after ``reset_after_s`` without measurements).
+    measurements), "reset" (restarted after ``reset_after_s`` without measurements),
+    "failed" (refused: it would have left a non-finite or singular state; the track was
+    reset, ``state`` is None).
     d2: squared Mahalanobis distance to the prediction (nan when not computed).
     state: the track's state after the measurement, at the measurement's time (a rejected
     one: the prediction; an out-of-order one: at the track's newest time; None when a
@@ -76,7 +82,7 @@ class Outcome:
 
     @property
     def accepted(self) -> bool:
-        return self.kind != "rejected"
+        return self.kind not in ("rejected", "failed")
 
 
 @functools.lru_cache(maxsize=16)
@@ -127,10 +133,45 @@ class Track:
 
     def update(self, t: float, x: float, y: float, theta: float, sigma: float | None = None,
                sigma_theta: float | None = None) -> Outcome:
-        """Apply one pose measurement taken at ``t`` s (x, y m; theta rad; sigma m)."""
+        """Apply one pose measurement taken at ``t`` s (x, y m; theta rad; sigma m).
+
+        The track never holds a state that is not finite or a covariance that is not
+        positive: a measurement that would leave one (values beyond any floor, e.g. 1e300 m)
+        is refused and the track reset (kind ``"failed"``); the next one starts it again."""
         if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)
                 and math.isfinite(theta)):
             return Outcome("rejected", "not finite", math.nan, self.state())
+        try:
+            with np.errstate(all="ignore"):
+                out = self._update(t, x, y, theta, sigma, sigma_theta)
+        except (np.linalg.LinAlgError, ArithmeticError):  # ZeroDivision, Overflow
+            out = None
+        if out is not None and self._healthy():
+            return out
+        self.reset()
+        return Outcome("failed", "the step would leave a non-finite or singular state: "
+                       "measurement refused, track reset", math.nan, None)
+
+    def _healthy(self) -> bool:
+        """Every mode's state and covariance finite, the variances positive, and the
+        position small enough that its square is finite too."""
+        if self.modes is None or self.s is None or self.P is None:
+            return True
+        ss, Ps, mu = self.modes
+        if not (np.isfinite(ss).all() and np.isfinite(Ps).all() and np.isfinite(mu).all()):
+            return False
+        if not (np.diagonal(Ps, axis1=1, axis2=2) > 0.0).all():
+            return False
+        return bool(np.abs(ss[:, :2]).max() < MAX_POSITION and np.isfinite(self.P).all())
+
+    def reset(self) -> None:
+        """Forget the state: the next measurement starts the track."""
+        self.modes = self.s = self.P = self.t = None
+        self.fresh = False
+        self.candidates.clear()
+
+    def _update(self, t: float, x: float, y: float, theta: float, sigma: float | None,
+                sigma_theta: float | None) -> Outcome:
         z = np.array([float(x), float(y), wrap_angle(float(theta))])
         R = self.noise(sigma, sigma_theta)
         cfg = self.config
@@ -245,7 +286,8 @@ class Tracker:
         self.config = config or TrackerConfig()
         self.tracks: dict[str, Track] = {}
         self.rejections: deque[Rejection] = deque(maxlen=keep)
-        self.counts = {"init": 0, "update": 0, "rejected": 0, "reacquired": 0, "reset": 0}
+        self.counts = {"init": 0, "update": 0, "rejected": 0, "reacquired": 0, "reset": 0,
+                       "failed": 0}
 
     def track(self, name: str) -> Track:
         tr = self.tracks.get(name)
@@ -259,7 +301,7 @@ class Tracker:
         """One measurement of robot ``name`` (see :meth:`Track.update`)."""
         out = self.track(name).update(t, x, y, theta, sigma, sigma_theta)
         self.counts[out.kind] += 1
-        if out.kind == "rejected":
+        if not out.accepted:
             self.rejections.append(Rejection(name, t, x, y, theta, out.reason, source))
         return out
 
