@@ -199,14 +199,14 @@ def test_corrupt_compressed_bytes_are_one_line_naming_the_file(tmp_path: Path, f
 
 
 def test_the_daemon_cuts_a_recording_into_parts_that_each_replay(tmp_path: Path) -> None:
-    """log.record_part_mb: new files with new names (an existing name is skipped, never
+    """log.part_mb: new files with new names (an existing name is skipped, never
     written over), each with its own header; together every frame, in order."""
     from kmead import cli
 
     rec = tmp_path / "run.jsonl"  # plain: 1 MB (the smallest part) is ~30 frames
     (tmp_path / "run-part2.jsonl").write_text("someone else's file\n")
     assert cli.main(["--headless", "--frames", "90", "--record", str(rec), *SMALL,
-                     "--set", "detector.fixed_camera=false", "--set", "log.record_part_mb=1",
+                     "--set", "detector.fixed_camera=false", "--set", "log.part_mb=1",
                      *NET]) == 0
     assert (tmp_path / "run-part2.jsonl").read_text() == "someone else's file\n"
     parts = [rec, *sorted(tmp_path.glob("run-part[3-9].jsonl"))]
@@ -226,17 +226,17 @@ def test_the_daemon_cuts_a_recording_into_parts_that_each_replay(tmp_path: Path)
 def test_part_limits_are_off_or_physical(tmp_path: Path) -> None:
     from kmead.config.layers import ConfigError, load_config
 
-    cfg = load_config(None, ["log.record_part_mb=0", "log.record_part_min=0"])
-    assert cfg["log"]["record_part_mb"] == 0 and cfg["log"]["record_part_min"] == 0
-    for bad in ("log.record_part_mb=0.001", "log.record_part_min=0.01",
-                "log.record_part_mb=-1", "log.snapshots_max=-1"):
+    cfg = load_config(None, ["log.part_mb=0", "log.part_min=0"])
+    assert cfg["log"]["part_mb"] == 0 and cfg["log"]["part_min"] == 0
+    for bad in ("log.part_mb=0.001", "log.part_min=0.01",
+                "log.part_mb=-1", "log.snapshots_max=-1"):
         with pytest.raises(ConfigError) as e:
             load_config(None, [bad])
         assert bad.split("=")[0] in str(e.value) and "\n" not in str(e.value)
 
 
 def test_a_part_is_due_by_size_or_by_age(tmp_path: Path, frames) -> None:
-    """log.record_part_mb / _min against a real recorder (its bytes on disk, its start)."""
+    """log.part_mb / _min against a real recorder (its bytes on disk, its start)."""
     from kmead.outputs.datadir import DataDir
     from kmead.outputs.files import FileOutputs
     from kmead.outputs.totals import RunTotals
@@ -244,16 +244,16 @@ def test_a_part_is_due_by_size_or_by_age(tmp_path: Path, frames) -> None:
     _, camera, world_map = frames
     rec = Recorder(tmp_path / "run.jsonl.zst", camera, world_map, "sim", {})
     try:
-        log_cfg = {"record_part_mb": 1.0, "record_part_min": 1.0, "min_free_mb": 0.0}
+        log_cfg = {"part_mb": 1.0, "part_min": 1.0, "min_free_mb": 0.0}
         files = FileOutputs(log_cfg, DataDir(str(tmp_path)), RunTotals(), lambda *a: None)
         files.recorder = rec
         assert files._part_due() is None
         rec.started -= 61.0  # as if started a minute and a second ago
-        assert files._part_due() == "log.record_part_min = 1 min reached"
-        log_cfg["record_part_min"] = 0.0  # off
+        assert files._part_due() == "log.part_min = 1 min reached"
+        log_cfg["part_min"] = 0.0  # off
         assert files._part_due() is None
-        log_cfg["record_part_mb"] = rec.bytes / 1e6  # its size now
-        assert files._part_due() == f"log.record_part_mb = {rec.bytes / 1e6:g} MB reached"
+        log_cfg["part_mb"] = rec.bytes / 1e6  # its size now
+        assert files._part_due() == f"log.part_mb = {rec.bytes / 1e6:g} MB reached"
     finally:
         rec.close()
 

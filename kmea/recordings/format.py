@@ -174,7 +174,7 @@ class Recorder:
     fast_path: the run used the fixed-camera fast path (``detector.fixed_camera`` on a live
     source); the header says so, so that a replay can say its rows will differ.
     part, previous: this file's part number and the file before it, when a recording is
-    cut into parts (kmead's ``log.record_part_mb`` / ``log.record_part_min``)."""
+    cut into parts (kmead's ``log.part_mb`` / ``log.part_min``)."""
 
     def __init__(self, path: str | Path, camera: CameraModel, world_map: MarkerMap,
                  source: str, config: dict, fast_path: bool = False, part: int = 1,

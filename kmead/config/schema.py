@@ -470,15 +470,26 @@ Recording of every frame's detections, for --source replay:FILE; "" = off. A nam
 in .zst (run.jsonl.zst) is zstd-compressed: about 1/40 of the plain size on a fixed camera
 (0.1 GB an hour at 30 frames/s), 1/3 when every number changes; any other name is plain
 JSON lines (about 4 GB an hour at 30 frames/s). docs/daemon.md, Recording and replay."""),
-        "record_part_mb": Key(500.0, off_or_number(1, 1e6, unit=" MB"),
-                  ('a recording goes on in a new part when its file reaches this size (MB on '
-                   'disk); `0` = no limit, else at least 1'),
+        "part_mb": Key(500.0, off_or_number(1, 1e6, unit=" MB"),
+                  ('the CSV log and the recording go on in a new part when its file reaches '
+                   'this size (MB on disk); `0` = no limit, else at least 1'),
                   doc="""\
-The recording is cut into parts (run-part2.jsonl.zst, run-part3... new names, each part
-replays alone) when its file reaches this size (MB, 10^6 bytes on disk) or this age
-(minutes); 0 = no limit of that kind."""),
-        "record_part_min": Key(60.0, off_or_number(1, 7 * 24 * 60, unit=" min"),
+The CSV log and the recording are cut into parts (run-part2.csv, run-part2.jsonl.zst, ...:
+new names, each with its header; each recording part replays alone) when the file reaches
+this size (MB, 10^6 bytes on disk) or this age (minutes); 0 = no limit of that kind."""),
+        "part_min": Key(60.0, off_or_number(1, 7 * 24 * 60, unit=" min"),
                   '... or this age (minutes); `0` = no limit, else at least 1'),
+        "keep_days": Key(14.0, off_or_number(0.01, 3650, unit=" days"),
+                  ("kmead's files (CSV logs, recordings, snapshots) older than this many days "
+                   'are removed from the directories it writes to; `0` = kept forever'),
+                  doc="""\
+Retention: kmead's own files (CSV logs, recordings, snapshots, recognised by their
+content: a user's other files are never touched) in the data directory and the
+directories of the running log and recording are removed when older than keep_days days,
+oldest first until they take at most keep_mb MB; never a file being written. At the start
+of each output, of each part, and hourly. 0 = no limit of that kind."""),
+        "keep_mb": Key(4000.0, off_or_number(10, 1e7, unit=" MB"),
+                  "... and beyond this many MB of them, the oldest first; `0` = no limit"),
         "min_free_mb": Key(50.0, number(0, 1e7, unit=" MB"),
                   ('free-space floor (MB, 10^6 bytes) for the CSV log and the recording; `0` = '
                    'none ([A full disk](#a-full-disk))'),
@@ -643,7 +654,8 @@ DEFAULT_ROBOTS: list[dict[str, Any]] = [
 
 # Keys that changed their name: a file or request that uses the old one is told the new.
 # ("track" names the robots' tracking filter only; the fixed camera's keys say so.)
-RENAMED = {"detector.tracking": "detector.fixed_camera",
+RENAMED = {"log.record_part_mb": "log.part_mb", "log.record_part_min": "log.part_min",
+           "detector.tracking": "detector.fixed_camera",
            "detector.track_full_every": "detector.fixed_full_every",
            "detector.track_refit_every": "detector.fixed_refit_every"}
 

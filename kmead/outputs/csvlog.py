@@ -70,6 +70,7 @@ class CsvLog:
         self.rows = 0
         self.mode = "create"  # how it was started: create, append, new name
         self.bytes = 0
+        self.part = 1  # its part of a log cut by log.part_mb / part_min
         if not append:
             try:
                 self._write((HEADER + "\n").encode())
@@ -81,6 +82,11 @@ class CsvLog:
         wholewrite.write_whole(self._f, data, self._end)
         self._end += len(data)
         self.bytes += len(data)
+
+    @property
+    def size(self) -> int:
+        """Bytes in the file (a continued log's earlier rows included)."""
+        return self._end
 
     def write_rows(self, lines: list[str]) -> None:
         if not lines:

@@ -11,7 +11,9 @@ disk"):
   cleanly, between two frames, when its disk falls below it;
 - a write error (ENOSPC, EIO) stops that output only: whole rows stay (the writers cut a
   failed write back), an event and the status say why; robots and telemetry go on;
-- a recording goes on in a new part at ``log.record_part_mb`` / ``log.record_part_min``.
+- the CSV log and the recording go on in a new part at ``log.part_mb`` / ``log.part_min``,
+  and kmead's older files beyond ``log.keep_days`` / ``log.keep_mb`` are removed
+  (:mod:`kmead.outputs.retention`) when an output or a part starts, and hourly.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Any, Protocol
 from kmea.recordings.format import Recorder
 from kmead.outputs.csvlog import CsvLog, ends_whole, has_header
 from kmead.outputs.datadir import DataDir, low_space, next_part, same_file, split_suffix
+from kmead.outputs.retention import prune
 
 __all__ = ["OUTPUT_NAMES", "FileOutputs", "LowSpace", "Totals"]
 
@@ -36,6 +39,8 @@ OUTPUT_NAMES = {"log": "CSV log", "record": "recording"}
 # How often (s) the free space under a running output is checked: statvfs is a few
 # microseconds, but every frame would be needless.
 SPACE_CHECK_S = 1.0
+# How often (s) retention runs besides the start of each output and part.
+PRUNE_EVERY_S = 3600.0
 
 
 class LowSpace(ValueError):
@@ -76,6 +81,8 @@ class FileOutputs:
         # None while it runs or after a stop that was asked for. In the status body.
         self.errors: dict[str, str | None] = {"log": None, "record": None}
         self._space_t = 0.0
+        self._prune_t = -PRUNE_EVERY_S
+        self.csv_started = 0.0  # time.monotonic() when this CSV part started
 
     # ------------------------------------------------------------------ start and stop
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
@@ -94,11 +101,17 @@ class FileOutputs:
             self._forget_created(path, remote)
             raise ValueError(f"log: cannot write {path}: {e.strerror or e}") from None
         self.csv.mode = mode
-        self.errors["log"] = None
-        self.totals.csv_paths.append(str(self.csv.path))
+        self._started_csv()
         log.info("CSV log started: %s%s", self.csv.path,
                  " (appending: the earlier rows are kept)" if mode == "append" else "")
+        self.prune()
         return self.csv
+
+    def _started_csv(self) -> None:
+        assert self.csv is not None
+        self.csv_started = time.monotonic()
+        self.errors["log"] = None
+        self.totals.csv_paths.append(str(self.csv.path))
 
     def stop_csv(self) -> dict:
         if self.csv is None:
@@ -131,6 +144,7 @@ class FileOutputs:
         self.errors["record"] = None
         log.info("recording started: %s%s", self.recorder.path, "" if self.recorder.compressed
                  else " (plain JSON lines: 3 to 25 times the size of a name ending .zst)")
+        self.prune()
         return self.recorder
 
     def stop_recording(self) -> dict:
@@ -161,6 +175,10 @@ class FileOutputs:
             self.csv.write_rows(lines)
         except OSError as e:
             self._failed("log", e)
+            return
+        why = self._csv_part_due()
+        if why:
+            self._next_csv_part(why)
 
     def write_frame(self, write: Callable[[Recorder], None]) -> None:
         """``write(recorder)`` one frame; then a new part when one is due."""
@@ -175,10 +193,30 @@ class FileOutputs:
         if why:
             self._next_part(why)
 
+    def prune(self) -> None:
+        """Retention (:mod:`kmead.outputs.retention`) in the data directory and the
+        directories of the running outputs; one event when something was removed."""
+        self._prune_t = time.monotonic()
+        lg = self.log_cfg
+        if not (lg["keep_days"] or lg["keep_mb"]):
+            return
+        active = [o.path for o in (self.csv, self.recorder) if o is not None]
+        dirs = {self.data_dir.root, *(Path(p).resolve().parent for p in active)}
+        removed = prune(dirs, lg["keep_days"], lg["keep_mb"], active)
+        if removed:
+            where = ", ".join(sorted({str(f.path.parent) for f in removed}))
+            self.event("info", f"retention: removed {len(removed)} of kmead's files "
+                               f"({sum(f.bytes for f in removed) / 1e6:.1f} MB, the oldest "
+                               f"{removed[0].path.name}) from {where}: older than "
+                               f"log.keep_days = {lg['keep_days']:g} or beyond log.keep_mb = "
+                               f"{lg['keep_mb']:g}")
+
     def watch_space(self) -> None:
         """Stop an output cleanly (between two frames: whole rows) when its disk falls
-        below the floor, long before a write fails."""
+        below the floor, long before a write fails; retention hourly."""
         now = time.monotonic()
+        if now - self._prune_t >= PRUNE_EVERY_S and (self.csv or self.recorder):
+            self.prune()
         if now - self._space_t < SPACE_CHECK_S or (self.csv is None and self.recorder is None):
             return
         self._space_t = now
@@ -275,16 +313,41 @@ class FileOutputs:
                 return other, "new name"
         raise ValueError(f"{kind}: {base}-2{suffix} to -9999 all exist; give a path")
 
-    def _part_due(self) -> str | None:
-        """Why the recording must go on in a new part (log.record_part_mb/_min), or None."""
-        r, lg = self.recorder, self.log_cfg
-        if r is None:
-            return None
-        if lg["record_part_mb"] and r.bytes >= lg["record_part_mb"] * 1e6:
-            return f"log.record_part_mb = {lg['record_part_mb']:g} MB reached"
-        if lg["record_part_min"] and time.monotonic() - r.started >= lg["record_part_min"] * 60:
-            return f"log.record_part_min = {lg['record_part_min']:g} min reached"
+    def _due(self, size: int, started: float) -> str | None:
+        """Why an output of ``size`` bytes started at ``started`` (monotonic s) must go on
+        in a new part (log.part_mb / log.part_min), or None."""
+        lg = self.log_cfg
+        if lg["part_mb"] and size >= lg["part_mb"] * 1e6:
+            return f"log.part_mb = {lg['part_mb']:g} MB reached"
+        if lg["part_min"] and time.monotonic() - started >= lg["part_min"] * 60:
+            return f"log.part_min = {lg['part_min']:g} min reached"
         return None
+
+    def _part_due(self) -> str | None:
+        r = self.recorder
+        return None if r is None else self._due(r.bytes, r.started)
+
+    def _csv_part_due(self) -> str | None:
+        c = self.csv
+        return None if c is None else self._due(c.size, self.csv_started)
+
+    def _next_csv_part(self, why: str) -> None:
+        """Close this CSV part and go on in a new file with its own header."""
+        old = self.csv
+        assert old is not None
+        try:
+            path, part = next_part(old.path, old.part + 1)
+            new = CsvLog(path)
+        except OSError as e:
+            self._failed("log", e)
+            return
+        new.part, new.mode = part, old.mode
+        old.close()
+        self.totals.csv_rows += old.rows
+        self.csv = new
+        self._started_csv()
+        log.info("CSV log goes on in %s (%s)", path, why)
+        self.prune()
 
     def _next_part(self, why: str) -> None:
         """Close this part and go on in a new file (a new name: nothing is written over);

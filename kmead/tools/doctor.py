@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from kmea.wire.destinations import THIS_MACHINE_ONLY, this_machine_only
+from kmead.outputs.retention import usage
 
 __all__ = ["Check", "Doctor", "add_arguments", "run"]
 
@@ -346,6 +347,27 @@ class Doctor:
         else:
             self.add(True, "robots", f"{len(robots)} robots; UDP poses to {dests}")
 
+    def check_retention(self, cfg: Any, pi: bool) -> None:
+        """What kmead's files take where it writes them, and what retention keeps."""
+        lg = cfg["log"]
+        dirs = {Path(lg["dir"] or (STATE_DIR if STATE_DIR.is_dir() else Path.cwd()))}
+        dirs |= {Path(p).parent for p in (lg["csv"], lg["record"]) if p}
+        if (STATE_DIR / "logs").is_dir():
+            dirs.add(STATE_DIR / "logs")
+        u = usage(dirs)
+        where = ", ".join(sorted(str(d) for d in dirs))
+        held = (f"{u.files} of kmead's files, {u.bytes / 1e6:.0f} MB"
+                + (f", the oldest {u.oldest_days:.1f} days old" if u.oldest_days is not None
+                   else ""))
+        rule = (f"kept: {lg['keep_days']:g} days and {lg['keep_mb']:g} MB at most, parts of "
+                f"{lg['part_mb']:g} MB / {lg['part_min']:g} min")
+        if not (lg["keep_days"] or lg["keep_mb"]):
+            self.add(not pi, "retention", f"{where}: {held}; nothing is ever removed "
+                     "(log.keep_days = log.keep_mb = 0): a service logging every frame "
+                     "fills an SD card in days; set log.keep_days and log.keep_mb")
+        else:
+            self.add(True, "retention", f"{where}: {held}; {rule}")
+
     def check_disk(self, cfg: Any) -> None:
         target = Path(cfg["log"]["csv"]).parent if cfg and cfg["log"]["csv"] else (
             STATE_DIR if STATE_DIR.is_dir() else Path.cwd())
@@ -390,6 +412,7 @@ class Doctor:
             self.check_files(cfg)
             self.check_motion(cfg)
             self.check_robots(cfg, pi)
+            self.check_retention(cfg, pi)
         self.check_disk(cfg)
         return self.results
 
