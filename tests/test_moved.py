@@ -153,3 +153,21 @@ def test_median_of_the_others_equals_the_median_of_a_copy_without_the_marker():
         others = list(ranked)
         others.remove(v)
         assert _median_without(ranked, bisect.bisect_left(ranked, v)) == statistics.median(others)
+
+
+def test_the_floor_scales_with_the_metres_per_pixel_at_the_marker() -> None:
+    """820x616 (2 mm per pixel at the marker): a steady 13 mm offset is a single marker's pose
+    noise there, not a move; 25 mm is a move; at 1640x1232 (1 mm per pixel) 13 mm is."""
+    from kmea.stats.moved import MovedMonitor
+
+    def decide(offset: float, gsd: float) -> bool:
+        mon = MovedMonitor(0.010, frames=5)
+        moved = {}
+        for _ in range(5):
+            figures = {i: 0.001 for i in range(10)} | {7: offset}
+            moved = mon.update(figures, {i: gsd for i in range(11)})
+        return 7 in moved
+
+    assert not decide(0.013, 0.002) and decide(0.025, 0.002)
+    assert decide(0.013, 0.001)
+    assert decide(0.013, 0.0)  # unknown: the floor as set

@@ -17,11 +17,20 @@ the floor is off in every frame. So each marker keeps its last ``frames`` figure
                 camera, lens and floor right now
       own     = 1.4826 x the median absolute deviation of its own window: its own jitter
                 (a marker far in the image corner wobbles more than one under the camera)
-    threshold = max(min_offset, factor x noise)
+    floor     = min_offset x max(1, gsd / GSD_REF_M)
+      gsd     = the marker's depth / the focal length: metres per pixel at the marker
+    threshold = max(floor, factor x noise)
     moved     = offset > threshold
 
+The floor scales with the image's resolution: a single marker's pose is off along its
+viewing ray by about depth x depth x pixel noise / (focal length x side), linear in the
+metres per pixel at the marker, and seen from the side that error lands on the floor. At
+the reference resolution (1640x1232 from 1.35 m: about 1 mm per pixel, ``GSD_REF_M``)
+``min_offset`` is the floor as set; at 820x616 (2 mm per pixel) twice that: below it a
+move cannot be told from the pose noise of a 30-pixel marker.
+
 The threshold scales with what it measures: on a well-surveyed floor seen by a calibrated
-camera (errors ~1 mm) ``min_offset`` (``stats.displaced_threshold``) decides; with a worse
+camera (errors ~1 mm) the floor (``stats.displaced_threshold``) decides; with a worse
 camera or floor, where every marker is off by several millimetres, ``factor`` times that
 level does, so noise is never called a move. The median keeps a few moved markers from
 raising the typical level (fewer than half the markers are assumed moved).
@@ -40,10 +49,13 @@ import collections
 import statistics
 from dataclasses import dataclass
 
-__all__ = ["DEFAULT_FACTOR", "MovedEvidence", "MovedMonitor"]
+__all__ = ["DEFAULT_FACTOR", "GSD_REF_M", "MovedEvidence", "MovedMonitor"]
 
 # Threshold in units of the noise level: 3 sigma-like spreads of a well-placed marker.
 DEFAULT_FACTOR = 3.0
+# Metres per pixel at which min_offset applies as set: the reference rig (Pi Camera v2 at
+# 1640x1232, fx 1357 px, 1.35 m above the floor).
+GSD_REF_M = 0.001
 # MAD -> standard deviation for normally distributed figures.
 _MAD_TO_SIGMA = 1.4826
 # Fewer other markers than this: no error level of the floor (min_offset and own jitter).
@@ -94,6 +106,7 @@ class MovedMonitor:
         self.need = min(self.frames, 3)
         self.history: dict[int, collections.deque[float]] = {}
         self.evidence: dict[int, MovedEvidence] = {}
+        self.gsd: dict[int, float] = {}  # id -> the last metres per pixel at the marker
 
     def _medians(self) -> dict[int, float]:
         return {mid: statistics.median(h) for mid, h in self.history.items()
@@ -105,9 +118,15 @@ class MovedMonitor:
         meds = [m for mid, m in self._medians().items() if mid != exclude]
         return statistics.median(meds) if len(meds) >= MIN_OTHERS else 0.0
 
-    def update(self, figures: dict[int, float]) -> dict[int, MovedEvidence]:
-        """Add one frame's figures (id -> m); return id -> evidence of the markers measured
-        in this frame that have moved (every marker's evidence is in :attr:`evidence`)."""
+    def update(self, figures: dict[int, float],
+               gsd: dict[int, float] | None = None) -> dict[int, MovedEvidence]:
+        """Add one frame's figures (id -> m) and, where known, each marker's metres per
+        pixel (``gsd``, id -> m/px: the floor's scale); return id -> evidence of the
+        markers measured in this frame that have moved (every marker's evidence is in
+        :attr:`evidence`)."""
+        for mid, g in (gsd or {}).items():
+            if g > 0 and g == g and g != float("inf"):
+                self.gsd[mid] = float(g)
         for mid, e in figures.items():
             h = self.history.get(mid)
             if h is None:
@@ -123,7 +142,8 @@ class MovedMonitor:
             typical = (_median_without(ranked, bisect.bisect_left(ranked, offset))
                        if len(ranked) - 1 >= MIN_OTHERS else 0.0)
             own = _MAD_TO_SIGMA * statistics.median(abs(x - offset) for x in h)
-            threshold = max(self.min_offset, self.factor * max(typical, own))
+            floor = self.min_offset * max(1.0, self.gsd.get(mid, 0.0) / GSD_REF_M)
+            threshold = max(floor, self.factor * max(typical, own))
             self.evidence[mid] = MovedEvidence(offset > threshold, offset, len(h), threshold)
         return {mid: self.evidence[mid] for mid in figures if self.evidence[mid].moved}
 
@@ -134,3 +154,4 @@ class MovedMonitor:
     def clear(self) -> None:
         self.history.clear()
         self.evidence.clear()
+        self.gsd.clear()

@@ -36,6 +36,9 @@ def show_value(value: Any) -> str:
     return str(value)
 
 
+# What a technician must know before choosing an estimator live (docs/speed.md).
+ALGORITHM_NOTES = {"kmea-robust": "slow: ~0.3 s a frame, 2-3 frames/s"}
+
 # Keys whose empty value means a default: the field is left empty and says which.
 DEFAULT_TEXT = {"dictionary": "the map's dictionary (empty = the map's)"}
 
@@ -138,7 +141,8 @@ class ConfigPane(VerticalScroll):
             options.append(algo)  # the running one, before the first status arrives
         select = self.query_one("#algorithm", Select)
         with select.prevent(Select.Changed):
-            select.set_options([(a, a) for a in options])
+            select.set_options([(f"{a} ({ALGORITHM_NOTES[a]})" if a in ALGORITHM_NOTES else a, a)
+                                for a in options])
             if isinstance(algo, str):
                 select.value = algo
 

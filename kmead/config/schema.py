@@ -216,12 +216,14 @@ being a reference yet (a refit costs 10-40 ms of CPU and moves the fit by microm
     "estimator": {
         "algorithm": Key('corner-pnp', algorithm_name,
                   ('estimator name (why this default: '
-                   '[accuracy.md](accuracy.md#the-default-estimator))'),
+                   '[accuracy.md](accuracy.md#the-default-estimator)); `kmea-robust` is slow: '
+                   'about 0.3 s of CPU a frame'),
                   doc="""\
 corner-pnp (default: the camera from every reference's corners, markers from their corner
 rays; the most accurate within the frame budget, see docs/accuracy.md), kmea (the
 paper's Algorithm 2), lmea (Algorithm 1), lmea-printed (Algorithm 1 exactly as printed),
-umeyama, kmea-robust (an unknown name makes kmead list the available ones).""",
+umeyama, kmea-robust (slow: about 0.3 s of CPU a frame, 2-3 frames/s where kmea runs 70;
+an unknown name makes kmead list the available ones).""",
                   live=True),
         "unknown_plane": Key('auto', choice("auto", "floor", "free"),
                   ('markers neither in the map nor on a configured robot: `auto` (on a plane of '
@@ -343,12 +345,14 @@ Leave-one-out error of every detected map marker every frame (feeds the statisti
 Statistics window, in frames.""",
                   live=True),
         "displaced_threshold": Key(0.01, number(1e-4, 10, unit=" m"),
-                  ('smallest median offset (m) called a moved marker (the threshold also scales '
-                   'with the error level, `kmea/stats/moved.py`)'),
+                  ('smallest median offset (m) called a moved marker at 1 mm per pixel (it scales '
+                   'with the metres per pixel at the marker and the error level, '
+                   '`kmea/stats/moved.py`)'),
                   doc="""\
 A map marker has moved (event, and "moved" in the markers telemetry) when the median of
-its leave-one-out error over the last N frames it was measured in exceeds this (m) and 3x
-the error level of the other markers and of its own jitter (kmea/stats/moved.py).""",
+its leave-one-out error over the last N frames it was measured in exceeds this (m, at 1 mm
+per pixel at the marker: twice it at 820x616) and 3x the error level of the other markers
+and of its own jitter (kmea/stats/moved.py).""",
                   live=True),
         "displaced_frames": Key(5, integer(1, 1000),
                   ('... over the last N frames it was measured in (median of N, at least 3 '

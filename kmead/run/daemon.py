@@ -602,7 +602,9 @@ class Daemon:
         figures = dict(res.loo)
         for mid, d in res.estimate.rejected.items():
             figures[mid] = max(figures.get(mid, 0.0), d)
-        bad = self.monitor.update(figures)
+        fx = float(self.pipeline.camera.fx)
+        gsd = {o.id: float(o.marker2cam_t[2]) / fx for o in res.observations if fx > 0}
+        bad = self.monitor.update(figures, gsd)
         now = time.monotonic()
         for mid, ev in sorted(bad.items()):
             if ev.offset is None or ev.threshold is None:
