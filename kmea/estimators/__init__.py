@@ -39,7 +39,7 @@ _REGISTRY: dict[str, str] = {
 }
 
 
-#: The estimator the daemon uses unless configured otherwise (see docs/estimators.md, "The
+#: The estimator the daemon uses unless configured otherwise (see docs/accuracy.md, "The
 #: default estimator": the most accurate within the frame budget, on data it was not tuned on).
 DEFAULT_ALGORITHM = "corner-pnp"
 
