@@ -1,4 +1,4 @@
-"""corner-pnp's estimate on a fixed camera, per frame, in CPU time (issue 14).
+"""corner-pnp's estimate on a fixed camera, per frame, in CPU time.
 
 The default scene (1640x1232, two robots on three markers, tracking on) through the tracked
 pipeline; the estimator's calls are timed with ``time.thread_time()``: the robots placed

@@ -5,7 +5,7 @@ held-out motion sets together (5 % of the measurements replaced by jumps of 5-20
 the filter with everything on and the paper's IIR filter. Columns: outlier-caused output
 jumps above 3 sigma (of all outliers) and the largest in sigmas (against the same drive
 without outliers), the position and heading RMSE, good measurements rejected, the slowest
-re-acquisition after a kidnap, and the lag. The requirement (issue 26): at most 1 in 1,000
+re-acquisition after a kidnap, and the lag. The filter's requirement: at most 1 in 1,000
 outliers moves the output by more than 3 sigma, none by more than 10 sigma, at a lag no
 larger than the IIR filter's. Prints figures; no asserts.
 

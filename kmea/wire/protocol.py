@@ -25,7 +25,7 @@ from kmea.wire.jsonsafe import to_jsonable
 
 # 2: markers[].moved/moved_offset/moved_frames/moved_threshold (the daemon's "moved" decision
 #    with its evidence), markers[].rejection (was "displacement"), status.algorithms;
-#    markers[].plane/plane_stat (issue 13; added fields, old clients ignore them).
+#    markers[].plane/plane_stat (added fields: old clients ignore them).
 PROTOCOL_VERSION = 2
 
 # Telemetry topics. Subscribers filter by prefix (TOPIC_ROBOT_PREFIX gets every robot).
@@ -172,8 +172,8 @@ class RobotsBody(TypedDict):
 
 class _RawMeasurementTime(TypedDict, total=False):
     """t: the instant the measurement stands for (s; its markers' mid-exposure), also with
-    ``filter.predict`` on, when the message's own ``t`` is the send time (since issue 27;
-    older recordings lack it)."""
+    ``filter.predict`` on, when the message's own ``t`` is the send time (older recordings
+    lack it)."""
 
     t: float
 
