@@ -90,6 +90,18 @@ def connection_state(ping_ok: bool | None, ping_detail: str, last_telemetry: flo
     return "connected", ""
 
 
+def fusion_map_markers(status: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """A fusion node's map markers (status ``map.markers``) as the map draws markers: ids
+    at their surveyed places, none detected (a fusion node sees through its cameras)."""
+    out = []
+    for m in ((status or {}).get("map") or {}).get("markers") or []:
+        if (isinstance(m, list) and len(m) == 4
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in m)):
+            out.append({"id": int(m[0]), "map_x": m[1], "map_y": m[2], "map_z": m[3],
+                        "detected": False})
+    return out
+
+
 class KmeaTui(App[None]):
     """The UI. ``client`` is a :class:`DaemonClient` or a :class:`RecordingClient`."""
 
@@ -328,6 +340,8 @@ class KmeaTui(App[None]):
             self.query_one(StatsPane).update_stats(self.stats_body)
         elif tab == "map":
             markers = (self.markers_body or {}).get("markers", [])
+            if not markers and self.fusion_node:
+                markers = fusion_map_markers(self.status)
             self.query_one(MapPane).set_data(MapData(
                 markers=markers, robots=(self.robots_body or {}).get("robots", []),
                 moved=moved_ids(markers)))
@@ -369,6 +383,7 @@ class KmeaTui(App[None]):
         self.query_one("#stats-summary", Static).update(note.format("marker statistics"))
         self.query_one(CameraPane).show_caption("camera: not available on a fusion node "
                                                 "(no camera)")
+        self.query_one(ConfigPane).show_fusion_node()
         if self.query_one(TabbedContent).active == "markers":
             self.action_show_tab("robots")
 

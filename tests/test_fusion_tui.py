@@ -60,11 +60,24 @@ async def test_fusion_node_ui_opens_on_robots_and_draws_its_map(tmp_path: Path) 
             await pilot.pause(0.5)
             caption = str(app.query_one("#camera-caption").render())
             assert "not available on a fusion node" in caption
-            # The node's map: the wide floor's outline (x up to 2.395 m), not the built-in.
-            x0, x1, _, _ = app.query_one(FloorMap).extent()
+            # The node's map: the wide floor's outline (x up to 2.395 m), not the built-in,
+            # with its markers' ids (from the status: a node has no markers telemetry).
+            await pilot.press("4")
+            fmap = app.query_one(FloorMap)
+            await _wait(pilot, lambda: len(fmap.data.markers) > 60, "the map's markers")
+            x0, x1, _, _ = fmap.extent()
             assert x0 < -0.69 and x1 > 2.39
+            drawn = "\n".join("".join(s.text for s in line) for line in fmap._render_strips())
+            assert sum(tok.isdigit() for tok in drawn.split()) >= 10  # marker ids drawn
             # No camera request was refused (the UI never asks a fusion node for one), and
             # a direct one gets a reason, not an internal error.
+            # The Configuration tab offers nothing a fusion node does not have.
+            await pilot.press("5")
+            await pilot.pause(0.3)
+            hidden = [w for w in app.query(".camera-only")]
+            assert hidden and not any(w.display for w in hidden)
+            assert not app.query_one("#algorithm").parent.display  # its row is hidden
+            assert "a fusion node" in str(app.query_one("#save-note").render())
             reply = await app.client.request("camera_watch", width=80, height=40)
             assert reply["ok"] is False and "fusion node" in reply["error"]
             assert (await app.client.request("get_log", limit=5))["ok"] is True

@@ -269,11 +269,13 @@ class CameraInfo(TypedDict):
 class MapInfo(TypedDict, total=False):
     """The map's name and marker count (always), and ``extent``: [xmin, xmax, ymin, ymax]
     of its floor markers' centres, m (what the UI's map outline shows before, or without,
-    any marker estimate: a fusion node)."""
+    any marker estimate: a fusion node); a fusion node, which has no markers telemetry, also
+    sends ``markers``, so its map draws their ids."""
 
     name: str
     n: int
     extent: list[float]
+    markers: list[list[float]]  # a fusion node: [id, x, y, z] of every map marker, m
 
 
 class InputState(TypedDict):

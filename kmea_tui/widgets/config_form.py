@@ -102,28 +102,40 @@ class ConfigPane(VerticalScroll):
         self.robots: list[dict[str, Any]] = []
         self.save_target = "the daemon's configuration file"
 
+    fusion_node = False  # set by show_fusion_node
+
     def compose(self) -> ComposeResult:
         yield Static("configuration not loaded yet (daemon not reachable?)", id="config-status",
                      classes="summary")
         # Where Save writes, near the top so it is visible at 80x24 (long paths wrap).
         yield Static("", id="save-note", classes="note", markup=False)
-        with Horizontal(classes="form-row"):
+        with Horizontal(classes="form-row camera-only"):
             yield Label("algorithm", classes="form-label")
             yield Select([(a, a) for a in self.algorithms], allow_blank=True,
                          id="algorithm", prompt="(unknown)", compact=True)
-        with Horizontal(classes="form-row"):
+        with Horizontal(classes="form-row camera-only"):
             yield Label("filter alpha", classes="form-label")
             yield Input(placeholder="0..1, 1 = no filtering", id="filter-alpha", compact=True)
         yield Label("robots: a add · e/Enter edit · d remove", classes="form-title",
                     markup=False)
         yield RobotsConfigTable(id="robots-config")
-        yield Label("detector options (values in TOML syntax)", classes="form-title",
+        yield Label("detector options (values in TOML syntax)", classes="form-title camera-only",
                     markup=False)
-        yield Vertical(id="detector-options")
+        yield Vertical(id="detector-options", classes="camera-only")
         with Horizontal(classes="form-row"):
             yield Button(Text("Save [ctrl+s]"), id="save", variant="primary")
             yield Button(Text("Re-read [ctrl+r]"), id="reread")
-            yield Button("Reload map", id="reload-map")
+            yield Button("Reload map", id="reload-map", classes="camera-only")
+
+    def show_fusion_node(self) -> None:
+        """A fusion node has no camera: no estimator, detector, IIR filter or map to reload
+        (it answers ``set`` of relay.* and log.level only)."""
+        self.fusion_node = True
+        for w in self.query(".camera-only"):
+            w.display = False
+        self.query_one("#save-note", Static).update(
+            "a fusion node: no estimator, detector or camera settings (relay.* and "
+            "log.level can be set live)")
 
     # -- showing the daemon's configuration ----------------------------------------------
     def set_algorithms(self, algorithms: list[str]) -> None:
@@ -163,7 +175,8 @@ class ConfigPane(VerticalScroll):
         for i, r in enumerate(self.robots):
             table.add_row(*robot_row(r), key=str(i))
         self._show_detector(config.get("detector", {}))
-        self.query_one("#save-note", Static).update(f"Save writes {self.save_target}")
+        if not self.fusion_node:
+            self.query_one("#save-note", Static).update(f"Save writes {self.save_target}")
         self.query_one("#config-status", Static).update(Text.assemble(
             ("configuration", "bold"), f" ({source or 'the daemon'}): ",
             "Enter applies a value live; Save makes changes permanent"))

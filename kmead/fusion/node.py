@@ -504,7 +504,7 @@ class FusionNode:
             "recording": {"active": False, "path": None, "frames": 0, "bytes": 0,
                           "error": None},
             "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
-            "map": map_info(self.world_map),
+            "map": map_info(self.world_map, markers=True),
             "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
             "bad_frames": sum(i.bad for i in cams),
             "inputs": [i.body(now_wall) for i in cams],
@@ -746,6 +746,9 @@ def run(args: Any) -> int:
     try:
         overrides = {k: v for k, v in (("log.csv", args.log), ("map.file", args.map)) if v}
         cfg = load_config(args.config, args.set, overrides or None)
+        # Joining the site takes a few seconds: say so at once (kmead does the same).
+        print(f"kmea fuse: starting (joining the Zenoh site {cfg['zenoh']['site']!r})...",
+              file=sys.stderr, flush=True)
         with stderr_logging(cfg["log"]["level"]):
             node = FusionNode(cfg, max_outputs=args.frames)
     except ConfigError as e:

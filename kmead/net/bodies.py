@@ -165,7 +165,13 @@ def status_body(*, t0: float, source: str, config_file: str, config_files: list[
     return body
 
 
-def map_info(world_map: Any) -> MapInfo:
-    """The ``status`` body's ``map``: name, marker count and floor extent (m)."""
-    return {"name": world_map.name, "n": len(world_map),
-            "extent": [round(v, 4) for v in world_map.floor_extent()]}
+def map_info(world_map: Any, markers: bool = False) -> MapInfo:
+    """The ``status`` body's ``map``: name, marker count and floor extent (m); with
+    ``markers`` every marker's [id, x, y, z] (m; a fusion node, which sends no markers
+    telemetry)."""
+    info: MapInfo = {"name": world_map.name, "n": len(world_map),
+                     "extent": [round(v, 4) for v in world_map.floor_extent()]}
+    if markers:
+        info["markers"] = [[i, *(round(float(v), 4) for v in world_map.positions([i])[0])]
+                           for i in world_map.ids]
+    return info
