@@ -172,6 +172,7 @@ class FusionNode:
             self.foreign = 0  # samples of strangers: no camera of that id (no token)
             self.table_full_reported = False
             self.limits = Limits.of(cfg["fusion"], self.world_map.extent())
+            self.camera_extent: tuple[float, ...] | None = None  # the first camera's map
             # The daemon's rules for its files (never truncating, the data directory over
             # control, the free-space floor, a failing disk stops the log only).
             self.files = FileOutputs(cfg["log"], self.data_dir, RunTotals(), self.event)
@@ -340,6 +341,15 @@ class FusionNode:
         except Exception as e:  # a session closing
             log.debug("zenoh: metadata query of %s failed: %s", cam.label, e)
 
+    def _map_status(self) -> Any:
+        """The status ``map``: the configured map with its markers; without ``map.file``,
+        once a camera is used, that camera's map (its name and extent: its markers are
+        not sent by cameras), else the built-in one."""
+        ext = self.camera_extent
+        if self.cfg["map"]["file"] or ext is None:
+            return map_info(self.world_map, markers=True)
+        return {"name": self.map_name, "n": 0, "extent": [round(v, 4) for v in ext]}
+
     def _meta(self, cam_id: str, payload: bytes | None) -> None:
         cam = self.cameras.get(cam_id)
         if cam is None or cam.state != "waiting" or payload is None:
@@ -354,6 +364,7 @@ class FusionNode:
             self.map_digest, self.map_name = meta["map_digest"], meta["map_name"]
             if meta.get("extent") is not None:  # the floor the measurements must be on
                 self.limits = Limits.of(self.cfg["fusion"], meta["extent"])
+                self.camera_extent = tuple(meta["extent"])
             log.info("map: %s (%s), the first camera's (%s); the other cameras must have the "
                      "same (or set map.file)", self.map_name, self.map_digest, cam.label)
         if meta["map_digest"] != self.map_digest:
@@ -504,7 +515,7 @@ class FusionNode:
             "recording": {"active": False, "path": None, "frames": 0, "bytes": 0,
                           "error": None},
             "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
-            "map": map_info(self.world_map, markers=True),
+            "map": self._map_status(),
             "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
             "bad_frames": sum(i.bad for i in cams),
             "inputs": [i.body(now_wall) for i in cams],
