@@ -494,6 +494,8 @@ class KmeaTui(App[None]):
             if ok and isinstance(reply.get("config"), dict):
                 self.config_loaded = True
                 overlay = reply.get("overlay_file")
+                adv = reply.get("advanced")
+                config_pane.advanced = {str(k) for k in adv} if isinstance(adv, list) else set()
                 config_pane.show_config(
                     reply["config"],
                     save_target=(f"{overlay} (changed keys only; read at the next start)"

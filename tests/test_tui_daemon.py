@@ -227,6 +227,11 @@ async def test_config_edits_apply_live_and_save_writes_the_overlay(daemon: Daemo
         await wait_for(pilot, lambda: app.config_loaded, "configuration")
         pane = app.query_one("#config-pane")
         await pilot.press("5")
+        # The form offers a technician's detector keys, not the advanced ones.
+        await wait_for(pilot, lambda: bool(list(app.query(".detector-option"))), "the detector")
+        names = {i.name for i in app.query(".detector-option")}
+        assert "dictionary" in names and "marker_length" in names
+        assert not names & {"workers", "fast", "parameters", "fixed_camera"}
         # Filter alpha: type a value, Enter applies it live.
         alpha = app.query_one("#filter-alpha")
         alpha.focus()

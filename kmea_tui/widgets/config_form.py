@@ -103,6 +103,7 @@ class ConfigPane(VerticalScroll):
         self.save_target = "the daemon's configuration file"
 
     fusion_node = False  # set by show_fusion_node
+    advanced: set[str] = set()  # section.key the daemon calls advanced (get_config)
 
     def compose(self) -> ComposeResult:
         yield Static("configuration not loaded yet (daemon not reachable?)", id="config-status",
@@ -183,8 +184,10 @@ class ConfigPane(VerticalScroll):
 
     def _show_detector(self, detector: Any) -> None:
         box = self.query_one("#detector-options", Vertical)
+        # Advanced keys (the daemon's list) stay out of the form: --set and files set them.
         options = {k: v for k, v in (detector or {}).items()
-                   if isinstance(v, (str, int, float, bool, dict, list))}
+                   if isinstance(v, (str, int, float, bool, dict, list))
+                   and f"detector.{k}" not in self.advanced}
         existing = {inp.name for inp in box.query(Input)}
         if existing == set(options):
             for inp in box.query(Input):

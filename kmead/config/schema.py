@@ -43,6 +43,7 @@ from kmead.config.checks import (
 )
 
 __all__ = [
+    "ADVANCED",
     "KEYS",
     "LIVE_KEYS",
     "SCHEMA",
@@ -656,6 +657,30 @@ DEFAULT_ROBOTS: list[dict[str, Any]] = [
      "destinations": ["udp:127.0.0.1:9002"]},
 ]
 
+# Tuning internals and plumbing a technician does not choose: out of the generated
+# config.toml and the terminal UI's form, still settable (--set, a file, control) and
+# documented in docs/daemon.md's "Advanced keys". The rest are what a technician sets.
+ADVANCED: frozenset[str] = frozenset({
+    "detector.corner_refinement", "detector.parameters", "detector.workers", "detector.fast",
+    "detector.fast_window", "detector.full_every", "detector.fixed_camera",
+    "detector.fixed_full_every", "detector.fixed_refit_every",
+    "estimator.unknown_plane",
+    "filter.reset_after_s", "filter.model", "filter.accel_noise", "filter.turn_noise",
+    "filter.gate_probability", "filter.reacquire_n", "filter.manoeuvre_scale",
+    "filter.manoeuvre_time_s", "filter.cruise_time_s", "filter.step_k",
+    "filter.outlier_probability", "filter.outlier_radius",
+    "stats.loo", "stats.window", "stats.displaced_frames",
+    "relay.stale_repeat_s", "relay.max_sigma_m", "relay.max_time_step_s",
+    "fusion.max_age_s", "fusion.max_future_s", "fusion.clock_warn_s", "fusion.max_clock_offset_s",
+    "fusion.max_sigma_m", "fusion.margin_m",
+    "network.status_period_s",
+    "log.part_mb", "log.part_min", "log.min_free_mb", "log.snapshots_max",
+    "log.snapshots_max_mb",
+    "foxglove.host", "foxglove.image_hz",
+    "zenoh.mode", "zenoh.multicast", "zenoh.camera", "zenoh.lease_s", "zenoh.ros_namespace",
+    "zenoh.frame_id", "zenoh.dds_bridge", "zenoh.robot_pose", "zenoh.insecure",
+})
+
 # Keys that changed their name: a file or request that uses the old one is told the new.
 # ("track" names the robots' tracking filter only; the fixed camera's keys say so.)
 RENAMED = {"log.record_part_mb": "log.part_mb", "log.record_part_min": "log.part_min",
@@ -741,14 +766,26 @@ def _trailer(key: Key) -> str:
 
 
 def default_config_text() -> str:
-    """The documented default configuration (config.toml): every key with its default, the
-    comment that explains it, and its range, unit and whether it is live."""
+    """The documented default configuration (config.toml): every key a technician sets
+    (not :data:`ADVANCED`) with its default, the comment that explains it, and its range,
+    unit and whether it is live; each section names its advanced keys in one line."""
     out = _comment(HEADER)
     for section, keys in KEYS.items():
         out += ["", f"[{section}]"]
         for name, key in keys.items():
-            out += _comment(key.doc)
+            if f"{section}.{name}" in ADVANCED:
+                continue
+            doc = key.doc
+            if not doc:  # the comment above an earlier key covers it: unless that one is out
+                above = [(n, k) for n, k in list(keys.items())[:list(keys).index(name)] if k.doc]
+                if above and f"{section}.{above[-1][0]}" in ADVANCED:
+                    doc = above[-1][1].doc
+            out += _comment(doc)
             out.append(f"{name} = {toml_value(key.default)}{_trailer(key)}")
+        advanced = [n for n in keys if f"{section}.{n}" in ADVANCED]
+        if advanced:
+            out += _comment(f"Advanced (docs/daemon.md, Advanced keys; --set or this file): "
+                            f"{', '.join(advanced)}")
     out += ["", *_comment(ROBOTS_DOC)]
     for robot in DEFAULT_ROBOTS:
         out += ["[[robots]]"] + [f"{k} = {toml_value(v)}" for k, v in robot.items()] + [""]
@@ -756,11 +793,20 @@ def default_config_text() -> str:
 
 
 def keys_table() -> str:
-    """The key table of docs/daemon.md (markdown): key, default, meaning; a key without a
-    summary joins the row above it."""
+    """The key tables of docs/daemon.md (markdown): key, default, meaning, a technician's
+    keys first, then :data:`ADVANCED`; a key without a summary joins the row above it."""
+    return (_table(advanced=False) + "\n#### Advanced keys\n\nTuning internals and "
+            "plumbing, out of the generated `config.toml` and the terminal UI's form; set "
+            "them with `--set`, a configuration file or a control `set` (the live ones).\n\n"
+            + _table(advanced=True))
+
+
+def _table(advanced: bool) -> str:
     rows: list[tuple[list[str], list[str], str]] = []
     for section, keys in KEYS.items():
         for name, key in keys.items():
+            if (f"{section}.{name}" in ADVANCED) != advanced:
+                continue
             cell = f"`{toml_value(key.default)}`"
             if not key.summary and rows:
                 rows[-1][0].append(f"`{section}.{name}`")
@@ -772,8 +818,9 @@ def keys_table() -> str:
         # one default for a row whose keys share it
         shown_default = defaults[0] if len(set(defaults)) == 1 else ", ".join(defaults)
         lines.append(f"| {', '.join(names)} | {shown_default} | {summary} |")
-    names = ", ".join(DEFAULT_ROBOTS[i]["name"] for i in range(len(DEFAULT_ROBOTS)))
-    lines.append(f"| `[[robots]]` | {names} | {ROBOTS_SUMMARY} |")
+    if not advanced:
+        names = ", ".join(DEFAULT_ROBOTS[i]["name"] for i in range(len(DEFAULT_ROBOTS)))
+        lines.append(f"| `[[robots]]` | {names} | {ROBOTS_SUMMARY} |")
     return "\n".join(lines) + "\n"
 
 

@@ -24,6 +24,7 @@ import zmq
 
 from kmea.wire import protocol as P
 from kmead.config.layers import LIVE_KEYS, ConfigError, validate_setting
+from kmead.config.schema import ADVANCED
 from kmead.net import bodies
 
 if TYPE_CHECKING:
@@ -256,7 +257,7 @@ class ControlServer:
         with d.lock:
             return {"config": d.cfg.to_dict(), "config_file": d.cfg.user_file,
                     "config_files": d.cfg.files, "overlay_file": str(d.cfg.overlay_path),
-                    "live_keys": sorted(LIVE_KEYS)}
+                    "live_keys": sorted(LIVE_KEYS), "advanced": sorted(ADVANCED)}
 
     def _cmd_set(self, req: dict) -> dict:
         key = _field(req, "key", str)
