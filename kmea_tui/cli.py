@@ -77,6 +77,9 @@ def _endpoints(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.screenshots and not args.replay:
+        print("kmea-tui: --screenshots needs --replay FILE", file=sys.stderr)
+        return 2
     if not args.replay:
         _endpoints(args)
     from kmea.wire.curve_client import CurveKeyError, read_client_keys
@@ -98,9 +101,6 @@ def main(argv: list[str] | None = None) -> int:
 
     theme = None if args.theme == "auto" else args.theme
     if args.screenshots:
-        if not args.replay:
-            print("kmea-tui: --screenshots needs --replay FILE", file=sys.stderr)
-            return 2
         from kmea_tui.app import save_screenshots
 
         m = re.fullmatch(r"(\d+)x(\d+)", args.size.strip().lower())

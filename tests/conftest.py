@@ -28,6 +28,13 @@ def _own_config_home(tmp_path_factory, monkeypatch) -> None:
 
 
 @pytest.fixture(autouse=True)
+def _own_runtime_dir(tmp_path_factory, monkeypatch) -> None:
+    """Daemons announce their endpoints in $XDG_RUNTIME_DIR/kmea: every test gets its own,
+    so a UI started by one test never finds a daemon another test (or worker) started."""
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path_factory.mktemp("runtime")))
+
+
+@pytest.fixture(autouse=True)
 def _no_kmead_logging_leak():
     """Every test leaves the ``kmead`` logger's handlers as it found them. One left behind
     (kmead's stderr log after an in-process ``main()``, a daemon never closed) keeps

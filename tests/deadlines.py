@@ -5,3 +5,31 @@ second; only a hang may fail a test."""
 
 DEADLINE = 120.0  # s: an event a test waits for (frames, replies, a process's exit)
 JOIN = 60.0  # s: a thread or process asked to stop, at the end of a test
+
+
+def wait_until(cond, what: str, timeout: float = DEADLINE, interval: float = 0.05,
+               check=None) -> None:
+    """Return as soon as ``cond()`` is true; fail after ``timeout`` s naming ``what``.
+    ``check()``: called while waiting, raises when waiting is pointless (a process died)."""
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return
+        if check is not None:
+            check()
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+async def pilot_until(pilot, cond, what: str, timeout: float = DEADLINE) -> None:
+    """:func:`wait_until` for a Textual app driven by its Pilot: the app runs while waiting."""
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return
+        await pilot.pause(0.05)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
-from deadlines import DEADLINE, JOIN
+from deadlines import DEADLINE, JOIN, wait_until
 
 pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
                                     "(pip install 'kmea[zenoh]')")
@@ -52,13 +52,7 @@ def _daemon(cam: int, epoch: float, port: int, robots: str | None = None) -> Dae
     return Daemon(cfg)
 
 
-def _wait(cond, what: str) -> None:
-    end = time.monotonic() + DEADLINE
-    while time.monotonic() < end:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+_wait = wait_until
 
 
 def _start(d: Daemon) -> threading.Thread:

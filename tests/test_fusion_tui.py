@@ -5,11 +5,10 @@ forever, asks for no camera, and draws the floor of the map the node was given."
 from __future__ import annotations
 
 import threading
-import time
 from pathlib import Path
 
 import pytest
-from deadlines import JOIN
+from deadlines import JOIN, pilot_until
 
 pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
                                     "(pip install 'kmea[zenoh]')")
@@ -24,14 +23,7 @@ from kmea_tui.widgets.floor_map import FloorMap
 from kmead.config.layers import load_config
 from kmead.fusion.node import FusionNode
 
-
-async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return
-        await pilot.pause(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+_wait = pilot_until
 
 
 async def test_fusion_node_ui_opens_on_robots_and_draws_its_map(tmp_path: Path) -> None:

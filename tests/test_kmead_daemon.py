@@ -330,7 +330,8 @@ def _spawn(tmp_path: Path, out: Path) -> subprocess.Popen:
         stderr=subprocess.PIPE, text=True)
 
 
-def _wait_rows(out: Path, proc: subprocess.Popen, n: int = 150, timeout: float = 40) -> None:
+def _wait_rows(out: Path, proc: subprocess.Popen, n: int = 150,
+               timeout: float = DEADLINE) -> None:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if out.exists() and out.read_text().count("\n") > n:

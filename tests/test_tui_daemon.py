@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from deadlines import JOIN
+from deadlines import DEADLINE, JOIN
 from textual.widgets import Select
 
 from kmea_tui.app import KmeaTui
@@ -26,7 +26,7 @@ from kmea_tui.widgets.robots import RobotsTable
 
 CSV_HEADER = "frame,timestamp,algorithm,kind,id,x,y,z,yaw,error,refs"
 START_TIMEOUT = 60.0
-WAIT = 30.0
+WAIT = DEADLINE
 
 
 class Daemon:

@@ -123,7 +123,7 @@ async def test_quit_with_unsaved_live_changes_asks_once(daemon) -> None:
     await wait_for_file(overlay, "alpha = 0.3")
 
 
-async def wait_for_file(path, text: str, timeout: float = 30.0) -> None:
+async def wait_for_file(path, text: str, timeout: float = DEADLINE) -> None:
     import asyncio
     import time
 

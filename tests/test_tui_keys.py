@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import pytest
+from deadlines import pilot_until
 from security_helpers import LiveDaemon
 
 from kmea_tui import cli as tui_cli
@@ -14,14 +14,7 @@ from kmea_tui.client import DaemonClient
 from kmea_tui.widgets.status_bar import StatusBar
 from kmead.tools import kmea_cli
 
-
-async def _wait(pilot, cond, what: str, timeout: float = 30.0) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return
-        await pilot.pause(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+_wait = pilot_until
 
 
 @pytest.fixture

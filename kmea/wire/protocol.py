@@ -429,7 +429,11 @@ class StateReply(TypedDict):
     stats: StatsBody
 
 
-class ConfigReply(TypedDict):
+class _ConfigReplyExtra(TypedDict, total=False):
+    advanced: list[str]  # section.key of the keys config.toml and the UI's form leave out
+
+
+class ConfigReply(_ConfigReplyExtra):
     """The reply to ``get_config``: the effective configuration as the TOML file's tables."""
 
     ok: bool
