@@ -50,7 +50,7 @@ from kmea.wire.jsonlimits import safe_loads
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
 from kmead.fusion.cameras import NUMBER, Camera, check_meta, measurement_from
-from kmead.fusion.election import Election
+from kmead.fusion.speaker import Speaker
 from kmead.net.bodies import map_info
 from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
@@ -119,7 +119,6 @@ class FusionNode:
         self.zenoh_out: Any = None  # kmead.outputs.zenoh.ZenohOutput while active
         self._subs: list[Any] = []
         self._data: list[Any] = []  # the data subscribers (ring channels)
-        self._token: Any = None
         self._log_handler: TelemetryLogHandler | None = None
         self._own_ctx: zmq.Context | None = None
         self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
@@ -186,9 +185,8 @@ class FusionNode:
             self._clock_wall = time.monotonic()
             self._last_robots_pub = 0.0
             self._open_zenoh(session)
-            self.election = Election(self.node_id, 2 * self.lease_s, time.monotonic())
-            self.role_changes: list[tuple[float, str]] = []  # (time.time(), role)
-            self._declare_role()
+            self.speaker = Speaker(self)  # the election, its token, the voice per robot
+            self.election = self.speaker.election
             if cfg["network"]["control"]:
                 from kmead.net.control import ControlServer
 
@@ -230,40 +228,10 @@ class FusionNode:
             *self._data,
             live.declare_subscriber(f"{site}/cam/*", on_liveliness("camera"), history=True),
             live.declare_subscriber(f"{site}/fusion/*/*", on_liveliness("node"),
+                                    history=True),
+            # Each camera's session token: two kmead claiming one camera id (status).
+            live.declare_subscriber(f"{site}/cam/*/zid/*", on_liveliness("twin"),
                                     history=True)]
-
-    def _declare_role(self) -> None:
-        """The token of this node's role: the new one first, then the old one goes (a
-        camera watching the site never sees no fusion node while this one runs)."""
-        old = self._token
-        self._token = self.session.liveliness().declare_token(
-            f"{self.site}/fusion/{self.node_id}/{self.election.role}")
-        if old is not None:
-            old.undeclare()
-
-    def _set_role(self, role: str) -> None:
-        """Called in the loop, under the lock, when the election changed this node's role."""
-        assert self.relay is not None
-        self.role_changes.append((time.time(), role))
-        if role == "active":
-            from kmead.outputs.zenoh import FUSION_NODE_NAME, ZenohOutput
-
-            self.zenoh_out = ZenohOutput.open(self.z, self.session, FUSION_NODE_NAME)
-            self.relay.sink = self.zenoh_out.send
-            self.relay.muted = False
-        elif self.zenoh_out is not None:
-            self.relay.muted = True
-            self.relay.sink = None
-            self.zenoh_out.close()
-            self.zenoh_out = None
-        self._declare_role()
-        text = {"active": "active: this node speaks to the robots",
-                "standby": "standby: another node speaks to the robots, or this one will "
-                           "when none does",
-                "starting": "stepped down (it did not run for longer than the lease); "
-                            "watching the site again"}[role]
-        self.event("warning" if role == "starting" else "info", f"fusion node "
-                   f"{self.node_id[:8]}: {text}")
 
     # ------------------------------------------------------------------ clock
     def clock(self) -> float:
@@ -282,6 +250,8 @@ class FusionNode:
             self._camera_token(parts[2], value)
         elif kind == "node" and len(parts) == 4:
             self.election.token(parts[2], parts[3], value)
+        elif kind == "twin" and len(parts) == 5 and _ID_RE.match(parts[2]):
+            self._twin(parts[2], parts[4][:32], value)
         elif kind == "meta":
             self._meta(key, value)
         return False
@@ -314,6 +284,15 @@ class FusionNode:
                 self._drop_sources(cam)
             self.event("warning", f"camera {cam.label}: gone (its session closed or its "
                                   "lease ran out): dropped")
+
+    def _twin(self, cam_id: str, zid: str, alive: bool) -> None:
+        """A session's token of camera ``cam_id``: more than one is two kmead, one id."""
+        cam = self._camera(cam_id)
+        if cam is not None:
+            (cam.sessions.add if alive else cam.sessions.discard)(zid)
+            if alive and len(cam.sessions) > 1:
+                self.event("error", f"camera {cam.label}: {len(cam.sessions)} kmead claim "
+                                    "this camera id: give each its own zenoh.camera")
 
     def _ask(self, cam: Camera) -> None:
         """Ask the camera's metadata; the answer comes back through the queue."""
@@ -619,20 +598,22 @@ class FusionNode:
             stalled = now - last_loop > self.lease_s
             last_loop = now
             with self.lock:
-                self._elect(now, stalled)
+                self.speaker.elect(now, stalled)
                 n = self._pump()
             if not n:
                 time.sleep(POLL_S)
             if now >= next_tick:
                 next_tick = now + 0.05
                 with self.lock:
-                    self._elect(now)
+                    self.speaker.elect(now)
                     self._watch_cameras(now)
                 self.tick()
             if self.control is None and now - last_status >= \
                     self.cfg["network"]["status_period_s"]:
                 last_status = now
                 self.publish(P.TOPIC_STATUS, self.status())
+        # Stopped on purpose: the robots are handed over before this node goes.
+        self.speaker.hand_over(self._pump)
         return 0
 
     def _pump(self, limit: int = 1000) -> int:
@@ -656,12 +637,6 @@ class FusionNode:
                             time.perf_counter())
                 n += 1
         return n
-
-    def _elect(self, now: float, stalled: bool = False) -> None:
-        role = self.election.decide(now, stalled)
-        while role is not None:
-            self._set_role(role)
-            role = self.election.decide(now)
 
     def done(self) -> bool:
         """True once ``max_outputs`` fused outputs have been made."""
@@ -695,11 +670,12 @@ class FusionNode:
         if self.zenoh_out is not None:
             self.zenoh_out.close()
             self.zenoh_out = None
-        for entity in (*self._subs, self._token):
-            if entity is not None:
-                with contextlib.suppress(Exception):  # a session already closed
-                    entity.undeclare()
-        self._subs, self._token = [], None
+        if getattr(self, "speaker", None) is not None:
+            self.speaker.close()
+        for entity in self._subs:
+            with contextlib.suppress(Exception):  # a session already closed
+                entity.undeclare()
+        self._subs = []
         if self.session is not None and getattr(self, "_owns_session", False):
             try:
                 self.session.close()

@@ -42,7 +42,10 @@ class RobotSender:
         predicted to now; ``t_capture``: the frame's capture (``perf_counter``), for the
         capture-to-relay latency (0: unknown)."""
         tot = self.totals
+        cam = self.camera
         for fix in fixes.values():
+            if cam is not None:  # how well this camera sees the robot: who speaks to it
+                cam.voice.want(fix.name, fix.raw[3] if fix.raw is not None else fix.sigma)
             extra = None
             t_pose = t if fix.t is None else fix.t
             t_fix, x, y, th, sigma, cov = t_pose, fix.x, fix.y, fix.theta, fix.sigma, fix.cov
@@ -64,13 +67,12 @@ class RobotSender:
                               cov=cov)
             tot.robots_seen.add(fix.name)
         self.relay.publish_fixes(list(fixes))
-        cam = self.camera
         if cam is not None:  # the measurements, for the fusion nodes (after the datagrams)
             for fix in fixes.values():
                 mx, my, mth, ms = fix.raw if fix.raw is not None else (
                     fix.x, fix.y, fix.theta, fix.sigma)
                 cam.measurement(fix.name, t if fix.t is None else fix.t, mx, my, mth, ms)
-            cam.frame(t)
+            cam.frame(t, set(fixes))
         for name in self.relay.tick(t):
             self.event("warning", f"robot {name} not seen for "
                                   f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")

@@ -209,15 +209,22 @@ class Daemon:
         except ImportError:
             raise StartupError("key 'zenoh.enabled': the zenoh extra is not installed "
                                "(pip install 'kmea[zenoh]')") from None
-        from kmead.outputs.zenoh_camera import ZenohCamera, camera_id
+        from kmead.outputs.zenoh_camera import DuplicateCamera, ZenohCamera, camera_id
 
         z = self.cfg["zenoh"]
         self.zenoh = ZenohOutput.open(z)
         self.relay.sink = self.zenoh.send
-        # This kmead as a camera of its site, for the fusion nodes (docs/fusion.md).
-        self.zenoh_camera = ZenohCamera(self.zenoh.session, z["site"],
-                                        camera_id(z, self.source_spec), self._camera_meta(),
-                                        on_fusion=self._fusion_nodes)
+        # This kmead as a camera of its site, for the fusion nodes (docs/fusion.md), and
+        # one of the robots' possible voices (kmead.outputs.voice).
+        relay = self.relay
+        try:
+            self.zenoh_camera = ZenohCamera(
+                self.zenoh.session, z["site"], camera_id(z, self.source_spec),
+                self._camera_meta(), known=lambda name: name in relay.channels,
+                on_quiet=self.zenoh.quiet, event=self.event)
+        except DuplicateCamera as e:
+            raise StartupError(str(e)) from None
+        self.relay.voice = self.zenoh_camera.voice
         self.robots.camera = self.zenoh_camera
 
     def _camera_meta(self) -> dict:
@@ -227,13 +234,6 @@ class Daemon:
         return meta_body(camera_id(self.cfg["zenoh"], self.source_spec),
                          map_digest(self.world_map), self.world_map.name,
                          self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
-
-    def _fusion_nodes(self, n: int) -> None:
-        """Zenoh's thread: ``n`` fusion nodes alive on the site. While one is, it speaks to
-        the robots and this kmead's relay is muted (one voice per robot)."""
-        relay = self.relay
-        if relay is not None:
-            relay.muted = n > 0
 
     def _start_foxglove(self) -> None:
         fx = self.cfg["foxglove"]
