@@ -25,6 +25,8 @@ BENCHES: dict[str, tuple[str, str]] = {
                       "frame to Zenoh vs frame to UDP; the ROS 2 output's CPU"),
     "fusion-zenoh": ("kmead.benchmarks.fusion_zenoh:main",
                      "fusion on Zenoh: a camera dropped, a node's failover"),
+    "voice-seams": ("kmead.benchmarks.voice_seams:main",
+                    "what a robot hears at each seam: silences, seq, jumps, voices"),
     "soak": ("kmead.benchmarks.soak:main",
              "a real kmead for an hour with a venue day's load"),
 }

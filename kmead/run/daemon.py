@@ -223,6 +223,7 @@ class Daemon:
                 self._camera_meta(), known=lambda name: name in relay.channels,
                 on_quiet=self.zenoh.quiet, event=self.event)
         except DuplicateCamera as e:
+            relay.muted = True  # it never spoke: its close tells the robots nothing
             raise StartupError(str(e)) from None
         self.relay.voice = self.zenoh_camera.voice
         self.robots.camera = self.zenoh_camera
