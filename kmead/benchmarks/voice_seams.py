@@ -202,20 +202,26 @@ def _window(site: Site, name: str, a: float, b: float, truth) -> dict:
     seq_bad = sum(q.seq <= p.seq for p, q in itertools.pairwise(msgs))
     seq_bad += sum(q <= p for p, q in itertools.pairwise(binary))
     j3 = j10 = 0
-    worst = 0.0
+    worst = step = 0.0
     prev = None
     for m in valid:
         tx, ty, _ = truth(name, m.t)
         e = (m.x - tx, m.y - ty)
         if prev is not None and m.sigma > 0:
-            k = math.hypot(e[0] - prev[0], e[1] - prev[1]) / m.sigma
+            d = math.hypot(e[0] - prev[0], e[1] - prev[1])
+            k = d / m.sigma
             j3 += k > 3
             j10 += k > 10
             worst = max(worst, k)
+            step = max(step, d)
         prev = e
     switches = sum(q.port != p.port for p, q in itertools.pairwise(valid))
+    seams = [q.at - p.at for p, q in itertools.pairwise(valid) if q.port != p.port]
+    steady = sorted(q.at - p.at for p, q in itertools.pairwise(valid) if q.port == p.port)
     return {"n": len(valid), "silence": max(gaps, default=math.inf), "seq_bad": seq_bad,
-            "j3": j3, "j10": j10, "worst": worst, "voices": switches}
+            "j3": j3, "j10": j10, "worst": worst, "voices": switches, "step": step,
+            "seam": max(seams, default=math.nan),
+            "period": steady[len(steady) // 2] if steady else math.nan}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -227,9 +233,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=616)
     p.add_argument("--settle", type=float, default=6.0,
                    help="s after each seam that count in its window")
+    p.add_argument("--dump", metavar="FILE.json", help="every message received, for study")
+    p.add_argument("--logs", metavar="DIR", help="keep the processes' logs there")
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        site = Site(a.lease, a.speed, a.width, a.height, Path(tmp))
+        site = Site(a.lease, a.speed, a.width, a.height, Path(a.logs or tmp))
         try:
             rows = _run(site, a.settle)
         finally:
@@ -237,16 +245,25 @@ def main(argv: list[str] | None = None) -> int:
     truth = _truth(a.speed, site.epoch)
     print(f"voice-seams: lease {a.lease:g} s, robots at {a.speed:g} m/s, cameras "
           f"{a.width}x{a.height}")
-    print("| seam | robot | messages | longest silence ms | seq back/repeat | jumps > 3 "
-          "sigma per 1,000 | > 10 sigma | largest sigma | speaker changes |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| seam | robot | messages | period ms (median) | silence at the handover ms | "
+          "longest silence ms | seq back/repeat | jumps > 3 sigma per 1,000 | > 10 sigma | "
+          "largest sigma | largest step mm | speaker changes |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for label, t0, t1 in rows:
         for name in ROBOTS:
             w = _window(site, name, t0, t1, truth)
             per = 1000.0 * w["j3"] / w["n"] if w["n"] else 0.0
-            print(f"| {label} | {name} | {w['n']} | {w['silence'] * 1e3:.0f} | "
-                  f"{w['seq_bad']} | {per:.1f} | {w['j10']} | {w['worst']:.1f} | "
+            print(f"| {label} | {name} | {w['n']} | {w['period'] * 1e3:.0f} | "
+                  f"{w['seam'] * 1e3:.0f} | {w['silence'] * 1e3:.0f} | {w['seq_bad']} | "
+                  f"{per:.1f} | {w['j10']} | {w['worst']:.1f} | {w['step'] * 1e3:.1f} | "
                   f"{w['voices']} |")
+    if a.dump:
+        import json
+
+        with open(a.dump, "w") as f:
+            json.dump({"epoch": site.epoch, "speed": a.speed, "rows": rows,
+                       "udp": {n: [m.__dict__ for m in ms] for n, ms in site.robot.udp.items()},
+                       "binary": site.robot.binary}, f)
     return 0
 
 

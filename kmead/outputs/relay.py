@@ -4,7 +4,9 @@ Datagram (one line of ASCII, no newline, ``;``-separated ``key=value``)::
 
     name=amr1;seq=17;t=1700000000.123456;x=0.512300;y=0.200100;theta=1.570800;valid=1
 
-``seq`` counts this robot's messages (all destinations share it), ``t`` is the time the
+``seq`` counts this robot's messages (all destinations share it; with a voice,
+:mod:`kmead.outputs.voice`, it continues above every seq heard from the robot's other
+speakers), ``t`` is the time the
 pose refers to (s): the frame's capture time, or the send time when ``filter.predict`` is on
 (the pose is then predicted to it). x/y metres in the world frame, theta radians in
 [-pi, pi). ``valid=0``: the robot has not been seen for ``relay.stale_after_s``, or the daemon

@@ -26,9 +26,9 @@ The rules, the same in every speaker:
 - **Two voices heard at once** (a race, two nodes cut off from each other): the one of
   lower rank stops when it hears the other (nodes before cameras, then the lower id).
 - **One sequence per robot**: every speaker keeps the highest ``seq`` heard on R's key, and
-  a speaker's next message is numbered above it (a yield reserves one more, for a message
-  already on its way). So ``seq`` never goes back or repeats across camera, node and
-  camera handovers; it may skip.
+  a speaker's next message is numbered above it; a yield names the seq of the message
+  already on its way, if any (reserved when the relay was told to send). So ``seq`` never
+  goes back or repeats across camera, node and camera handovers; it may skip.
 - Tokens silence nobody: only a holder's traffic (``say``) keeps the others quiet, so a
   stranger's liveliness token changes nothing, and a node that is alive but not speaking
   for R leaves R to the cameras.
@@ -152,7 +152,6 @@ class Voice:
             elif op == "claim":
                 r.claims[by] = (kind, q if q is not None else math.inf, now)
                 if r.speaking and kind == NODE and (self.kind == CAMERA or self.stopping):
-                    r.seq += 1  # a message of ours may be on its way with it
                     answer = self._yield(r, by, kind)
             elif op == "yield":
                 if to == self.me:
@@ -188,6 +187,7 @@ class Voice:
                     r.claiming_since = math.inf
             if r.speaking:
                 tr.seq = max(tr.seq, r.seq)
+                r.seq = tr.seq + 1  # the message about to go: a yield names it
                 speaking = True
             else:
                 speaking = False
