@@ -242,6 +242,13 @@ def _fused_dropped_refused_and_back(node: FusionNode, running: dict, fakes: list
     _wait(lambda: node.cameras["junk"].ignored >= 1, "another node's robot ignored")
     assert all(m["name"] in ("amr1", "amr2") for _, m in udp.wait(lambda s: len(s) > 3))
 
+    # Two kmead holding one camera id (two sessions' tokens): the status says so.
+    with node.lock:
+        for zid in ("aaaa1111", "bbbb2222"):
+            node.handle("twin", f"kmea/cam/twin/zid/{zid}", True, 0.0)
+    (twin,) = [i for i in node.status()["inputs"] if i["label"] == "twin"]
+    assert "2 kmead claim this camera id" in (twin["reason"] or "")
+
     # 4. A frozen camera (alive, its frame loop stuck): dropped within the lease.
     frozen = FakeCamera(port, "frozen", meta("frozen", digest))
     fakes.append(frozen)

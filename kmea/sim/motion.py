@@ -159,18 +159,35 @@ class CrossingPath:
         return (x0 + a * (x1 - x0), y0 + a * (y1 - y0), th)
 
 
+@dataclass
+class WallAnchor:
+    """The Unix time of the frame being rendered minus its frame time (s), set by the paced
+    source before each frame (:class:`kmea.sources.sim.SimSource`); None: not paced."""
+
+    offset: float | None = None
+
+
 @dataclass(frozen=True)
 class WallClock:
     """``path`` driven by the Unix time, ``time.time() - epoch`` s, instead of the frame time:
     several simulated cameras rendered by separate processes, started at different moments,
     show the robots where they are at the same instant (a paced source's timestamps are
-    Unix times too). Not reproducible from frame indices: for live runs only."""
+    Unix times too). Not reproducible from frame indices: for live runs only.
+
+    Paced, the source anchors each frame (``anchor``): its frame time t maps to one Unix
+    instant, so every row of the frame (a rolling shutter's) is rendered at the instant the
+    frame's timing says, and the frame is stamped with it: the measurements' times are
+    exact however long the rendering takes (stamped when the rendering ended, a loaded
+    machine's cameras disagreed by centimetres, and by tens of degrees of heading in the
+    wide scene's tight turns)."""
 
     path: Path
     epoch: float = 0.0
+    anchor: WallAnchor = field(default_factory=WallAnchor, compare=False)
 
     def pose(self, t: float) -> Pose2D | None:
-        return self.path.pose(time.time() - self.epoch)
+        off = self.anchor.offset
+        return self.path.pose((time.time() if off is None else t + off) - self.epoch)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from kmea.sim.motion import WallClock
 from kmea.sim.renderer import Renderer, SimFrame
 from kmea.sim.scene import Scene
 from kmea.sim.scenes import apply_options, scene_from_spec
@@ -107,11 +108,21 @@ class SimSource(FrameSource):
                 time.sleep(due - now)
         if self.rendered is not None:
             return self.rendered[i - self.start]
+        # Robots on the Unix time (clock=wall), paced: the frame is the Unix instant now,
+        # its rows rendered at it and stamped with it (kmea.sim.motion.WallClock).
+        walls = [r.path.anchor for r in self.scene.robots if isinstance(r.path, WallClock)]
+        wall = time.time()
+        if self.live:
+            for a in walls:
+                a.offset = wall - i / self.fps
         renderer = self.renderer
         if (self.bumped_renderer is not None and self.bump_at is not None
                 and i / self.fps >= self.bump_at):
             renderer = self.bumped_renderer
         frame = renderer.render(i)
+        if self.live and walls:
+            frame.timestamp = wall
+            frame.meta["sensor_timestamp_ns"] = int(wall * 1e9)  # as a camera's own stamp
         if not self.gray:
             frame.image = cv2.cvtColor(frame.pixels, cv2.COLOR_GRAY2BGR)
         return frame

@@ -18,11 +18,13 @@ The rules, the same in every speaker:
   without R), or sees R with less than half its sigma (hysteresis). A node yields to
   nobody while it is active (the election decides between nodes); a node that stops on
   purpose yields to the new active node's claim, else to the camera that measured R last.
-- **A speaker starts only when named, or when nobody speaks**: the holder yielded to it;
-  or nothing was heard of any speaker for :data:`QUIET_S` (killed, frozen, cut off, or
-  nobody ever spoke), or the holder is known to be gone (a node's or camera's token went).
-  After a silence, cameras that see R claim first and the best claim starts (lowest sigma,
-  then id): no two cameras start together.
+- **A speaker starts only when named, or when nobody speaks**: the holder yielded to it,
+  or the holder is known gone (a node's token went, a camera was dropped), or nobody ever
+  spoke. A camera also starts when nothing was heard of the holder for :data:`QUIET_S`
+  (frozen, cut off); a node passes over only a camera holder so (a node holder alive keeps
+  its robots: the election decides between nodes). After a silence, cameras that see R
+  claim first and the best claim starts (lowest sigma, then id): no two cameras start
+  together.
 - **Two voices heard at once** (a race, two nodes cut off from each other): the one of
   lower rank stops when it hears the other (nodes before cameras, then the lower id).
 - **One sequence per robot**: every speaker keeps the highest ``seq`` heard on R's key, and
@@ -201,18 +203,25 @@ class Voice:
         """Under the lock: (start speaking now, a claim to send)."""
         if r.granted is not None:
             return True, None
-        gone = (r.holder is None or now - r.heard >= QUIET_S
-                or (self.alive is not None and not self.alive(r.holder, r.holder_kind)))
-        if self.kind == CAMERA and (not valid or now - r.seen > QUIET_S):
+        known_gone = r.holder is None or (self.alive is not None
+                                          and not self.alive(r.holder, r.holder_kind))
+        if self.kind == NODE:
+            if known_gone:
+                return now >= self.listen_until, None
+            # A node holder alive (its token) keeps its robots: the election decides
+            # between nodes. A camera holder answers a claim at once; one that does not
+            # (frozen) and is silent for QUIET_S is passed over after a claim period.
+            claim = self._claim(r, now)
+            return (r.holder_kind == CAMERA and now - r.heard >= QUIET_S
+                    and now - r.claiming_since >= CLAIM_EVERY_S), claim
+        if not valid or now - r.seen > QUIET_S:
             return False, None  # a camera takes a robot only with a fix of it
-        if not gone:
-            if self.kind == CAMERA and r.holder_kind == NODE:
+        if not known_gone and now - r.heard < QUIET_S:
+            if r.holder_kind == NODE:
                 return False, None  # a node speaks: the cameras listen
             return False, self._claim(r, now)
         if now < self.listen_until:
             return False, None  # a voice already there may not have been heard yet
-        if self.kind == NODE:
-            return True, None
         # Cameras after a silence: the best fresh claim starts, once it has claimed for a
         # claim period (the others' claims have had time to arrive).
         claim = self._claim(r, now)
