@@ -291,3 +291,20 @@ def test_the_relay_asks_the_voice_and_sends_nothing_when_it_is_not_its_turn() ->
     bus.flush()
     assert node.send()
     assert sunk == [3] and node.sent[0] > 3
+
+
+def test_a_new_speaker_never_sends_the_robot_back_in_time() -> None:
+    bus = Bus()
+    cam = Speaker(bus, "cam0", CAMERA)
+    node = Voice(bus.session(), "kmea", "n1", NODE, known=lambda n: True, listen_s=0.0)
+    start(bus, cam)
+    cam.voice.want("amr1", 0.002)
+    assert cam.voice.speak(cam.tr, True, 10.0)
+    cam.tr.seq += 1
+    cam.voice.said(cam.tr, True, 10.0)
+    bus.flush()
+    tr = _channel()
+    assert not node.speak(tr, True, 9.8)  # a claim
+    bus.flush()  # the camera yields
+    assert not node.speak(tr, True, 9.9)  # lagging behind the camera's last: not yet
+    assert node.speak(tr, True, 10.05) and tr.seq >= cam.tr.seq

@@ -250,8 +250,8 @@ def main(argv: list[str] | None = None) -> int:
           "largest sigma | largest step mm | speaker changes |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for label, t0, t1 in rows:
-        for name in ROBOTS:
-            w = _window(site, name, t0, t1, truth)
+        for name in ROBOTS:  # from 1 s before the seam: the handover's first gap too
+            w = _window(site, name, t0 - 1.0, t1, truth)
             per = 1000.0 * w["j3"] / w["n"] if w["n"] else 0.0
             print(f"| {label} | {name} | {w['n']} | {w['period'] * 1e3:.0f} | "
                   f"{w['seam'] * 1e3:.0f} | {w['silence'] * 1e3:.0f} | {w['seq_bad']} | "

@@ -207,7 +207,7 @@ class Relay:
               addrs: Sequence[tuple[str, int] | None] | None = None,
               publish: bool = True) -> None:
         voice = self.voice
-        tr.voiced = not self.muted and (voice is None or voice.speak(tr, valid))
+        tr.voiced = not self.muted and (voice is None or voice.speak(tr, valid, t))
         tr.seq += 1
         extra = None
         if self.extra_fields:
@@ -231,7 +231,7 @@ class Relay:
                     if (dest := dests.get(addr)) is not None:
                         tr.refused_seq[dest] = tr.seq
         if tr.voiced and voice is not None:
-            voice.said(tr, valid)
+            voice.said(tr, valid, t)
         if publish:
             self._publish(tr, t, valid)
 

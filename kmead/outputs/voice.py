@@ -4,9 +4,9 @@ Every speaker of a site that may speak to robot R (each camera's ``kmead`` with 
 active fusion node) listens on ``<site>/voice/R`` and says there what it does (JSON, at
 most :data:`MAX_BYTES`):
 
-- ``{"op": "say", "by", "kind", "seq", "q"}``: a message it sent R (``seq`` the robot's
-  sequence number; ``q`` how well it sees R: a camera's measurement sigma in m, 0 for a
-  node);
+- ``{"op": "say", "by", "kind", "seq", "q", "t"}``: a message it sent R (``seq`` the
+  robot's sequence number; ``q`` how well it sees R: a camera's measurement sigma in m, 0
+  for a node; ``t`` the pose's time);
 - ``{"op": "claim", "by", "kind", "q"}``: it wants R's voice;
 - ``{"op": "yield", "by", "kind", "seq", "to", "tk"}``: it stopped speaking to R and hands
   the voice to ``to`` (of kind ``tk``), or to anyone (``to`` null), after ``seq``.
@@ -86,6 +86,7 @@ class _Robot:
     holder_kind: str = ""
     heard: float = -math.inf  # monotonic time the holder was last heard (say) or named
     seq: int = 0  # the highest seq heard on the key or sent
+    t: float = -math.inf  # the newest pose time heard said (a new speaker starts after it)
     granted: str | None = None  # the speaker that yielded to this one
     claims: dict[str, tuple[str, float, float]] = field(default_factory=dict)  # by -> kind, q, t
     claimed: float = -math.inf  # this speaker's last claim
@@ -132,7 +133,7 @@ class Voice:
         try:
             name = key.rsplit("/", 1)[-1]
             body = safe_loads(sample.payload.to_bytes(), MAX_BYTES, 1)
-            op, by, kind, seq, q, to, tk = _check(body)
+            op, by, kind, seq, q, to, tk, t = _check(body)
         except (ValueError, TypeError):
             self.bad += 1
             return
@@ -145,6 +146,8 @@ class Voice:
             if seq is not None:
                 r.seq = max(r.seq, seq)
             if op == "say":
+                if t is not None:
+                    r.t = max(r.t, t)
                 if r.speaking and _rank(kind, by) < _rank(self.kind, self.me):
                     r.speaking, r.lost = False, True  # two voices: the better one stays
                 if not r.speaking:
@@ -172,9 +175,11 @@ class Voice:
             r.q = q if q is not None and math.isfinite(q) and q >= 0 else 1.0
             r.seen = time.monotonic()
 
-    def speak(self, tr: Any, valid: bool) -> bool:
-        """May this speaker send robot ``tr``'s next message (``tr.seq`` is then raised
-        above every seq heard)? Claims the voice when it wants it and may not have it."""
+    def speak(self, tr: Any, valid: bool, t: float | None = None) -> bool:
+        """May this speaker send robot ``tr``'s next message, a pose at time ``t`` (``tr.seq``
+        is then raised above every seq heard)? Claims the voice when it wants it and may not
+        have it; a speaker given the voice starts with a pose newer than its predecessor's
+        last (a node that lags behind the cameras does not send the robot back in time)."""
         now = time.monotonic()
         out: dict | None = None
         with self.lock:
@@ -183,6 +188,8 @@ class Voice:
             r.lost = False
             if not r.speaking and not self.stopping:
                 start, out = self._may_start(r, now, valid)
+                if start and t is not None and t < r.t:
+                    start = False
                 if start:
                     r.speaking, r.granted = True, None
                     r.claims.clear()
@@ -240,14 +247,19 @@ class Voice:
         return {"op": "claim", "by": self.me, "kind": self.kind,
                 "q": r.q if math.isfinite(r.q) else None}
 
-    def said(self, tr: Any, valid: bool) -> None:
-        """Robot ``tr``'s message went out (``tr.seq``): say so on its key."""
+    def said(self, tr: Any, valid: bool, t: float | None = None) -> None:
+        """Robot ``tr``'s message (``tr.seq``, its pose at ``t``) went out: say so."""
         with self.lock:
             r = self._robot(tr.name)
             r.seq = max(r.seq, tr.seq)
+            if t is not None and math.isfinite(t):
+                r.t = max(r.t, t)
             q = r.q if self.kind == CAMERA and math.isfinite(r.q) else 0.0
-        self._put(tr.name, {"op": "say", "by": self.me, "kind": self.kind, "seq": tr.seq,
-                            "q": q, "valid": bool(valid)})
+        body: dict[str, Any] = {"op": "say", "by": self.me, "kind": self.kind,
+                                "seq": tr.seq, "q": q, "valid": bool(valid)}
+        if t is not None and math.isfinite(t):
+            body["t"] = t
+        self._put(tr.name, body)
 
     def frame(self, seen: set[str]) -> None:
         """A camera's frame with fixes of ``seen``: hand a robot it speaks for to another
@@ -328,7 +340,7 @@ class Voice:
 
 
 def _check(body: Any) -> tuple[str, str, str, int | None, float | None, str | None,
-                               str | None]:
+                               str | None, float | None]:
     """A voice message's fields, checked (ValueError for anything else)."""
     if not isinstance(body, dict):
         raise ValueError("expected a JSON object")
@@ -348,6 +360,10 @@ def _check(body: Any) -> tuple[str, str, str, int | None, float | None, str | No
     if op == "yield" and to is not None and (not isinstance(to, str) or not _ID_RE.match(to)
                                              or tk not in (NODE, CAMERA)):
         raise ValueError("to")
+    t = body.get("t")
+    if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float))
+                          or not math.isfinite(t)):
+        raise ValueError("t")
     return (op, by, kind, seq if op != "claim" else None,
             float(q) if q is not None else None, to if op == "yield" else None,
-            tk if op == "yield" else None)
+            tk if op == "yield" else None, float(t) if t is not None else None)
