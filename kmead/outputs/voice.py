@@ -21,10 +21,10 @@ The rules, the same in every speaker:
 - **A speaker starts only when named, or when nobody speaks**: the holder yielded to it,
   or the holder is known gone (a node's token went, a camera was dropped), or nobody ever
   spoke. A camera also starts when nothing was heard of the holder for :data:`QUIET_S`
-  (frozen, cut off); a node passes over only a camera holder so (a node holder alive keeps
-  its robots: the election decides between nodes). After a silence, cameras that see R
-  claim first and the best claim starts (lowest sigma, then id): no two cameras start
-  together.
+  (a frozen node, before its lease runs out); a node never passes over a holder whose
+  token is alive (a node: the election decides between nodes; a camera: it answers claims).
+  After a silence, cameras that see R claim first and the best claim starts (lowest sigma,
+  then id): no two cameras start together.
 - **Two voices heard at once** (a race, two nodes cut off from each other): the one of
   lower rank stops when it hears the other (nodes before cameras, then the lower id).
 - **One sequence per robot**: every speaker keeps the highest ``seq`` heard on R's key, and
@@ -65,7 +65,9 @@ log = logging.getLogger("kmead.voice")
 __all__ = ["CAMERA", "NODE", "QUIET_S", "Voice"]
 
 NODE, CAMERA = "node", "camera"
-QUIET_S = 0.5  # s: a holder heard nothing of for this long speaks no more
+# s: a holder heard nothing of for this long speaks no more, for the cameras (a frozen node:
+# longer than a loaded node's pauses, shorter than the lease)
+QUIET_S = 1.0
 CLAIM_EVERY_S = 0.1  # s: a candidate repeats its claim at most this often
 CLAIM_FRESH_S = 0.3  # s: a claim older than this is forgotten
 HYSTERESIS = 0.5  # a camera takes a seen robot over only with less than half the sigma
@@ -216,11 +218,10 @@ class Voice:
             if known_gone:
                 return now >= self.listen_until, None
             # A node holder alive (its token) keeps its robots: the election decides
-            # between nodes. A camera holder answers a claim at once; one that does not
-            # (frozen) and is silent for QUIET_S is passed over after a claim period.
-            claim = self._claim(r, now)
-            return (r.holder_kind == CAMERA and now - r.heard >= QUIET_S
-                    and now - r.claiming_since >= CLAIM_EVERY_S), claim
+            # between nodes. A camera holder answers a claim at once (a frozen one is
+            # dropped by the node after the lease: known gone then); silence proves
+            # nothing, a camera that does not see the robot says nothing.
+            return False, self._claim(r, now)
         if not valid or now - r.seen > QUIET_S:
             return False, None  # a camera takes a robot only with a fix of it
         if not known_gone and now - r.heard < QUIET_S:

@@ -39,7 +39,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from kmead.outputs.voice import CAMERA, QUIET_S, Voice
+from kmead.outputs.voice import CAMERA, NODE, QUIET_S, Voice
 from kmead.outputs.zenoh_session import import_zenoh
 
 log = logging.getLogger("kmead.zenoh")
@@ -112,8 +112,15 @@ class ZenohCamera:
         # Speakers already on the site (cameras, fusion nodes): listen to their voices
         # before speaking to a robot, so as not to start a second one.
         busy = bool(self._tokens(f"{site}/cam/*") | self._tokens(f"{site}/fusion/**"))
-        self.voice = Voice(session, site, cam_id, CAMERA, known, on_quiet=on_quiet,
-                           listen_s=QUIET_S if busy else 0.0)
+        # Speakers whose token went (killed, or their lease ran out): gone at once, their
+        # robots taken without waiting for their silence. (A token never silences anyone.)
+        self._gone: set[tuple[str, str]] = set()
+        self._roles: dict[str, set[str]] = {}  # node id -> its role tokens alive
+        self.voice = Voice(session, site, cam_id, CAMERA, known, alive=self._alive,
+                           on_quiet=on_quiet, listen_s=QUIET_S if busy else 0.0)
+        self.speakers = [
+            session.liveliness().declare_subscriber(f"{site}/cam/*", self._speaker),
+            session.liveliness().declare_subscriber(f"{site}/fusion/*/*", self._speaker)]
         self.queryable = session.declare_queryable(f"{self.prefix}/meta", self._answer)
         self.beat = self._declare(f"{self.prefix}/frame")
         self.twin_watch = session.liveliness().declare_subscriber(
@@ -139,6 +146,28 @@ class ZenohCamera:
             query.reply(f"{self.prefix}/meta", self._meta)
         except Exception as e:  # the querier went away
             log.debug("zenoh: meta reply failed: %s", e)
+
+    def _speaker(self, sample: Any) -> None:
+        """A camera's or node's token came or went (Zenoh's thread)."""
+        parts = str(sample.key_expr).split("/")
+        alive = str(sample.kind).rsplit(".", 1)[-1] == "PUT"
+        if len(parts) == 3:  # <site>/cam/<id>
+            key = (parts[2], CAMERA)
+        elif len(parts) == 4:  # <site>/fusion/<id>/<role>: gone with its last role
+            if len(self._roles) > 4096:  # bounded (hostile tokens): forget, nothing worse
+                self._roles.clear()
+            roles = self._roles.setdefault(parts[2], set())
+            (roles.add if alive else roles.discard)(parts[3])
+            alive = bool(roles)
+            key = (parts[2], NODE)
+        else:
+            return
+        (self._gone.discard if alive else self._gone.add)(key)
+        if len(self._gone) > 4096:  # bounded: the oldest knowledge matters least
+            self._gone.clear()
+
+    def _alive(self, speaker: str, kind: str) -> bool:
+        return (speaker, kind) not in self._gone
 
     def _twin(self, sample: Any) -> None:
         """Another session's token of this camera id (two kmead started at once)."""
@@ -203,8 +232,8 @@ class ZenohCamera:
     def close(self) -> None:
         """Undeclare everything (the session stays open: its owner closes it)."""
         self.voice.close()
-        for entity in (self.token, self.id_token, self.twin_watch, self.queryable,
-                       self.beat, *self._pubs.values()):
+        for entity in (self.token, self.id_token, self.twin_watch, *self.speakers,
+                       self.queryable, self.beat, *self._pubs.values()):
             with contextlib.suppress(Exception):  # a session already closed
                 entity.undeclare()
         self._pubs.clear()
