@@ -308,3 +308,30 @@ def test_a_new_speaker_never_sends_the_robot_back_in_time() -> None:
     bus.flush()  # the camera yields
     assert not node.speak(tr, True, 9.9)  # lagging behind the camera's last: not yet
     assert node.speak(tr, True, 10.05) and tr.seq >= cam.tr.seq
+
+
+def test_a_camera_sends_the_fusion_nodes_every_measurement_also_those_it_rejected() -> None:
+    from kmead.outputs.robots import RobotSender
+    from kmead.outputs.totals import RunTotals
+
+    class Cam:
+        def __init__(self) -> None:
+            self.got: list[tuple] = []
+            self.voice = self
+
+        def want(self, name: str, q: float | None) -> None:
+            pass
+
+        def measurement(self, name: str, t: float, x: float, y: float, theta: float,
+                        sigma: float | None) -> None:
+            self.got.append((name, t, x, y))
+
+        def frame(self, t: float, seen: set[str]) -> None:
+            pass
+
+    relay = Relay([{"name": "amr1", "markers": [40], "destinations": []}], 0.5, 1.0)
+    sender = RobotSender(relay, RunTotals(), lambda level, text: None)
+    sender.camera = cam = Cam()
+    # The camera's own filter rejected amr1's measurement: no fix, the measurement goes.
+    sender.send(5.0, {}, None, False, 0.0, measured={"amr1": (4.99, 0.3, 0.4, 0.0, 0.002)})
+    assert cam.got == [("amr1", 4.99, 0.3, 0.4)]

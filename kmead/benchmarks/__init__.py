@@ -27,6 +27,8 @@ BENCHES: dict[str, tuple[str, str]] = {
                      "fusion on Zenoh: a camera dropped, a node's failover"),
     "voice-seams": ("kmead.benchmarks.voice_seams:main",
                     "what a robot hears at each seam: silences, seq, jumps, voices"),
+    "fused-turns": ("kmead.benchmarks.fused_turns:main",
+                    "the fused stream at the wide scene's tight turns: jumps per 1,000"),
     "soak": ("kmead.benchmarks.soak:main",
              "a real kmead for an hour with a venue day's load"),
 }

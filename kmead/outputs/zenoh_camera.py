@@ -9,7 +9,8 @@ With ``[zenoh] enabled = true`` every ``kmead`` is a camera of its site. Keys (`
   model, resolution), JSON;
 - ``<site>/cam/<id>/robots/<robot>``: one measurement per robot per frame, JSON
   ``{"name", "valid": true, "t", "x", "y", "theta", "sigma"}``: the capture instant and the
-  robot's pose before the tracking filter (a fusion node filters);
+  robot's pose before the tracking filter, whatever this camera's filter made of it (a
+  fusion node filters, and gates, itself);
 - ``<site>/cam/<id>/frame``: ``{"t", "frames"}`` every :data:`HEARTBEAT_S` from the frame
   loop: a camera that sees no robot still shows it works (a fusion node drops a camera that
   sends nothing for the lease);

@@ -592,7 +592,7 @@ class Daemon:
         timestamps are not the wall clock)."""
         self.robots.send(t, fixes, self.pipeline.tracker,
                          predict=bool(self.cfg["filter"]["predict"]) and self.live,
-                         t_capture=self._t_capture)
+                         t_capture=self._t_capture, measured=self.pipeline.measured)
 
     def _displacement_events(self, res: FrameResult) -> None:
         # The moved-marker decision (kmea.stats.moved: persistence over the frames the marker was
