@@ -72,6 +72,7 @@ CLAIM_EVERY_S = 0.1  # s: a candidate repeats its claim at most this often
 CLAIM_FRESH_S = 0.3  # s: a claim older than this is forgotten
 HYSTERESIS = 0.5  # a camera takes a seen robot over only with less than half the sigma
 MAX_BYTES = 512
+MAX_CLAIMS = 64  # claimants remembered per robot
 MAX_SEQ = 2**32 - 1  # the binary pose's seq is a uint32
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,40}$")
 
@@ -157,7 +158,11 @@ class Voice:
                     if r.granted is not None and r.granted != by:
                         r.granted = None  # someone else speaks now
             elif op == "claim":
-                r.claims[by] = (kind, q if q is not None else math.inf, now)
+                if len(r.claims) >= MAX_CLAIMS:  # bounded (hostile ids): the stale go
+                    r.claims = {b: c for b, c in r.claims.items()
+                                if now - c[2] < CLAIM_FRESH_S}
+                if len(r.claims) < MAX_CLAIMS:
+                    r.claims[by] = (kind, q if q is not None else math.inf, now)
                 if r.speaking and kind == NODE and (self.kind == CAMERA or self.stopping):
                     answer = self._yield(r, by, kind)
             elif op == "yield":
@@ -210,6 +215,8 @@ class Voice:
 
     def _may_start(self, r: _Robot, now: float, valid: bool) -> tuple[bool, dict | None]:
         """Under the lock: (start speaking now, a claim to send)."""
+        if self.kind == CAMERA and (not valid or now - r.seen > QUIET_S):
+            return False, None  # a camera takes a robot only with a fix of it
         if r.granted is not None:
             return True, None
         known_gone = r.holder is None or (self.alive is not None
@@ -222,8 +229,6 @@ class Voice:
             # dropped by the node after the lease: known gone then); silence proves
             # nothing, a camera that does not see the robot says nothing.
             return False, self._claim(r, now)
-        if not valid or now - r.seen > QUIET_S:
-            return False, None  # a camera takes a robot only with a fix of it
         if not known_gone and now - r.heard < QUIET_S:
             if r.holder_kind == NODE:
                 return False, None  # a node speaks: the cameras listen
