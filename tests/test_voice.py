@@ -14,7 +14,7 @@ import pytest
 
 import kmead.outputs.voice as voice_mod
 from kmead.outputs.relay import Relay, RobotChannel
-from kmead.outputs.voice import CAMERA, CLAIM_EVERY_S, NODE, Voice
+from kmead.outputs.voice import CAMERA, CLAIM_EVERY_S, NODE, TAKEOVER_SKIP, Voice
 
 FRAME_S = 0.05  # s: the time between two messages of a speaker, on the test's clock
 
@@ -188,7 +188,8 @@ def test_a_killed_node_is_replaced_at_once_when_its_token_went() -> None:
     bus.flush()
     assert not b.send()  # a claim: n1 speaks
     alive.clear()  # its token went (killed)
-    assert b.send() and b.sent[0] > a.sent[-1]
+    # Its last messages may have reached the robot without their say: numbers skipped.
+    assert b.send() and b.sent[0] > a.sent[-1] + TAKEOVER_SKIP
 
 
 def test_cameras_one_at_a_time_the_better_one_with_hysteresis() -> None:

@@ -29,8 +29,11 @@ The rules, the same in every speaker:
   lower rank stops when it hears the other (nodes before cameras, then the lower id).
 - **One sequence per robot**: every speaker keeps the highest ``seq`` heard on R's key, and
   a speaker's next message is numbered above it; a yield names the seq of the message
-  already on its way, if any (reserved when the relay was told to send). So ``seq`` never
-  goes back or repeats across camera, node and camera handovers; it may skip.
+  already on its way, if any (reserved when the relay was told to send); a robot taken
+  from a holder gone without a yield (killed) skips :data:`TAKEOVER_SKIP` numbers, for the
+  messages that may have reached the robot while their ``say`` was lost with the process.
+  So ``seq`` never goes back or repeats across camera, node and camera handovers; it may
+  skip.
 - Tokens silence nobody: only a holder's traffic (``say``) keeps the others quiet, so a
   stranger's liveliness token changes nothing, and a node that is alive but not speaking
   for R leaves R to the cameras.
@@ -73,6 +76,7 @@ CLAIM_FRESH_S = 0.3  # s: a claim older than this is forgotten
 HYSTERESIS = 0.5  # a camera takes a seen robot over only with less than half the sigma
 MAX_BYTES = 512
 MAX_CLAIMS = 64  # claimants remembered per robot
+TAKEOVER_SKIP = 4  # seq numbers skipped when a robot is taken from a holder gone silent
 MAX_SEQ = 2**32 - 1  # the binary pose's seq is a uint32
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,40}$")
 
@@ -198,6 +202,10 @@ class Voice:
                 if start and t is not None and t < r.t:
                     start = False
                 if start:
+                    if r.granted is None and r.holder is not None:
+                        # Taken without a hand-over (the holder was killed or frozen): its
+                        # last messages may have reached the robot while their say did not.
+                        r.seq += TAKEOVER_SKIP
                     r.speaking, r.granted = True, None
                     r.claims.clear()
                     r.claiming_since = math.inf
