@@ -9,9 +9,9 @@ purpose (docs/fusion.md, "Two nodes" and "One voice per robot").
 - Stopped on purpose (SIGINT, SIGTERM, ``--frames``, systemd's stop): the node's token
   becomes ``<site>/fusion/<id>/stopping``, so a standby claims the voice by the election's
   rule, and this node goes on fusing and speaking until each robot it speaks for is
-  claimed (at most :data:`HANDOVER_S`, only while a standby is there); at its close the
-  robots left go back to the camera that measured each last (``release``). A robot nobody
-  takes gets its ``valid=0``, as before.
+  claimed (at most :data:`HANDOVER_S`, only while a standby is there); then the robots
+  left go back to the camera that measured each last (``release``). A robot nobody takes
+  gets its ``valid=0`` at the close, as before.
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ class Speaker:
         Its token says ``stopping``; while a standby is there, this node keeps fusing and
         speaking (``pump`` handles what arrived) until the new active node has claimed
         every robot this one speaks for and that is not stale, at most :data:`HANDOVER_S`.
-        The rest go back to the cameras at the close (``Relay.shutdown``)."""
+        The rest go back to the camera that measured each last, at once."""
         node = self.node
         if self.election.role != "active":
             return
@@ -134,6 +134,8 @@ class Speaker:
                 n = pump()
             if not n:
                 time.sleep(POLL_S)
+        with node.lock:  # the rest to the cameras now, not after the node's close
+            self.voice.release()
         node.event("info", f"fusion node {node.node_id[:8]}: stopping; the robots go to "
                            f"{'the new active node' if standby else 'the cameras'}")
 
