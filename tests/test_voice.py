@@ -14,7 +14,7 @@ import pytest
 
 import kmead.outputs.voice as voice_mod
 from kmead.outputs.relay import Relay, RobotChannel
-from kmead.outputs.voice import CAMERA, CLAIM_EVERY_S, NODE, TAKEOVER_SKIP, Voice
+from kmead.outputs.voice import BETTER_S, CAMERA, CLAIM_EVERY_S, NODE, TAKEOVER_SKIP, Voice
 
 FRAME_S = 0.05  # s: the time between two messages of a speaker, on the test's clock
 
@@ -215,9 +215,19 @@ def test_cameras_one_at_a_time_the_better_one_with_hysteresis() -> None:
     c0.voice._robot("amr1").claimed = -1e9
     assert not c0.send(q=0.0005)  # twice as well: a claim ...
     bus.flush()
-    c1.voice.frame({"amr1"})  # ... that camera 1 grants at its next frame
+    c1.voice.frame({"amr1"})  # ... not granted at once (a sigma is noisy) ...
     bus.flush()
-    assert c0.send(q=0.0005)
+    assert not c0.send(q=0.0005)
+    t_better = voice_mod.time.t  # type: ignore[attr-defined]
+    while not c0.send(q=0.0005):  # ... but once it has lasted BETTER_S
+        assert voice_mod.time.t - t_better < BETTER_S + 2 * FRAME_S  # type: ignore[attr-defined]
+        voice_mod.time.t += FRAME_S  # type: ignore[attr-defined]
+        assert c1.send(q=0.0015)
+        c0.voice._robot("amr1").claimed = -1e9
+        bus.flush()
+        c1.voice.frame({"amr1"})
+        bus.flush()
+    assert voice_mod.time.t - t_better >= BETTER_S  # type: ignore[attr-defined]
     seqs = sorted(c0.sent + c1.sent)
     assert len(set(seqs)) == len(seqs)
 

@@ -15,9 +15,10 @@ The rules, the same in every speaker:
 
 - **A holder keeps the voice until its successor is named.** A camera yields to a node's
   claim at once; to another camera only when that one sees R and it does not (a frame
-  without R), or sees R with less than half its sigma (hysteresis). A node yields to
-  nobody while it is active (the election decides between nodes); a node that stops on
-  purpose yields to the new active node's claim, else to the camera that measured R last.
+  without R), or has seen R with less than half its sigma for :data:`BETTER_S`
+  (hysteresis). A node yields to nobody while it is active (the election decides between
+  nodes); a node that stops on purpose yields to the new active node's claim, else to the
+  camera that measured R last.
 - **A speaker starts only when named, or when nobody speaks**: the holder yielded to it,
   or the holder is known gone (a node's token went, a camera was dropped), or nobody ever
   spoke. A camera also starts when nothing was heard of the holder for :data:`QUIET_S`
@@ -73,7 +74,8 @@ NODE, CAMERA = "node", "camera"
 QUIET_S = 1.0
 CLAIM_EVERY_S = 0.1  # s: a candidate repeats its claim at most this often
 CLAIM_FRESH_S = 0.3  # s: a claim older than this is forgotten
-HYSTERESIS = 0.5  # a camera takes a seen robot over only with less than half the sigma
+HYSTERESIS = 0.5  # a camera takes a seen robot over only with less than half the sigma ...
+BETTER_S = 1.0  # ... for this long (s)
 MAX_BYTES = 512
 MAX_CLAIMS = 64  # claimants remembered per robot
 TAKEOVER_SKIP = 4  # seq numbers skipped when a robot is taken from a holder gone silent
@@ -101,6 +103,7 @@ class _Robot:
     q: float = math.inf  # this speaker's view of R (its last measurement's sigma)
     seen: float = -math.inf  # monotonic time of this speaker's last fix of R
     lost: bool = False  # the voice went since the owner last looked (undeclare outputs)
+    better: tuple[str, float] | None = None  # a camera seeing it much better, since when
 
 
 class Voice:
@@ -291,8 +294,17 @@ class Voice:
                                                                       or (q, by) < best):
                         best = (q, by)
                 if best is None:
+                    r.better = None
                     continue
-                if name not in seen or best[0] < HYSTERESIS * r.q:
+                # Much better (under HYSTERESIS of this one's sigma) for BETTER_S on end:
+                # a camera's sigma is noisy from frame to frame, a hand-over is not.
+                if best[0] < HYSTERESIS * r.q:
+                    if r.better is None or r.better[0] != best[1]:
+                        r.better = (best[1], now)
+                else:
+                    r.better = None
+                if name not in seen or (r.better is not None and now - r.better[1] >= BETTER_S):
+                    r.better = None
                     outs.append((name, self._yield(r, best[1], CAMERA)))
                     quiet.append(name)
                     r.lost = False
