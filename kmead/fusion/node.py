@@ -9,13 +9,10 @@ reason (:mod:`kmead.fusion.cameras`), its measurements are fused through the tra
 cut off: after the lease) or that sends nothing for the lease (its frame loop stuck) is
 dropped; it is used again when it comes back.
 
-Two or more nodes may run hot (:mod:`kmead.fusion.election`): each holds
-``<site>/fusion/<id>/<role>``; one is active and speaks to the robots (UDP datagrams,
-``<site>/robots/<robot>/pose``, ROS 2), the others fuse the same measurements with their
-relay muted. The node serves the same ZeroMQ outputs as a daemon: telemetry (``robot.NAME``,
-``robots`` with the cameras that saw each robot, ``status``, ``event``, ``log``), control
-(the daemon's commands that make sense without a camera) and the CSV log in the daemon's
-format (``kind`` robot, ``algorithm`` fusion, ``refs`` the number of cameras).
+Two or more nodes may run hot; the active one speaks to the robots, each robot once the
+camera speaking to it hands over (:mod:`kmead.fusion.speaker`). The node serves a daemon's
+ZeroMQ outputs (telemetry, :mod:`kmead.fusion.bodies`; control; the CSV log: ``kind``
+robot, ``algorithm`` fusion, ``refs`` the number of cameras).
 
 Everything received over Zenoh is hostile: a key or payload that does not decode, a missing
 or non-finite field is counted and reported once per camera, never raised. Zenoh's callbacks
@@ -49,9 +46,9 @@ from kmea.wire import protocol as P
 from kmea.wire.jsonlimits import safe_loads
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
+from kmead.fusion.bodies import NoPipeline, NoStats, robots_body, status_body
 from kmead.fusion.cameras import NUMBER, Camera, check_meta, measurement_from
 from kmead.fusion.speaker import Speaker
-from kmead.net.bodies import map_info
 from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
 from kmead.outputs.csvlog import CsvLog, row
@@ -76,24 +73,6 @@ _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 def tracker_config(cfg: Config) -> TrackerConfig:
     """The tracking filter's configuration from the ``[filter]`` section."""
     return TrackerConfig.from_table(cfg["filter"])
-
-
-class _NoStats:
-    """The statistics a fusion node does not have (no markers): an empty window."""
-
-    window = 0
-    mean_error = None
-    max_error = None
-
-    def per_marker(self) -> dict:
-        return {}
-
-    def reset(self) -> None:
-        pass
-
-
-class _NoPipeline:
-    algorithm = "fusion"
 
 
 class FusionNode:
@@ -450,65 +429,11 @@ class FusionNode:
 
     # ------------------------------------------------------------------ bodies
     def robots_body(self) -> dict:
-        assert self.relay is not None
-        now = self.clock()
-        out = []
-        for tr in self.relay.channels.values():
-            seen = tr.last_seen is not None
-            srcs = self.fusion.sources(tr.name, self.cfg["relay"]["stale_after_s"])
-            last = self.fusion.seen.get(tr.name)
-            track = self.fusion.tracker.tracks.get(tr.name)
-            st = track.state() if track is not None and track.started else None
-            out.append({"name": tr.name, "markers": tr.markers,
-                        "x": tr.x if seen else None, "y": tr.y if seen else None,
-                        "theta": tr.theta if seen else None, "sigma": tr.sigma,
-                        "valid": seen and not tr.stale,
-                        "age_s": (now - tr.last_seen) if tr.last_seen is not None else None,
-                        "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
-                        "seq": tr.seq, "send_errors": tr.errors,
-                        "send_refused": tr.refused, "refused": tr.refused_now(),
-                        "source": "+".join(srcs),
-                        "sources": {s: now - t for s, t in last.last.items()} if last else {},
-                        "vx": st.vx if st else None, "vy": st.vy if st else None,
-                        "omega": st.omega if st else None})
-        return {"t": now if math.isfinite(now) else time.time(), "frame": self.outputs,
-                "robots": out}
+        return robots_body(self)
 
     def status(self) -> P.StatusBody:
-        """The ``status`` body: a daemon's, without camera (zeros) and map (its robots),
-        plus ``inputs`` (the cameras) and ``fusion``."""
-        c = self.csv
-        now_wall = time.time()
-        lat = sorted(self.latency_ms)
-        cams = list(self.cameras.values())
-        return {
-            "t": now_wall, "uptime": now_wall - self.t0,
-            "source": f"fusion on zenoh site {self.site!r}: " + (", ".join(
-                f"{c.label} {c.state}" for c in cams) or "no camera yet"),
-            "config_file": self.cfg.user_file or "<default config>",
-            "config_files": self.cfg.files, "algorithm": "fusion", "algorithms": ["fusion"],
-            "logging": {"active": c is not None, "path": str(c.path) if c else None,
-                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0,
-                        "error": self.files.errors["log"] if self.files else None},
-            "recording": {"active": False, "path": None, "frames": 0, "bytes": 0,
-                          "error": None},
-            "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
-            "map": map_info(self.world_map),
-            "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
-            "bad_frames": sum(i.bad for i in cams),
-            "inputs": [i.body(now_wall) for i in cams],
-            "fusion": {"accepted": self.fusion.accepted,
-                       "rejected": self.fusion.tracker.counts["rejected"],
-                       "reacquired": self.fusion.tracker.counts["reacquired"],
-                       "dropped_old": self.fusion.dropped_old,
-                       "latency_ms_p50": lat[len(lat) // 2] if lat else None,
-                       "latency_ms_p99": lat[min(len(lat) - 1, int(0.99 * len(lat)))]
-                       if lat else None,
-                       "node": self.node_id, "role": self.election.role,
-                       "map_digest": self.map_digest, "overflow": self.overflow},
-            "telemetry": self.telemetry.bound if self.telemetry else "",
-            "control": self.control.bound if self.control else "",
-        }
+        """The ``status`` body (kmead.fusion.bodies)."""
+        return status_body(self)
 
     # ------------------------------------------------------------------ daemon interface
     def publish(self, topic: str, body: Mapping[str, Any]) -> None:
@@ -521,8 +446,8 @@ class FusionNode:
     # No frames, no marker statistics, no camera: what the control thread reads.
     last_frame_body: dict = {}  # never mutated
     last_result = None
-    pipeline = _NoPipeline()
-    stats = _NoStats()
+    pipeline = NoPipeline()
+    stats = NoStats()
     camera_feed = None
     replay = False
 
