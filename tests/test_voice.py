@@ -346,3 +346,26 @@ def test_a_camera_sends_the_fusion_nodes_every_measurement_also_those_it_rejecte
     # The camera's own filter rejected amr1's measurement: no fix, the measurement goes.
     sender.send(5.0, {}, None, False, 0.0, measured={"amr1": (4.99, 0.3, 0.4, 0.0, 0.002)})
     assert cam.got == [("amr1", 4.99, 0.3, 0.4)]
+
+
+def test_a_speaker_that_hands_a_robot_over_undeclares_its_ros_publishers() -> None:
+    pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
+    from zenoh_helpers import open_peer
+
+    from kmead.config.layers import load_config
+    from kmead.outputs.zenoh import ZenohOutput
+
+    z = {**load_config(None, ["zenoh.ros2=true"])["zenoh"]}
+    session = open_peer()
+    try:
+        out = ZenohOutput.open(z, session)
+        tr = _channel()
+        tr.seq, tr.x, tr.y, tr.theta, tr.sigma = 7, 0.1, 0.2, 0.0, 0.002
+        out.send(tr, 1.0, True)
+        assert out.errors == 0 and out.robots["amr1"].pose is not None and out.tf is not None
+        assert out.robots["amr1"].pose.seq == 7  # the robot's own seq in the attachment
+        out.quiet("amr1")  # another speaker took the robot: no publisher left listed
+        assert "amr1" not in out.robots and out.tf is None
+        out.close()
+    finally:
+        session.close()
