@@ -374,6 +374,11 @@ class Pipeline:
         if s.filter_kind not in ("iir", "kalman"):
             raise ValueError(f"filter kind must be iir or kalman, got {s.filter_kind!r}")
         self.tracker = Tracker(s.tracker) if s.filter_kind == "kalman" else None
+        # The last robot_fixes call's measurements, before any filter and whatever the
+        # filter made of them: name -> (t, x, y, theta, sigma). A fusion node fuses these,
+        # not only the ones this camera's filter accepted (it would miss what this filter
+        # rejected before a re-acquisition, and be left behind: kmead.outputs.robots).
+        self.measured: dict[str, tuple[float, float, float, float, float | None]] = {}
 
     def configure_robots(self) -> None:
         self.robot_specs = list(self.settings.robots)
@@ -575,6 +580,7 @@ class Pipeline:
         filter runs on those times, and its velocity and turn rate bring a pair seen in two
         rows to one instant (kmea.robots.poses)."""
         out: dict[str, RobotFix] = {}
+        self.measured = {}
         times = times or {}
         rates = self._rates if times is self._times else {}
         for spec in self.robot_specs:
@@ -592,6 +598,7 @@ class Pipeline:
             if pose is None:
                 continue
             tp = t if pose.t is None else pose.t
+            self.measured[spec.name] = (tp, pose.x, pose.y, pose.theta, pose.sigma)
             if self.tracker is not None:
                 o = self.tracker.update(spec.name, tp, pose.x, pose.y, pose.theta, pose.sigma)
                 if not o.accepted or o.state is None:

@@ -126,7 +126,7 @@ def test_cameras_found_on_zenoh_fused_dropped_refused_and_back(
     node = FusionNode(cfg)
     tn = threading.Thread(target=node.run, daemon=True)
     tn.start()
-    # The cameras have the robots' UDP destinations too: muted while the node speaks.
+    # The cameras have the robots' UDP destinations too: they hand them to the node.
     running = {f"d{c}": (d := _daemon(c, epoch, port, robots), _start(d)) for c in (0, 1)}
     fakes: list[FakeCamera] = []
     try:
@@ -177,12 +177,14 @@ def test_cameras_found_on_zenoh_fused_dropped_refused_and_back(
 def _fused_dropped_refused_and_back(node: FusionNode, running: dict, fakes: list,
                                     port: int, digest: str, epoch: float, udp: Udp) -> None:
     # 1. Both cameras found and used; both robots fused: amr1 in the overlap (both
-    #    cameras), amr2 on floor B. One voice: the node's, the cameras are muted.
+    #    cameras), amr2 on floor B. One voice: the node's, the cameras handed over.
     _wait(lambda: {c.label: c.state for c in node.cameras.values()}
           == {"cam0": "used", "cam1": "used"}, "both cameras used")
     _wait(lambda: node.election.role == "active", "the node active")
-    _wait(lambda: all(d.relay.muted for d, _ in running.values()), "the cameras muted")
-    udp.wait(lambda s: False, 0.5)  # what a camera sent before it was muted
+    _wait(lambda: all(not d.zenoh_camera.voice.speaking() for d, _ in running.values())
+          and node.speaker.voice.speaking() == {"amr1", "amr2"},
+          "the cameras handed both robots to the node")
+    udp.wait(lambda s: False, 0.5)  # what a camera sent before it handed over
     seen = udp.wait(lambda s: {m["name"] for _, m in s if m["valid"]} == {"amr1", "amr2"}
                     and sum(m["name"] == "amr1" for _, m in s) > 10)
     assert {m["name"] for _, m in seen if m["valid"]} == {"amr1", "amr2"}
@@ -233,6 +235,13 @@ def _fused_dropped_refused_and_back(node: FusionNode, running: dict, fakes: list
     _wait(lambda: node.cameras["junk"].bad >= 5, "five bad messages counted")
     _wait(lambda: node.cameras["junk"].ignored >= 1, "another node's robot ignored")
     assert all(m["name"] in ("amr1", "amr2") for _, m in udp.wait(lambda s: len(s) > 3))
+
+    # Two kmead holding one camera id (two sessions' tokens): the status says so.
+    with node.lock:
+        for zid in ("aaaa1111", "bbbb2222"):
+            node.handle("twin", f"kmea/cam/twin/zid/{zid}", True, 0.0)
+    (twin,) = [i for i in node.status()["inputs"] if i["label"] == "twin"]
+    assert "2 kmead claim this camera id" in (twin["reason"] or "")
 
     # 4. A frozen camera (alive, its frame loop stuck): dropped within the lease.
     frozen = FakeCamera(port, "frozen", meta("frozen", digest))

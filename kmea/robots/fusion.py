@@ -62,6 +62,7 @@ class Fusion:
         self.seen: dict[str, RobotSeen] = {}
         self.dropped_old = 0
         self.accepted = 0
+        self.restarted = 0  # tracks started again after a coast (_restart_if_lost)
 
     def add(self, m: Measurement) -> Outcome | None:
         """Apply one measurement; None when it was older than ``max_age_s`` (dropped)."""
@@ -72,6 +73,7 @@ class Fusion:
             self.dropped_old += 1
             return None
         self.now = max(self.now, m.t)
+        self._restart_if_lost(m)
         out = self.tracker.update(m.name, m.t, m.x, m.y, m.theta, m.sigma, source=m.source)
         seen = self.seen.setdefault(m.name, RobotSeen())
         if out.accepted:
@@ -81,6 +83,22 @@ class Fusion:
         else:
             seen.rejected[m.source] = seen.rejected.get(m.source, 0) + 1
         return out
+
+    def _restart_if_lost(self, m: Measurement) -> None:
+        """A track coasted so long that its predicted position is less certain than the
+        outlier model's radius (no camera saw the robot through a fast turn: the cameras
+        together leave shorter gaps than ``reset_after_s``, which restarts one camera's
+        track) starts again from this measurement: updated, its step bound would leave it
+        between the prediction and the measurement, far from both, and the next
+        re-acquisition would jump back."""
+        tr = self.tracker.tracks.get(m.name)
+        if tr is None or tr.t is None or not m.t > tr.t:
+            return
+        st = tr.predict(m.t)
+        if st is not None and st.sigma is not None \
+                and st.sigma > self.tracker.config.outlier_radius:
+            self.tracker.reset(m.name)
+            self.restarted += 1
 
     def pose(self, name: str, t: float | None = None) -> TrackState | None:
         """Fused state of robot ``name`` at time ``t`` (default: its newest measurement)."""

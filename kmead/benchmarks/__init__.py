@@ -27,6 +27,10 @@ BENCHES: dict[str, tuple[str, str]] = {
                      "fusion on Zenoh: a camera dropped, a node's failover"),
     "fused-accuracy": ("kmead.benchmarks.fused_accuracy:main",
                        "the fused stream's RMSE against truth beside each camera's"),
+    "voice-seams": ("kmead.benchmarks.voice_seams:main",
+                    "what a robot hears at each seam: silences, seq, jumps, voices"),
+    "fused-turns": ("kmead.benchmarks.fused_turns:main",
+                    "the fused stream at the wide scene's tight turns: jumps per 1,000"),
     "soak": ("kmead.benchmarks.soak:main",
              "a real kmead for an hour with a venue day's load"),
 }

@@ -833,7 +833,10 @@ def main() -> None:
     doc = Path("docs/daemon.md")
     text = doc.read_text()
     start = text.index("| key | default | meaning |")
-    end = text.index("\n\n", start) + 1
+    last = start  # the tables end with the advanced keys' (keys_table writes both)
+    while (nxt := text.find("| key | default | meaning |", last + 1)) != -1:
+        last = nxt
+    end = text.index("\n\n", last) + 1
     doc.write_text(text[:start] + keys_table() + text[end:])
 
 

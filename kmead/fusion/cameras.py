@@ -43,11 +43,16 @@ class Camera:
     asked: float = -math.inf  # monotonic time of the last metadata query
     since: float = field(default_factory=time.monotonic)  # when its token made it known
     meta: dict | None = None
+    sessions: set[str] = field(default_factory=set)  # Zenoh sessions holding this id
+
 
     def body(self, now_wall: float) -> P.InputState:
         d = sorted(self.delays)
         return {"label": self.label, "key": self.key, "state": self.state,
-                "reason": self.reason, "received": self.received,
+                "reason": self.reason if len(self.sessions) < 2 else (
+                    f"{len(self.sessions)} kmead claim this camera id (sessions "
+                    f"{', '.join(sorted(z[:8] for z in self.sessions))})"),
+                "received": self.received,
                 "measurements": self.measurements, "bad": self.bad,
                 "bad_fields": dict(self.bad_fields),
                 "dropped_old": self.dropped_old,

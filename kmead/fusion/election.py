@@ -40,8 +40,14 @@ class Election:
         if not roles:
             del self.others[node_id]
 
+    def stop(self) -> None:
+        """Stopped on purpose: ``stopping`` until the end (a standby claims meanwhile)."""
+        self.role = "stopping"
+
     def decide(self, now: float, stalled: bool = False) -> str | None:
         """The new role when it changes, else None."""
+        if self.role == "stopping":
+            return None
         actives = {n for n, roles in self.others.items() if "active" in roles}
         if self.role == "active":
             if stalled:

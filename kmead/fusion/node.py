@@ -9,13 +9,10 @@ reason (:mod:`kmead.fusion.cameras`), its measurements are fused through the tra
 cut off: after the lease) or that sends nothing for the lease (its frame loop stuck) is
 dropped; it is used again when it comes back.
 
-Two or more nodes may run hot (:mod:`kmead.fusion.election`): each holds
-``<site>/fusion/<id>/<role>``; one is active and speaks to the robots (UDP datagrams,
-``<site>/robots/<robot>/pose``, ROS 2), the others fuse the same measurements with their
-relay muted. The node serves the same ZeroMQ outputs as a daemon: telemetry (``robot.NAME``,
-``robots`` with the cameras that saw each robot, ``status``, ``event``, ``log``), control
-(the daemon's commands that make sense without a camera) and the CSV log in the daemon's
-format (``kind`` robot, ``algorithm`` fusion, ``refs`` the number of cameras).
+Two or more nodes may run hot; the active one speaks to the robots, each robot once the
+camera speaking to it hands over (:mod:`kmead.fusion.speaker`). The node serves a daemon's
+ZeroMQ outputs (telemetry, :mod:`kmead.fusion.bodies`; control; the CSV log: ``kind``
+robot, ``algorithm`` fusion, ``refs`` the number of cameras).
 
 Everything received over Zenoh is hostile: a key or payload that does not decode, a missing
 or non-finite field is counted and reported once per camera, never raised. Zenoh's callbacks
@@ -48,10 +45,10 @@ from kmea.robots.tracking import TrackerConfig
 from kmea.wire import protocol as P
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
+from kmead.fusion.bodies import NoPipeline, NoStats, robots_body, status_body
 from kmead.fusion.cameras import Camera, check_meta, make_room
-from kmead.fusion.election import Election
 from kmead.fusion.inputs import Limits, admit
-from kmead.net.bodies import map_info
+from kmead.fusion.speaker import Speaker
 from kmead.net.keys import CurveServer, KeysError, keyed_context
 from kmead.net.site_tls import certificate_name
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
@@ -78,24 +75,6 @@ def tracker_config(cfg: Config) -> TrackerConfig:
     return TrackerConfig.from_table(cfg["filter"])
 
 
-class _NoStats:
-    """The statistics a fusion node does not have (no markers): an empty window."""
-
-    window = 0
-    mean_error = None
-    max_error = None
-
-    def per_marker(self) -> dict:
-        return {}
-
-    def reset(self) -> None:
-        pass
-
-
-class _NoPipeline:
-    algorithm = "fusion"
-
-
 class FusionNode:
     """The fusion node; :meth:`run` until ``max_outputs`` fused outputs or :meth:`stop`.
 
@@ -119,7 +98,6 @@ class FusionNode:
         self.zenoh_out: Any = None  # kmead.outputs.zenoh.ZenohOutput while active
         self._subs: list[Any] = []
         self._data: list[Any] = []  # the data subscribers (ring channels)
-        self._token: Any = None
         self._log_handler: TelemetryLogHandler | None = None
         self._own_ctx: zmq.Context | None = None
         self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
@@ -190,9 +168,8 @@ class FusionNode:
             self._clock_wall = time.monotonic()
             self._last_robots_pub = 0.0
             self._open_zenoh(session)
-            self.election = Election(self.node_id, 2 * self.lease_s, time.monotonic())
-            self.role_changes: list[tuple[float, str]] = []  # (time.time(), role)
-            self._declare_role()
+            self.speaker = Speaker(self)  # the election, its token, the voice per robot
+            self.election = self.speaker.election
             if cfg["network"]["control"]:
                 from kmead.net.control import ControlServer
 
@@ -237,40 +214,10 @@ class FusionNode:
             *self._data,
             live.declare_subscriber(f"{site}/cam/*", on_liveliness("camera"), history=True),
             live.declare_subscriber(f"{site}/fusion/*/*", on_liveliness("node"),
+                                    history=True),
+            # Each camera's session token: two kmead claiming one camera id (status).
+            live.declare_subscriber(f"{site}/cam/*/zid/*", on_liveliness("twin"),
                                     history=True)]
-
-    def _declare_role(self) -> None:
-        """The token of this node's role: the new one first, then the old one goes (a
-        camera watching the site never sees no fusion node while this one runs)."""
-        old = self._token
-        self._token = self.session.liveliness().declare_token(
-            f"{self.site}/fusion/{self.node_id}/{self.election.role}")
-        if old is not None:
-            old.undeclare()
-
-    def _set_role(self, role: str) -> None:
-        """Called in the loop, under the lock, when the election changed this node's role."""
-        assert self.relay is not None
-        self.role_changes.append((time.time(), role))
-        if role == "active":
-            from kmead.outputs.zenoh import FUSION_NODE_NAME, ZenohOutput
-
-            self.zenoh_out = ZenohOutput.open(self.z, self.session, FUSION_NODE_NAME)
-            self.relay.sink = self.zenoh_out.send
-            self.relay.muted = False
-        elif self.zenoh_out is not None:
-            self.relay.muted = True
-            self.relay.sink = None
-            self.zenoh_out.close()
-            self.zenoh_out = None
-        self._declare_role()
-        text = {"active": "active: this node speaks to the robots",
-                "standby": "standby: another node speaks to the robots, or this one will "
-                           "when none does",
-                "starting": "stepped down (it did not run for longer than the lease); "
-                            "watching the site again"}[role]
-        self.event("warning" if role == "starting" else "info", f"fusion node "
-                   f"{self.node_id[:8]}: {text}")
 
     # ------------------------------------------------------------------ clock
     def clock(self) -> float:
@@ -289,6 +236,8 @@ class FusionNode:
             self._camera_token(parts[2], value)
         elif kind == "node" and len(parts) == 4:
             self.election.token(parts[2], parts[3], value)
+        elif kind == "twin" and len(parts) == 5 and _ID_RE.match(parts[2]):
+            self._twin(parts[2], parts[4][:32], value)
         elif kind == "meta":
             self._meta(key, value)
         return False
@@ -323,6 +272,15 @@ class FusionNode:
             self.event("warning", f"camera {cam.label}: gone (its session closed or its "
                                   "lease ran out): dropped")
 
+    def _twin(self, cam_id: str, zid: str, alive: bool) -> None:
+        """A session's token of camera ``cam_id``: more than one is two kmead, one id."""
+        cam = self._camera(cam_id)
+        if cam is not None:
+            (cam.sessions.add if alive else cam.sessions.discard)(zid)
+            if alive and len(cam.sessions) > 1:
+                self.event("error", f"camera {cam.label}: {len(cam.sessions)} kmead claim "
+                                    "this camera id: give each its own zenoh.camera")
+
     def _ask(self, cam: Camera) -> None:
         """Ask the camera's metadata; the answer comes back through the queue."""
         cam.asked = time.monotonic()
@@ -340,15 +298,6 @@ class FusionNode:
             self.session.get(f"{cam.key}/meta", on_reply, timeout=self.lease_s)
         except Exception as e:  # a session closing
             log.debug("zenoh: metadata query of %s failed: %s", cam.label, e)
-
-    def _map_status(self) -> Any:
-        """The status ``map``: the configured map with its markers; without ``map.file``,
-        once a camera is used, that camera's map (its name and extent: its markers are
-        not sent by cameras), else the built-in one."""
-        ext = self.camera_extent
-        if self.cfg["map"]["file"] or ext is None:
-            return map_info(self.world_map, markers=True)
-        return {"name": self.map_name, "n": 0, "extent": [round(v, 4) for v in ext]}
 
     def _meta(self, cam_id: str, payload: bytes | None) -> None:
         cam = self.cameras.get(cam_id)
@@ -472,66 +421,11 @@ class FusionNode:
 
     # ------------------------------------------------------------------ bodies
     def robots_body(self) -> dict:
-        assert self.relay is not None
-        now = self.clock()
-        out = []
-        for tr in self.relay.channels.values():
-            seen = tr.last_seen is not None
-            srcs = self.fusion.sources(tr.name, self.cfg["relay"]["stale_after_s"])
-            last = self.fusion.seen.get(tr.name)
-            track = self.fusion.tracker.tracks.get(tr.name)
-            st = track.state() if track is not None and track.started else None
-            out.append({"name": tr.name, "markers": tr.markers,
-                        "x": tr.x if seen else None, "y": tr.y if seen else None,
-                        "theta": tr.theta if seen else None, "sigma": tr.sigma,
-                        "valid": seen and not tr.stale and tr.unfit is None,
-                        "age_s": (now - tr.last_seen) if tr.last_seen is not None else None,
-                        "stale": tr.stale, "destinations": tr.destinations, "sent": tr.sent,
-                        "seq": tr.seq, "send_errors": tr.errors,
-                        "send_refused": tr.refused, "refused": tr.refused_now(),
-                        "source": "+".join(srcs),
-                        "sources": {s: now - t for s, t in last.last.items()} if last else {},
-                        "vx": st.vx if st else None, "vy": st.vy if st else None,
-                        "omega": st.omega if st else None})
-        return {"t": now if math.isfinite(now) else time.time(), "frame": self.outputs,
-                "robots": out}
+        return robots_body(self)
 
     def status(self) -> P.StatusBody:
-        """The ``status`` body: a daemon's, without camera (zeros) and map (its robots),
-        plus ``inputs`` (the cameras) and ``fusion``."""
-        c = self.csv
-        now_wall = time.time()
-        lat = sorted(self.latency_ms)
-        cams = list(self.cameras.values())
-        return {
-            "t": now_wall, "uptime": now_wall - self.t0,
-            "source": f"fusion on zenoh site {self.site!r}: " + (", ".join(
-                f"{c.label} {c.state}" for c in cams) or "no camera yet"),
-            "config_file": self.cfg.user_file or "<default config>",
-            "config_files": self.cfg.files, "algorithm": "fusion", "algorithms": ["fusion"],
-            "logging": {"active": c is not None, "path": str(c.path) if c else None,
-                        "rows": c.rows if c else 0, "bytes": c.bytes if c else 0,
-                        "error": self.files.errors["log"] if self.files else None},
-            "recording": {"active": False, "path": None, "frames": 0, "bytes": 0,
-                          "error": None},
-            "camera": {"width": 0, "height": 0, "fx": 0.0, "fy": 0.0},
-            "map": self._map_status(),
-            "frames": self.outputs, "dropped": sum(i.dropped_old for i in cams),
-            "bad_frames": sum(i.bad for i in cams),
-            "inputs": [i.body(now_wall) for i in cams],
-            "fusion": {"accepted": self.fusion.accepted,
-                       "rejected": self.fusion.tracker.counts["rejected"],
-                       "reacquired": self.fusion.tracker.counts["reacquired"],
-                       "dropped_old": self.fusion.dropped_old,
-                       "latency_ms_p50": lat[len(lat) // 2] if lat else None,
-                       "latency_ms_p99": lat[min(len(lat) - 1, int(0.99 * len(lat)))]
-                       if lat else None,
-                       "node": self.node_id, "role": self.election.role,
-                       "map_digest": self.map_digest, "overflow": self.overflow,
-                       "strangers": self.foreign},
-            "telemetry": self.telemetry.bound if self.telemetry else "",
-            "control": self.control.bound if self.control else "",
-        }
+        """The ``status`` body (kmead.fusion.bodies)."""
+        return status_body(self)
 
     # ------------------------------------------------------------------ daemon interface
     def publish(self, topic: str, body: Mapping[str, Any]) -> None:
@@ -544,8 +438,8 @@ class FusionNode:
     # No frames, no marker statistics, no camera: what the control thread reads.
     last_frame_body: dict = {}  # never mutated
     last_result = None
-    pipeline = _NoPipeline()
-    stats = _NoStats()
+    pipeline = NoPipeline()
+    stats = NoStats()
     camera_feed = None
     replay = False
 
@@ -623,20 +517,22 @@ class FusionNode:
             stalled = now - last_loop > self.lease_s
             last_loop = now
             with self.lock:
-                self._elect(now, stalled)
+                self.speaker.elect(now, stalled)
                 n = self._pump()
             if not n:
                 time.sleep(POLL_S)
             if now >= next_tick:
                 next_tick = now + 0.05
                 with self.lock:
-                    self._elect(now)
+                    self.speaker.elect(now)
                     self._watch_cameras(now)
                 self.tick()
             if self.control is None and now - last_status >= \
                     self.cfg["network"]["status_period_s"]:
                 last_status = now
                 self.publish(P.TOPIC_STATUS, self.status())
+        # Stopped on purpose: the robots are handed over before this node goes.
+        self.speaker.hand_over(self._pump)
         return 0
 
     def _pump(self, limit: int = 1000) -> int:
@@ -660,12 +556,6 @@ class FusionNode:
                             time.perf_counter())
                 n += 1
         return n
-
-    def _elect(self, now: float, stalled: bool = False) -> None:
-        role = self.election.decide(now, stalled)
-        while role is not None:
-            self._set_role(role)
-            role = self.election.decide(now)
 
     def done(self) -> bool:
         """True once ``max_outputs`` fused outputs have been made."""
@@ -699,11 +589,12 @@ class FusionNode:
         if self.zenoh_out is not None:
             self.zenoh_out.close()
             self.zenoh_out = None
-        for entity in (*self._subs, self._token):
-            if entity is not None:
-                with contextlib.suppress(Exception):  # a session already closed
-                    entity.undeclare()
-        self._subs, self._token = [], None
+        if getattr(self, "speaker", None) is not None:
+            self.speaker.close()
+        for entity in self._subs:
+            with contextlib.suppress(Exception):  # a session already closed
+                entity.undeclare()
+        self._subs = []
         if self.session is not None and getattr(self, "_owns_session", False):
             try:
                 self.session.close()

@@ -4,7 +4,9 @@ Datagram (one line of ASCII, no newline, ``;``-separated ``key=value``)::
 
     name=amr1;seq=17;t=1700000000.123456;x=0.512300;y=0.200100;theta=1.570800;valid=1
 
-``seq`` counts this robot's messages (all destinations share it), ``t`` is the time the
+``seq`` counts this robot's messages (all destinations share it; with a voice,
+:mod:`kmead.outputs.voice`, it continues above every seq heard from the robot's other
+speakers), ``t`` is the time the
 pose refers to (s): the frame's capture time, or the send time when ``filter.predict`` is on
 (the pose is then predicted to it). x/y metres in the world frame, theta radians in
 [-pi, pi). ``valid=0``: the pose is not finite or its sigma is beyond ``relay.max_sigma_m``
@@ -70,6 +72,7 @@ class RobotChannel:
     refused_seq: dict[str, int] = field(default_factory=dict)  # destination -> seq
     extra: dict = field(default_factory=dict)
     unfit: str | None = None  # why the last pose went out as valid=0 (not finite, sigma)
+    voiced: bool = True  # the last message went to the robot (not muted, this voice's turn)
 
     def refused_now(self) -> list[str]:
         """Destinations refused among the last :data:`REFUSED_WINDOW` messages.
@@ -142,6 +145,9 @@ class Relay:
         # muted: nothing goes to the robots (no datagram, no sink message), the telemetry
         # still does: a fusion node's standby, or a camera while a fusion node speaks.
         self.muted = False
+        # voice: kmead.outputs.voice.Voice, whose turn it is per robot (several speakers
+        # on a Zenoh site: one voice per robot, one seq).
+        self.voice: Any = None
         self.stale_repeat_s = stale_repeat_s
         self.extra_fields = extra_fields
         self.publish = publish
@@ -214,13 +220,15 @@ class Relay:
     def _send(self, tr: RobotChannel, t: float, valid: bool,
               addrs: Sequence[tuple[str, int] | None] | None = None,
               publish: bool = True) -> None:
+        voice = self.voice
+        tr.voiced = not self.muted and (voice is None or voice.speak(tr, valid, t))
         tr.seq += 1
         extra = None
         if self.extra_fields:
             extra = {"sigma": tr.sigma, **tr.extra} if valid else {}
         data = datagram(tr.name, tr.seq, t, tr.x, tr.y, tr.theta, valid, extra)
         dests = dict(zip(tr.addrs, tr.destinations, strict=False))
-        for addr in () if self.muted else tr.addrs if addrs is None else addrs:
+        for addr in () if not tr.voiced else tr.addrs if addrs is None else addrs:
             s = self._sock(addr) if addr is not None else None
             if s is None:  # a host name that did not resolve at configuration time
                 tr.errors += 1
@@ -236,11 +244,13 @@ class Relay:
                     tr.refused += 1
                     if (dest := dests.get(addr)) is not None:
                         tr.refused_seq[dest] = tr.seq
+        if tr.voiced and voice is not None:
+            voice.said(tr, valid, t)
         if publish:
             self._publish(tr, t, valid)
 
     def _publish(self, tr: RobotChannel, t: float, valid: bool, sink: bool = True) -> None:
-        if sink and self.sink is not None and not self.muted:
+        if sink and self.sink is not None and tr.voiced:
             self.sink(tr, t, valid, self._stopping)
         if self.publish is not None:
             body = {"name": tr.name, "seq": tr.seq, "t": t, "x": tr.x, "y": tr.y,
@@ -290,9 +300,10 @@ class Relay:
         telemetry bodies (the first body wakes the telemetry thread, which would take the
         GIL from the next robot's Zenoh message)."""
         tracks = [self.channels[n] for n in names]
-        if self.sink is not None and not self.muted:
+        if self.sink is not None:
             for tr in tracks:
-                self.sink(tr, self._fix_time(tr), tr.unfit is None, self._stopping)
+                if tr.voiced:
+                    self.sink(tr, self._fix_time(tr), tr.unfit is None, self._stopping)
         for tr in tracks:
             self._publish(tr, self._fix_time(tr), tr.unfit is None, sink=False)
 
@@ -331,7 +342,10 @@ class Relay:
 
     def shutdown(self, t: float) -> None:
         """One ``valid=0`` message to every robot: the daemon stops (SIGTERM, SIGINT, end of
-        frames); robots must not keep following their last pose."""
+        frames); robots must not keep following their last pose. With a voice, the robots
+        another speaker takes over get nothing from this one (it hands them over first)."""
+        if self.voice is not None:
+            self.voice.release()
         self._stopping = True
         for tr in self.channels.values():
             tr.stale = True

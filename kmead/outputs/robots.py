@@ -56,13 +56,18 @@ class RobotSender:
         return True
 
     def send(self, t: float, fixes: dict, tracker: Any, predict: bool,
-             t_capture: float) -> None:
+             t_capture: float, measured: dict | None = None) -> None:
         """``fixes`` (name -> kmea.pipeline.RobotFix) of the frame at ``t`` (s); ``tracker``
         the pipeline's tracking filter (None: the IIR filter); ``predict``: send each pose
         predicted to now; ``t_capture``: the frame's capture (``perf_counter``), for the
-        capture-to-relay latency (0: unknown)."""
+        capture-to-relay latency (0: unknown); ``measured``: the frame's measurements
+        before the filter, accepted or not (``Pipeline.measured``: name -> (t, x, y, theta,
+        sigma)), for the fusion nodes (default: the fixes' own)."""
         tot = self.totals
+        cam = self.camera
         for fix in fixes.values():
+            if cam is not None:  # how well this camera sees the robot: who speaks to it
+                cam.voice.want(fix.name, fix.raw[3] if fix.raw is not None else fix.sigma)
             extra = None
             t_pose = t if fix.t is None else fix.t
             t_fix, x, y, th, sigma, cov = t_pose, fix.x, fix.y, fix.theta, fix.sigma, fix.cov
@@ -84,13 +89,17 @@ class RobotSender:
                               cov=cov)
             tot.robots_seen.add(fix.name)
         self.relay.publish_fixes(list(fixes))
-        cam = self.camera
         if cam is not None:  # the measurements, for the fusion nodes (after the datagrams)
-            for fix in fixes.values():
-                mx, my, mth, ms = fix.raw if fix.raw is not None else (
-                    fix.x, fix.y, fix.theta, fix.sigma)
-                cam.measurement(fix.name, t if fix.t is None else fix.t, mx, my, mth, ms)
-            cam.frame(t)
+            if measured is None:
+                measured = {f.name: (t if f.t is None else f.t, *(f.raw if f.raw is not None
+                                     else (f.x, f.y, f.theta, f.sigma)))
+                            for f in fixes.values()}
+            # Every measurement, also those this camera's own filter rejected: the node
+            # gates them itself, and re-acquires a robot as this camera does (given only
+            # the accepted ones it missed a re-acquisition's evidence and lagged behind).
+            for name, (tm, mx, my, mth, ms) in measured.items():
+                cam.measurement(name, tm, mx, my, mth, ms)
+            cam.frame(t, set(fixes))
         for name in self.relay.tick(t):
             self.event("warning", f"robot {name} not seen for "
                                   f"{self.relay.stale_after_s:g} s: stale (valid=0 sent)")

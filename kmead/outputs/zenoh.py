@@ -56,8 +56,10 @@ class RosPublisher:
     bridge: Any = None  # the zenoh-bridge-ros2dds key's publisher
     seq: int = 0  # rmw_zenoh's sequence numbers start at 1
 
-    def put(self, payload: bytes) -> None:
-        self.seq += 1
+    def put(self, payload: bytes, seq: int | None = None) -> None:
+        """``seq``: the robot's own sequence number (one sequence per robot across
+        speakers, kmead.outputs.voice), when above this publisher's last."""
+        self.seq = seq if seq is not None and seq > self.seq else self.seq + 1
         att = wire.attachment(self.seq, time.time_ns(), self.gid)
         self.publisher.put(payload, attachment=att)
         if self.bridge is not None:
@@ -100,7 +102,6 @@ class ZenohOutput:
         if z["ros2"]:
             out.node_token = out.session.liveliness().declare_token(
                 wire.node_token(z["ros_domain"], out.zid, 0, out._namespace, node_name))
-            out.tf = out._ros_publisher("/tf", msgs.TF_TYPE, TF_QOS)
         log.info("zenoh: session %s (%s), site %r%s", out.zid, z["mode"], z["site"],
                  f", ROS 2 domain {z['ros_domain']}" if z["ros2"] else "")
         return out
@@ -173,18 +174,29 @@ class ZenohOutput:
         if not valid or rp.pose is None:
             return
         rp.pose.put(msgs.pose_cdr(t, self.z["frame_id"], tr.x, tr.y, tr.theta,
-                                  msgs.covariance6(c3)))
-        if self.tf is not None:  # (None once closed)
-            self.tf.put(msgs.tf_cdr(t, self.z["frame_id"], f"{tr.name}/kmea", tr.x, tr.y,
-                                    tr.theta))
+                                  msgs.covariance6(c3)), seq=tr.seq)
+        if self.tf is None:  # declared with the first pose: a silent speaker lists none
+            self.tf = self._ros_publisher("/tf", msgs.TF_TYPE, TF_QOS)
+        self.tf.put(msgs.tf_cdr(t, self.z["frame_id"], f"{tr.name}/kmea", tr.x, tr.y,
+                                tr.theta))
 
     def retain(self, names: set[str]) -> None:
         """Undeclare the publishers (and their tokens) of robots no longer configured."""
         for name in [n for n in self.robots if n not in names]:
-            rp = self.robots.pop(name)
+            self.quiet(name)
+
+    def quiet(self, name: str) -> None:
+        """This process no longer speaks for robot ``name`` (another speaker does,
+        kmead.outputs.voice): its publishers and their ROS 2 tokens go, so that the ROS
+        graph lists the speaking publisher only (``/tf``'s too once no robot is left)."""
+        rp = self.robots.pop(name, None)
+        if rp is not None:
             for entity in (rp.binary, rp.pose):
                 if entity is not None:
                     entity.undeclare()
+        if self.tf is not None and not any(r.pose is not None for r in self.robots.values()):
+            self.tf.undeclare()
+            self.tf = None
 
     def close(self) -> None:
         if self.session is None:

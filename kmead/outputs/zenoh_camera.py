@@ -9,19 +9,24 @@ With ``[zenoh] enabled = true`` every ``kmead`` is a camera of its site. Keys (`
   model, resolution), JSON;
 - ``<site>/cam/<id>/robots/<robot>``: one measurement per robot per frame, JSON
   ``{"name", "valid": true, "t", "x", "y", "theta", "sigma"}``: the capture instant and the
-  robot's pose before the tracking filter (a fusion node filters);
+  robot's pose before the tracking filter, whatever this camera's filter made of it (a
+  fusion node filters, and gates, itself);
 - ``<site>/cam/<id>/frame``: ``{"t", "frames"}`` every :data:`HEARTBEAT_S` from the frame
   loop: a camera that sees no robot still shows it works (a fusion node drops a camera that
-  sends nothing for the lease).
+  sends nothing for the lease);
+- ``<site>/cam/<id>/zid/<session>``: a second liveliness token naming the session, so that
+  two ``kmead`` claiming one camera id are told apart: the second refuses to start
+  (:class:`DuplicateCamera`, exit 2), or, started at the same moment, each reports the other
+  (an ``error`` event); a fusion node lists them in its status.
 
-It also watches ``<site>/fusion/**`` (the fusion nodes' liveliness tokens): while a fusion
-node is alive it speaks to the robots, so this kmead's relay is muted (no datagram, no
-Zenoh robot pose) and one robot hears one voice.
+Who speaks to each robot is :mod:`kmead.outputs.voice` (:attr:`ZenohCamera.voice`): this
+camera keeps its voice until a fusion node (or a camera that sees the robot better) is
+heard speaking for it, and takes it back when handed over or when nobody speaks.
 
 Threads: :meth:`ZenohCamera.measurement`, :meth:`ZenohCamera.frame` and :meth:`close` are
 the frame loop's (under the daemon's lock: the publisher table has one owner); the
-queryable and the liveliness callback run on Zenoh's threads and touch only an immutable
-payload and the fusion-node set under its own lock.
+queryable and the liveliness callbacks run on Zenoh's threads and touch only an immutable
+payload, or report.
 """
 
 from __future__ import annotations
@@ -31,7 +36,6 @@ import json
 import logging
 import re
 import socket
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -39,12 +43,13 @@ from typing import Any
 from kmea.maps.files import map_digest
 from kmea.maps.model import MarkerMap
 from kmead.net.site_tls import certificate_name
+from kmead.outputs.voice import CAMERA, NODE, QUIET_S, Voice
 from kmead.outputs.zenoh_session import import_zenoh
 
 log = logging.getLogger("kmead.zenoh")
 
 HEARTBEAT_S = 0.2
-STARTUP_S = 1.0  # s: the start waits at most this long for the fusion nodes' tokens
+STARTUP_S = 1.0  # s: the start waits at most this long for the site's tokens
 _ID_RE = re.compile(r"[^A-Za-z0-9_-]")
 
 
@@ -74,43 +79,75 @@ def meta_body(cam_id: str, world_map: MarkerMap, camera: Any, source: str,
             "source": source, "extent": list(world_map.extent())}
 
 
+class DuplicateCamera(ValueError):
+    """Another ``kmead`` holds this camera id on the site (a configuration error)."""
+
+
 class ZenohCamera:
-    """This kmead as a camera of its site, on an open session (module docstring)."""
+    """This kmead as a camera of its site, on an open session (module docstring).
+
+    ``known(name)``: a robot of this kmead's; ``on_quiet(name)``: it stopped speaking for a
+    robot (its Zenoh robot outputs go); ``event(level, text)``: a report for its log."""
 
     def __init__(self, session: Any, site: str, cam_id: str, meta: dict,
-                 on_fusion: Callable[[int], None] | None = None) -> None:
+                 known: Callable[[str], bool] = lambda _name: True,
+                 on_quiet: Callable[[str], None] | None = None,
+                 event: Callable[[str, str], None] | None = None) -> None:
         zenoh = import_zenoh()
         self.session = session
         self.site = site
         self.id = cam_id
         self.prefix = f"{site}/cam/{cam_id}"
-        self.on_fusion = on_fusion
+        self.zid = str(session.info.zid())
+        self.event = event
         self._meta = json.dumps(meta).encode()
         self._pubs: dict[str, Any] = {}
-        self._fusion: set[str] = set()  # the fusion nodes' token keys
-        self._lock = threading.Lock()  # _fusion (Zenoh's callback thread vs readers)
         self.sent = 0
         self.errors = 0
         self._warned = False
         self._frames = 0
         self._last_beat = 0.0
+        self._twins: set[str] = set()  # other sessions holding this camera id
         self._declare = lambda key: session.declare_publisher(
             key, reliability=zenoh.Reliability.RELIABLE,
             congestion_control=zenoh.CongestionControl.DROP)
+        twins = self._tokens(f"{self.prefix}/zid/*")
+        twins.discard(f"{self.prefix}/zid/{self.zid}")
+        if twins:
+            raise DuplicateCamera(
+                f"zenoh: camera id {cam_id!r} is already alive on site {site!r} (session "
+                f"{sorted(twins)[0].rsplit('/', 1)[-1][:8]}): give this kmead another "
+                "zenoh.camera")
+        # Speakers already on the site (cameras, fusion nodes): listen to their voices
+        # before speaking to a robot, so as not to start a second one.
+        busy = bool(self._tokens(f"{site}/cam/*") | self._tokens(f"{site}/fusion/**"))
+        # Speakers whose token went (killed, or their lease ran out): gone at once, their
+        # robots taken without waiting for their silence. (A token never silences anyone.)
+        self._gone: set[tuple[str, str]] = set()
+        self._roles: dict[str, set[str]] = {}  # node id -> its role tokens alive
+        self.voice = Voice(session, site, cam_id, CAMERA, known, alive=self._alive,
+                           on_quiet=on_quiet, listen_s=QUIET_S if busy else 0.0)
+        self.speakers = [
+            session.liveliness().declare_subscriber(f"{site}/cam/*", self._speaker),
+            session.liveliness().declare_subscriber(f"{site}/fusion/*/*", self._speaker)]
         self.queryable = session.declare_queryable(f"{self.prefix}/meta", self._answer)
         self.beat = self._declare(f"{self.prefix}/frame")
-        self.watch = session.liveliness().declare_subscriber(
-            f"{site}/fusion/**", self._fusion_change, history=True)
-        # Before the first frame: a fusion node already there mutes this kmead's relay
-        # before it sends anything (the subscriber's history may come a moment later).
-        try:
-            for reply in session.liveliness().get(f"{site}/fusion/**", timeout=STARTUP_S):
-                if reply.ok is not None:
-                    self._fusion_change(reply.ok)
-        except Exception as e:  # a session closing
-            log.debug("zenoh: fusion nodes query failed: %s", e)
+        self.twin_watch = session.liveliness().declare_subscriber(
+            f"{self.prefix}/zid/*", self._twin, history=True)
+        self.id_token = session.liveliness().declare_token(f"{self.prefix}/zid/{self.zid}")
         self.token = session.liveliness().declare_token(self.prefix)
         log.info("zenoh: camera %s on site %r (%s/...)", cam_id, site, self.prefix)
+
+    def _tokens(self, key: str) -> set[str]:
+        """The liveliness tokens alive on ``key`` now."""
+        out: set[str] = set()
+        try:
+            for reply in self.session.liveliness().get(key, timeout=STARTUP_S):
+                if reply.ok is not None:
+                    out.add(str(reply.ok.key_expr))
+        except Exception as e:  # a session closing
+            log.debug("zenoh: liveliness query %s failed: %s", key, e)
+        return out
 
     # ------------------------------------------------------------------ Zenoh's threads
     def _answer(self, query: Any) -> None:
@@ -119,24 +156,48 @@ class ZenohCamera:
         except Exception as e:  # the querier went away
             log.debug("zenoh: meta reply failed: %s", e)
 
-    def _fusion_change(self, sample: Any) -> None:
-        key = str(sample.key_expr)  # <site>/fusion/<node>/<role>: one per node and role
-        put = str(sample.kind).rsplit(".", 1)[-1] == "PUT"
-        with self._lock:
-            before = len(self._fusion)
-            (self._fusion.add if put else self._fusion.discard)(key)
-            n = len(self._fusion)
-        if (before == 0) != (n == 0):
-            log.warning("zenoh: %s", "a fusion node is alive on the site: it speaks to the "
-                        "robots, this kmead's relay is muted" if n else
-                        "no fusion node left on the site: this kmead speaks to the robots")
-            if self.on_fusion is not None:
-                self.on_fusion(n)
+    def _speaker(self, sample: Any) -> None:
+        """A camera's or node's token came or went (Zenoh's thread)."""
+        parts = str(sample.key_expr).split("/")
+        alive = str(sample.kind).rsplit(".", 1)[-1] == "PUT"
+        if len(parts) == 3:  # <site>/cam/<id>
+            key = (parts[2], CAMERA)
+        elif len(parts) == 4:  # <site>/fusion/<id>/<role>: gone with its last role
+            if len(self._roles) > 4096:  # bounded (hostile tokens): forget, nothing worse
+                self._roles.clear()
+            roles = self._roles.setdefault(parts[2], set())
+            (roles.add if alive else roles.discard)(parts[3])
+            alive = bool(roles)
+            key = (parts[2], NODE)
+        else:
+            return
+        (self._gone.discard if alive else self._gone.add)(key)
+        if len(self._gone) > 4096:  # bounded: the oldest knowledge matters least
+            self._gone.clear()
+
+    def _alive(self, speaker: str, kind: str) -> bool:
+        return (speaker, kind) not in self._gone
+
+    def _twin(self, sample: Any) -> None:
+        """Another session's token of this camera id (two kmead started at once)."""
+        zid = str(sample.key_expr).rsplit("/", 1)[-1]
+        if zid == self.zid:
+            return
+        alive = str(sample.kind).rsplit(".", 1)[-1] == "PUT"
+        (self._twins.add if alive else self._twins.discard)(zid)
+        if alive:
+            text = (f"zenoh: camera id {self.id!r} is claimed by another kmead on site "
+                    f"{self.site!r} (session {zid[:8]}): two cameras with one id; give one "
+                    "of them another zenoh.camera")
+            if self.event is not None:
+                self.event("error", text)
+            else:
+                log.error("%s", text)
 
     @property
-    def fusion_nodes(self) -> int:
-        with self._lock:
-            return len(self._fusion)
+    def twins(self) -> int:
+        """Other kmead holding this camera id now."""
+        return len(self._twins)
 
     def set_meta(self, meta: dict) -> None:
         """New metadata (a reloaded map): the next queries get it."""
@@ -156,9 +217,10 @@ class ZenohCamera:
         except Exception as e:
             self._failed(e)
 
-    def frame(self, t: float) -> None:
-        """A frame was processed at capture time ``t``: the heartbeat, at most every
-        :data:`HEARTBEAT_S`."""
+    def frame(self, t: float, seen: set[str] | None = None) -> None:
+        """A frame was processed at capture time ``t`` with fixes of ``seen``: the voice's
+        hand-overs, and the heartbeat, at most every :data:`HEARTBEAT_S`."""
+        self.voice.frame(seen or set())
         self._frames += 1
         now = time.monotonic()
         if now - self._last_beat < HEARTBEAT_S:
@@ -178,8 +240,9 @@ class ZenohCamera:
 
     def close(self) -> None:
         """Undeclare everything (the session stays open: its owner closes it)."""
-        for entity in (self.token, self.watch, self.queryable, self.beat,
-                       *self._pubs.values()):
+        self.voice.close()
+        for entity in (self.token, self.id_token, self.twin_watch, *self.speakers,
+                       self.queryable, self.beat, *self._pubs.values()):
             with contextlib.suppress(Exception):  # a session already closed
                 entity.undeclare()
         self._pubs.clear()

@@ -210,15 +210,23 @@ class Daemon:
         except ImportError:
             raise StartupError("key 'zenoh.enabled': the zenoh extra is not installed "
                                "(pip install 'kmea[zenoh]')") from None
-        from kmead.outputs.zenoh_camera import ZenohCamera, camera_id
+        from kmead.outputs.zenoh_camera import DuplicateCamera, ZenohCamera, camera_id
 
         z = self.cfg["zenoh"]
         self.zenoh = ZenohOutput.open(z)
         self.relay.sink = self.zenoh.send
-        # This kmead as a camera of its site, for the fusion nodes (docs/fusion.md).
-        self.zenoh_camera = ZenohCamera(self.zenoh.session, z["site"],
-                                        camera_id(z, self.source_spec), self._camera_meta(),
-                                        on_fusion=self._fusion_nodes)
+        # This kmead as a camera of its site, for the fusion nodes (docs/fusion.md), and
+        # one of the robots' possible voices (kmead.outputs.voice).
+        relay = self.relay
+        try:
+            self.zenoh_camera = ZenohCamera(
+                self.zenoh.session, z["site"], camera_id(z, self.source_spec),
+                self._camera_meta(), known=lambda name: name in relay.channels,
+                on_quiet=self.zenoh.quiet, event=self.event)
+        except DuplicateCamera as e:
+            relay.muted = True  # it never spoke: its close tells the robots nothing
+            raise StartupError(str(e)) from None
+        self.relay.voice = self.zenoh_camera.voice
         self.robots.camera = self.zenoh_camera
 
     def _camera_meta(self) -> dict:
@@ -226,13 +234,6 @@ class Daemon:
 
         return meta_body(camera_id(self.cfg["zenoh"], self.source_spec), self.world_map,
                          self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
-
-    def _fusion_nodes(self, n: int) -> None:
-        """Zenoh's thread: ``n`` fusion nodes alive on the site. While one is, it speaks to
-        the robots and this kmead's relay is muted (one voice per robot)."""
-        relay = self.relay
-        if relay is not None:
-            relay.muted = n > 0
 
     def _start_foxglove(self) -> None:
         fx = self.cfg["foxglove"]
@@ -591,7 +592,7 @@ class Daemon:
         timestamps are not the wall clock)."""
         self.robots.send(t, fixes, self.pipeline.tracker,
                          predict=bool(self.cfg["filter"]["predict"]) and self.live,
-                         t_capture=self._t_capture)
+                         t_capture=self._t_capture, measured=self.pipeline.measured)
 
     def _displacement_events(self, res: FrameResult) -> None:
         # The moved-marker decision (kmea.stats.moved: persistence over the frames the marker was
