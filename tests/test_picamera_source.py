@@ -427,3 +427,16 @@ def test_fixed_focus_camera_gets_no_autofocus_controls(rig, caplog) -> None:
     other.close()
     with pytest.raises(SourceError, match=r"lens_position must be in \[0, 32\] dioptres"):
         open_source("picamera?lens_position=40")
+
+
+def test_the_full_field_mode_is_asked_for_not_a_crop_of_the_same_size(rig) -> None:
+    """1536x864 on a Camera Module 3 is the size of its cropped 120 fps mode: the source
+    asks for the full-field 2304x1296 mode, whose line time kmea.timing gives."""
+    import fakecam_rig
+
+    rig.cameras = [dict(fakecam_rig.IMX708)]
+    with open_source("picamera?width=1536&height=864&fps=30") as src:
+        f = src.read()
+    assert rig.instances[-1].camera_config["sensor"] == {"output_size": (2304, 1296),
+                                                         "bit_depth": 10}
+    assert f.meta["timing"].line_s == pytest.approx(0x1E90 / 585.6e6 * 1296 / 864, rel=1e-12)

@@ -68,7 +68,7 @@ from typing import Any
 import numpy as np
 
 from kmea.sources.base import Frame, FrameSource, SourceError
-from kmea.timing import FrameTiming, line_time
+from kmea.timing import FrameTiming, line_time, sensor_for
 from kmea.vision.lens import lens_differs
 
 __all__ = [
@@ -341,9 +341,17 @@ class PiCameraSource(FrameSource):
         if self.lens_position is not None and not self.autofocus:
             log.warning("picamera: the camera file stores a lens position (%g dioptres) but "
                         "the %s has a fixed focus: ignored", self.lens_position, self.model)
+        # The sensor mode is asked for by name when kmea.timing knows the sensor: libcamera
+        # would otherwise take a cropped mode of the output's exact size (the IMX708's
+        # 1536x864), whose field and line time are not the full-field mode's.
+        sensor = sensor_for(self.model)
+        pinned = {}
+        if sensor is not None:
+            mode = sensor.mode_for(w, h)
+            pinned = {"sensor": {"output_size": mode.size, "bit_depth": mode.bit_depth}}
         try:
             config = cam.create_video_configuration(
-                main={"size": (w, h), "format": "YUV420"},
+                main={"size": (w, h), "format": "YUV420"}, **pinned,
                 colour_space=self._libcamera.ColorSpace.Sycc(),  # full-range Y
                 controls=self._controls(), buffer_count=self.buffer_count,
                 # queue=False: every capture_request waits for a frame that completes after

@@ -131,6 +131,13 @@ class Picamera2:
         w, h = main["size"]
         main["stride"] = (w + 63) // 64 * 64
         main["framesize"] = main["stride"] * h * 3 // 2
+        if config.get("sensor"):
+            # _update_libcamera_sensor_config / libcamera validate(): the output size and
+            # bit depth must be one of the sensor's modes.
+            want = (tuple(config["sensor"]["output_size"]), config["sensor"].get("bit_depth"))
+            if not any((m["size"], m["bit_depth"]) == want if want[1] else m["size"] == want[0]
+                       for m in self.sensor_modes):
+                raise RuntimeError(f"sensor mode {want} is not one of the camera's")
         controls = config["controls"]
         for name in controls:
             # picamera2 Controls.__setattr__: a control the camera does not advertise is an
