@@ -66,3 +66,22 @@ def test_global_shutter_has_no_skew_and_rolling_shutters_scale_with_the_output()
 def test_hdr_mode_is_30_fps_at_most() -> None:
     assert IMX708_HDR_MODE.fps == pytest.approx(30.0, abs=0.01)
     assert all(m.size != IMX708_HDR_MODE.size or m.fps > 50 for m in SENSORS["imx708"].modes)
+
+
+def test_simulated_floor_takes_a_modules_shutter() -> None:
+    from kmea.experiments.motion import MotionCase, motion_scene
+    from kmea.sim.scenes import get_scene
+
+    sc = get_scene("scenario1", sensor="imx296")
+    assert sc.effects.line_time_s == 0.0
+    sc = get_scene("scenario1", width=820, height=616, sensor="imx219")
+    assert sc.effects.line_time_s == imx219_line_time(820, 616)
+    with pytest.raises(ValueError, match="scene option sensor: no timing table for 'ov5647'"):
+        get_scene("scenario1", sensor="ov5647")
+    case = MotionCase(1.5, width=1536, sensor="imx708")
+    sc = motion_scene(case)
+    assert (sc.camera.width, sc.camera.height) == (1536, 864)
+    assert sc.effects.line_time_s == line_time("imx708", 1536, 864)
+    assert motion_scene(case, line_time=False).effects.line_time_s == 0.0
+    # the Camera Module v2's horizontal field of view at every width
+    assert sc.camera.fx / 1536 == pytest.approx(motion_scene(MotionCase(1.5)).camera.fx / 1640)
