@@ -22,6 +22,14 @@ BW_FOUND := $(shell command -v $(PY_BOOKWORM) 2>/dev/null)
 BW_VENV := .venv-bookworm
 BW_BIN := $(BW_VENV)/bin
 BW_STAMP := $(BW_VENV)/.installed-$(shell cat pyproject.toml constraints/bookworm.txt | cksum | cut -d' ' -f1)
+# The project on the Pi's CPU: a Debian arm64 userland under qemu-user-static, installed as
+# deploy/install.sh does, a kmead run compared with this machine's, the doctor, the Pi code
+# paths' tests and the C decoder (scripts/test_arm64.sh; needs root). Without root or
+# binfmt_misc it is skipped with a loud line; CI sets REQUIRE_ARM64=1 so that it fails
+# instead (.ci/run). SKIP_ARM64=1 skips it on purpose (a machine without the time for it).
+REQUIRE_ARM64 ?=
+SKIP_ARM64 ?=
+ARM64_CODENAME ?= bookworm
 STACK = -c 'import sys, numpy, cv2; print("== suite on Python %d.%d.%d, numpy %s, OpenCV %s ==" % (*sys.version_info[:3], numpy.__version__, cv2.__version__))'
 # Debian and Ubuntu ship venv's ensurepip in a separate package; without it `python -m venv`
 # leaves a venv without pip and a traceback. $(call venv,PYTHON,DIR,OPTIONS) creates DIR or
@@ -34,7 +42,7 @@ test -x $(2)/bin/python || { \
 	  $(1) -m venv $(3) $(2); }
 endef
 
-.PHONY: run test test-current test-bookworm lint bench config install-service clean
+.PHONY: run test test-current test-bookworm test-arm64 lint bench config install-service clean
 
 $(STAMP): pyproject.toml
 	@$(call venv,$(PY),$(VENV),$(if $(ON_PI),--system-site-packages))
@@ -59,7 +67,8 @@ run: $(STAMP)
 # The suite on both stacks: today's (.venv) and Raspberry Pi OS Bookworm's (.venv-bookworm).
 # ruff once, then the suite on each stack. On a Pi, .venv is the Pi's own stack (its
 # constraints file, as for `make run`): the suite runs there and nowhere else.
-test: lint test-current $(if $(ON_PI),$(if $(BW_REQUIRED),test-bookworm),test-bookworm)
+test: lint test-current $(if $(ON_PI),$(if $(BW_REQUIRED),test-bookworm),test-bookworm) \
+	$(if $(ON_PI),,test-arm64)
 
 test-current: $(STAMP)
 	@$(BIN)/python $(STACK)
@@ -77,6 +86,12 @@ test-bookworm: $(BW_STAMP)
 	@$(BW_BIN)/python $(STACK)
 	$(BW_BIN)/python -m pytest -q -n 2 $(ARGS)
 endif
+
+test-arm64: $(STAMP)
+	@if [ -n "$(filter-out 0,$(SKIP_ARM64))" ]; then \
+	  if [ -n "$(filter-out 0,$(REQUIRE_ARM64))" ]; then echo "make: arm64 required (REQUIRE_ARM64=1) but SKIP_ARM64 is set"; exit 1; fi; \
+	  echo "*** make: arm64 SKIPPED: SKIP_ARM64 is set; run REQUIRE_ARM64=1 make test-arm64 as root (CI does) ***"; \
+	else REQUIRE_ARM64=$(filter-out 0,$(REQUIRE_ARM64)) ARM64_CODENAME=$(ARM64_CODENAME) BIN=$(abspath $(BIN)) scripts/test_arm64.sh; fi
 
 # config.toml and the key table of docs/daemon.md, from the declarations in
 # kmead/config/schema.py (a test fails when they disagree).

@@ -9,7 +9,10 @@
 #      apt numpy that picamera2 was built for is the one used (README, On the Raspberry Pi)
 #   4. /etc/kmead: kmead.toml (deploy/pi.toml) and camera.yml, kept if they exist
 #   5. /etc/systemd/system/kmead.service, enabled; `kmea doctor`; the service (re)started
-# Environment: KMEA_VENV (default /opt/kmea), KMEA_NO_START=1 (install, do not start).
+# Environment: KMEA_VENV (default /opt/kmea), KMEA_NO_START=1 (install, do not start),
+# KMEA_EXTRAS (extras to install, e.g. zenoh), KMEA_APT (the apt packages of step 1),
+# KMEA_NO_SERVICE=1 (steps 1 and 3 only: the venv in a chroot or a container, where there is
+# no systemd; make test-arm64).
 set -eu
 
 REPO=$(cd "$(dirname "$0")/.." && pwd)
@@ -30,10 +33,17 @@ esac
 CONSTRAINTS="$REPO/constraints/$CODENAME.txt"
 [ -r "$CONSTRAINTS" ] || die "$CONSTRAINTS missing"
 
-say "apt: python3-picamera2 python3-venv"
-apt-get install -y --no-install-recommends python3-picamera2 python3-venv
+APT=${KMEA_APT:-python3-picamera2 python3-venv}
+EXTRAS=${KMEA_EXTRAS:+[$KMEA_EXTRAS]}
+NO_SERVICE=${KMEA_NO_SERVICE:-0}
 
-if ! id -u kmead >/dev/null 2>&1; then
+say "apt: $APT"
+# shellcheck disable=SC2086 # a list of package names
+apt-get install -y --no-install-recommends $APT
+
+if [ "$NO_SERVICE" = 1 ]; then
+    :
+elif ! id -u kmead >/dev/null 2>&1; then
     say "user kmead (system, group video)"
     useradd --system --user-group --groups video --home-dir /var/lib/kmea --no-create-home \
         --shell /usr/sbin/nologin kmead
@@ -45,8 +55,12 @@ if [ ! -x "$VENV/bin/python" ]; then
     say "venv $VENV (--system-site-packages)"
     python3 -m venv --system-site-packages "$VENV"
 fi
-say "pip install -c constraints/$CODENAME.txt $REPO"
-"$VENV/bin/python" -m pip install -q -c "$CONSTRAINTS" "$REPO"
+say "pip install -c constraints/$CODENAME.txt $REPO$EXTRAS"
+"$VENV/bin/python" -m pip install -q -c "$CONSTRAINTS" "$REPO$EXTRAS"
+if [ "$NO_SERVICE" = 1 ]; then
+    say "KMEA_NO_SERVICE=1: venv $VENV only (no user, $ETC, unit or start)"
+    exit 0
+fi
 
 install -d -o root -g kmead -m 2775 "$ETC"
 if [ ! -e "$ETC/kmead.toml" ]; then

@@ -262,3 +262,32 @@ def test_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["calibrate", "--source", "camera:61", "--board", "chessboard:9x7:0.02",
                  "--out", str(tmp_path / "c.yml")]) == 2
     assert "cannot open camera 61" in capsys.readouterr().err
+
+
+def test_calibrating_an_autofocus_camera_stores_its_lens_position(
+        chess_views: list[np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through the fake picamera2 (a Camera Module 3): the lens is locked where asked, the
+    frames report it and the camera file stores it."""
+    from fakepi import forget, install
+
+    from kmea.vision.lens import load_lens_position
+
+    rig = install(monkeypatch).rig
+    try:
+        import fakecam_rig
+
+        rig.cameras = [dict(fakecam_rig.IMX708)]
+        rig.scene = lambda n, w, h: chess_views[n % len(chess_views)]
+        out = tmp_path / "cam.yml"
+        rc = main(["calibrate", "--source",
+                   f"picamera?width={W}&height={H}&fps=60&lens_position=0.45",
+                   "--board", "chessboard:9x7:0.02", "--out", str(out), "--max-views", "10",
+                   "--max-frames", str(3 * len(chess_views))])
+        text = capsys.readouterr().out
+    finally:
+        forget()
+    assert rc == 0, text
+    assert "lens position 0.45 dioptres" in text and "lens moved" not in text
+    assert load_lens_position(out) == 0.45
+    assert abs(load_camera(out).fx / K_TRUE[0, 0] - 1) < 0.02

@@ -209,3 +209,65 @@ def test_doctor_says_when_the_robots_poses_go_to_this_machine_only(tmp_path: Pat
     fixed = Doctor(config=_config(tmp_path, NET_ANY + robots), dev=tmp_path, board=PI4)
     fixed.run_all()
     assert _lines(fixed, "robots") == ["OK   robots: 1 robots; UDP poses to udp:192.168.1.21:9001"]
+
+
+def test_doctor_says_what_the_configured_size_reads_on_each_module(rig, tmp_path: Path) -> None:
+    """The sensor line: the mode, its line time and readout skew (0 for the global
+    shutter), the CPU estimate for this board; the aspect ratio of another mode is a FIX."""
+    import fakecam_rig
+
+    def sensor(camera: dict, size: str, board: str) -> str:
+        rig.cameras = [dict(camera)]
+        body = f'[source]\nspec = "picamera"\n{size}' + NET_ANY
+        doc = Doctor(config=_config(tmp_path, body), codename=None, groups=lambda: [44],
+                     dev=tmp_path, board=board)
+        doc.run_all()
+        (line,) = _lines(doc, "sensor 0")
+        return line
+
+    pi5 = "Raspberry Pi 5 Model B Rev 1.0"
+    line = sensor(fakecam_rig.IMX219, "", PI4)
+    assert line.startswith("OK   sensor 0: Camera Module v2 (imx219) at 1640x1232 "
+                           "(source.width/height): the 1640x1232 mode, up to 42 fps, rolling "
+                           "shutter 18.90 us a row, readout 23.3 ms (a robot at 1.5 m/s moves "
+                           "35 mm meanwhile")
+    assert line.endswith("on this Pi 4 about 9 ms CPU a tracked frame, 88 ms a full "
+                         "detection (estimate, docs/pi.md)")
+    line = sensor(fakecam_rig.IMX296, "width = 1456\nheight = 1088\n", pi5)
+    assert "the 1456x1088 mode, up to 60 fps, global shutter: no skew; on this Pi 5" in line
+    line = sensor(fakecam_rig.IMX708_WIDE, "", pi5)  # 4:3 asked of a 16:9 sensor
+    assert line.startswith("FIX  sensor 0: Camera Module 3 (imx708_wide) at 1640x1232")
+    assert line.endswith("set source.width/height to 1536x864 (docs/pi.md, sensor modes)")
+    line = sensor(fakecam_rig.IMX708, "width = 1536\nheight = 864\n", pi5)
+    assert line.startswith("OK   sensor 0: Camera Module 3 (imx708) at 1536x864 "
+                           "(source.width/height): the 2304x1296 mode, up to 56 fps")
+
+
+def test_doctor_checks_the_autofocus_lens_position(rig, tmp_path: Path) -> None:
+    import fakecam_rig
+
+    rig.cameras = [dict(fakecam_rig.IMX708)]
+    cam = tmp_path / "camera.yml"
+
+    def lens() -> list[str]:
+        body = (f'[source]\nspec = "picamera"\nwidth = 1536\nheight = 864\n[camera]\n'
+                f'file = "{cam}"\n' + NET_ANY)
+        doc = Doctor(config=_config(tmp_path, body), codename=None, groups=lambda: [44],
+                     dev=tmp_path, board=PI4)
+        doc.run_all()
+        return _lines(doc, "lens")
+
+    from kmea.vision.camera import CameraModel
+
+    wide = CameraModel(np.array([[1200.0, 0, 767.5], [0, 1200.0, 431.5], [0, 0, 1]]),
+                       np.zeros(5), 1536, 864)
+    save_camera(wide, cam)
+    (line,) = lens()
+    assert line.startswith(f"FIX  lens: camera 0 (imx708) has autofocus and {cam} stores no "
+                           "lens_position")
+    save_camera(wide, cam, meta={"lens_position": 0.5})
+    assert lens() == ["OK   lens: camera 0 (imx708) has autofocus: kmead locks the lens at "
+                      "0.5 dioptres (2.00 m; the camera file's lens_position) and warns if it "
+                      "reports another position"]
+    rig.cameras = [dict(fakecam_rig.IMX219)]  # fixed focus: no lens line
+    assert lens() == []

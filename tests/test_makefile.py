@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -24,7 +25,8 @@ pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU 
 def _make(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     # Under `make test` the outer make's command-line variables and REQUIRE_BOOKWORM reach
     # this process through the environment; the inner make must not inherit them.
-    inherited = {"MAKEFLAGS", "MFLAGS", "MAKELEVEL", "MAKEOVERRIDES", "REQUIRE_BOOKWORM", "ARGS"}
+    inherited = {"MAKEFLAGS", "MFLAGS", "MAKELEVEL", "MAKEOVERRIDES", "REQUIRE_BOOKWORM", "ARGS",
+                 "REQUIRE_ARM64", "SKIP_ARM64"}
     clean = {k: v for k, v in os.environ.items() if k not in inherited}
     clean.update(env or {})
     return subprocess.run(
@@ -35,8 +37,10 @@ def _make(*args: str, env: dict[str, str] | None = None) -> subprocess.Completed
 
 def _here() -> list[str]:
     """Run lint and the suite with the interpreter running these tests, without installing
-    (and without pyright: `make test` itself runs it, a minute of CPU)."""
-    return ["STAMP=", f"BIN={Path(sys.executable).parent}", f"PY_BOOKWORM={NO_PY}", "PYRIGHT="]
+    (and without pyright: `make test` itself runs it, a minute of CPU; nor the arm64 run,
+    minutes of emulation: its own tests are below)."""
+    return ["STAMP=", f"BIN={Path(sys.executable).parent}", f"PY_BOOKWORM={NO_PY}", "PYRIGHT=",
+            "SKIP_ARM64=1"]
 
 
 def test_make_test_without_python311_runs_current_stack_and_says_bookworm_was_skipped() -> None:
@@ -46,8 +50,10 @@ def test_make_test_without_python311_runs_current_stack_and_says_bookworm_was_sk
     assert "All checks passed" in out  # ruff ran
     assert "== suite on Python" in out and " passed" in out  # the suite ran on today's stack
     lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
-    assert lines[-1].startswith(SKIP_LINE), out  # the skip line comes last, after the suite
-    assert "PY_BOOKWORM=" in lines[-1] and "Python 3.11" in lines[-1]
+    # the skip lines come last, after the suite: the Bookworm stack's, then arm64's
+    assert lines[-2].startswith(SKIP_LINE), out
+    assert "PY_BOOKWORM=" in lines[-2] and "Python 3.11" in lines[-2]
+    assert lines[-1].startswith("*** make: arm64 SKIPPED: SKIP_ARM64 is set"), out
 
 
 def test_make_test_fails_and_prints_no_skip_line_when_the_suite_fails() -> None:
@@ -74,7 +80,7 @@ def test_optional_bookworm_is_skipped_with_exit_0() -> None:
 def test_ci_runs_exactly_the_readme_test_command() -> None:
     ci = (ROOT / ".ci" / "run").read_text()
     command = [ln for ln in ci.splitlines() if ln.strip() and not ln.startswith("#")][-1]
-    assert command == "REQUIRE_BOOKWORM=1 make test"
+    assert command == "REQUIRE_BOOKWORM=1 REQUIRE_ARM64=1 make test"
     assert f"`{command}`" in (ROOT / "README.md").read_text()
 
 
@@ -137,3 +143,39 @@ def test_make_run_beside_a_kmead_on_the_default_ports(tmp_path: Path) -> None:
     finally:
         for s in held:
             s.close()
+
+
+def test_required_arm64_fails_when_skipped_and_optional_says_so_loudly() -> None:
+    r = _make("test-arm64", "STAMP=", "SKIP_ARM64=1", env={"REQUIRE_ARM64": "1"})
+    assert r.returncode != 0 and "SKIPPED" not in r.stdout
+    assert "make: arm64 required (REQUIRE_ARM64=1) but SKIP_ARM64 is set" in r.stdout
+    r = _make("test-arm64", "STAMP=", "SKIP_ARM64=1")
+    assert r.returncode == 0 and r.stdout.strip().startswith("*** make: arm64 SKIPPED")
+
+
+def test_arm64_without_root_is_one_loud_line_or_a_failure_when_required(
+        request: pytest.FixtureRequest) -> None:
+    """The script needs root (debootstrap, chroot, mounts): without it, one line."""
+    script = ROOT / "scripts" / "test_arm64.sh"
+    cmd = [str(script)]
+    if os.geteuid() == 0:  # as root (CI): run it as nobody, from a copy nobody can read
+        if shutil.which("runuser") is None:
+            pytest.skip("root without runuser: cannot run the script as a normal user")
+        top = Path(tempfile.mkdtemp(prefix="kmea-arm64-", dir="/tmp"))
+        request.addfinalizer(lambda: shutil.rmtree(top, ignore_errors=True))
+        copy = top / "scripts"
+        copy.mkdir()
+        shutil.copy(script, copy / "test_arm64.sh")
+        for p in (top, copy, copy / "test_arm64.sh"):
+            p.chmod(0o755)
+        cmd = ["runuser", "-u", "nobody", "--", str(copy / "test_arm64.sh")]
+    env = {k: v for k, v in os.environ.items() if k not in ("REQUIRE_ARM64", "SKIP_ARM64")}
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert r.stdout.strip().splitlines() == [
+        "*** make: arm64 SKIPPED: needs root (debootstrap, chroot, mounts): sudo make "
+        "test-arm64 ***"]
+    r = subprocess.run(cmd, env={**env, "REQUIRE_ARM64": "1"}, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 1 and r.stdout == ""
+    assert "make: arm64 cannot run here: needs root" in r.stderr

@@ -347,3 +347,96 @@ def test_camera_busy_because_kmead_holds_it_says_how_to_stop_it(rig, tmp_path) -
         assert "\n" not in msg
     finally:
         holder.communicate(timeout=JOIN)
+
+
+# ---------------------------------------------------------------------------- camera modules
+
+
+@pytest.mark.parametrize(("camera", "size", "line_s"), [
+    # Camera Module 3 (wide): 1152x648 from the 2304x1296 binned mode, two rows per row.
+    ("IMX708_WIDE", (1152, 648), 2 * 0x1E90 / 585.6e6),
+    # HQ Camera: 1014x760 from the 2028x1520 binned mode.
+    ("IMX477", (1014, 760), 2 * 0x31C4 / 840e6),
+    # Global Shutter Camera: every row exposed at once, no skew.
+    ("IMX296", (1456, 1088), 0.0),
+])
+def test_each_module_gets_its_sensors_line_time(rig, camera: str, size: tuple[int, int],
+                                                line_s: float) -> None:
+    import fakecam_rig
+
+    rig.cameras = [dict(getattr(fakecam_rig, camera))]
+    with open_source(f"picamera?width={size[0]}&height={size[1]}&fps=30") as src:
+        f = src.read()
+    assert f.meta["timing"].line_s == pytest.approx(line_s, rel=1e-12, abs=0.0)
+    assert ("AfMode" in rig.instances[-1].camera_config["controls"]) == camera.startswith(
+        "IMX708")
+
+
+def test_unknown_sensor_gets_no_correction_and_says_so(rig, caplog) -> None:
+    import fakecam_rig
+
+    rig.cameras = [{**fakecam_rig.IMX219, "Model": "ov5647"}]
+    fakecam_rig.MODES["ov5647"] = fakecam_rig.IMX219_MODES
+    try:
+        with open_source("picamera?width=320&height=240&fps=30") as src:
+            f = src.read()
+    finally:
+        del fakecam_rig.MODES["ov5647"]
+    assert f.meta["timing"].line_s == 0.0
+    assert "no timing table for the sensor 'ov5647'" in caplog.text
+
+
+def test_autofocus_lens_locked_at_the_calibrations_position(rig, caplog) -> None:
+    """AfMode manual and the camera file's LensPosition on the IMX708; the lens reports
+    its position in the metadata; another position is warned about once."""
+    import fakecam_rig
+
+    rig.cameras = [dict(fakecam_rig.IMX708)]
+    with open_source("picamera?width=1152&height=648&fps=30&lens_position=0.6") as src:
+        f = src.read()
+        controls = rig.instances[-1].camera_config["controls"]
+        assert (controls["AfMode"], controls["LensPosition"]) == (0, 0.6)
+        assert f.meta["lens_position"] == 0.6
+        assert "lens is at" not in caplog.text
+        rig.lens_at = 0.9  # knocked, or moved by another program
+        src.read()
+        src.read()
+    assert caplog.text.count("the lens is at 0.900 dioptres, the calibration (camera file "
+                             "lens_position) at 0.600") == 1
+
+
+def test_fixed_focus_camera_gets_no_autofocus_controls(rig, caplog) -> None:
+    """picamera2 refuses a control the camera does not advertise: the IMX219 gets none of
+    the autofocus ones, even with a lens position in its camera file."""
+    with open_source("picamera?width=320&height=240&fps=30&lens_position=0.6") as src:
+        f = src.read()
+    controls = rig.instances[-1].camera_config["controls"]
+    assert "AfMode" not in controls and "LensPosition" not in controls
+    assert "lens_position" not in f.meta
+    assert "the imx219 has a fixed focus: ignored" in caplog.text
+    # and the fake refuses them as picamera2 does
+    cam = rig.instances[-1]
+    cam.close()
+    from picamera2 import Picamera2
+
+    other = Picamera2(0)
+    cfg = other.create_video_configuration(main={"size": (320, 240), "format": "YUV420"},
+                                           controls={"AfMode": 0})
+    with pytest.raises(RuntimeError, match="Control AfMode is not advertised by libcamera"):
+        other.configure(cfg)
+    other.close()
+    with pytest.raises(SourceError, match=r"lens_position must be in \[0, 32\] dioptres"):
+        open_source("picamera?lens_position=40")
+
+
+def test_the_full_field_mode_is_asked_for_not_a_crop_of_the_same_size(rig) -> None:
+    """1536x864 on a Camera Module 3 is the size of its cropped 120 fps mode: the source
+    asks for the full-field 2304x1296 mode, whose line time kmea.timing gives."""
+    import fakecam_rig
+
+    rig.cameras = [dict(fakecam_rig.IMX708)]
+    with open_source("picamera?width=1536&height=864&fps=30") as src:
+        f = src.read()
+    assert rig.instances[-1].camera_config["sensor"] == {"output_size": (2304, 1296),
+                                                         "bit_depth": 10}
+    assert f.meta["timing"].line_s == pytest.approx(0x1E90 / 585.6e6 * 1296 / 864, rel=1e-12)

@@ -4,6 +4,8 @@ held-out motion scenes (kmea/experiments/motion.py), truth at each pose's own ti
     kmea bench motion --jobs 2            # the table
     kmea bench motion --split tuning --sweep-only --exposures 1,2,3,4 --widths 1640
                                           # what chose it
+    kmea bench motion --sensor imx219,imx708,imx296 --sweep-only --exposures 2 --jobs 2
+                                          # each camera module at its recommended mode
 
 Columns (each over robot-frames after the first WARMUP frames of a run): posed = frames in
 which a visible robot got a valid pose; "meas" = the robot measurement (the pose the
@@ -26,6 +28,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+from kmea.camera_advice import RECOMMENDED
 from kmea.experiments.motion import EXPOSURES_MS, HELDOUT_SEEDS, SPEEDS, TUNING_SEEDS, MotionCase
 from kmea.experiments.motion_eval import CaseResult, evaluate_case, rms
 
@@ -77,27 +80,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--seeds", type=int, default=1, help="seeds per case")
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--widths", default="1640,820")
+    ap.add_argument("--widths", default=None,
+                    help="image widths, px (default: 1640,820 for the imx219, each other "
+                         "sensor's recommended width)")
+    ap.add_argument("--sensor", default="imx219",
+                    help="camera modules, comma-separated: " + ", ".join(RECOMMENDED)
+                         + " (the shutter and aspect ratio of each; default imx219)")
     ap.add_argument("--exposures", default=",".join(f"{e:g}" for e in EXPOSURES_MS),
                     help="the sweep at 1.5 m/s, ms")
     ap.add_argument("--default-ms", type=float, default=DEFAULT_EXPOSURE_MS)
     ap.add_argument("--sweep-only", action="store_true")
     a = ap.parse_args(argv)
     seeds = (HELDOUT_SEEDS if a.split == "heldout" else TUNING_SEEDS)[:a.seeds]
-    widths = [int(w) for w in a.widths.split(",")]
+    sensors = [x.strip().lower() for x in a.sensor.split(",") if x.strip()]
+    bad = [x for x in sensors if x not in RECOMMENDED]
+    if bad:
+        ap.error(f"--sensor {','.join(bad)}: one of {', '.join(RECOMMENDED)}")
     exposures = [float(e) for e in a.exposures.split(",")]
     groups: dict[str, list[MotionCase]] = {}
-    for w in widths:
-        h = round(w * 1232 / 1640)
-        if not a.sweep_only:
-            for v in SPEEDS[::-1]:
-                groups[f"{w}x{h}, {v:g} m/s, {a.default_ms:g} ms (default)"] = [
-                    MotionCase(v, exposure_ms=a.default_ms, width=w, seed=s) for s in seeds]
-        for e in exposures:
-            if e == a.default_ms and not a.sweep_only:
-                continue
-            groups[f"{w}x{h}, 1.5 m/s, {e:g} ms"] = [
-                MotionCase(1.5, exposure_ms=e, width=w, seed=s) for s in seeds]
+    for sensor in sensors:
+        widths = ([int(w) for w in a.widths.split(",")] if a.widths else
+                  [1640, 820] if sensor == "imx219" else [RECOMMENDED[sensor][0]])
+        who = "" if sensors == ["imx219"] else f"{sensor} "
+        for w in widths:
+            h = MotionCase(1.5, width=w, sensor=sensor).height
+            if not a.sweep_only:
+                for v in SPEEDS[::-1]:
+                    groups[f"{who}{w}x{h}, {v:g} m/s, {a.default_ms:g} ms (default)"] = [
+                        MotionCase(v, exposure_ms=a.default_ms, width=w, seed=s,
+                                   sensor=sensor) for s in seeds]
+            for e in exposures:
+                if e == a.default_ms and not a.sweep_only:
+                    continue
+                groups[f"{who}{w}x{h}, 1.5 m/s, {e:g} ms"] = [
+                    MotionCase(1.5, exposure_ms=e, width=w, seed=s, sensor=sensor)
+                    for s in seeds]
     jobs = [(c, a.frames) for cs in groups.values() for c in cs]
     print(f"{a.split} seeds {list(seeds)}, {a.frames} frames a case at 30 frames/s, "
           f"{len(jobs)} runs", flush=True)

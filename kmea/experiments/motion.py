@@ -12,6 +12,12 @@ circles (radius speed / omega):
   (1.04 m of the floor is in view at its plate height);
 - amr2 (single [42]): straights along world x, across the image.
 
+``sensor`` (imx219 by default; imx708, imx296, imx477) puts another camera module's shutter
+at its recommended output size (:data:`kmea.camera_advice.RECOMMENDED` aspect ratio, the
+width given): its line time at that size, 0 for the IMX296's global shutter. The lens keeps
+the Camera Module v2's horizontal field of view, so the cases differ in the shutter, the
+resolution and the aspect ratio only.
+
 ``seed`` draws the stadiums' centres (within 0.15 m of the floor's centre), their sense and
 where on them each robot starts, and the sensor noise.
 
@@ -27,9 +33,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kmea.camera_advice import RECOMMENDED
 from kmea.sim.motion import StadiumPath
 from kmea.sim.scene import Scene, SimRobot
 from kmea.sim.scenes import get_scene
+from kmea.vision.camera import CameraModel, pi_camera_v2
 
 __all__ = ["HELDOUT_SEEDS", "LIGHT_MS", "SPEEDS", "TUNING_SEEDS", "MotionCase",
            "motion_scene"]
@@ -50,18 +58,25 @@ HELDOUT_SEEDS = tuple(range(2701, 2711))
 @dataclass(frozen=True)
 class MotionCase:
     """One motion scene: speed m/s, turn rate rad/s, exposure ms, image width px (the
-    height follows the 4:3 Pi camera), seed."""
+    height follows the sensor's recommended aspect ratio), seed, sensor model."""
 
     speed: float
     omega: float = OMEGA
     exposure_ms: float = 2.0
     width: int = 1640
     seed: int = 2701
+    sensor: str = "imx219"
+
+    @property
+    def height(self) -> int:
+        rw, rh = RECOMMENDED[self.sensor]
+        return round(self.width * rh / rw)
 
     @property
     def label(self) -> str:
-        return (f"{self.speed:g} m/s, {self.omega:g} rad/s, {self.exposure_ms:g} ms, "
-                f"{self.width}x{round(self.width * 1232 / 1640)}, seed {self.seed}")
+        who = "" if self.sensor == "imx219" else f"{self.sensor}, "
+        return (f"{who}{self.speed:g} m/s, {self.omega:g} rad/s, {self.exposure_ms:g} ms, "
+                f"{self.width}x{self.height}, seed {self.seed}")
 
 
 def _robots(case: MotionCase) -> list[SimRobot]:
@@ -80,8 +95,17 @@ def _robots(case: MotionCase) -> list[SimRobot]:
 
 def motion_scene(case: MotionCase, line_time: bool = True) -> Scene:
     """The scene of ``case`` (``line_time`` False: a global shutter, for comparisons)."""
-    h = round(case.width * 1232 / 1640)
-    sc = get_scene("scenario1", width=case.width, height=h, seed=case.seed,
-                   exposure_ms=case.exposure_ms, light_ms=LIGHT_MS,
-                   rolling=1 if line_time else 0)
+    if case.sensor == "imx219":
+        h = round(case.width * 1232 / 1640)
+        sc = get_scene("scenario1", width=case.width, height=h, seed=case.seed,
+                       exposure_ms=case.exposure_ms, light_ms=LIGHT_MS,
+                       rolling=1 if line_time else 0)
+    else:
+        w, h = case.width, case.height
+        v2 = pi_camera_v2()
+        f = v2.fx * w / v2.width  # the v2's horizontal field of view at this width
+        K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+        sc = get_scene("scenario1", camera=CameraModel(K, v2.dist_coeffs, w, h),
+                       seed=case.seed, exposure_ms=case.exposure_ms, light_ms=LIGHT_MS,
+                       **({"sensor": case.sensor} if line_time else {"line_us": 0}))
     return sc.with_(robots=_robots(case), name=f"motion {case.label}")

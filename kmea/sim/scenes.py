@@ -17,7 +17,7 @@ import numpy as np
 from kmea.maps.files import MarkerMap, default_map
 from kmea.sim.motion import CrossingPath, LoopPath, WallClock
 from kmea.sim.scene import Effects, Occluder, Scene, SimRobot, look_at, pose_matrix
-from kmea.timing import imx219_line_time
+from kmea.timing import imx219_line_time, line_time
 from kmea.vision.camera import CameraModel, pi_camera_v2
 
 __all__ = [
@@ -201,8 +201,8 @@ def _wide(opts: dict[str, Any]) -> Scene:
 
 # ---------------------------------------------------------------------------- registry
 
-def _effects(opts: dict[str, Any], height: int) -> Effects:
-    e = _effects_update(Effects(), opts, height)
+def _effects(opts: dict[str, Any], width: int, height: int) -> Effects:
+    e = _effects_update(Effects(), opts, width, height)
     occ = opts.pop("occluders", [])
     if isinstance(occ, str):
         occ = [occ]
@@ -254,7 +254,7 @@ def _build(name: str, cam2world: Callable[[CameraModel], np.ndarray], robots: bo
     enter_at = opts.pop("enter_at", None)
     if enter_at is not None:
         fleet.append(entering_robot(float(enter_at)))
-    effects = _effects(opts, camera.height)
+    effects = _effects(opts, camera.width, camera.height)
     raised = opts.pop("raised", None)
     overrides = dict(opts.pop("overrides", {}) or {})
     if raised:
@@ -373,7 +373,7 @@ def describe(scene: Scene) -> Mapping[str, Any]:
 
 _SIMPLE = {"width", "height", "fps", "seed", "noise", "noise_sigma", "blur", "blur_sigma",
            "exposure", "vignetting", "gradient", "exposure_ms", "line_us", "light_ms",
-           "rolling"}
+           "rolling", "sensor"}
 
 
 def apply_options(scene: Scene, **options: Any) -> Scene:
@@ -399,11 +399,11 @@ def apply_options(scene: Scene, **options: Any) -> Scene:
         changes["seed"] = int(opts.pop("seed"))
     eff = scene.effects
     e = replace(eff, occluders=list(eff.occluders))
-    changes["effects"] = _effects_update(e, opts, camera.height)
+    changes["effects"] = _effects_update(e, opts, camera.width, camera.height)
     return scene.with_(**changes)
 
 
-def _effects_update(e: Effects, opts: dict[str, Any], height: int) -> Effects:
+def _effects_update(e: Effects, opts: dict[str, Any], width: int, height: int) -> Effects:
     keys = {"noise": "noise_sigma", "noise_sigma": "noise_sigma", "blur": "blur_sigma",
             "blur_sigma": "blur_sigma", "exposure": "exposure", "vignetting": "vignetting"}
     for k, field_name in keys.items():
@@ -412,8 +412,9 @@ def _effects_update(e: Effects, opts: dict[str, Any], height: int) -> Effects:
     if "gradient" in opts:
         g = opts.pop("gradient")
         e.gradient = (float(g), 0.0) if isinstance(g, (int, float)) else tuple(g)
-    # Time: exposure_ms, light_ms (ms), line_us (us per image row) or rolling=1 (the
-    # IMX219's line time at this image height, kmea.timing).
+    # Time: exposure_ms, light_ms (ms), line_us (us per image row), rolling=1 (the
+    # IMX219's line time at this image height, kmea.timing) or sensor=NAME (that camera
+    # module's at this image size).
     if "exposure_ms" in opts:
         e.exposure_time_s = float(opts.pop("exposure_ms")) * 1e-3
     if "light_ms" in opts:
@@ -425,5 +426,13 @@ def _effects_update(e: Effects, opts: dict[str, Any], height: int) -> Effects:
         if on not in (0, 1, True, False):
             raise ValueError(f"scene option rolling: 0 or 1, got {on!r}")
         e.line_time_s = imx219_line_time(round(height * 1640 / 1232), height) if on else 0.0
+    if "sensor" in opts:
+        # A camera module's shutter at this image size (kmea.timing; 0: global shutter).
+        name = str(opts.pop("sensor"))
+        line = line_time(name, width, height)
+        if line is None:
+            raise ValueError(f"scene option sensor: no timing table for {name!r} (one of "
+                             f"imx219, imx708, imx296, imx477)")
+        e.line_time_s = line
     e.__post_init__()
     return e

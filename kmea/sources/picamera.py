@@ -32,8 +32,17 @@ What picamera2 does that this module handles (references are to raspberrypi/pica
 - **When each row was seen.** Row 0 is read out at ``SensorTimestamp`` after ``ExposureTime``
   us of exposure (picamera2 computes the exposure start as ``SensorTimestamp - 1000 *
   ExposureTime``); each later row ends one line time later (:mod:`kmea.timing`: 18.90 us
-  per IMX219 sensor row). ``meta["timing"]`` is that :class:`kmea.timing.FrameTiming`; for
-  another sensor the line time is not known here and is left 0 (a global shutter).
+  per IMX219 sensor row; each model's mode table in :data:`kmea.timing.SENSORS`, 0 for the
+  IMX296's global shutter). ``meta["timing"]`` is that :class:`kmea.timing.FrameTiming`; for
+  a sensor without a table the line time is left 0 (no rolling-shutter correction) and the
+  source says so once.
+- **Autofocus.** A camera with a lens driver (Camera Module 3) advertises ``AfMode`` and
+  ``LensPosition`` in ``camera_controls``; picamera2 refuses a control the camera does not
+  advertise ("Control AfMode is not advertised by libcamera"), so they are set only there:
+  ``AfMode`` manual (libcamera's AfModeManual, 0) and ``LensPosition`` (dioptres) from the
+  camera file (:mod:`kmea.vision.lens`). The lens reports its position in each request's
+  metadata (``LensPosition``): ``meta["lens_position"]``; a position other than the
+  calibration's is warned about once.
 - **Exposure.** ``max_exposure_ms`` > 0 sets ``ExposureTime`` to it: libcamera's Raspberry Pi
   AGC then keeps that exposure and makes up the light with analogue gain (and noise). The
   AGC has no "longest exposure" control short of a custom exposure mode in the tuning file,
@@ -59,7 +68,8 @@ from typing import Any
 import numpy as np
 
 from kmea.sources.base import Frame, FrameSource, SourceError
-from kmea.timing import FrameTiming, imx219_line_time
+from kmea.timing import FrameTiming, line_time, sensor_for
+from kmea.vision.lens import lens_differs
 
 __all__ = [
     "PICAMERA2_MISSING",
@@ -241,12 +251,15 @@ class PiCameraSource(FrameSource):
     default 0), ``timeout`` (seconds without a frame that count as a stall; default the larger
     of 1 s and 10 frame periods), ``reopen`` (consecutive stalls survived by closing and
     opening the camera again before the source gives up; default 3), ``max_exposure_ms``
-    (0: the AGC's own exposure; > 0: that exposure, gain making up the light).
+    (0: the AGC's own exposure; > 0: that exposure, gain making up the light),
+    ``lens_position`` (dioptres: the calibration's focus; autofocus cameras only; None: the
+    lens is locked where libcamera puts it).
 
     Frame: image (H, W) uint8, full-range luma; timestamp: unix time (s) of the start of the
     frame's readout (sensor timestamp); meta: ``sensor_timestamp_ns`` (CLOCK_MONOTONIC),
     ``exposure_time_us``, ``frame_duration_us``, ``analogue_gain`` when the camera reports
-    them, and ``timing`` (:class:`kmea.timing.FrameTiming`) with the sensor timestamp.
+    them, ``lens_position`` (dioptres) from an autofocus camera, and ``timing``
+    (:class:`kmea.timing.FrameTiming`) with the sensor timestamp.
     Raises :class:`SourceError` (one line) when picamera2 cannot be imported, the camera is
     missing or busy, or it stalled ``reopen + 1`` times in a row.
     """
@@ -255,7 +268,8 @@ class PiCameraSource(FrameSource):
 
     def __init__(self, width: int = 1640, height: int = 1232, fps: float = 30.0,
                  buffer_count: int = 4, camera: int = 0, timeout: float | None = None,
-                 reopen: int = 3, max_exposure_ms: float = 0.0) -> None:
+                 reopen: int = 3, max_exposure_ms: float = 0.0,
+                 lens_position: float | None = None) -> None:
         super().__init__()
         self.spec = "picamera"
         if fps <= 0:
@@ -264,6 +278,12 @@ class PiCameraSource(FrameSource):
             raise SourceError(f"picamera: max_exposure_ms must be in [0, {1e3 / fps:g}] ms "
                               f"(one frame at {fps:g} frames/s), got {max_exposure_ms}")
         self.max_exposure_ms = float(max_exposure_ms)
+        if lens_position is not None and not (0.0 <= float(lens_position) <= 32.0):
+            raise SourceError(f"picamera: lens_position must be in [0, 32] dioptres, got "
+                              f"{lens_position}")
+        self.lens_position = None if lens_position is None else float(lens_position)
+        self.autofocus = False  # the camera advertises AfMode (set when opened)
+        self._lens_warned = False
         if timeout is not None and timeout <= 0:
             raise SourceError(f"picamera: timeout must be > 0 s, got {timeout}")
         if int(reopen) < 0:
@@ -285,6 +305,13 @@ class PiCameraSource(FrameSource):
         self._cam: Any = None
         self._open()
         self._index = 0
+        w, h = self.size or self.requested
+        line = line_time(self.model, w, h)
+        if line is None:
+            log.warning("picamera: no timing table for the sensor %r: poses are stamped "
+                        "without the rolling-shutter correction (kmea.timing.SENSORS)",
+                        self.model)
+        self.line_s = line or 0.0
 
     # ------------------------------------------------------------------ opening
     def _check_present(self) -> None:
@@ -308,8 +335,23 @@ class PiCameraSource(FrameSource):
         except Exception as e:
             raise SourceError(f"picamera: {describe_open_error(e, self.camera)}") from None
         try:
+            self.autofocus = "AfMode" in dict(cam.camera_controls)
+        except Exception:  # an old picamera2 without camera_controls: no autofocus to set
+            self.autofocus = False
+        if self.lens_position is not None and not self.autofocus:
+            log.warning("picamera: the camera file stores a lens position (%g dioptres) but "
+                        "the %s has a fixed focus: ignored", self.lens_position, self.model)
+        # The sensor mode is asked for by name when kmea.timing knows the sensor: libcamera
+        # would otherwise take a cropped mode of the output's exact size (the IMX708's
+        # 1536x864), whose field and line time are not the full-field mode's.
+        sensor = sensor_for(self.model)
+        pinned = {}
+        if sensor is not None:
+            mode = sensor.mode_for(w, h)
+            pinned = {"sensor": {"output_size": mode.size, "bit_depth": mode.bit_depth}}
+        try:
             config = cam.create_video_configuration(
-                main={"size": (w, h), "format": "YUV420"},
+                main={"size": (w, h), "format": "YUV420"}, **pinned,
                 colour_space=self._libcamera.ColorSpace.Sycc(),  # full-range Y
                 controls=self._controls(), buffer_count=self.buffer_count,
                 # queue=False: every capture_request waits for a frame that completes after
@@ -336,6 +378,11 @@ class PiCameraSource(FrameSource):
         out: dict[str, Any] = {"FrameRate": self.fps}
         if self.max_exposure_ms > 0:
             out["ExposureTime"] = round(self.max_exposure_ms * 1e3)
+        if self.autofocus:
+            # The calibration holds at one focus: never let the lens hunt (AfModeManual).
+            out["AfMode"] = 0
+            if self.lens_position is not None:
+                out["LensPosition"] = self.lens_position
         return out
 
     def _close_cam(self) -> None:
@@ -398,10 +445,18 @@ class PiCameraSource(FrameSource):
             meta["frame_duration_us"] = md["FrameDuration"]
         if "AnalogueGain" in md:
             meta["analogue_gain"] = md["AnalogueGain"]
+        if "LensPosition" in md:
+            meta["lens_position"] = md["LensPosition"]
+            if not self._lens_warned and lens_differs(self.lens_position, md["LensPosition"]):
+                self._lens_warned = True
+                log.warning("picamera: the lens is at %.3f dioptres, the calibration (camera "
+                            "file lens_position) at %.3f: positions are off until they agree; "
+                            "calibrate again at this focus or fix the lens", md["LensPosition"],
+                            self.lens_position)
         if ts_ns is not None:
-            line = imx219_line_time(w, h) if self.model.lower() == "imx219" else 0.0
             exp = md.get("ExposureTime")
-            meta["timing"] = FrameTiming(t, line, 0.0 if exp is None else float(exp) * 1e-6)
+            meta["timing"] = FrameTiming(t, self.line_s,
+                                         0.0 if exp is None else float(exp) * 1e-6)
         i = self._index
         self._index += 1
         return Frame(i, t, gray, meta)

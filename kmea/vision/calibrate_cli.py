@@ -2,7 +2,10 @@
 
 Example: ``kmea calibrate --source images:shots/ --board chessboard:9x7:0.025 --out cam.yml``.
 Live sources (``camera:0``, ``picamera``) run until ``--max-views`` views are accepted or
-Ctrl+C, then calibrate with what they have. See ``docs/camera.md``.
+Ctrl+C, then calibrate with what they have. An autofocus camera's lens position (what
+the camera reports in its frames' metadata, ``picamera?lens_position=D`` to choose it) is
+written beside the model as ``lens_position``: the calibration holds at that focus only
+(:mod:`kmea.vision.lens`). See ``docs/camera.md``.
 """
 
 from __future__ import annotations
@@ -79,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     per_file = isinstance(source, ImageFolderSource)
     total = len(source) if hasattr(source, "__len__") else None  # type: ignore[arg-type]
     interrupted = False
+    lens: list[float] = []  # dioptres, as each frame's metadata reports (autofocus cameras)
     with source:
         try:
             for frame in source:
@@ -86,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
                 name = Path(frame.meta["path"]).name if per_file and "path" in frame.meta \
                     else f"frame {frame.index}"
                 check = cal.add(frame.image, name)
+                if check.accepted and frame.meta.get("lens_position") is not None:
+                    lens.append(float(frame.meta["lens_position"]))
                 if not args.quiet and (check.accepted or not source.live):
                     where = f"[{frame.index + 1}/{total}]" if total else f"[{frame.index + 1}]"
                     detail = f" ({check.detail})" if check.detail else ""
@@ -140,6 +146,17 @@ def run(args: argparse.Namespace) -> int:
           f"(extrinsics); the intrinsics above do not depend on it.")
     meta = {"rms": round(res.rms, 6), "nr_of_frames": res.n_views, "board": board.spec,
             "source": args.source}
+    if lens:
+        from kmea.vision.lens import LENS_KEY, LENS_TOL_DIOPTRE
+
+        lens.sort()
+        meta[LENS_KEY] = round(lens[len(lens) // 2], 4)
+        print(f"  lens position {meta[LENS_KEY]:g} dioptres (the focus this calibration holds "
+              f"at; kmead locks the lens there)")
+        if lens[-1] - lens[0] > LENS_TOL_DIOPTRE:
+            print(f"warning: the lens moved during calibration ({lens[0]:g}-{lens[-1]:g} "
+                  f"dioptres): calibrate again with a fixed lens position "
+                  f"(picamera?lens_position=D)")
     try:
         save_camera(m, out, meta=meta)
     except CameraError as e:

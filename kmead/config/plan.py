@@ -21,6 +21,7 @@ from kmea.maps.files import MapError, MarkerMap, check_map, check_spread, defaul
 from kmea.sources.base import SourceError
 from kmea.sources.registry import parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, load_camera, pi_camera_v2
+from kmea.vision.lens import load_lens_position
 from kmea.wire.destinations import THIS_MACHINE_ONLY, this_machine_only
 from kmead.config.checks import check_intrinsics
 from kmead.config.layers import Config, ConfigError
@@ -113,9 +114,11 @@ def _camera_file(cfg: Config) -> CameraModel | None:
     if not path:
         return None
     try:
-        return load_camera(path)
+        model = load_camera(path)
+        load_lens_position(path)  # a bad lens_position stops kmead as a bad matrix does
     except CameraError as e:
         raise StartupError(f"camera: {e}") from None
+    return model
 
 
 def _configured_map(cfg: Config) -> MarkerMap | None:

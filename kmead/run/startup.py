@@ -13,6 +13,7 @@ from kmea.maps.files import DEFAULT_DICTIONARY, MarkerMap, default_map, load_map
 from kmea.sources.base import FrameSource, SourceError
 from kmea.sources.registry import open_source, parse_source_spec
 from kmea.vision.camera import CameraError, CameraModel, pi_camera_v2
+from kmea.vision.lens import load_lens_position
 from kmead.config.layers import Config
 
 EXIT_OK, EXIT_RUNTIME, EXIT_CONFIG = 0, 1, 2
@@ -36,6 +37,14 @@ def source_options(cfg: Config, prefix: str) -> dict[str, Any]:
         opts["fps"] = s["fps"]
     if prefix == "picamera" and cfg["camera"]["max_exposure_ms"]:
         opts["max_exposure_ms"] = cfg["camera"]["max_exposure_ms"]
+    if prefix == "picamera" and cfg["camera"]["file"]:
+        # The calibration's focus: an autofocus camera's lens is locked there.
+        try:
+            lens = load_lens_position(cfg["camera"]["file"])
+        except CameraError as e:
+            raise StartupError(f"camera: {e}") from None
+        if lens is not None:
+            opts["lens_position"] = lens
     if prefix in ("images", "video", "camera"):
         opts["gray"] = True  # detection works on grey: convert once at decode time
     base, _, query = cfg["source"]["spec"].partition("?")

@@ -5,7 +5,9 @@ One line per check, ``OK`` or ``FIX`` followed by what to do; exit 0 when every 
 (against the apt numpy picamera2 was built for), OpenCV, picamera2 and whether they import
 together; the camera as libcamera sees it, with its modes; permissions (group video, the
 camera device nodes); the configured telemetry/control ports; the configuration, map and
-camera files (as ``kmead --check``); free disk space for logs.
+camera files (as ``kmead --check``); the sensor mode the configured size reads (line time,
+readout skew, aspect ratio, CPU a frame on this Pi 4 or Pi 5) and an autofocus camera's lens
+position in the camera file; free disk space for logs.
 
 Nothing here starts the camera: it is opened only to read its modes, and closed.
 """
@@ -64,6 +66,8 @@ class Doctor:
     min_free_bytes: int = MIN_FREE_BYTES
     board: str | None = None  # the device tree's model; None: read from BOARD_MODEL
     results: list[Check] = field(default_factory=list)
+    # What check_camera saw: (camera number, model, advertises AfMode) per camera.
+    sensors: list[tuple[int, str, bool]] = field(default_factory=list)
 
     def add(self, ok: bool, name: str, text: str) -> Check:
         c = Check(ok, name, text)
@@ -196,6 +200,11 @@ class Doctor:
                 continue
             try:
                 modes = cam.sensor_modes
+                try:
+                    af = "AfMode" in dict(cam.camera_controls)
+                except Exception:  # an old picamera2: no autofocus to lock
+                    af = False
+                self.sensors.append((i, str(info.get("Model", "?")), af))
             except Exception as e:
                 modes = None
                 err = f"{type(e).__name__}: {e}"
@@ -207,9 +216,7 @@ class Doctor:
                 continue
             listed = ", ".join(f"{m['size'][0]}x{m['size'][1]}@{m.get('fps', 0):.0f}"
                                for m in modes if "size" in m)
-            has = any(tuple(m.get("size", ())) == (1640, 1232) for m in modes)
-            note = "" if has else "; no 1640x1232 mode: set source.width/height to one of these"
-            self.add(True, name, f"{what}, modes {listed}{note}")
+            self.add(True, name, f"{what}, modes {listed}")
 
     def check_permissions(self) -> None:
         if os.geteuid() == 0:
@@ -311,6 +318,63 @@ class Doctor:
                      f"of moving robots blur and are lost; set camera.max_exposure_ms = 2 "
                      f"(docs/motion.md)")
 
+    def check_sensor(self, cfg: Any) -> None:
+        """Per camera: the mode the configured size reads, its timing, the aspect ratio,
+        CPU a frame on this board (kmea.camera_advice); the autofocus lens position."""
+        from kmea.camera_advice import BOARD_NAME, advise, board_of
+        from kmea.vision.camera import CameraError
+        from kmea.vision.lens import load_lens_position
+
+        w, h = int(cfg["source"]["width"] or 1640), int(cfg["source"]["height"] or 1232)
+        board = board_of(self.board or "")
+        for i, model, af in self.sensors:
+            name = f"sensor {i}"
+            adv = advise(model, w, h)
+            if adv is None:
+                self.add(True, name, f"{model}: no timing table in kmea.timing: poses are "
+                         "stamped without the rolling-shutter correction")
+                continue
+            m, rw, rh = adv.mode, *adv.recommended()
+            shutter = ("global shutter: no skew" if adv.sensor.global_shutter else
+                       f"rolling shutter {m.line_s * 1e6:.2f} us a row, readout "
+                       f"{adv.readout_s * 1e3:.1f} ms (a robot at 1.5 m/s moves "
+                       f"{adv.skew_m(1.5) * 1e3:.0f} mm meanwhile; each pose is stamped at "
+                       f"its rows' time)")
+            cpu = ""
+            if board is not None:
+                tracked, full = adv.cpu_ms(board)
+                cpu = (f"; on this {BOARD_NAME[board]} about {tracked:.0f} ms CPU a tracked "
+                       f"frame, {full:.0f} ms a full detection (estimate, docs/pi.md)")
+            text = (f"{adv.sensor.product} ({model}) at {w}x{h} (source.width/height): the "
+                    f"{m.width}x{m.height} mode, up to {m.fps:.0f} fps, {shutter}{cpu}")
+            if not adv.aspect_ok:
+                self.add(False, name, f"{text}; {w}x{h} is not the mode's aspect ratio (the "
+                         f"ISP crops the field): set source.width/height to {rw}x{rh} "
+                         f"(docs/pi.md, sensor modes)")
+            else:
+                self.add(True, name, text)
+            if not af:
+                continue
+            cam_file = cfg["camera"]["file"]
+            try:
+                lens = load_lens_position(cam_file) if cam_file else None
+            except CameraError as e:
+                self.add(False, "lens", f"{e}: calibrate again (kmea calibrate)")
+                continue
+            if lens is None:
+                self.add(False, "lens", f"camera {i} ({model}) has autofocus and "
+                         f"{cam_file or 'no camera file'} stores no lens_position: the "
+                         f"calibration holds at one focus only; calibrate with the lens "
+                         f"fixed, `kmea calibrate --source 'picamera?lens_position=D' ...` "
+                         f"(D = 1 / the camera's height above the floor in m), which stores "
+                         f"it (docs/camera.md, autofocus)")
+            else:
+                self.add(True, "lens", f"camera {i} ({model}) has autofocus: kmead locks "
+                         f"the lens at {lens:g} dioptres ({1 / lens:.2f} m; the camera "
+                         f"file's lens_position) and warns if it reports another position"
+                         if lens > 0 else f"camera {i} ({model}) has autofocus: kmead locks "
+                         f"the lens at infinity (the camera file's lens_position 0)")
+
     def check_ports(self, cfg: Any) -> None:
         for key in ("telemetry", "control"):
             ep = cfg["network"][key]
@@ -410,6 +474,8 @@ class Doctor:
         if cfg is not None:
             self.check_ports(cfg)
             self.check_files(cfg)
+            if pi:
+                self.check_sensor(cfg)
             self.check_motion(cfg)
             self.check_robots(cfg, pi)
             self.check_retention(cfg, pi)

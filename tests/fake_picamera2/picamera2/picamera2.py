@@ -74,7 +74,13 @@ class Picamera2:
 
     @property
     def sensor_modes(self) -> list[dict]:
-        return [dict(m) for m in fakecam_rig.IMX219_MODES]
+        return [dict(m) for m in fakecam_rig.MODES[self.camera.properties["Model"]]]
+
+    @property
+    def camera_controls(self) -> dict:
+        """name -> (min, max, default) of every control libcamera advertises for this camera
+        (picamera2: ``camera_controls``, from ``camera.controls``)."""
+        return fakecam_rig.controls_of(self.camera.properties["Model"])
 
     # ------------------------------------------------------------------ configuration
     def create_video_configuration(self, main: dict | None = None, lores: dict | None = None,
@@ -125,7 +131,19 @@ class Picamera2:
         w, h = main["size"]
         main["stride"] = (w + 63) // 64 * 64
         main["framesize"] = main["stride"] * h * 3 // 2
+        if config.get("sensor"):
+            # _update_libcamera_sensor_config / libcamera validate(): the output size and
+            # bit depth must be one of the sensor's modes.
+            want = (tuple(config["sensor"]["output_size"]), config["sensor"].get("bit_depth"))
+            if not any((m["size"], m["bit_depth"]) == want if want[1] else m["size"] == want[0]
+                       for m in self.sensor_modes):
+                raise RuntimeError(f"sensor mode {want} is not one of the camera's")
         controls = config["controls"]
+        for name in controls:
+            # picamera2 Controls.__setattr__: a control the camera does not advertise is an
+            # error, not ignored (FrameRate is picamera2's own, mapped below).
+            if name != "FrameRate" and name not in self.camera_controls:
+                raise RuntimeError(f"Control {name} is not advertised by libcamera")
         if "FrameRate" in controls:  # picamera2 Controls: FrameRate -> FrameDurationLimits
             d = round(1e6 / controls["FrameRate"])
             controls["FrameDurationLimits"] = (d, d)
@@ -210,6 +228,10 @@ class Picamera2:
         md = {"SensorTimestamp": int((t_arrival - readout) * 1e9),
               "ExposureTime": exposure, "FrameDuration": frame_us,
               "AnalogueGain": round(gain, 3), "DigitalGain": 1.0}
+        if "LensPosition" in self.camera_controls:
+            # The lens driver reports where the lens is in every request's metadata.
+            asked = controls.get("LensPosition", self.camera_controls["LensPosition"][2])
+            md["LensPosition"] = float(asked if rig.lens_at is None else rig.lens_at)
         return CompletedRequest(self, buf, md)
 
     def _returned(self, req: CompletedRequest) -> None:
