@@ -125,6 +125,14 @@ mount --rbind /dev "$ROOT/dev" && mount --make-rslave "$ROOT/dev"
 mount --rbind /sys "$ROOT/sys" && mount --make-rslave "$ROOT/sys"
 mkdir -p "$ROOT/root/.cache/pip" && mount --bind "$PIPCACHE" "$ROOT/root/.cache/pip"
 cp -L /etc/resolv.conf "$ROOT/etc/resolv.conf"
+# The host's certificate authorities (a network whose egress re-signs TLS has its own CA in
+# them, and the userland's ca-certificates package does not): pip inside trusts the same.
+HOST_CA=${PIP_CERT:-${SSL_CERT_FILE:-/etc/ssl/certs/ca-certificates.crt}}
+CA_ENV=()
+if [ -r "$HOST_CA" ]; then
+    cp -L "$HOST_CA" "$ROOT/etc/ssl/host-ca.crt"
+    CA_ENV=(PIP_CERT=/etc/ssl/host-ca.crt SSL_CERT_FILE=/etc/ssl/host-ca.crt)
+fi
 # The project as committed plus the working tree's changes, without venvs and caches.
 mkdir -p "$ROOT/src/kmea"
 tar -C "$REPO" --exclude='./.venv*' --exclude='./.git' --exclude='./out' \
@@ -136,7 +144,7 @@ t=$(date +%s)
 # The host's pip settings point at indexes on this machine's disk, which the chroot cannot
 # see: pip inside uses PyPI alone.
 env -i HOME=/root PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin \
-    LANG=C.UTF-8 ARM64_FRAMES="$FRAMES" SIM="$SIM" \
+    LANG=C.UTF-8 ARM64_FRAMES="$FRAMES" SIM="$SIM" "${CA_ENV[@]}" \
     chroot "$ROOT" /bin/sh /src/kmea/scripts/arm64_inside.sh
 step "in the chroot (scripts/arm64_inside.sh)" "$t"
 grep -h '' "$ROOT/src/steps.txt" | sed 's/^/  /' > "$CACHE/arm64-inside-steps.txt" || true

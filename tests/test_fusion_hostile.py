@@ -87,6 +87,10 @@ def test_a_hostile_camera_cannot_crash_blind_or_misplace(
               == {"cam0": "used", "evil": "used"}, "both cameras used")
         _wait(lambda: node.election.role == "active", "the node active")
         udp.wait(lambda s: sum(m["valid"] for _, m in s) >= 10)
+        # A stranger's token of an active node with the lowest id, and no voice: the node
+        # keeps speaking (a token is no voice).
+        fake_active = evil.session.liveliness().declare_token("kmea/fusion/0/active")
+        _wait(lambda: "0" in node.speaker.election.others, "the stranger's token seen")
         for _, body, times, _ in ROWS:
             for _ in range(times):
                 now = time.time()
@@ -108,6 +112,7 @@ def test_a_hostile_camera_cannot_crash_blind_or_misplace(
               "the camera started after the strangers used")
         seen = udp.wait(lambda s: sum(m["valid"] for _, m in s) >= 30)
         status = node.status()
+        fake_active.undeclare()
     finally:
         beat.close()
         node.stop()
@@ -124,6 +129,7 @@ def test_a_hostile_camera_cannot_crash_blind_or_misplace(
     assert evil_state["bad"] == refused and evil_state["state"] == "used"
     assert evil_state["bad_fields"] == {"x": 24, "t": 2, "sigma": 3}
     assert status["fusion"]["strangers"] >= 64 and status["fusion"]["reacquired"] == 0
+    assert status["fusion"]["role"] == "active"  # the stranger's active token silenced nobody
     assert status["fusion"]["dropped_old"] == 0  # the future-stamped ones blinded nobody
     valid = [m for _, m in seen if m["valid"]]
     assert len(valid) >= 30 and all(math.hypot(m["x"] - AT[0], m["y"] - AT[1]) < NEAR

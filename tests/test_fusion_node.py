@@ -315,10 +315,13 @@ def test_election_one_voice_no_preemption_and_step_down() -> None:
     # The active one dies: the lowest standby claims.
     n.token("b", "active", False)
     assert n.decide(3.1) == "active"
-    # Two actives (a partition healed): the higher id steps down.
+    # Two actives (a partition healed): the higher id steps down once it hears the other
+    # speak; a lower active token that says nothing (a stranger's) silences nobody.
     a.token("a", "standby", False)
     a.token("a", "active", True)
-    assert a.decide(4.0) == "standby" and a.decide(4.0) is None
+    assert a.decide(4.0) is None and a.role == "active"
+    assert a.decide(4.0, speaking={"c"}) is None and a.role == "active"
+    assert a.decide(4.0, speaking={"a"}) == "standby" and a.decide(4.0) is None
     # A standby with a higher id does not claim while a lower standby lives.
     c = Election("c", grace_s=1.0, now=0.0)
     c.decide(1.0)

@@ -17,9 +17,10 @@ class Election:
     - a standby claims the voice when no active token is alive and it has the lowest id of
       the standbys: a node that starts never takes the voice from a running active one,
       whatever its id, and never claims before it has watched the site for ``grace_s``;
-    - an active node that sees another active one with a lower id steps down to standby
-      (two nodes cut off from each other both claim; when they meet again one voice is
-      left);
+    - an active node that hears another active one with a lower id speak to a robot steps
+      down to standby (two nodes cut off from each other both claim; when they meet again
+      one voice is left). Its token alone is not enough: a token is no voice, and a peer
+      that holds one without speaking (a stranger) must not silence the node;
     - an active node that finds it has not run for longer than the lease (the machine or
       the process was frozen; a standby has taken over meanwhile) steps down before it
       sends anything, and starts over (``grace_s`` of watching).
@@ -44,15 +45,17 @@ class Election:
         """Stopped on purpose: ``stopping`` until the end (a standby claims meanwhile)."""
         self.role = "stopping"
 
-    def decide(self, now: float, stalled: bool = False) -> str | None:
-        """The new role when it changes, else None."""
+    def decide(self, now: float, stalled: bool = False,
+               speaking: frozenset[str] | set[str] = frozenset()) -> str | None:
+        """The new role when it changes, else None. ``speaking``: the ids of the nodes heard
+        speaking to a robot lately (:meth:`kmead.outputs.voice.Voice.nodes_speaking`)."""
         if self.role == "stopping":
             return None
         actives = {n for n, roles in self.others.items() if "active" in roles}
         if self.role == "active":
             if stalled:
                 self.role, self.since = "starting", now
-            elif any(n < self.id for n in actives):
+            elif any(n < self.id for n in actives & set(speaking)):
                 self.role = "standby"
             else:
                 return None

@@ -77,10 +77,11 @@ class Speaker:
 
     def elect(self, now: float, stalled: bool = False) -> None:
         """The election's rule (in the loop, under the node's lock)."""
-        role = self.election.decide(now, stalled)
+        speaking = self.voice.nodes_speaking(self.node.lease_s)
+        role = self.election.decide(now, stalled, speaking)
         while role is not None:
             self._set_role(role)
-            role = self.election.decide(now)
+            role = self.election.decide(now, speaking=speaking)
 
     def _set_role(self, role: str) -> None:
         node = self.node

@@ -134,6 +134,7 @@ class Voice:
         self.lock = threading.Lock()
         self.robots: dict[str, _Robot] = {}
         self.bad = 0
+        self.nodes_said: dict[str, float] = {}  # node id -> monotonic time of its last say
         self.handovers = 0  # yields made
         self.sub = session.declare_subscriber(f"{site}/voice/*", self._heard)
 
@@ -156,6 +157,10 @@ class Voice:
             if seq is not None:
                 r.seq = max(r.seq, seq)
             if op == "say":
+                if kind == NODE:
+                    if len(self.nodes_said) >= MAX_CLAIMS and by not in self.nodes_said:
+                        self.nodes_said.pop(min(self.nodes_said, key=self.nodes_said.get))
+                    self.nodes_said[by] = now
                 if t is not None:
                     r.t = max(r.t, t)
                 if r.speaking and _rank(kind, by) < _rank(self.kind, self.me):
@@ -180,6 +185,12 @@ class Voice:
                     r.heard = now if to is not None else -math.inf
         if answer is not None:
             self._put(name, answer)
+
+    def nodes_speaking(self, within_s: float) -> set[str]:
+        """The nodes heard saying they spoke to a robot in the last ``within_s`` s."""
+        now = time.monotonic()
+        with self.lock:
+            return {by for by, at in self.nodes_said.items() if now - at < within_s}
 
     # ------------------------------------------------------------------ the owner's
     def want(self, name: str, q: float | None) -> None:
