@@ -48,9 +48,10 @@ step "install (deploy/install.sh, zenoh extra)" \
 step "pytest and its plugins" "$VENV/bin/python" -m pip install -q \
     -c "$REPO/constraints/$CODENAME.txt" "pytest>=8,<9" pytest-asyncio pytest-benchmark
 "$VENV/bin/python" -c 'import sys, numpy, cv2, zmq, zenoh
+from importlib.metadata import version
 print("== arm64 stack: Python %d.%d.%d, numpy %s (%s), OpenCV %s, pyzmq %s, zenoh %s" % (
     *sys.version_info[:3], numpy.__version__, numpy.__file__.split("/")[1],
-    cv2.__version__, zmq.__version__, zenoh.__version__))'
+    cv2.__version__, zmq.__version__, version("eclipse-zenoh")))'
 step "kmead, $FRAMES frames of the simulator" run_kmead
 step "kmea doctor" run_doctor
 step "tests of the Pi code paths, the C decoder" run_tests

@@ -81,6 +81,7 @@ PIPCACHE=$CACHE/arm64-$CODENAME-pip
 mkdir -p "$PIPCACHE"
 [ "${ARM64_KEEP_CACHE:-1}" = 0 ] && rm -f "$TARBALL" && rm -rf "$PIPCACHE" && mkdir -p "$PIPCACHE"
 ROOT=$(mktemp -d "$CACHE/arm64-root.XXXXXX")
+chmod 755 "$ROOT"  # mktemp's 0700 would lock every user but root out of the userland
 T0=$(date +%s)
 declare -a STEPS=()
 step() { STEPS+=("$(printf '%-44s %5ds' "$1" $(( $(date +%s) - $2 )))"); }

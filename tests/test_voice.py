@@ -245,6 +245,19 @@ def test_after_a_silence_the_best_camera_starts_and_only_it() -> None:
     assert not c0.send(q=0.003)
 
 
+def test_a_lone_camera_at_a_slow_frame_rate_speaks_by_its_second_frame() -> None:
+    """0.8 s between frames (a Pi in a full detection, an emulated one): the claims of
+    successive frames are one run, so the camera starts at its second frame."""
+    bus = Bus()
+    cam = Speaker(bus, "cam0", CAMERA)
+    spoke = []
+    for _ in range(4):
+        spoke.append(cam.send())
+        bus.flush()
+        voice_mod.time.t += 0.8  # type: ignore[attr-defined]
+    assert spoke == [False, True, True, True]
+
+
 def test_two_voices_heard_at_once_the_lower_rank_stops() -> None:
     bus = Bus()
     n1, n2 = Speaker(bus, "n1", NODE), Speaker(bus, "n2", NODE)

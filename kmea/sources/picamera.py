@@ -201,8 +201,9 @@ def kmead_holding_camera(proc: Path = Path("/proc")) -> int | None:
             argv = (p / "cmdline").read_bytes().split(b"\0")
         except OSError:
             continue
-        # The program: kmead itself (/opt/kmea/bin/kmead), a Python running it, or -m kmead.cli.
-        program = argv[:2] + ([argv[argv.index(b"-m") + 1]] if b"-m" in argv[:-1] else [])
+        # The program: kmead itself (/opt/kmea/bin/kmead), a Python running it, or -m
+        # kmead.cli; one more place for an interpreter in front (qemu-user's binfmt).
+        program = argv[:3] + ([argv[argv.index(b"-m") + 1]] if b"-m" in argv[:-1] else [])
         if (any(a.endswith(b"/kmead") or a in (b"kmead", b"kmead.cli") for a in program)
                 and any(a.startswith(b"picamera") for a in argv)):
             return int(p.name)

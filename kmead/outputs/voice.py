@@ -269,8 +269,12 @@ class Voice:
     def _claim(self, r: _Robot, now: float) -> dict | None:
         if now - r.claimed < CLAIM_EVERY_S:
             return None
-        if now - r.claimed > 2 * CLAIM_EVERY_S + CLAIM_FRESH_S:
-            r.claiming_since = now  # a new run of claims
+        if now - r.claimed > QUIET_S:
+            # A new run of claims. A camera claims once a frame: frames up to QUIET_S apart
+            # (a Pi during a full detection, an emulated or loaded machine) continue the
+            # run, else a camera below 2 frames/s would start a new run at every frame and
+            # never speak.
+            r.claiming_since = now
         r.claimed = now
         return {"op": "claim", "by": self.me, "kind": self.kind,
                 "q": r.q if math.isfinite(r.q) else None}
