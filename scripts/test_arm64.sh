@@ -81,7 +81,6 @@ PIPCACHE=$CACHE/arm64-$CODENAME-pip
 mkdir -p "$PIPCACHE"
 [ "${ARM64_KEEP_CACHE:-1}" = 0 ] && rm -f "$TARBALL" && rm -rf "$PIPCACHE" && mkdir -p "$PIPCACHE"
 ROOT=$(mktemp -d "$CACHE/arm64-root.XXXXXX")
-chmod 755 "$ROOT"  # mktemp's 0700 would lock every user but root out of the userland
 T0=$(date +%s)
 declare -a STEPS=()
 step() { STEPS+=("$(printf '%-44s %5ds' "$1" $(( $(date +%s) - $2 )))"); }
@@ -120,6 +119,8 @@ else
     tar --zstd -cpf "$TARBALL.tmp" -C "$ROOT" . && mv "$TARBALL.tmp" "$TARBALL"
     step "userland built (debootstrap) and cached" "$t"
 fi
+# mktemp's 0700 (kept by the tarball's ".") would lock the tests' unprivileged user out of /.
+chmod 755 "$ROOT"
 
 mount -t proc proc "$ROOT/proc"
 mount --rbind /dev "$ROOT/dev" && mount --make-rslave "$ROOT/dev"

@@ -202,8 +202,9 @@ def kmead_holding_camera(proc: Path = Path("/proc")) -> int | None:
         except OSError:
             continue
         # The program: kmead itself (/opt/kmea/bin/kmead), a Python running it, or -m
-        # kmead.cli; one more place for an interpreter in front (qemu-user's binfmt).
-        program = argv[:3] + ([argv[argv.index(b"-m") + 1]] if b"-m" in argv[:-1] else [])
+        # kmead.cli; behind an emulator too (qemu-user's binfmt with P shows
+        # [qemu, /usr/bin/python3, python3, /path/kmead, ...]).
+        program = argv[:4] + ([argv[argv.index(b"-m") + 1]] if b"-m" in argv[:-1] else [])
         if (any(a.endswith(b"/kmead") or a in (b"kmead", b"kmead.cli") for a in program)
                 and any(a.startswith(b"picamera") for a in argv)):
             return int(p.name)
