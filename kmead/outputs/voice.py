@@ -102,6 +102,7 @@ class _Robot:
     claiming_since: float = math.inf  # start of this speaker's current run of claims
     q: float = math.inf  # this speaker's view of R (its last measurement's sigma)
     seen: float = -math.inf  # monotonic time of this speaker's last fix of R
+    prev_seen: float = -math.inf  # the fix before
     lost: bool = False  # the voice went since the owner last looked (undeclare outputs)
     better: tuple[str, float] | None = None  # a camera seeing it much better, since when
 
@@ -198,7 +199,7 @@ class Voice:
         with self.lock:
             r = self._robot(name)
             r.q = q if q is not None and math.isfinite(q) and q >= 0 else 1.0
-            r.seen = time.monotonic()
+            r.prev_seen, r.seen = r.seen, time.monotonic()
 
     def speak(self, tr: Any, valid: bool, t: float | None = None) -> bool:
         """May this speaker send robot ``tr``'s next message, a pose at time ``t`` (``tr.seq``
@@ -269,12 +270,14 @@ class Voice:
     def _claim(self, r: _Robot, now: float) -> dict | None:
         if now - r.claimed < CLAIM_EVERY_S:
             return None
-        if now - r.claimed > QUIET_S:
-            # A new run of claims. A camera claims once a frame: frames up to QUIET_S apart
-            # (a Pi during a full detection, an emulated or loaded machine) continue the
-            # run, else a camera below 2 frames/s would start a new run at every frame and
-            # never speak.
-            r.claiming_since = now
+        # A camera claims at most once a frame: when its last claim came at its previous fix
+        # of R, a long gap is a slow frame rate (a Pi in a full detection, an emulated or
+        # loaded machine), not a break in the run; else a camera below 2 frames/s would
+        # begin a new run at every frame and never speak.
+        continued = (self.kind == CAMERA and math.isfinite(r.claimed)
+                     and r.claimed >= r.prev_seen)
+        if now - r.claimed > 2 * CLAIM_EVERY_S + CLAIM_FRESH_S and not continued:
+            r.claiming_since = now  # a new run of claims
         r.claimed = now
         return {"op": "claim", "by": self.me, "kind": self.kind,
                 "q": r.q if math.isfinite(r.q) else None}
