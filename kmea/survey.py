@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kmea.estimators import get
+from kmea.estimators import DEFAULT_ALGORITHM, get
 from kmea.estimators.base import MarkerObservation
 from kmea.geometry.camera import CameraIntrinsics
 from kmea.maps.files import MarkerMap, _angles_deg
@@ -170,7 +170,7 @@ def _measure_frame(estimator, obs: list[MarkerObservation], world_map: MarkerMap
 
 
 def survey_frames(frames: Iterable[np.ndarray], world_map: MarkerMap, camera,
-                  algorithm: str = "corner-pnp", level: float = 0.9999,
+                  algorithm: str = DEFAULT_ALGORITHM, level: float = 0.9999,
                   default_length: float | None = None,
                   progress: Callable[[int, int], None] | None = None) -> Survey:
     """Survey grey images ``frames`` seen by ``camera`` (a :class:`CameraModel`).

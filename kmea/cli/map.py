@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kmea.estimators import DEFAULT_ALGORITHM
 from kmea.maps.files import (
     DEFAULT_DICTIONARY,
     MapError,
@@ -61,8 +62,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--out", help="survey: CSV to write (map CSV format)")
     g.add_argument("--frames", type=int, default=30, help="survey: frames to average "
                    "(default 30)")
-    g.add_argument("--algorithm", default="corner-pnp", help="survey: estimator (default "
-                   "corner-pnp)")
+    g.add_argument("--algorithm", default=DEFAULT_ALGORITHM,
+                   help=f"survey: estimator (default {DEFAULT_ALGORITHM})")
     g.add_argument("--level", type=float, default=0.9999,
                    help="survey: significance level of a disagreement (default 0.9999)")
 
@@ -188,7 +189,7 @@ def _frames_from(source, n: int, errors: list[str]) -> Iterable[np.ndarray]:
 
 def _run_survey(source_spec: str, camera_file: str | None, map_file: str | None, out: str,
             frames: int,
-            algorithm: str = "corner-pnp", level: float = 0.9999,
+            algorithm: str = DEFAULT_ALGORITHM, level: float = 0.9999,
             dictionary: str | None = None, length: float | None = None,
             quiet: bool = False) -> int:
     """``kmea map survey``; returns the exit code."""
