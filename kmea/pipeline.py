@@ -159,7 +159,7 @@ class PipelineSettings:
     fast_window: int = 0
     full_every: int = 30
     marker_length: float = 0.06
-    algorithm: str = "corner-pnp"
+    algorithm: str = estimators.DEFAULT_ALGORITHM
     unknown_plane: str = "auto"
     alpha: float = 1.0
     reset_after_s: float = 1.0

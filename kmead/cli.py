@@ -14,7 +14,7 @@ import sys
 from typing import Any
 
 from kmead.config.layers import ConfigError, load_config, parse_set
-from kmead.run.startup import EXIT_CONFIG
+from kmead.config.startup import EXIT_CONFIG
 
 STATUS_PERIOD_S = 5.0
 FREE_PORTS = ['network.telemetry="tcp://127.0.0.1:*"', 'network.control="tcp://127.0.0.1:*"']
@@ -189,8 +189,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _serve(args: argparse.Namespace, cfg: Any, journal: bool) -> int:
     """The daemon's run, its UI or headless status line, and its summary."""
-    from kmead.run.host import serve
     from kmead.run.status_line import StatusReporter
+    from kmead.tools.host import serve
 
     ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
 

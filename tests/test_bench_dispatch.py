@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from kmea.benchmarks import cli as bench
+from kmea.cli import bench
 
 ROOT = Path(__file__).resolve().parent.parent
 

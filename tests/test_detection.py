@@ -110,13 +110,18 @@ def test_parameter_overrides_are_validated() -> None:
     assert DetectorConfig(corner_refinement="none").detector_parameters() \
         .cornerRefinementMethod == cv2.aruco.CORNER_REFINE_NONE
     bad = [
-        ({"adaptiveThreshConstnt": 7}, "unknown key 'adaptiveThreshConstnt'; did you mean"),
+        ({"adaptiveThreshConstnt": 7},
+         "unknown detector parameter 'adaptiveThreshConstnt'; did you mean"),
         ({"minDistanceToBorder": 1.5}, "minDistanceToBorder: expected an integer"),
         ({"detectInvertedMarker": 1}, "detectInvertedMarker: expected true or false"),
         ({"errorCorrectionRate": "high"}, "errorCorrectionRate: expected a number"),
-        ({"errorCorrectionRate": math.inf}, "errorCorrectionRate: must be finite"),
+        ({"errorCorrectionRate": math.inf}, "errorCorrectionRate: expected a finite number"),
         ({"cornerRefinementMethod": 1}, "through corner_refinement"),
-        ({"adaptiveThreshWinSizeMax": 2}, "adaptiveThreshWinSizeMin <="),
+        ({"adaptiveThreshWinSizeMax": 2}, r"WinSizeMax: must be an integer in \[3, 255\]"),
+        ({"adaptiveThreshWinSizeMin": 30, "adaptiveThreshWinSizeMax": 10}, "is below"),
+        # A rule the daemon's configuration always had, now the library's own.
+        ({"adaptiveThreshWinSizeMax": 255, "adaptiveThreshWinSizeStep": 1},
+         "253 thresholding passes"),
     ]
     for params, message in bad:
         with pytest.raises(ValueError, match=message):

@@ -53,7 +53,7 @@ PRODUCT = [*DOCS, *sorted(ROOT.glob("kmea*/**/*.py")), ROOT / "Makefile",
 
 @pytest.mark.parametrize("path", PRODUCT, ids=lambda p: str(p.relative_to(ROOT)))
 def test_files_named_in_docs_and_code_exist(path: Path) -> None:
-    """A path named in prose or a comment (``docs/x.md``, ``kmead/run/host.py``) exists
+    """A path named in prose or a comment (``docs/x.md``, ``kmead/tools/host.py``) exists
     (as written from the repository's root)."""
     missing = sorted({ref for ref in PATH_REF.findall(path.read_text(errors="replace"))
                       if not (ROOT / ref).exists()})

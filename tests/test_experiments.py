@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from kmea.cli import main
+from kmea.cli.experiment import write_outputs
 from kmea.experiments import tables
-from kmea.experiments.cli import write_outputs
 from kmea.experiments.parts import PARTS, get_part
 from kmea.experiments.plots import confidence_ellipse, have_matplotlib
 from kmea.experiments.run import ExperimentConfig, estimate_frame, run_simulation

@@ -37,7 +37,7 @@ class Node:
         listen = zport if first else free_port()
         extra = [] if first else ["--set", f'zenoh.connect=["tcp/127.0.0.1:{zport}"]']
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "kmead.fusion.node", "--headless",
+            [sys.executable, "-m", "kmead.tools.fuse", "--headless",
              "--set", 'network.telemetry=""', "--set", 'network.control=""',
              "--set", 'log.level="info"', "--set", "zenoh.lease_s=2.0",
              "--set", "zenoh.ros2=false", "--set", "relay.stale_after_s=30.0",

@@ -430,11 +430,11 @@ def test_frames_n_stops_at_exactly_n_outputs_with_messages_queued() -> None:
 
 def test_a_node_served_by_the_host_tells_systemd_ready_and_stopping(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """kmea fuse is served by the daemon's host (kmead.run.host.serve): READY=1 once its
+    """kmea fuse is served by the daemon's host (kmead.tools.host.serve): READY=1 once its
     sockets are bound, STOPPING=1 at the end, over a real notify socket."""
     import socket as sk
 
-    from kmead.run.host import serve
+    from kmead.tools.host import serve
 
     path = str(tmp_path / "notify.sock")
     listener = sk.socket(sk.AF_UNIX, sk.SOCK_DGRAM)

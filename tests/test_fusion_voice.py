@@ -74,7 +74,7 @@ def _camera(tmp: Path, cam: int, epoch: float, zport: int, udp: int, first: bool
 
 def _node(tmp: Path, name: str, zport: int, udp: int) -> Proc:
     return Proc(tmp, name, [
-        "-m", "kmead.fusion.node", "--headless", "--set", 'network.telemetry=""',
+        "-m", "kmead.tools.fuse", "--headless", "--set", 'network.telemetry=""',
         "--set", 'network.control=""', "--set", 'log.level="info"',
         "--set", f"zenoh.lease_s={LEASE}", "--set", "zenoh.ros2=false",
         "--set", "relay.stale_after_s=3.0",

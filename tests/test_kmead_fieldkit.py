@@ -428,7 +428,7 @@ def test_summary_says_why_robots_are_not_tracked(tmp_path, capsys):
 
 def test_camera_body_is_json_and_small():
     from kmea.vision.overlay import OverlayMarker
-    from kmead.run.camera_feed import camera_body
+    from kmead.net.camera_feed import camera_body
 
     img = (np.arange(480 * 640) % 251).astype(np.uint8).reshape(480, 640)
     q = np.array([[100, 100], [200, 100], [200, 200], [100, 200]], float)

@@ -8,8 +8,8 @@ import math
 import cv2
 import pytest
 
+from kmea.vision.detection import DETECTOR_PARAMETERS
 from kmead.config.checks import (
-    DETECTOR_PARAMETERS,
     ConfigError,
     check_intrinsics,
     parse_destination,

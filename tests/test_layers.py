@@ -7,6 +7,9 @@
   :data:`TUI_MAY_IMPORT`, and never ``kmead``; those modules import only the standard
   library (and each other). A subprocess checks that importing the UI loads neither
   ``kmead`` nor OpenCV nor numpy.
+- Ranks (:data:`RANKS`): every package has a rank, and a module never imports a module of a
+  higher rank (front-ends at the top, the geometry and the wire format at the bottom).
+  Packages of one rank may import each other; the circle check below still holds for them.
 - No import circles inside a package: every import counts (module level, inside functions,
   under ``TYPE_CHECKING``), with no exception.
 
@@ -35,6 +38,32 @@ TUI_MAY_IMPORT = {"kmea", "kmea.wire"} | {
 # Functions' lazy imports that do not count as edges for the cycle check (module -> targets).
 # Backports of standard modules, for Python versions before they joined the stdlib.
 STDLIB_BACKPORTS = {"tomli"}  # tomllib before 3.11
+
+# The import ranks, lowest first: a module may import its own rank and the ranks below it.
+# A module's rank is that of the longest entry that is it or contains it.
+RANKS: tuple[tuple[str, ...], ...] = (
+    # Foundations: numbers, frames, the wire format; nothing of KMEA above them.
+    ("kmea", "kmea.wire", "kmea.timing", "kmea.progress", "kmea.frame", "kmea.geometry",
+     "kmea.stats", "kmead"),
+    ("kmea.maps",),
+    ("kmea.estimators",),
+    ("kmea.vision", "kmea.robots", "kmea.fixed_camera", "kmea.camera_advice"),
+    ("kmea.sim", "kmea.recordings"),
+    ("kmea.sources", "kmea.pipeline", "kmea.survey"),
+    # The lab: experiments and benchmarks, user-facing but above the product.
+    ("kmea.experiments",),
+    ("kmea.benchmarks",),
+    # The library's front-ends: argument parsing and wiring of the `kmea` command.
+    ("kmea.cli",),
+    # The daemon's services (configuration, sockets and outputs still import one another).
+    ("kmead.config", "kmead.net", "kmead.outputs"),
+    ("kmead.viewers",),
+    ("kmead.run", "kmead.fusion"),
+    ("kmea_tui",),
+    # The daemon's front-ends: kmead, kmea's daemon-side commands, the daemon's benchmarks.
+    ("kmead.cli", "kmead.tools", "kmead.benchmarks"),
+)
+_RANK_OF = {name: i for i, tier in enumerate(RANKS) for name in tier}
 
 _MODULE_STRING = re.compile(r"^(kmead|kmea_tui|kmea)(\.[A-Za-z_]\w*)*(:\w+)?$")
 
@@ -199,3 +228,37 @@ def test_no_import_circles(package: str) -> None:
             edges.setdefault(imp.module, set()).add(imp.target)
     found = cycles(edges)
     assert not found, f"import circles in {package}: {found}"
+
+
+def rank(module: str) -> int | None:
+    """The rank of a module: that of the longest :data:`RANKS` entry it is or lies in."""
+    parts = module.split(".")
+    for n in range(len(parts), 0, -1):
+        found = _RANK_OF.get(".".join(parts[:n]))
+        if found is not None:
+            return found
+    return None
+
+
+def test_rank_finds_the_longest_entry() -> None:
+    assert rank("kmea.cli.map") == _RANK_OF["kmea.cli"]
+    assert rank("kmea.frame") == rank("kmea") == 0
+    assert rank("kmead.run.daemon") == _RANK_OF["kmead.run"] > rank("kmead.config.plan")
+    assert rank("elsewhere.module") is None
+
+
+def test_every_module_has_a_rank() -> None:
+    unranked = sorted({module_name(p) for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")
+                       if rank(module_name(p)) is None})
+    assert not unranked, f"give these a rank in RANKS: {unranked}"
+
+
+def test_no_module_imports_a_higher_rank() -> None:
+    bad = []
+    for imp in all_imports():
+        here, there = rank(imp.module), rank(imp.target)
+        if top(imp.target) in PACKAGES and here is not None and there is not None \
+                and there > here:
+            bad.append(f"{imp.module}:{imp.line} (rank {here}) imports {imp.target} "
+                       f"(rank {there})")
+    assert not bad, "an import upward:\n" + "\n".join(bad)

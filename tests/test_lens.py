@@ -11,7 +11,7 @@ from kmea.vision.camera import CameraError, pi_camera_v2, save_camera
 from kmea.vision.lens import lens_differs, load_lens_position
 from kmead.config.layers import load_config
 from kmead.config.plan import plan_startup
-from kmead.run.startup import StartupError, source_options
+from kmead.config.startup import StartupError, source_options
 
 
 @pytest.mark.parametrize("suffix", [".yml", ".json", ".toml"])

@@ -10,7 +10,7 @@ import pytest
 
 from kmea.cli import main
 from kmea.maps.files import default_map, load_map
-from kmea.maps.survey import survey_frames
+from kmea.survey import survey_frames
 
 # Displaced on the floor (dx, dy metres; yaw degrees), unknown to the map.
 MOVED = {9: (0.015, -0.010, 0.0), 24: (-0.008, 0.012, 4.0), 31: (0.025, 0.0, 0.0)}

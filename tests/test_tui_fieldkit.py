@@ -23,7 +23,7 @@ from kmea_tui.widgets.camera_view import CameraPane, CameraView
 from kmea_tui.widgets.robots import RobotsTable
 
 DATA = Path(__file__).parent / "data"
-# A thumbnail body as kmead sends it (kmead.run.camera_feed.camera_body on a rendered frame of
+# A thumbnail body as kmead sends it (kmead.net.camera_feed.camera_body on a rendered frame of
 # sim:default?covered=4 at 640x480, truth outlines, marker 7 marked suspect), stored so
 # the snapshot does not depend on the renderer.
 THUMB = DATA / "camera_thumb.json"

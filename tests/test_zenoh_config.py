@@ -10,9 +10,9 @@ import pytest
 from kmead import cli
 from kmead.config.layers import ConfigError, load_config
 from kmead.config.plan import plan_startup, zenoh_plan
+from kmead.config.startup import StartupError
 from kmead.config.zenoh import ros_token_problem, zenoh_exposure
 from kmead.net.site_tls import make_site
-from kmead.run.startup import StartupError
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']
@@ -144,7 +144,7 @@ def test_camera_ids_and_map_digests() -> None:
 
 def test_a_paced_wide_scene_runs_on_the_wall_clock() -> None:
     """Cameras started separately show the robots at the same place (docs/fusion.md)."""
-    from kmead.run.startup import source_options
+    from kmead.config.startup import source_options
 
     paced = load_config(None, ['source.spec="sim:wide?camera=1"'], use_local=False)
     assert source_options(paced, "sim")["clock"] == "wall"

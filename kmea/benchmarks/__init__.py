@@ -1,3 +1,3 @@
 """The library's benchmarks behind ``kmea bench`` (they print figures; numpy and OpenCV
-only, never kmead), and its dispatcher (:mod:`kmea.benchmarks.cli`). The daemon's
+only, never kmead), and its dispatcher (:mod:`kmea.cli.bench`). The daemon's
 benchmarks are in ``kmead/benchmarks/``."""

@@ -1,4 +1,4 @@
-"""Issue 27's table: robot poses at 0.5-1.5 m/s under the IMX219's rolling shutter, on the
+"""Robots in motion: poses at 0.5-1.5 m/s under the IMX219's rolling shutter, on the
 held-out motion scenes (kmea/experiments/motion.py), truth at each pose's own time.
 
     kmea bench motion --jobs 2            # the table
@@ -13,8 +13,8 @@ markers give, before the tracking filter), "filter" = the tracking filter's outp
 the datagram carries; "settled": from the 7th frame on after a robot enters the view,
 where its new track learns the velocity); both stamped with the pose's own time (its
 markers' mid-exposure) and compared with the truth then; "no time" = the same measurement
-stamped with the frame's timestamp (the sensor timestamp: row 0 read out), as before
-issue 27. Heading "turning":
+stamped with the frame's timestamp (the sensor timestamp: row 0 read out), as without
+exposure timing. Heading "turning":
 robot-frames on the half circles (3 rad/s). Last column: the one-marker robot's measured
 heading with and without the correction of its square's rolling-shutter skew.
 """

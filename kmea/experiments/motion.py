@@ -1,6 +1,6 @@
 """Motion scenes: robots driving fast under a rolling-shutter camera with a real exposure.
 
-Issue 27's evaluation scenes, fixed here before any tuning. Each :class:`MotionCase` is a
+The motion evaluation's scenes, fixed before any tuning. Each :class:`MotionCase` is a
 scenario-1 camera (1.35 m above the floor, looking down) with the IMX219's rolling shutter
 (:func:`kmea.timing.imx219_line_time` at the image height), an exposure of ``exposure_ms``
 and the light of an indoor floor (``LIGHT_MS``: the exposure that fills the image at gain
@@ -48,7 +48,7 @@ OMEGA = 3.0
 #: Exposures of the sweep, ms.
 EXPOSURES_MS = (1.0, 2.0, 4.0, 8.0, 16.0)
 #: Exposure (ms) that fills the image at analogue gain 1 on the reference floor's light:
-#: indoors, auto exposure picks 10-30 ms at low gain (issue 27).
+#: indoors, auto exposure picks 10-30 ms at low gain.
 LIGHT_MS = 16.0
 
 TUNING_SEEDS = tuple(range(2601, 2611))

@@ -4,10 +4,10 @@ own time.
 Every frame is rendered once and run through two pipelines (the daemon's defaults for a
 file source: full detection, corner-pnp, the tracking filter): ``timed`` gets the frame's
 timing (``meta["timing"]``, as the simulator and the Pi camera give it), so each robot's
-pose is stamped with its markers' mid-exposure; ``frame`` gets none, as before issue 27:
-every pose stamped with the frame's timestamp (the instant row 0 is read out); ``noskew``
-is ``timed`` without the single marker's skew correction. Each pose is compared with the
-truth at the time it claims.
+pose is stamped with its markers' mid-exposure; ``frame`` gets none, as a camera without
+exposure timing: every pose stamped with the frame's timestamp (the instant row 0 is read
+out); ``noskew`` is ``timed`` without the single marker's skew correction. Each pose is
+compared with the truth at the time it claims.
 """
 
 from __future__ import annotations

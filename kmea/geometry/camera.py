@@ -86,6 +86,69 @@ def check_camera_matrix(K: np.ndarray) -> np.ndarray:
     return K
 
 
+# Focal lengths, in units of the image's larger side. Below 1/10 the field of view across
+# that side would exceed 2 atan(5) = 157 degrees, more than a pinhole model with OpenCV
+# distortion can describe (a 180-degree fisheye images at f = side / pi, three times
+# more); above 100 it would be under 0.6 degrees, a telescope, not a localization camera.
+MIN_FOCAL_SIDES = 0.1
+MAX_FOCAL_SIDES = 100.0
+# How many distortion coefficients OpenCV's models have (none: no distortion).
+DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)
+
+
+def check_image_size(width: int, height: int) -> None:
+    """``ValueError`` unless both sides are positive."""
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+
+
+def check_focal(fx: float, fy: float, width: int, height: int) -> None:
+    """The one rule on focal lengths: each within [MIN_FOCAL_SIDES, MAX_FOCAL_SIDES] times the
+    ``width`` x ``height`` image's larger side; ``ValueError`` naming the one outside."""
+    side = max(width, height)
+    lo, hi = MIN_FOCAL_SIDES * side, MAX_FOCAL_SIDES * side
+    for name, f in (("fx", fx), ("fy", fy)):
+        if not lo <= f <= hi:
+            raise ValueError(f"{name} = {f:g} px is outside [{lo:g}, {hi:g}] px, "
+                             f"{MIN_FOCAL_SIDES:g} to {MAX_FOCAL_SIDES:g} times the "
+                             f"{width}x{height} image's larger side")
+
+
+def check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int,
+                     height: int) -> None:
+    """A pinhole model that can belong to a ``width`` x ``height`` image (pixels): finite,
+    focal lengths within :func:`check_focal`'s bounds, the principal point inside the image.
+    ``ValueError`` saying what is wrong."""
+    vals = (fx, fy, cx, cy)
+    if not np.all(np.isfinite(np.asarray(vals, dtype=float))):
+        raise ValueError(f"non-finite camera intrinsics {vals}")
+    check_image_size(width, height)
+    check_focal(fx, fy, width, height)
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        raise ValueError(f"principal point ({cx:g}, {cy:g}) px is outside the "
+                         f"{width}x{height} image")
+
+
+def check_camera(K: np.ndarray, dist: np.ndarray, width: int,
+                 height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The one check of a whole camera: the matrix (:func:`check_camera_matrix`), a
+    distortion count OpenCV knows (:data:`DISTORTION_COUNTS`) of finite values, a positive
+    image size. Returns (K (3, 3), distortion as given, flat); ``ValueError`` naming the
+    field otherwise."""
+    try:
+        K = check_camera_matrix(K)
+    except ValueError as e:
+        raise ValueError(f"camera_matrix: {e}") from None
+    d = np.asarray(dist, dtype=float).reshape(-1)
+    if d.size not in DISTORTION_COUNTS:
+        raise ValueError(f"distortion_coefficients: expected 4, 5, 8, 12 or 14 values, "
+                         f"got {d.size}")
+    if not np.all(np.isfinite(d)):
+        raise ValueError(f"distortion_coefficients: non-finite value in {d.tolist()}")
+    check_image_size(width, height)
+    return K, d
+
+
 # How far a lens's distortion may push the image's border out from where the pinhole would
 # put it (distorted radius / undistorted radius at the border). Real lenses stay near 1:
 # pincushion a few per cent above it, wide and fisheye lenses below (a 157-degree view at

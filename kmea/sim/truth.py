@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kmea.sources.base import Frame
+from kmea.frame import Frame
 from kmea.timing import FrameTiming
 
 __all__ = ["FrameTruth", "SimFrame"]
@@ -54,7 +54,7 @@ class FrameTruth:
 
 @dataclass
 class SimFrame(Frame):
-    """A rendered frame: a :class:`kmea.sources.base.Frame` with its truth.
+    """A rendered frame: a :class:`kmea.frame.Frame` with its truth.
 
     index; timestamp = index / fps seconds (also ``t``); image: (H, W) uint8 greyscale
     (never None: :attr:`pixels` is the same array, typed so); truth: :class:`FrameTruth`

@@ -1,5 +1,6 @@
 """What every frame source is: :class:`FrameSource` (read until None, close), the
-:class:`Frame` it gives and the errors it raises.
+:class:`Frame` it gives (defined in :mod:`kmea.frame`, below the simulator too) and the
+errors it raises.
 
 A frame that cannot be decoded does not stop a file source: :meth:`FrameSource.read` returns
 a :class:`Frame` with ``image = None`` and ``meta["error"]`` (e.g. ``"b.png: cannot decode"``);
@@ -11,9 +12,8 @@ delivering, raises :class:`SourceError`. The sources themselves are the sibling 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 
-import numpy as np
+from kmea.frame import Frame
 
 __all__ = ["IMAGE_SUFFIXES", "Frame", "FrameSource", "SourceError", "SourceOptionError"]
 
@@ -27,32 +27,6 @@ class SourceError(RuntimeError):
 
 class SourceOptionError(SourceError, TypeError):
     """An option the source does not take (a TypeError too, as for a wrong keyword)."""
-
-
-@dataclass
-class Frame:
-    """One frame.
-
-    index: 0-based frame number in the source. timestamp: seconds (file sources: index / fps;
-    cameras: ``time.monotonic()`` at capture; picamera: sensor timestamp). image: (H, W) uint8
-    greyscale or (H, W, 3) uint8 BGR, or None when the frame could not be decoded (then
-    ``meta["error"]`` says why). meta: source-specific extras (``path``, ``sensor_timestamp_ns``;
-    ``unix_time``: True when ``timestamp`` is the Unix time of the exposure, as a
-    wall-clock simulator's frames are stamped).
-    """
-
-    index: int
-    timestamp: float
-    image: np.ndarray | None
-    meta: dict = field(default_factory=dict)
-
-    @property
-    def ok(self) -> bool:
-        return self.image is not None
-
-    @property
-    def error(self) -> str | None:
-        return self.meta.get("error")
 
 
 class FrameSource:

@@ -16,9 +16,12 @@ from pathlib import Path
 import numpy as np
 
 from kmea.geometry.camera import (
+    DISTORTION_COUNTS,
     CameraIntrinsics,
+    check_camera,
     check_camera_matrix,
     check_distortion,
+    check_focal,
     distortion_problem,
 )
 
@@ -32,12 +35,6 @@ __all__ = ["CameraError", "CameraModel", "load_camera", "model_for_frame", "pi_c
 
 FILESTORAGE_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
 
-# Focal lengths, in units of the image's larger side. Below 1/10 the field of view across
-# that side would exceed 2 atan(5) = 157 degrees, more than a pinhole model with OpenCV
-# distortion can describe (a 180-degree fisheye images at f = side / pi, three times
-# more); above 100 it would be under 0.6 degrees, a telescope, not a localization camera.
-MIN_FOCAL_SIDES = 0.1
-MAX_FOCAL_SIDES = 100.0
 # Distortion coefficients, in magnitude. Calibrations of wide lenses with the rational
 # model reach hundreds to a few thousands, numerator and denominator nearly cancelling
 # (k1 ~ k4); 1e4 leaves that room, and anything beyond moves image points by more than any
@@ -75,19 +72,10 @@ class CameraModel:
     size_known: bool = True
 
     def __post_init__(self) -> None:
-        K = np.asarray(self.camera_matrix, dtype=float)
-        d = np.asarray(self.dist_coeffs, dtype=float).reshape(-1)
-        if K.shape != (3, 3):
-            raise CameraError(f"camera_matrix: expected shape (3, 3), got {K.shape}")
-        if d.size not in (0, 4, 5, 8, 12, 14):
-            raise CameraError(f"distortion_coefficients: expected 4, 5, 8, 12 or 14 values, "
-                              f"got {d.size}")
-        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(d))):
-            raise CameraError("camera_matrix/distortion_coefficients: non-finite value")
-        if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise CameraError("camera_matrix: focal lengths must be > 0")
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise CameraError(f"image size must be positive, got {self.width}x{self.height}")
+        try:
+            K, d = check_camera(self.camera_matrix, self.dist_coeffs, self.width, self.height)
+        except ValueError as e:
+            raise CameraError(str(e)) from None
         object.__setattr__(self, "camera_matrix", K)
         object.__setattr__(self, "dist_coeffs", d if d.size else np.zeros(5))
         object.__setattr__(self, "width", int(self.width))
@@ -196,7 +184,7 @@ _DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3",
 
 def _check_dist(d: np.ndarray, where: str) -> np.ndarray:
     d = d.reshape(-1)
-    if d.size not in (4, 5, 8, 12, 14):
+    if d.size not in DISTORTION_COUNTS[1:]:
         raise CameraError(f"{where}: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
     big = np.nonzero(np.abs(d) > MAX_DISTORTION)[0]
     if big.size:
@@ -207,13 +195,10 @@ def _check_dist(d: np.ndarray, where: str) -> np.ndarray:
 
 
 def _check_focal(K: np.ndarray, width: int, height: int, where: str) -> None:
-    side = max(width, height)
-    lo, hi = MIN_FOCAL_SIDES * side, MAX_FOCAL_SIDES * side
-    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
-        if not lo <= f <= hi:
-            raise CameraError(f"{where}: {name} = {f:g} px is outside [{lo:g}, {hi:g}] px, "
-                              f"{MIN_FOCAL_SIDES:g} to {MAX_FOCAL_SIDES:g} times the "
-                              f"{width}x{height} image's larger side")
+    try:
+        check_focal(float(K[0, 0]), float(K[1, 1]), width, height)
+    except ValueError as e:
+        raise CameraError(f"{where}: {e}") from None
 
 
 def _size(value: object, where: str) -> int:

@@ -7,6 +7,7 @@ markers ~35 px, often oblique). See ``docs/vision.md`` for the reasoning.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,7 +16,8 @@ import numpy as np
 
 from kmea.vision.dictionary import get_dictionary
 
-__all__ = ["DEFAULT_PARAMETERS", "Detections", "DetectorConfig", "MarkerDetector", "as_gray"]
+__all__ = ["DEFAULT_PARAMETERS", "DETECTOR_PARAMETERS", "Detections", "DetectorConfig",
+           "DetectorParam", "MarkerDetector", "as_gray", "check_parameters"]
 
 _REFINEMENT = {
     "none": cv2.aruco.CORNER_REFINE_NONE,
@@ -51,6 +53,141 @@ DEFAULT_PARAMETERS: dict[str, float | int | bool] = {
 Scalar = float | int | bool
 
 
+@dataclass(frozen=True)
+class DetectorParam:
+    """One ``cv2.aruco.DetectorParameters`` attribute: kind ("int", "float", "bool") and
+    the closed range that has a meaning in OpenCV's detector (``lo_open``: lo excluded)."""
+
+    kind: str
+    lo: float = 0
+    hi: float = 0
+    lo_open: bool = False
+
+
+# OpenCV's meaning of each parameter (docs of cv::aruco::DetectorParameters). Upper bounds
+# are where a value stops making sense for markers in an image: a window larger than any
+# frame, more iterations than sub-pixel refinement ever needs, more pixels per bit cell than
+# a marker has (perspectiveRemovePixelPerCell = 2000 allocates a 14000 px square per
+# candidate).
+DETECTOR_PARAMETERS: dict[str, DetectorParam] = {
+    "adaptiveThreshWinSizeMin": DetectorParam("int", 3, 255),
+    "adaptiveThreshWinSizeMax": DetectorParam("int", 3, 255),
+    "adaptiveThreshWinSizeStep": DetectorParam("int", 1, 255),
+    "adaptiveThreshConstant": DetectorParam("float", -255, 255),
+    "minMarkerPerimeterRate": DetectorParam("float", 0, 4, lo_open=True),
+    "maxMarkerPerimeterRate": DetectorParam("float", 0, 4, lo_open=True),
+    "polygonalApproxAccuracyRate": DetectorParam("float", 0, 0.5, lo_open=True),
+    "minCornerDistanceRate": DetectorParam("float", 0, 1),
+    "minDistanceToBorder": DetectorParam("int", 0, 1000),
+    "minMarkerDistanceRate": DetectorParam("float", 0, 1),
+    "minGroupDistance": DetectorParam("float", 0, 1),
+    "cornerRefinementWinSize": DetectorParam("int", 1, 50),
+    "relativeCornerRefinmentWinSize": DetectorParam("float", 0, 1, lo_open=True),
+    "cornerRefinementMaxIterations": DetectorParam("int", 1, 1000),
+    "cornerRefinementMinAccuracy": DetectorParam("float", 0, 10, lo_open=True),
+    # The printed markers have a one-bit border; 0 bits is no marker at all.
+    "markerBorderBits": DetectorParam("int", 1, 4),
+    "perspectiveRemovePixelPerCell": DetectorParam("int", 1, 32),
+    "perspectiveRemoveIgnoredMarginPerCell": DetectorParam("float", 0, 0.49),
+    "maxErroneousBitsInBorderRate": DetectorParam("float", 0, 1),
+    "minOtsuStdDev": DetectorParam("float", 0, 255),
+    "errorCorrectionRate": DetectorParam("float", 0, 1),
+    "validBitIdThreshold": DetectorParam("float", 0, 1),
+    "aprilTagQuadDecimate": DetectorParam("float", 0, 16),
+    "aprilTagQuadSigma": DetectorParam("float", 0, 10),
+    "aprilTagMinClusterPixels": DetectorParam("int", 0, 100000),
+    "aprilTagMaxNmaxima": DetectorParam("int", 1, 100),
+    "aprilTagCriticalRad": DetectorParam("float", 0, math.pi),
+    "aprilTagMaxLineFitMse": DetectorParam("float", 0, 1000),
+    "aprilTagMinWhiteBlackDiff": DetectorParam("int", 0, 255),
+    "aprilTagDeglitch": DetectorParam("int", 0, 1),
+    "detectInvertedMarker": DetectorParam("bool"),
+    "useAruco3Detection": DetectorParam("bool"),
+    "minSideLengthCanonicalImg": DetectorParam("int", 1, 1024),
+    "minMarkerLengthRatioOriginalImg": DetectorParam("float", 0, 1),
+}
+
+
+# Adaptive-threshold windows a frame, at most: each is one thresholding pass over the whole
+# frame (OpenCV's default: 3), so 250 would make a frame 80 times slower.
+MAX_THRESHOLD_PASSES = 12
+
+
+def _bad(v: object) -> str:
+    return f"{type(v).__name__} {v!r}"[:80]
+
+
+def _check_one(name: str, spec: DetectorParam, value: object, where: str) -> Scalar:
+    if spec.kind == "bool":
+        if not isinstance(value, bool):
+            raise ValueError(f"{where}: expected true or false, got {_bad(value)}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        kind = "an integer" if spec.kind == "int" else "a number"
+        raise ValueError(f"{where}: expected {kind}, got {_bad(value)}")
+    if spec.kind == "int":
+        if not isinstance(value, (int, np.integer)):
+            raise ValueError(f"{where}: expected an integer, got {_bad(value)}")
+        if not spec.lo <= value <= spec.hi:
+            raise ValueError(f"{where}: must be an integer in [{spec.lo:g}, {spec.hi:g}], "
+                             f"got {str(value)[:40]}")
+        return int(value)
+    try:
+        x = float(value)
+    except OverflowError:
+        raise ValueError(f"{where}: number out of range, got {str(value)[:40]}") from None
+    if not math.isfinite(x):
+        raise ValueError(f"{where}: expected a finite number, got {x}")
+    if (x <= spec.lo if spec.lo_open else x < spec.lo) or x > spec.hi:
+        left = "(" if spec.lo_open else "["
+        raise ValueError(f"{where}: must be in {left}{spec.lo:g}, {spec.hi:g}], got {x:g}")
+    return x
+
+
+def check_parameters(parameters: object, where: str = "detector parameters") -> dict[str, Scalar]:
+    """The one rule on ``cv2.aruco.DetectorParameters`` overrides: each name known (to
+    :data:`DETECTOR_PARAMETERS` and this OpenCV), of its kind and in its range, and together
+    with :data:`DEFAULT_PARAMETERS` and OpenCV's defaults a window range of at most
+    :data:`MAX_THRESHOLD_PASSES` passes and a perimeter range that is not empty. Returns the
+    overrides as their kinds; ``ValueError`` naming ``where`` and the key otherwise."""
+    if not isinstance(parameters, dict):
+        raise ValueError(f"{where}: expected a table of OpenCV DetectorParameters names")
+    known = set(_parameter_names())
+    out: dict[str, Scalar] = {}
+    for name, value in parameters.items():
+        w = f"{where}.{name}" if isinstance(name, str) and len(name) < 64 else where
+        if name == "cornerRefinementMethod":
+            raise ValueError(f"{w}: set it through corner_refinement "
+                             "(none, subpix, contour, apriltag)")
+        spec = DETECTOR_PARAMETERS.get(name) if isinstance(name, str) else None
+        if spec is None or name not in known:
+            close = [n for n in sorted(DETECTOR_PARAMETERS)
+                     if isinstance(name, str) and name.lower()[:6] in n.lower()]
+            hint = f"; did you mean {', '.join(close[:4])}?" if close else ""
+            raise ValueError(f"{where}: unknown detector parameter {str(name)[:64]!r}{hint}")
+        out[name] = _check_one(name, spec, value, w)
+    opencv = cv2.aruco.DetectorParameters()
+    merged = {**DEFAULT_PARAMETERS, **out}
+
+    def value(key: str) -> float:
+        return float(merged[key]) if key in merged else float(getattr(opencv, key))
+
+    lo, hi = value("adaptiveThreshWinSizeMin"), value("adaptiveThreshWinSizeMax")
+    step = value("adaptiveThreshWinSizeStep")
+    if hi < lo:
+        raise ValueError(f"{where}: adaptiveThreshWinSizeMax {hi:g} is below "
+                         f"adaptiveThreshWinSizeMin {lo:g}")
+    passes = int((hi - lo) // step) + 1
+    if passes > MAX_THRESHOLD_PASSES:
+        raise ValueError(f"{where}: adaptiveThreshWinSizeMin/Max/Step give {passes} "
+                         f"thresholding passes a frame, at most {MAX_THRESHOLD_PASSES}")
+    pmin, pmax = value("minMarkerPerimeterRate"), value("maxMarkerPerimeterRate")
+    if not pmin < pmax:
+        raise ValueError(f"{where}: minMarkerPerimeterRate {pmin:g} must be below "
+                         f"maxMarkerPerimeterRate {pmax:g}")
+    return out
+
+
 @dataclass
 class DetectorConfig:
     """What the detector needs.
@@ -71,21 +208,11 @@ class DetectorConfig:
         if method is None:
             raise ValueError(f"detector corner_refinement: {self.corner_refinement!r} is not one "
                              f"of {', '.join(_REFINEMENT)}")
-        if not isinstance(self.parameters, dict):
-            raise ValueError("detector parameters: expected a table of name = value")
+        overrides = check_parameters(self.parameters)
         p = cv2.aruco.DetectorParameters()
-        for key, value in {**DEFAULT_PARAMETERS, **self.parameters}.items():
-            _set_parameter(p, key, value)
+        for key, value in {**DEFAULT_PARAMETERS, **overrides}.items():
+            setattr(p, key, value)
         p.cornerRefinementMethod = method
-        lo, hi = p.adaptiveThreshWinSizeMin, p.adaptiveThreshWinSizeMax
-        if lo < 3 or hi < lo:
-            raise ValueError("detector parameters: need 3 <= adaptiveThreshWinSizeMin <= "
-                             "adaptiveThreshWinSizeMax")
-        if p.adaptiveThreshWinSizeStep <= 0:
-            raise ValueError("detector parameters: adaptiveThreshWinSizeStep must be > 0")
-        if not 0 < p.minMarkerPerimeterRate < p.maxMarkerPerimeterRate:
-            raise ValueError("detector parameters: need 0 < minMarkerPerimeterRate < "
-                             "maxMarkerPerimeterRate")
         return p
 
 
@@ -94,34 +221,6 @@ def _parameter_names() -> list[str]:
     return sorted(a for a in dir(p) if not a.startswith("_")
                   and not callable(getattr(p, a)))
 
-
-def _set_parameter(p: cv2.aruco.DetectorParameters, key: object, value: object) -> None:
-    names = _parameter_names()
-    if not isinstance(key, str) or key not in names:
-        close = [n for n in names if isinstance(key, str) and key.lower()[:6] in n.lower()]
-        hint = f"; did you mean {', '.join(close[:4])}?" if close else ""
-        raise ValueError(f"detector parameters: unknown key {key!r}{hint}")
-    if key == "cornerRefinementMethod":
-        raise ValueError("detector parameters: set cornerRefinementMethod through "
-                         "corner_refinement (none, subpix, contour, apriltag)")
-    current = getattr(p, key)
-    where = f"detector parameters: {key}"
-    if isinstance(current, bool):
-        if not isinstance(value, bool):
-            raise ValueError(f"{where}: expected true or false, got {value!r}")
-    elif isinstance(current, int):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            raise ValueError(f"{where}: expected an integer, got {value!r}")
-        value = int(value)
-        if value < 0:
-            raise ValueError(f"{where}: must be >= 0, got {value}")
-    else:
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-            raise ValueError(f"{where}: expected a number, got {value!r}")
-        value = float(value)
-        if not np.isfinite(value) or value < 0:
-            raise ValueError(f"{where}: must be finite and >= 0, got {value}")
-    setattr(p, key, value)
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The daemon's benchmarks behind ``kmea bench`` (they print figures): everything that needs
 the daemon, sockets, Zenoh or processes of kmead. The library's (numpy and OpenCV only) are
 in :mod:`kmea.benchmarks`; the ``kmea`` front door (``kmead/tools/kmea_cli.py``) adds
-:data:`BENCHES` to them, and :mod:`kmea.benchmarks.cli` runs both (``run(quick)`` and
+:data:`BENCHES` to them, and :mod:`kmea.cli.bench` runs both (``run(quick)`` and
 ``main(argv)`` functions: see there).
 """
 

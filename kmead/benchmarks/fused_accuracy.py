@@ -151,7 +151,7 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
                                                             for n, _ in ROBOTS})])],
                     cwd=tmp, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             procs.append(subprocess.Popen(
-                [sys.executable, "-m", "kmead.fusion.node", "--headless",
+                [sys.executable, "-m", "kmead.tools.fuse", "--headless",
                  *_zenoh_sets(zport, ["--set", 'network.telemetry=""', "--set",
                                       'network.control=""', "--set", _robots(ports)])],
                 cwd=tmp, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))

@@ -70,7 +70,7 @@ def _load(cameras: int, robots: int, fps: float, seconds: float) -> dict:
         cfg = Path(tmp) / "fuse.toml"
         cfg.write_text("\n".join(toml))
         proc = subprocess.Popen(
-            [sys.executable, "-m", "kmead.fusion.node", "--config", str(cfg), "--headless",
+            [sys.executable, "-m", "kmead.tools.fuse", "--config", str(cfg), "--headless",
              "--set", 'network.telemetry="tcp://127.0.0.1:*"', "--set", 'network.control=""',
              "--set", 'log.level="error"', "--set", "zenoh.lease_s=0.5",
              "--set", "zenoh.ros2=false", "--set", f'zenoh.listen=["tcp/127.0.0.1:{zport}"]'],

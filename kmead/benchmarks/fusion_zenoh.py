@@ -97,7 +97,7 @@ class Node:
             else f'zenoh.listen=["tcp/127.0.0.1:{_free_port()}"]'
         zcon = [] if listen else ["--set", f'zenoh.connect=["tcp/127.0.0.1:{zport}"]']
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "kmead.fusion.node", "--headless",
+            [sys.executable, "-m", "kmead.tools.fuse", "--headless",
              "--set", 'network.telemetry=""',
              "--set", 'network.control=""', "--set", 'log.level="info"',
              "--set", f"zenoh.lease_s={lease}", "--set", "zenoh.ros2=false", "--set", zset, *zcon,

@@ -146,7 +146,7 @@ class Site:
 
     def node(self, name: str) -> None:
         self._spawn(name, [
-            "-m", "kmead.fusion.node", "--headless", "--set", 'network.telemetry=""',
+            "-m", "kmead.tools.fuse", "--headless", "--set", 'network.telemetry=""',
             "--set", 'network.control=""', "--set", 'log.level="info"',
             "--set", f"zenoh.lease_s={self.lease}", "--set", "zenoh.ros2=false",
             "--set", "relay.extra_fields=true",

@@ -14,7 +14,7 @@ from typing import TextIO
 
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import plan_startup
-from kmead.run.startup import EXIT_OK, StartupError
+from kmead.config.startup import EXIT_OK, StartupError
 
 
 def effective_toml(cfg: Config) -> str:

@@ -16,17 +16,14 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
 from typing import Any, Protocol
 
 from kmea.maps.aruco_names import MAX_MARKER_ID
 
 __all__ = [
-    "DETECTOR_PARAMETERS",
     "MAX_DESTINATIONS",
     "MAX_ROBOTS",
     "ConfigError",
-    "Param",
     "check_destination",
     "check_robot_name",
     "choice",
@@ -50,7 +47,6 @@ class Check(Protocol):
 MAX_ROBOTS = 64
 MAX_DESTINATIONS = 8
 MAX_TEXT = 4096  # file names, endpoints, source specs
-MAX_THRESHOLD_PASSES = 12  # adaptive-threshold windows a frame (OpenCV's default: 3)
 
 
 def shown(v: Any, n: int = 60) -> str:
@@ -235,110 +231,15 @@ probability_value.text = "[1e-06, 1 - 1e-09]"  # type: ignore[attr-defined]
 # ---------------------------------------------------------------------------- detector
 
 
-@dataclass(frozen=True)
-class Param:
-    """One ``cv2.aruco.DetectorParameters`` attribute: kind ("int", "float", "bool") and
-    the closed range that has a meaning in OpenCV's detector (``lo_open``: lo excluded)."""
-
-    kind: str
-    lo: float = 0
-    hi: float = 0
-    lo_open: bool = False
-
-
-# OpenCV's meaning of each parameter (docs of cv::aruco::DetectorParameters). Upper bounds
-# are where a value stops making sense for markers in an image: a window larger than any
-# frame, more iterations than sub-pixel refinement ever needs, more pixels per bit cell than
-# a marker has (perspectiveRemovePixelPerCell = 2000 allocates a 14000 px square per
-# candidate).
-DETECTOR_PARAMETERS: dict[str, Param] = {
-    "adaptiveThreshWinSizeMin": Param("int", 3, 255),
-    "adaptiveThreshWinSizeMax": Param("int", 3, 255),
-    "adaptiveThreshWinSizeStep": Param("int", 1, 255),
-    "adaptiveThreshConstant": Param("float", -255, 255),
-    "minMarkerPerimeterRate": Param("float", 0, 4, lo_open=True),
-    "maxMarkerPerimeterRate": Param("float", 0, 4, lo_open=True),
-    "polygonalApproxAccuracyRate": Param("float", 0, 0.5, lo_open=True),
-    "minCornerDistanceRate": Param("float", 0, 1),
-    "minDistanceToBorder": Param("int", 0, 1000),
-    "minMarkerDistanceRate": Param("float", 0, 1),
-    "minGroupDistance": Param("float", 0, 1),
-    "cornerRefinementWinSize": Param("int", 1, 50),
-    "relativeCornerRefinmentWinSize": Param("float", 0, 1, lo_open=True),
-    "cornerRefinementMaxIterations": Param("int", 1, 1000),
-    "cornerRefinementMinAccuracy": Param("float", 0, 10, lo_open=True),
-    # The printed markers have a one-bit border; 0 bits is no marker at all.
-    "markerBorderBits": Param("int", 1, 4),
-    "perspectiveRemovePixelPerCell": Param("int", 1, 32),
-    "perspectiveRemoveIgnoredMarginPerCell": Param("float", 0, 0.49),
-    "maxErroneousBitsInBorderRate": Param("float", 0, 1),
-    "minOtsuStdDev": Param("float", 0, 255),
-    "errorCorrectionRate": Param("float", 0, 1),
-    "validBitIdThreshold": Param("float", 0, 1),
-    "aprilTagQuadDecimate": Param("float", 0, 16),
-    "aprilTagQuadSigma": Param("float", 0, 10),
-    "aprilTagMinClusterPixels": Param("int", 0, 100000),
-    "aprilTagMaxNmaxima": Param("int", 1, 100),
-    "aprilTagCriticalRad": Param("float", 0, math.pi),
-    "aprilTagMaxLineFitMse": Param("float", 0, 1000),
-    "aprilTagMinWhiteBlackDiff": Param("int", 0, 255),
-    "aprilTagDeglitch": Param("int", 0, 1),
-    "detectInvertedMarker": Param("bool"),
-    "useAruco3Detection": Param("bool"),
-    "minSideLengthCanonicalImg": Param("int", 1, 1024),
-    "minMarkerLengthRatioOriginalImg": Param("float", 0, 1),
-}
-
-
-def _opencv_names() -> set[str]:
-    try:
-        import cv2
-
-        p = cv2.aruco.DetectorParameters()
-        return {a for a in dir(p) if not a.startswith("_") and not callable(getattr(p, a))}
-    except Exception:  # pragma: no cover - OpenCV without aruco
-        return set(DETECTOR_PARAMETERS)
-
-
 def detector_parameters(v: Any, where: str, remote: bool = False) -> dict:
-    if not isinstance(v, dict):
-        raise ConfigError(f"{where}: expected a table of OpenCV DetectorParameters names")
-    known = _opencv_names()
-    out: dict[str, Any] = {}
-    for name, value in v.items():
-        w = f"{where}.{name}" if isinstance(name, str) and len(name) < 64 else where
-        if name == "cornerRefinementMethod":
-            raise ConfigError(f"{w}: set it through detector.corner_refinement "
-                              "(none, subpix, contour, apriltag)")
-        spec = DETECTOR_PARAMETERS.get(name) if isinstance(name, str) else None
-        if spec is None or name not in known:
-            close = [n for n in sorted(DETECTOR_PARAMETERS)
-                     if isinstance(name, str) and name.lower()[:6] in n.lower()]
-            hint = f"; did you mean {', '.join(close[:4])}?" if close else ""
-            raise ConfigError(f"{where}: unknown detector parameter {shown(name)}{hint}")
-        if spec.kind == "bool":
-            out[name] = flag(value, w)
-        elif spec.kind == "int":
-            out[name] = integer(int(spec.lo), int(spec.hi))(value, w)
-        else:
-            out[name] = number(spec.lo, spec.hi, spec.lo_open)(value, w)
-    lo = out.get("adaptiveThreshWinSizeMin", 3)
-    hi = out.get("adaptiveThreshWinSizeMax", 23)
-    step = out.get("adaptiveThreshWinSizeStep", 10)
-    if hi < lo:
-        raise ConfigError(f"{where}: adaptiveThreshWinSizeMax {hi} is below "
-                          f"adaptiveThreshWinSizeMin {lo}")
-    # Each window is one thresholding pass over the whole frame (OpenCV's default: 3).
-    if (hi - lo) // step + 1 > MAX_THRESHOLD_PASSES:
-        raise ConfigError(f"{where}: adaptiveThreshWinSizeMin/Max/Step give "
-                          f"{(hi - lo) // step + 1} thresholding passes a frame, at most "
-                          f"{MAX_THRESHOLD_PASSES}")
-    pmin = out.get("minMarkerPerimeterRate", 0.04)
-    pmax = out.get("maxMarkerPerimeterRate", 4.0)
-    if not pmin < pmax:
-        raise ConfigError(f"{where}: minMarkerPerimeterRate {pmin:g} must be below "
-                          f"maxMarkerPerimeterRate {pmax:g}")
-    return out
+    """The library's detector-parameter rule (:func:`kmea.vision.detection.check_parameters`)
+    as a :class:`ConfigError`."""
+    from kmea.vision.detection import check_parameters
+
+    try:
+        return check_parameters(v, where)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 def fast_window(v: Any, where: str, remote: bool = False) -> int:
@@ -525,20 +426,11 @@ def frame_id(v: Any, where: str, remote: bool = False) -> str:
 
 def check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, height: int,
                      where: str) -> None:
-    """A pinhole model that can belong to a ``width`` x ``height`` image (pixels): focal
-    lengths within the bounds camera files are held to (kmea.vision.camera), the principal
-    point inside the image."""
-    from kmea.vision.camera import MAX_FOCAL_SIDES, MIN_FOCAL_SIDES
+    """The library's intrinsics rule (:func:`kmea.geometry.camera.check_intrinsics`), as a
+    :class:`ConfigError` naming ``where``."""
+    from kmea.geometry.camera import check_intrinsics as check
 
-    vals = (fx, fy, cx, cy)
-    if not all(math.isfinite(float(v)) for v in vals):
-        raise ConfigError(f"{where}: non-finite camera intrinsics {vals}")
-    if width <= 0 or height <= 0:
-        raise ConfigError(f"{where}: image size must be positive, got {width}x{height}")
-    lo, hi = MIN_FOCAL_SIDES * max(width, height), MAX_FOCAL_SIDES * max(width, height)
-    if not (lo <= fx <= hi and lo <= fy <= hi):
-        raise ConfigError(f"{where}: focal lengths must be in [{lo:g}, {hi:g}] px for a "
-                          f"{width}x{height} image, got fx={fx:g}, fy={fy:g}")
-    if not (0 <= cx <= width and 0 <= cy <= height):
-        raise ConfigError(f"{where}: principal point ({cx:g}, {cy:g}) px is outside the "
-                          f"{width}x{height} image")
+    try:
+        check(fx, fy, cx, cy, width, height)
+    except ValueError as e:
+        raise ConfigError(f"{where}: {e}") from None

@@ -25,7 +25,7 @@ from kmea.vision.lens import load_lens_position
 from kmea.wire.destinations import THIS_MACHINE_ONLY, this_machine_only
 from kmead.config.checks import check_intrinsics
 from kmead.config.layers import Config, ConfigError
-from kmead.run.startup import StartupError, configured_map
+from kmead.config.startup import StartupError, configured_map
 
 
 @dataclass

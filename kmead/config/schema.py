@@ -17,6 +17,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from kmea.estimators import DEFAULT_ALGORITHM
+from kmea.robots.tracking import TrackerConfig
 from kmead.config.checks import (
     Check,
     ConfigError,
@@ -41,6 +43,10 @@ from kmead.config.checks import (
     zenoh_endpoints,
     zmq_endpoint,
 )
+
+# The tracking filter's [filter] keys take their defaults from the filter itself: one
+# place to change them.
+TRACKER = TrackerConfig()
 
 __all__ = [
     "ADVANCED",
@@ -215,7 +221,7 @@ being a reference yet (a refit costs 10-40 ms of CPU and moves the fit by microm
                   live=True),
     },
     "estimator": {
-        "algorithm": Key('corner-pnp', algorithm_name,
+        "algorithm": Key(DEFAULT_ALGORITHM, algorithm_name,
                   ('estimator name (why this default: '
                    '[accuracy.md](accuracy.md#the-default-estimator)); `kmea-robust` is slow: '
                    'about 0.3 s of CPU a frame'),
@@ -253,12 +259,12 @@ by each measurement's sigma, with gating of wrong detections and velocity / turn
 First-order IIR filter on every marker (and, with kind = "iir", robot) pose:
 y = alpha*x + (1 - alpha)*y_prev. 1.0 = no filtering.""",
                   live=True),
-        "reset_after_s": Key(1.0, number(0.01, 3600, unit=" s"),
+        "reset_after_s": Key(TRACKER.reset_after_s, number(0.01, 3600, unit=" s"),
                   'a track unseen this long restarts unfiltered',
                   doc="""\
 A track not seen for this long (s) restarts from its next measurement.""",
                   live=True),
-        "model": Key('ctrv', choice("cv", "ctrv"),
+        "model": Key(TRACKER.model, choice("cv", "ctrv"),
                   ('tracking filter motion model: `ctrv` (drives along its heading), `cv` '
                    '(holonomic)'),
                   doc="""\
@@ -268,21 +274,21 @@ acceleration, m^2/s^3 (while cruising, see manoeuvre_scale), and white angular
 acceleration, rad^2/s^3 (tuned by `kmea bench tracking`); chi-square gate probability
 (3 dof); consistent rejected measurements that re-acquire a robot moved by hand.""",
                   live=True),
-        "accel_noise": Key(0.06, number(1e-6, 1000, unit=" m^2/s^3"),
+        "accel_noise": Key(TRACKER.accel_noise, number(1e-6, 1000, unit=" m^2/s^3"),
                   ('tracking filter process noise while cruising, m^2/s^3 (tuned by `kmea bench '
                    'tracking`)'),
                   live=True),
-        "turn_noise": Key(2.5, number(1e-6, 1000, unit=" rad^2/s^3"),
+        "turn_noise": Key(TRACKER.turn_noise, number(1e-6, 1000, unit=" rad^2/s^3"),
                   'tracking filter angular process noise, rad^2/s^3',
                   live=True),
-        "gate_probability": Key(0.9999, probability_value,
+        "gate_probability": Key(TRACKER.gate_probability, probability_value,
                   ('chi-square gate (3 dof); a measurement outside is rejected and reported '
                    '(`event`)'),
                   live=True),
-        "reacquire_n": Key(3, integer(1, 1000),
+        "reacquire_n": Key(TRACKER.reacquire_n, integer(1, 1000),
                   'consistent rejected measurements that re-acquire a robot moved by hand',
                   live=True),
-        "manoeuvre_scale": Key(200.0, number(1, 1e6),
+        "manoeuvre_scale": Key(TRACKER.manoeuvre_scale, number(1, 1e6),
                   ('> 1: a second motion model with this many times the process noise '
                    '(manoeuvres), run with the first as an IMM; 1 = one model '
                    '([tracking.md](tracking.md))'),
@@ -291,14 +297,14 @@ Manoeuvres (docs/tracking.md): with manoeuvre_scale > 1 a second motion model wh
 noise is that many times the above runs alongside (two models, IMM); the mean time (s) of
 a manoeuvre and between manoeuvres set how fast the filter switches. 1 = one model.""",
                   live=True),
-        "manoeuvre_time_s": Key(0.3, number(0.01, 3600, unit=" s"),
+        "manoeuvre_time_s": Key(TRACKER.manoeuvre_time_s, number(0.01, 3600, unit=" s"),
                   ("mean time in a manoeuvre and between manoeuvres, s (the models' switching "
                    'rates)'),
                   live=True),
-        "cruise_time_s": Key(2.0, number(0.01, 3600, unit=" s"),
+        "cruise_time_s": Key(TRACKER.cruise_time_s, number(0.01, 3600, unit=" s"),
                   '',
                   live=True),
-        "step_k": Key(1.2, number(0.01, 1e9),
+        "step_k": Key(TRACKER.step_k, number(0.01, 1e9),
                   ("no measurement moves the position by more than step_k of the filter's own "
                    'sigma after it; 1e9 = no bound ([tracking.md](tracking.md))'),
                   doc="""\
@@ -306,7 +312,7 @@ Step bound: no accepted measurement moves the position by more than step_k of th
 filter's own sigma after it (an outlier inside the gate moves the output that far at
 most; 1e9 = no bound).""",
                   live=True),
-        "outlier_probability": Key(0.05, probability_value,
+        "outlier_probability": Key(TRACKER.outlier_probability, probability_value,
                   ("the outlier mixture's prior: the fraction of measurements that are outliers "
                    '(the reported covariance after an accepted measurement includes the chance '
                    'that it was one)'),
@@ -316,10 +322,10 @@ was an outlier (probabilistic data association): prior outlier_probability, an o
 position uniform within outlier_radius (m) of the robot. The reported sigma then says how
 doubtful the measurement was (docs/tracking.md).""",
                   live=True),
-        "outlier_radius": Key(0.2, number(1e-4, 10, unit=" m"),
+        "outlier_radius": Key(TRACKER.outlier_radius, number(1e-4, 10, unit=" m"),
                   'm (0.0001-10); an outlier falls anywhere within this distance of the robot',
                   live=True),
-        "max_speed": Key(1.5, number(1e-3, 100, unit=" m/s"),
+        "max_speed": Key(TRACKER.max_speed, number(1e-3, 100, unit=" m/s"),
                   ('m/s: re-acquisition candidates further apart than this speed allows are not '
                    'one robot (also the 1-sigma speed of a new track)'),
                   doc="""\

@@ -45,11 +45,13 @@ from kmea.robots.tracking import TrackerConfig
 from kmea.wire import protocol as P
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
+from kmead.config.startup import StartupError, configured_map
 from kmead.fusion.bodies import NoPipeline, NoStats, robots_body, status_body
 from kmead.fusion.cameras import Camera, check_meta, make_room
 from kmead.fusion.inputs import Limits, admit
 from kmead.fusion.speaker import Speaker
 from kmead.net.keys import CurveServer, KeysError, keyed_context
+from kmead.net.log_ring import LogRing
 from kmead.net.site_tls import certificate_name
 from kmead.net.telemetry import Telemetry, TelemetryLogHandler
 from kmead.outputs.csvlog import CsvLog, row
@@ -57,8 +59,6 @@ from kmead.outputs.datadir import DataDir
 from kmead.outputs.files import FileOutputs, LowSpace
 from kmead.outputs.relay import Relay
 from kmead.outputs.totals import RunTotals
-from kmead.run.log_ring import LogRing
-from kmead.run.startup import StartupError, configured_map
 
 log = logging.getLogger("kmead.fusion")
 
@@ -619,78 +619,3 @@ class FusionNode:
         return (f"kmea fuse: {self.outputs} fused outputs; {per or 'no camera'}; rejected "
                 f"{self.fusion.tracker.counts['rejected']}, re-acquired "
                 f"{self.fusion.tracker.counts['reacquired']}; added latency p99 {p99}")
-
-
-# ---------------------------------------------------------------------------- command line
-def add_arguments(p: Any) -> None:
-    """``kmea fuse`` options (as for kmead)."""
-    p.add_argument("--config", metavar="FILE", help="configuration file overlaid on the default")
-    p.add_argument("--set", metavar="SECTION.KEY=VALUE", action="append", default=[],
-                   help="override any configuration key; VALUE is TOML (repeatable)")
-    p.add_argument("--log", metavar="FILE.csv", help="CSV log of every fused pose (log.csv)")
-    p.add_argument("--map", metavar="FILE", help="the floor's map: cameras with another are "
-                                                 "refused (map.file; default: the first "
-                                                 "camera's)")
-    p.add_argument("--headless", action="store_true", help="no terminal UI")
-    p.add_argument("--frames", metavar="N", type=int, help="stop after N fused outputs")
-
-
-def run(args: Any) -> int:
-    """Run the fusion node; exit codes as kmead's (0 done, 1 runtime failure, 2 config)."""
-    import sys
-
-    from kmead.cli import stderr_logging
-    from kmead.config.layers import load_config
-
-    if args.frames is not None and args.frames < 1:
-        print("kmea fuse: --frames: must be >= 1", file=sys.stderr)
-        return 2
-    try:
-        overrides = {k: v for k, v in (("log.csv", args.log), ("map.file", args.map)) if v}
-        cfg = load_config(args.config, args.set, overrides or None)
-        # Joining the site takes a few seconds: say so at once (kmead does the same).
-        print(f"kmea fuse: starting (joining the Zenoh site {cfg['zenoh']['site']!r})...",
-              file=sys.stderr, flush=True)
-        with stderr_logging(cfg["log"]["level"]):
-            node = FusionNode(cfg, max_outputs=args.frames)
-    except ConfigError as e:
-        print(f"kmea fuse: configuration error: {e}", file=sys.stderr)
-        return 2
-    except StartupError as e:  # Zenoh cannot open its session
-        print(f"kmea fuse: {e}", file=sys.stderr)
-        return e.code
-    except OSError as e:
-        print(f"kmea fuse: {e}", file=sys.stderr)
-        return 1
-    with stderr_logging(cfg["log"]["level"]):
-        return _serve(node, args)
-
-
-def _serve(node: FusionNode, args: Any) -> int:
-    """The node's run (with the UI or headless), then its summary; closes the node."""
-    import sys
-
-    from kmead.run.host import serve
-
-    print(f"kmea fuse: telemetry {node.telemetry.bound if node.telemetry else 'off'}, control "
-          f"{node.control.bound if node.control else 'off'}", file=sys.stderr, flush=True)
-    ui = not args.headless and sys.stdout.isatty() and sys.stdin.isatty()
-    code = serve(node, ui, f"fusing on zenoh site {node.site!r}", kind="kmea fuse")
-    summary = node.summary()
-    print(summary, flush=True)
-    return code
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m kmead.fusion.node [options]``: ``kmea fuse`` in a process of its own (the
-    fusion-node benchmark starts it so)."""
-    import argparse
-    import sys
-
-    p = argparse.ArgumentParser(prog="kmea fuse", description=add_arguments.__doc__)
-    add_arguments(p)
-    return run(p.parse_args(sys.argv[1:] if argv is None else argv))
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -30,10 +30,10 @@ from kmead.net import bodies
 if TYPE_CHECKING:
     from kmea.pipeline import FrameResult
     from kmead.config.layers import Config
+    from kmead.net.camera_feed import CameraFeed
     from kmead.net.keys import CurveServer
+    from kmead.net.log_ring import LogRing
     from kmead.outputs.datadir import DataDir
-    from kmead.run.camera_feed import CameraFeed
-    from kmead.run.log_ring import LogRing
 
 log = logging.getLogger("kmead.control")
 

@@ -160,7 +160,7 @@ class Voice:
             if op == "say":
                 if kind == NODE:
                     if len(self.nodes_said) >= MAX_CLAIMS and by not in self.nodes_said:
-                        self.nodes_said.pop(min(self.nodes_said, key=self.nodes_said.get))
+                        self.nodes_said.pop(min(self.nodes_said, key=lambda k: self.nodes_said[k]))
                     self.nodes_said[by] = now
                 if t is not None:
                     r.t = max(r.t, t)

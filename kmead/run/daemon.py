@@ -1,7 +1,7 @@
 """The daemon: source -> pipeline -> outputs, plus the control/status service thread.
 
 The daemon is the shell around :class:`kmea.pipeline.Pipeline`: start-up is
-:mod:`kmead.run.startup`, where detection happens is a feed of :mod:`kmead.run.capture`, the CSV
+:mod:`kmead.config.startup`, where detection happens is a feed of :mod:`kmead.run.capture`, the CSV
 rows and totals are :mod:`kmead.outputs.totals`, the datagrams :mod:`kmead.outputs.relay`.
 
 Threads: the main loop (pipeline and outputs, one frame at a time, under ``self.lock``),
@@ -35,22 +35,7 @@ from kmea.timing import blur_warning
 from kmea.wire import protocol as P
 from kmead.config.layers import Config
 from kmead.config.plan import check_camera, plan_startup, robot_ids_problem
-from kmead.net import bodies
-from kmead.net.control import ControlServer
-from kmead.net.telemetry import Telemetry, TelemetryLogHandler
-from kmead.outputs.csvlog import CsvLog
-from kmead.outputs.datadir import DataDir, FileRefused
-from kmead.outputs.files import FileOutputs, LowSpace
-from kmead.outputs.relay import Relay
-from kmead.outputs.robots import RobotSender
-from kmead.outputs.totals import RunTotals, csv_lines, truth_record
-from kmead.run.camera_feed import CameraFeed, camera_body, frame_outlines
-from kmead.run.capture import Capture, CaptureEnded, open_feed
-from kmead.run.gc_pacing import GcPacing
-from kmead.run.live_settings import LiveSettings
-from kmead.run.log_ring import LogRing
-from kmead.run.rollback import ChangeGuard
-from kmead.run.startup import (
+from kmead.config.startup import (
     EXIT_CONFIG,
     EXIT_OK,
     EXIT_RUNTIME,
@@ -60,6 +45,21 @@ from kmead.run.startup import (
     is_paced_sim,
     open_configured_source,
 )
+from kmead.net import bodies
+from kmead.net.camera_feed import CameraFeed, camera_body, frame_outlines
+from kmead.net.control import ControlServer
+from kmead.net.log_ring import LogRing
+from kmead.net.telemetry import Telemetry, TelemetryLogHandler
+from kmead.outputs.csvlog import CsvLog
+from kmead.outputs.datadir import DataDir, FileRefused
+from kmead.outputs.files import FileOutputs, LowSpace
+from kmead.outputs.relay import Relay
+from kmead.outputs.robots import RobotSender
+from kmead.outputs.totals import RunTotals, csv_lines, truth_record
+from kmead.run.capture import Capture, CaptureEnded, open_feed
+from kmead.run.gc_pacing import GcPacing
+from kmead.run.live_settings import LiveSettings
+from kmead.run.rollback import ChangeGuard
 
 __all__ = ["Daemon", "StartupError"]
 

@@ -264,7 +264,7 @@ class Doctor:
         one line each for the map and the camera file."""
         from kmea.vision.camera import load_camera
         from kmead.config.plan import plan_startup
-        from kmead.run.startup import StartupError
+        from kmead.config.startup import StartupError
 
         try:
             warnings = plan_startup(cfg).warnings

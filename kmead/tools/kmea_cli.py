@@ -14,7 +14,7 @@ from kmead.benchmarks import BENCHES
 
 # name -> (module, one-line help), imported only when run.
 DAEMON_COMMANDS: dict[str, tuple[str, str]] = {
-    "fuse": ("kmead.fusion.node", "fuse several cameras' robot poses (docs/fusion.md)"),
+    "fuse": ("kmead.tools.fuse", "fuse several cameras' robot poses (docs/fusion.md)"),
     "doctor": ("kmead.tools.doctor",
                "check a Raspberry Pi install: versions, camera, ports, files"),
     "export": ("kmead.viewers.mcap_export", "a recording as MCAP for Foxglove (foxglove extra)"),

@@ -16,11 +16,11 @@ from importlib import import_module
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "map": ("kmea.maps.cli", "show, check or convert a marker map"),
-    "calibrate": ("kmea.vision.calibrate_cli", "calibrate a camera from board views"),
-    "print": ("kmea.vision.print_cli", "printable markers, floor and ChArUco boards"),
-    "experiment": ("kmea.experiments.cli", "reproduce the paper's validation, Parts I-IV"),
-    "bench": ("kmea.benchmarks.cli", "every benchmark, by name (kmea bench --list)"),
+    "map": ("kmea.cli.map", "show, check or convert a marker map"),
+    "calibrate": ("kmea.cli.calibrate", "calibrate a camera from board views"),
+    "print": ("kmea.cli.printouts", "printable markers, floor and ChArUco boards"),
+    "experiment": ("kmea.cli.experiment", "reproduce the paper's validation, Parts I-IV"),
+    "bench": ("kmea.cli.bench", "every benchmark, by name (kmea bench --list)"),
 }
 
 

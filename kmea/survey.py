@@ -41,18 +41,16 @@ from __future__ import annotations
 
 import csv
 import math
-import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from kmea.estimators import get
+from kmea.estimators import DEFAULT_ALGORITHM, get
 from kmea.estimators.base import MarkerObservation
 from kmea.geometry.camera import CameraIntrinsics
 from kmea.maps.files import MarkerMap, _angles_deg
-from kmea.progress import Progress
 
 __all__ = ["MarkerSurvey", "Survey", "format_report", "survey_frames", "write_csv"]
 
@@ -172,7 +170,7 @@ def _measure_frame(estimator, obs: list[MarkerObservation], world_map: MarkerMap
 
 
 def survey_frames(frames: Iterable[np.ndarray], world_map: MarkerMap, camera,
-                  algorithm: str = "corner-pnp", level: float = 0.9999,
+                  algorithm: str = DEFAULT_ALGORITHM, level: float = 0.9999,
                   default_length: float | None = None,
                   progress: Callable[[int, int], None] | None = None) -> Survey:
     """Survey grey images ``frames`` seen by ``camera`` (a :class:`CameraModel`).
@@ -313,93 +311,3 @@ def format_report(survey: Survey) -> str:
     if survey.never_seen:
         lines.append("map markers never seen: " + ", ".join(map(str, survey.never_seen)))
     return "\n".join(lines)
-
-
-def _frames_from(source, n: int, errors: list[str]) -> Iterable[np.ndarray]:
-    from kmea.vision.detection import as_gray
-
-    got = 0
-    while got < n:
-        f = source.read()
-        if f is None:
-            return
-        if f.image is None:
-            errors.append(str(f.meta.get("error", "unreadable frame")))
-            continue
-        got += 1
-        yield as_gray(f.image)
-
-
-def run_cli(source_spec: str, camera_file: str | None, map_file: str | None, out: str,
-            frames: int,
-            algorithm: str = "corner-pnp", level: float = 0.9999,
-            dictionary: str | None = None, length: float | None = None,
-            quiet: bool = False) -> int:
-    """``kmea map survey``; returns the exit code."""
-    from kmea.maps.files import MapError, default_map, load_map
-    from kmea.sources.base import SourceError
-    from kmea.sources.registry import open_source
-    from kmea.vision.camera import CameraError, load_camera, model_for_frame
-
-    if frames < 1:
-        print("kmea map survey: --frames must be >= 1", file=sys.stderr)
-        return 2
-    try:
-        kw = {}
-        if dictionary:
-            kw["dictionary"] = dictionary
-        if length:
-            kw["default_length"] = length
-        world_map = default_map() if map_file is None else load_map(map_file, **kw)
-        camera = load_camera(camera_file) if camera_file else None
-    except (MapError, CameraError, OSError) as e:
-        print(f"kmea map survey: {e}", file=sys.stderr)
-        return 1
-    try:
-        source = open_source(source_spec)
-    except (SourceError, ValueError) as e:
-        print(f"kmea map survey: {e}", file=sys.stderr)
-        return 1
-    if camera is None:
-        # A simulated source knows its camera; a real one needs its calibration file.
-        camera = getattr(source, "camera", None)
-        if camera is None:
-            source.close()
-            print(f"kmea map survey: {source_spec}: give --camera FILE (the calibration)",
-                  file=sys.stderr)
-            return 2
-    errors: list[str] = []
-
-    bar = Progress(frames, "kmea map survey", enabled=not quiet)
-
-    def progress(k: int, seen: int) -> None:
-        bar.update(k + 1 - bar.done, note=f"{seen} markers seen")
-
-    try:
-        first = next(iter(_frames_from(source, 1, errors)), None)
-        if first is None:
-            print(f"kmea map survey: {source_spec}: no frame", file=sys.stderr)
-            return 1
-        h, w = first.shape[:2]
-        try:
-            camera = model_for_frame(camera, w, h)
-        except (CameraError, ValueError) as e:
-            print(f"kmea map survey: {camera_file}: {e}", file=sys.stderr)
-            return 1
-
-        def all_frames():
-            yield first
-            yield from _frames_from(source, frames - 1, errors)
-
-        survey = survey_frames(all_frames(), world_map, camera, algorithm, level,
-                               progress=progress)
-    finally:
-        source.close()
-        bar.close()
-    for e in errors[:5]:
-        print(f"kmea map survey: skipped frame: {e}", file=sys.stderr)
-    write_csv(survey, out)
-    print(format_report(survey))
-    print(f"wrote {out}: {len(survey.markers)} markers")
-    return 0
-

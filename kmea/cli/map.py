@@ -4,7 +4,7 @@ Without FILE the built-in RobotAtFactory 4.0 map is used. A CSV map takes its di
 and default marker length from ``--dictionary`` and ``--length``.
 
 ``kmea map survey --source SPEC --camera FILE --map FILE --out FILE.csv [--frames N]``
-measures every marker the camera sees against the map (see :mod:`kmea.maps.survey`).
+measures every marker the camera sees against the map (see :mod:`kmea.survey`).
 """
 
 from __future__ import annotations
@@ -12,8 +12,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
+import numpy as np
+
+from kmea.estimators import DEFAULT_ALGORITHM
 from kmea.maps.files import (
     DEFAULT_DICTIONARY,
     MapError,
@@ -58,8 +62,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--out", help="survey: CSV to write (map CSV format)")
     g.add_argument("--frames", type=int, default=30, help="survey: frames to average "
                    "(default 30)")
-    g.add_argument("--algorithm", default="corner-pnp", help="survey: estimator (default "
-                   "corner-pnp)")
+    g.add_argument("--algorithm", default=DEFAULT_ALGORITHM,
+                   help=f"survey: estimator (default {DEFAULT_ALGORITHM})")
     g.add_argument("--level", type=float, default=0.9999,
                    help="survey: significance level of a disagreement (default 0.9999)")
 
@@ -127,7 +131,6 @@ def _convert(args: argparse.Namespace) -> int:
 
 def _survey(args: argparse.Namespace) -> int:
     from kmea import estimators
-    from kmea.maps.survey import run_cli
 
     missing = [opt for opt, v in (("--source", args.source), ("--out", args.out)) if not v]
     if missing:
@@ -141,7 +144,7 @@ def _survey(args: argparse.Namespace) -> int:
         print("kmea map survey: --level must be between 0.5 and 1", file=sys.stderr)
         return 2
     map_file = args.map_file or (str(args.file) if args.file else None)
-    return run_cli(args.source, args.camera, map_file, args.out, args.frames, args.algorithm,
+    return _run_survey(args.source, args.camera, map_file, args.out, args.frames, args.algorithm,
                    args.level, dictionary=args.dictionary, length=args.length)
 
 
@@ -167,3 +170,95 @@ def run(args: argparse.Namespace) -> int:
     except MapError as e:
         print(f"kmea map: {e}", file=sys.stderr)
         return 1
+
+
+def _frames_from(source, n: int, errors: list[str]) -> Iterable[np.ndarray]:
+    from kmea.vision.detection import as_gray
+
+    got = 0
+    while got < n:
+        f = source.read()
+        if f is None:
+            return
+        if f.image is None:
+            errors.append(str(f.meta.get("error", "unreadable frame")))
+            continue
+        got += 1
+        yield as_gray(f.image)
+
+
+def _run_survey(source_spec: str, camera_file: str | None, map_file: str | None, out: str,
+            frames: int,
+            algorithm: str = DEFAULT_ALGORITHM, level: float = 0.9999,
+            dictionary: str | None = None, length: float | None = None,
+            quiet: bool = False) -> int:
+    """``kmea map survey``; returns the exit code."""
+    from kmea.maps.files import MapError, default_map, load_map
+    from kmea.progress import Progress
+    from kmea.sources.base import SourceError
+    from kmea.sources.registry import open_source
+    from kmea.survey import format_report, survey_frames, write_csv
+    from kmea.vision.camera import CameraError, load_camera, model_for_frame
+
+    if frames < 1:
+        print("kmea map survey: --frames must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        kw = {}
+        if dictionary:
+            kw["dictionary"] = dictionary
+        if length:
+            kw["default_length"] = length
+        world_map = default_map() if map_file is None else load_map(map_file, **kw)
+        camera = load_camera(camera_file) if camera_file else None
+    except (MapError, CameraError, OSError) as e:
+        print(f"kmea map survey: {e}", file=sys.stderr)
+        return 1
+    try:
+        source = open_source(source_spec)
+    except (SourceError, ValueError) as e:
+        print(f"kmea map survey: {e}", file=sys.stderr)
+        return 1
+    if camera is None:
+        # A simulated source knows its camera; a real one needs its calibration file.
+        camera = getattr(source, "camera", None)
+        if camera is None:
+            source.close()
+            print(f"kmea map survey: {source_spec}: give --camera FILE (the calibration)",
+                  file=sys.stderr)
+            return 2
+    errors: list[str] = []
+
+    bar = Progress(frames, "kmea map survey", enabled=not quiet)
+
+    def progress(k: int, seen: int) -> None:
+        bar.update(k + 1 - bar.done, note=f"{seen} markers seen")
+
+    try:
+        first = next(iter(_frames_from(source, 1, errors)), None)
+        if first is None:
+            print(f"kmea map survey: {source_spec}: no frame", file=sys.stderr)
+            return 1
+        h, w = first.shape[:2]
+        try:
+            camera = model_for_frame(camera, w, h)
+        except (CameraError, ValueError) as e:
+            print(f"kmea map survey: {camera_file}: {e}", file=sys.stderr)
+            return 1
+
+        def all_frames():
+            yield first
+            yield from _frames_from(source, frames - 1, errors)
+
+        survey = survey_frames(all_frames(), world_map, camera, algorithm, level,
+                               progress=progress)
+    finally:
+        source.close()
+        bar.close()
+    for e in errors[:5]:
+        print(f"kmea map survey: skipped frame: {e}", file=sys.stderr)
+    write_csv(survey, out)
+    print(format_report(survey))
+    print(f"wrote {out}: {len(survey.markers)} markers")
+    return 0
+
