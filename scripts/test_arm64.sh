@@ -160,6 +160,9 @@ mkdir -p "$X86"
     --set source.fps=0 --status-every 0 --log x86.csv >kmead.out 2>&1) \
     || { cat "$X86/kmead.out" >&2; echo "make: the x86 kmead run failed" >&2; exit 1; }
 step "x86 kmead, $FRAMES frames" "$t"
+# Both logs kept beside the cache (the userland goes at the end) for a look after a failure.
+mkdir -p "$CACHE/arm64-last" && cp "$X86/x86.csv" "$ROOT/src/arm.csv" "$CACHE/arm64-last/"
+"$BIN/python" -c 'import sys, numpy, cv2; print("x86 run: Python %d.%d.%d, numpy %s, OpenCV %s" % (*sys.version_info[:3], numpy.__version__, cv2.__version__))'
 "$BIN/python" scripts/compare_arm64.py "$X86/x86.csv" "$ROOT/src/arm.csv"
 
 echo "arm64 ($CODENAME, $( [ -n "$NATIVE" ] && echo native || echo qemu-user-static)): steps"

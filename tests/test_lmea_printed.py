@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from synth_corners import observe, scenario1
 
 from kmea.estimators import get
@@ -32,3 +33,14 @@ def test_both_readings_agree_on_exact_data_and_differ_with_noise():
     diff = max(np.linalg.norm(a.markers[i].position[:2] - b.markers[i].position[:2])
                for i in a.markers if sc.map[i].on_floor) if a.ok else 0.0
     assert diff > 1e-5  # the skew of the noisy anchor axes shows
+
+
+def test_the_papers_typo_is_no_live_algorithm() -> None:
+    """lmea-printed reproduces the paper (kmea experiment); a daemon never runs it."""
+    from kmea.estimators import available
+    from kmead.config.layers import ConfigError, load_config
+
+    assert "lmea-printed" in available() and "lmea-printed" not in available(live=True)
+    with pytest.raises(ConfigError) as e:
+        load_config(None, ['estimator.algorithm="lmea-printed"'])
+    assert "kmea experiment" in str(e.value) and "\n" not in str(e.value)

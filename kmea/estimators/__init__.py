@@ -18,6 +18,7 @@ from kmea.geometry.camera import CameraIntrinsics
 
 __all__ = [
     "DEFAULT_ALGORITHM",
+    "PAPER_ONLY",
     "CameraIntrinsics",
     "Estimate",
     "EstimateWithLoo",
@@ -49,9 +50,16 @@ def register(name: str, target: str) -> None:
     _REGISTRY[name] = target
 
 
-def available() -> list[str]:
-    """Names of the registered estimators."""
-    return list(_REGISTRY)
+#: Estimators kept to reproduce the paper, not to run a floor: ``lmea-printed`` replicates
+#: a typo of its Algorithm 1 (docs/accuracy.md). ``kmea experiment`` runs them; the daemon,
+#: its configuration and the UI do not offer them.
+PAPER_ONLY = frozenset({"lmea-printed"})
+
+
+def available(live: bool = False) -> list[str]:
+    """Names of the registered estimators; ``live``: those a daemon may run (without
+    :data:`PAPER_ONLY`)."""
+    return [n for n in _REGISTRY if not (live and n in PAPER_ONLY)]
 
 
 def get(name: str, **options: object) -> Estimator:

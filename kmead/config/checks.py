@@ -175,9 +175,10 @@ def algorithm_name(v: Any, where: str, remote: bool = False) -> str:
     s = text_value(v, where)
     from kmea import estimators
 
-    if s not in estimators.available():
-        raise ConfigError(f"{where}: unknown algorithm {shown(s)}; choose one of "
-                          f"{', '.join(estimators.available())}")
+    if s not in estimators.available(live=True):
+        paper = " (it reproduces the paper: kmea experiment)" if s in estimators.PAPER_ONLY else ""
+        raise ConfigError(f"{where}: unknown algorithm {shown(s)}{paper}; choose one of "
+                          f"{', '.join(estimators.available(live=True))}")
     return s
 
 

@@ -228,8 +228,8 @@ being a reference yet (a refit costs 10-40 ms of CPU and moves the fit by microm
                   doc="""\
 corner-pnp (default: the camera from every reference's corners, markers from their corner
 rays; the most accurate within the frame budget, see docs/accuracy.md), kmea (the
-paper's Algorithm 2), lmea (Algorithm 1), lmea-printed (Algorithm 1 exactly as printed),
-umeyama, kmea-robust (slow: about 0.3 s of CPU a frame, 2-3 frames/s where kmea runs 70;
+paper's Algorithm 2), lmea (Algorithm 1), umeyama, kmea-robust (slow: about 0.3 s of CPU a
+frame, 2-3 frames/s where kmea runs 70;
 an unknown name makes kmead list the available ones).""",
                   live=True),
         "unknown_plane": Key('auto', choice("auto", "floor", "free"),

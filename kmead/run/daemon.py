@@ -370,7 +370,7 @@ class Daemon:
             t0=self.t0, source=self.source_spec,
             config_file=self.cfg.user_file or "<default config>",
             config_files=self.cfg.files, algorithm=self.pipeline.algorithm,
-            algorithms=available_algorithms(), csv=self.csv, recorder=self.recorder,
+            algorithms=available_algorithms(live=True), csv=self.csv, recorder=self.recorder,
             output_errors=self.files.errors,
             camera=self.pipeline.camera, world_map=self.world_map,
             frames=self.totals.frames, dropped=self.dropped,
