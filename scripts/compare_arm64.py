@@ -12,6 +12,13 @@ simulator's rendering and the estimators' floating point are then not bit-identi
 - ``refs`` (references used) and ``algorithm``: equal
 - ``timestamp`` (the simulator's clock): :data:`TIME_TOL_S`
 
+Those are the floating point's scale, and all but a few values meet them. A corner found a
+hundredth of a pixel apart (the CPUs' vector code rounds differently) can move one small
+marker's pose, and through its robot's filter the next few poses, by far more: at most
+:data:`OUTLIER_SHARE` of each column's values may exceed its tolerance, and none the
+system's own noise (:data:`NOISE`: a robot marker's position noise is about 0.5 mm, its
+heading's 10 mrad).
+
 Prints one line per column with the largest difference found, then OK or what failed;
 exit 0 when every check holds, 1 otherwise, 2 on unreadable input (one line naming the file).
 """
@@ -30,6 +37,8 @@ TIME_TOL_S = 1e-6
 TOLERANCES = {"timestamp": TIME_TOL_S, "x": POS_TOL_M, "y": POS_TOL_M, "z": POS_TOL_M,
               "yaw": YAW_TOL_RAD, "error": ERR_TOL_M}
 HEADER = ["frame", "timestamp", "algorithm", "kind", "id", "x", "y", "z", "yaw", "error", "refs"]
+OUTLIER_SHARE = 0.02
+NOISE = {"timestamp": TIME_TOL_S, "x": 5e-4, "y": 5e-4, "z": 5e-4, "yaw": 1e-2, "error": 5e-4}
 Key = tuple[int, str, str]
 
 
@@ -73,6 +82,8 @@ def compare(a: dict[Key, dict[str, str]], b: dict[Key, dict[str, str]]) -> list[
         bad.append(f"rows only in x86: {len(only_a)} {only_a[:3]}; only in arm64: "
                    f"{len(only_b)} {only_b[:3]}")
     worst = dict.fromkeys(TOLERANCES, (0.0, None))
+    beyond = dict.fromkeys(TOLERANCES, 0)
+    counted = dict.fromkeys(TOLERANCES, 0)
     for key in sorted(a.keys() & b.keys()):
         ra, rb = a[key], b[key]
         for col in ("algorithm", "refs"):
@@ -90,11 +101,18 @@ def compare(a: dict[Key, dict[str, str]], b: dict[Key, dict[str, str]]) -> list[
                 d = abs(math.remainder(u - v, math.tau))
             if d > worst[col][0]:
                 worst[col] = (d, key)
-            if d > tol:
-                bad.append(f"{key}: {col} differs by {d:.3g} (tolerance {tol:g})")
+            counted[col] += 1
+            beyond[col] += d > tol
+            if d > NOISE[col]:
+                bad.append(f"{key}: {col} differs by {d:.3g} (beyond the noise {NOISE[col]:g})")
     for col, (d, key) in worst.items():
-        print(f"  {col:9s} largest difference {d:.3g} (tolerance {TOLERANCES[col]:g})"
+        share = beyond[col] / max(counted[col], 1)
+        print(f"  {col:9s} {beyond[col]} of {counted[col]} beyond {TOLERANCES[col]:g} "
+              f"({share:.2%}); largest {d:.3g} (noise {NOISE[col]:g})"
               + (f" at frame {key[0]} {key[1]} {key[2]}" if key else ""))
+        if share > OUTLIER_SHARE:
+            bad.append(f"{col}: {share:.2%} of the values beyond {TOLERANCES[col]:g} "
+                       f"(at most {OUTLIER_SHARE:.0%})")
     ta, tb = tracked(a), tracked(b)
     if len(ta) < 2 or ta != tb:
         bad.append(f"robots tracked (frames with a pose): x86 {ta}, arm64 {tb}; both robots "
