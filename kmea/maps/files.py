@@ -17,7 +17,6 @@ from __future__ import annotations
 import csv
 import math
 import re
-import sys
 from importlib import resources
 from pathlib import Path
 
@@ -38,11 +37,7 @@ from kmea.maps.model import (
     check_map,
     check_spread,
 )
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from kmea.wire import tomlvalue as toml
 
 __all__ = [
     "DEFAULT_DICTIONARY",
@@ -220,15 +215,13 @@ def load_map(path: str | Path, dictionary: str = DEFAULT_DICTIONARY,
     if path.suffix.lower() == ".toml":
         try:
             text = path.read_text(encoding="utf-8")
-            data = tomllib.loads(text)
+            data = toml.loads(text)
         except OSError as e:
             raise MapError(f"{path}: cannot read: {e.strerror or e}") from None
         except UnicodeDecodeError:
             raise MapError(f"{path}: not a UTF-8 text file") from None
-        except tomllib.TOMLDecodeError as e:
+        except (toml.TOMLDecodeError, toml.TooDeep) as e:
             raise MapError(f"{path}: invalid TOML: {e}") from None
-        except RecursionError:  # tomllib recurses per nesting level
-            raise MapError(f"{path}: invalid TOML: nested too deeply") from None
         return map_from_dict(data, str(path), _table_lines(text))
     raise MapError(f"{path}: unknown map format {path.suffix!r} (use .toml or .csv)")
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import re
-import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -24,11 +23,7 @@ from kmea.geometry.camera import (
     check_focal,
     distortion_problem,
 )
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from kmea.wire import tomlvalue as toml
 
 __all__ = ["CameraError", "CameraModel", "load_camera", "model_for_frame", "pi_camera_v2",
            "save_camera"]
@@ -376,13 +371,11 @@ def _read_filestorage(fs: object, path: Path, image_size: tuple[int, int] | None
 
 def _load_toml(path: Path, image_size: tuple[int, int] | None) -> CameraModel:
     try:
-        data = tomllib.loads(path.read_text())
+        data = toml.loads(path.read_text())
     except UnicodeDecodeError:
         raise CameraError(f"{path}: not a text file") from None
-    except tomllib.TOMLDecodeError as e:
+    except (toml.TOMLDecodeError, toml.TooDeep) as e:
         raise CameraError(f"{path}: invalid TOML: {e}") from None
-    except RecursionError:  # tomllib recurses per nesting level
-        raise CameraError(f"{path}: invalid TOML: nested too deeply") from None
     unknown = set(data) - _TOML_KEYS
     if unknown:
         raise CameraError(f"{path}: unknown key(s) {sorted(unknown)}")

@@ -13,15 +13,10 @@ lens_position`` of a TOML one. kmead locks the lens there (``AfMode`` manual,
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 from kmea.vision.camera import FILESTORAGE_SUFFIXES, CameraError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from kmea.wire import tomlvalue as toml
 
 __all__ = ["LENS_KEY", "LENS_MAX_DIOPTRE", "LENS_TOL_DIOPTRE", "lens_differs",
            "load_lens_position"]
@@ -56,8 +51,8 @@ def load_lens_position(path: str | Path) -> float | None:
     where = f"{path}: {LENS_KEY}"
     if suffix == ".toml":
         try:
-            data = tomllib.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
+            data = toml.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, toml.TOMLDecodeError, toml.TooDeep) as e:
             raise CameraError(f"{path}: cannot read: {e}") from None
         meta = data.get("meta", {})
         if not isinstance(meta, dict) or LENS_KEY not in meta:

@@ -12,19 +12,14 @@ from __future__ import annotations
 import contextlib
 import copy
 import os
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from kmea.wire import tomlvalue as toml
 from kmea.wire.tomlvalue import parse_toml_value
 from kmead.config.checks import ConfigError, parse_destination
 from kmead.config.schema import LIVE_KEYS, SCHEMA, default_config, is_live, validate_setting
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 __all__ = [
     "LIVE_KEYS",
@@ -63,11 +58,9 @@ def _read_toml(path: Path) -> dict:
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not a text file") from None
     try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
+        return toml.loads(text)
+    except (toml.TOMLDecodeError, toml.TooDeep) as e:
         raise ConfigError(f"{path}: invalid TOML: {e}") from None
-    except RecursionError:  # tomllib recurses per nesting level: 600 levels overflow it
-        raise ConfigError(f"{path}: invalid TOML: nested too deeply") from None
 
 
 def parse_set(item: str) -> tuple[str, Any]:
