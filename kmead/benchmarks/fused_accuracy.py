@@ -63,12 +63,15 @@ class Stream:
     x: list[float] = field(default_factory=list)
     y: list[float] = field(default_factory=list)
     theta: list[float] = field(default_factory=list)
+    sigma: list[float | None] = field(default_factory=list)
 
-    def add(self, t: float, x: float, y: float, theta: float) -> None:
+    def add(self, t: float, x: float, y: float, theta: float,
+            sigma: float | None = None) -> None:
         self.t.append(t)
         self.x.append(x)
         self.y.append(y)
         self.theta.append(theta)
+        self.sigma.append(sigma)
 
 
 def _zenoh_sets(zport: int, extra: list[str]) -> list[str]:
@@ -110,7 +113,8 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
             return
         if m.get("valid"):
             with lock:
-                raw[(parts[2], parts[4])].add(m["t"], m["x"], m["y"], m["theta"])
+                raw[(parts[2], parts[4])].add(m["t"], m["x"], m["y"], m["theta"],
+                                              m.get("sigma"))
 
     sub = session.declare_subscriber(f"{SITE}/cam/*/robots/*", on_measurement)
     udp = {n: socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for n, _ in ROBOTS}
@@ -193,8 +197,10 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
                 continue
             streams[f"{cam} raw"] = st
             tracker, filt = Tracker(), Stream()
-            for t, x, y, th in sorted(zip(st.t, st.x, st.y, st.theta, strict=True)):
-                out = tracker.update(name, t, x, y, th)
+            # With the sigma the camera sent, as its kmead's own filter and the node take it.
+            for t, x, y, th, sg in sorted(zip(st.t, st.x, st.y, st.theta, st.sigma,
+                                              strict=True), key=lambda r: r[0]):
+                out = tracker.update(name, t, x, y, th, sg)
                 if out.state is not None and out.kind != "rejected":
                     filt.add(t, out.state.x, out.state.y, out.state.theta)
             streams[f"{cam} filt"] = filt
