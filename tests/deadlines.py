@@ -8,9 +8,10 @@ JOIN = 60.0  # s: a thread or process asked to stop, at the end of a test
 
 
 def wait_until(cond, what: str, timeout: float = DEADLINE, interval: float = 0.05,
-               check=None) -> None:
+               check=None, detail=None) -> None:
     """Return as soon as ``cond()`` is true; fail after ``timeout`` s naming ``what``.
-    ``check()``: called while waiting, raises when waiting is pointless (a process died)."""
+    ``check()``: called while waiting, raises when waiting is pointless (a process died);
+    ``detail()``: text added to the timeout's message (the processes' last lines)."""
     import time
 
     end = time.monotonic() + timeout
@@ -20,7 +21,8 @@ def wait_until(cond, what: str, timeout: float = DEADLINE, interval: float = 0.0
         if check is not None:
             check()
         time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}"
+                         + (f": {detail()}" if detail is not None else ""))
 
 
 async def pilot_until(pilot, cond, what: str, timeout: float = DEADLINE) -> None:

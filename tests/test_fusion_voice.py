@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
-from deadlines import DEADLINE, JOIN
+from deadlines import DEADLINE, JOIN, wait_until
 
 pytest.importorskip("zenoh", reason="the zenoh extra is not installed "
                                     "(pip install 'kmea[zenoh]')")
@@ -143,16 +143,13 @@ class Robots:
 
 
 def _wait(cond, what: str, procs: list[Proc]) -> None:
-    end = time.monotonic() + DEADLINE
-    while time.monotonic() < end:
-        if cond():
-            return
+    def exited() -> None:
         for p in procs:
             if p.proc.poll() is not None and p.proc.returncode not in (0, -9, -2, 130):
                 raise AssertionError(f"a process exited: {p.err_path.read_text()[-800:]}")
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}: "
-                         + " | ".join(p.err_path.read_text()[-300:] for p in procs))
+
+    wait_until(cond, what, check=exited,
+               detail=lambda: " | ".join(p.err_path.read_text()[-300:] for p in procs))
 
 
 def test_one_voice_and_one_sequence_per_robot_across_every_handover(tmp_path: Path) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Set as AbstractSet
+
 __all__ = ["Election"]
 
 
@@ -46,7 +48,7 @@ class Election:
         self.role = "stopping"
 
     def decide(self, now: float, stalled: bool = False,
-               speaking: frozenset[str] | set[str] = frozenset()) -> str | None:
+               speaking: AbstractSet[str] = frozenset()) -> str | None:
         """The new role when it changes, else None. ``speaking``: the ids of the nodes heard
         speaking to a robot lately (:meth:`kmead.outputs.voice.Voice.nodes_speaking`)."""
         if self.role == "stopping":
@@ -55,7 +57,7 @@ class Election:
         if self.role == "active":
             if stalled:
                 self.role, self.since = "starting", now
-            elif any(n < self.id for n in actives & set(speaking)):
+            elif any(n < self.id for n in actives & speaking):
                 self.role = "standby"
             else:
                 return None
