@@ -25,60 +25,25 @@ from kmea.geometry import unit_rays_plane_depth, yaw_of
 from kmea.maps.files import Marker
 from kmea.sim import lens
 from kmea.sim.quads import Quad, Rect, box_quads, grow, overlap, union
+from kmea.sim.sampling import (
+    DYNAMIC_SAMPLES,
+    STATIC_BIT,
+    STATIC_SAMPLES,
+    edges,
+    or_dilate,
+)
 from kmea.sim.scene import PALETTE, Occluder, Scene, SimRobot, pose_matrix
-from kmea.sim.truth import FrameTruth, SimFrame
+from kmea.sim.truth import (
+    FrameTruth,
+    SimFrame,
+    corners_and_probes,
+    hidden_markers,
+    rolled_corners,
+)
 from kmea.timing import FrameTiming
 from kmea.vision.dictionary import get_dictionary
 
 __all__ = ["FrameTruth", "Renderer", "SimFrame"]
-
-def _fib_pattern(n: int, g: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel offsets (n,) x2 of a rank-1 (Fibonacci) lattice over [-0.5, 0.5)^2."""
-    k = np.arange(n)
-    return ((k + 0.5) / n - 0.5), (((k * g) % n) + 0.5) / n - 0.5
-
-
-def _fib_pattern32(n: int, g: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_fib_pattern` in float32."""
-    du, dv = _fib_pattern(n, g)
-    return du.astype(np.float32), dv.astype(np.float32)
-
-
-_STATIC_SAMPLES = _fib_pattern32(89, 55)
-_DYNAMIC_SAMPLES = _fib_pattern32(34, 21)
-
-
-def _edges(a: np.ndarray) -> np.ndarray:
-    """Pixels whose value differs from one of their 8 neighbours."""
-    m = np.zeros(a.shape, dtype=bool)
-    d = a[:, 1:] != a[:, :-1]
-    m[:, 1:] |= d
-    m[:, :-1] |= d
-    d = a[1:, :] != a[:-1, :]
-    m[1:, :] |= d
-    m[:-1, :] |= d
-    d = a[1:, 1:] != a[:-1, :-1]
-    m[1:, 1:] |= d
-    m[:-1, :-1] |= d
-    d = a[1:, :-1] != a[:-1, 1:]
-    m[1:, :-1] |= d
-    m[:-1, 1:] |= d
-    return m
-
-
-_STATIC_BIT = np.int64(1) << np.int64(62)
-
-
-def _or_dilate(a: np.ndarray) -> np.ndarray:
-    """Bitwise OR of each value with its 8 neighbours."""
-    m = a.copy()
-    m[:, 1:] |= a[:, :-1]
-    m[:, :-1] |= a[:, 1:]
-    h = m.copy()
-    m[1:, :] |= h[:-1, :]
-    m[:-1, :] |= h[1:, :]
-    return m
-
 
 # ---------------------------------------------------------------------------- renderer
 
@@ -192,11 +157,11 @@ class Renderer:
         H, W = self.height, self.width
         full = (0, H, 0, W)
         t, alb, _ = self._cast_rect(full, self.static_quads, self.static_rects, floor=True)
-        edges = _edges(alb)
-        rows, cols = np.nonzero(edges)
+        edge = edges(alb)
+        rows, cols = np.nonzero(edge)
         if rows.size:
-            alb[rows, cols] = self._supersample(rows, cols, _STATIC_SAMPLES)
-        self.static_edges = edges
+            alb[rows, cols] = self._supersample(rows, cols, STATIC_SAMPLES)
+        self.static_edges = edge
         self.static_albedo = alb
         self.static_depth = t.astype(np.float32)
         self.light = self._light(t, full)
@@ -424,7 +389,7 @@ class Renderer:
         av = s2 * ((e0 * xv + e1 * yv) * D - E * Dv)
         bu = s2 * ((f0 * xu + f1 * yu) * D - F * Du)
         bv = s2 * ((f0 * xv + f1 * yv) * D - F * Dv)
-        du, dv = _DYNAMIC_SAMPLES
+        du, dv = DYNAMIC_SAMPLES
         tex = q._padded
         if tex is None:
             raise ValueError("_decal_pixels: the quad has no texture in the camera frame")
@@ -545,7 +510,7 @@ class Renderer:
         comp = self.static_albedo[r0:r1, c0:c1].copy()
         comp[hit] = ad[hit]
         near = cv2.dilate(hit.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-        e = (_edges(comp) | _edges(hit)) & near
+        e = (edges(comp) | edges(hit)) & near
         rows, cols = np.nonzero(e)
         if rows.size:
             sel = [i for i, qr in enumerate(self.static_rects)
@@ -553,8 +518,8 @@ class Renderer:
             # What a pixel's square can show is what its 3 x 3 neighbours' centres show (the
             # surfaces are convex and larger than a pixel): cast only those surfaces.
             if len(quads) <= 62:
-                bits = np.where(hit, np.left_shift(np.int64(1), np.maximum(qd, 0)), _STATIC_BIT)
-                masks = _or_dilate(bits)[rows, cols]
+                bits = np.where(hit, np.left_shift(np.int64(1), np.maximum(qd, 0)), STATIC_BIT)
+                masks = or_dilate(bits)[rows, cols]
             else:
                 masks = np.full(rows.size, -1, dtype=np.int64)
             # Where the static image has no edge around a pixel, the static scene is uniform
@@ -562,7 +527,7 @@ class Renderer:
             flat = ~self.static_edges[rows + r0, cols + c0]
             for m in np.unique(masks):
                 use = [i for i in range(len(quads)) if m == -1 or (m >> i) & 1]
-                static = bool(m & _STATIC_BIT)
+                static = bool(m & STATIC_BIT)
                 if not static and len(use) == 1 and quads[use[0]].tex is not None:
                     k = np.flatnonzero(masks == m)
                     comp[rows[k], cols[k]] = self._decal_pixels(rows[k] + r0, cols[k] + c0,
@@ -573,7 +538,7 @@ class Renderer:
                     if k.size == 0:
                         continue
                     comp[rows[k], cols[k]] = self._supersample(
-                        rows[k] + r0, cols[k] + c0, _DYNAMIC_SAMPLES, [quads[i] for i in use],
+                        rows[k] + r0, cols[k] + c0, DYNAMIC_SAMPLES, [quads[i] for i in use],
                         [rects[i] for i in use], static, sel, uniform=part)
         k = self._blur_radius
         out = grow(box, k, shape)
@@ -679,84 +644,15 @@ class Renderer:
                                                                        out[2]:out[3]]
             frame[out[0]:out[1], out[2]:out[3]] = acc.astype(np.float32)
 
-    def _rolling_corners(self, robot: SimRobot, timing: FrameTiming
-                         ) -> dict[int, np.ndarray]:
-        """(4, 2) pixel corners of ``robot``'s markers, each corner where it was at its own
-        row's mid-exposure (a fixed point: the row depends on the time and back; three
-        steps, each shrinking the error by the image speed times the line time, ~0.03)."""
-        sc = self.scene
-        half = robot.length / 2
-        local = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0],
-                          [-half, -half, 0]], dtype=float)
-        out: dict[int, np.ndarray] = {}
-        for mid in robot.markers:
-            uv = np.zeros((4, 2))
-            for c in range(4):
-                t = timing.row_time(self.height / 2)
-                for _ in range(4):
-                    pose = robot.path.pose(t)
-                    if pose is None:
-                        break
-                    T = sc.robot_marker_poses(robot, pose)[mid]
-                    w = T[:3, :3] @ local[c] + T[:3, 3]
-                    uv[c] = lens.project(w[None], self.world2cam, sc.camera)[0][0]
-                    t = timing.row_time(float(uv[c, 1]))
-            out[mid] = uv
-        return out
-
     # ------------------------------------------------------------ truth
-    def _corners_and_probes(self, markers: dict[int, np.ndarray], lengths: dict[int, float]
-                            ) -> tuple[dict[int, np.ndarray], list[int], np.ndarray]:
-        """Projected corners of the markers facing the camera with all corners in the image,
-        their ids, and their occlusion probes (5 per marker: corners 2 % inside and the
-        centre) in the camera frame, (5 N, 3)."""
-        ids = sorted(markers)
-        if not ids:
-            return {}, [], np.zeros((0, 3))
-        T = np.stack([markers[m] for m in ids])  # (N, 4, 4)
-        half = np.array([lengths[m] / 2 for m in ids])
-        s = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1], [0, 0]], dtype=float)
-        local = np.zeros((len(ids), 5, 3))
-        local[:, :, :2] = s[None] * half[:, None, None]
-        world = np.einsum("nij,nkj->nki", T[:, :3, :3], local) + T[:, None, :3, 3]
-        uv, z = lens.project(world[:, :4].reshape(-1, 3), self.world2cam, self.scene.camera)
-        uv, z = uv.reshape(-1, 4, 2), z.reshape(-1, 4)
-        cam = self.cam2world[:3, 3]
-        facing = np.einsum("ni,ni->n", T[:, :3, 2], cam - T[:, :3, 3]) > 0
-        W, H = self.width, self.height
-        with np.errstate(invalid="ignore"):
-            inside = ((uv >= -0.5).all(axis=(1, 2)) & (uv[..., 0] <= W - 0.5).all(axis=1)
-                      & (uv[..., 1] <= H - 0.5).all(axis=1))
-        keep = np.flatnonzero(facing & inside & (z > 1e-6).all(axis=1))
-        corners = {ids[i]: uv[i] for i in keep}
-        probes = world[keep].copy()
-        probes[:, :4] = probes[:, 4:5] + 0.98 * (probes[:, :4] - probes[:, 4:5])
-        Pc = probes.reshape(-1, 3) @ self.world2cam[:3, :3].T + self.world2cam[:3, 3]
-        return corners, [ids[i] for i in keep], Pc
-
-    @staticmethod
-    def _hidden(Pc: np.ndarray, occluders: list[Quad]) -> np.ndarray:
-        """(N,) whether each marker (5 probes each) is hidden by one of ``occluders``."""
-        hidden = np.zeros(len(Pc), dtype=bool)
-        if len(Pc) == 0:
-            return hidden
-        x, y, zc = Pc[:, 0] / Pc[:, 2], Pc[:, 1] / Pc[:, 2], Pc[:, 2]
-        x0, x1, y0, y1 = x.min(), x.max(), y.min(), y.max()
-        for q in occluders:
-            b = q.bbox
-            if b is not None and (b[1] < x0 or b[0] > x1 or b[3] < y0 or b[2] > y1):
-                continue
-            tq, _ = q.hit(x, y)
-            hidden |= tq < zc * (1 - 1e-7)
-        return np.any(hidden.reshape(-1, 5), axis=1)
-
     def _static_truth(self) -> None:
         """What does not change between frames: static markers, corners, static occlusion."""
         self._truth_T = {mid: pose_matrix(m.rotation, m.position)
                          for mid, m in self._static_markers.items()}
         self._truth_len = {mid: m.length for mid, m in self._static_markers.items()}
-        corners, ids, Pc = self._corners_and_probes(self._truth_T, self._truth_len)
-        hidden = self._hidden(Pc, [q for q in self.static_quads if q.occludes])
+        corners, ids, Pc = corners_and_probes(self._truth_T, self._truth_len, self.scene.camera,
+                                              self.cam2world, self.world2cam)
+        hidden = hidden_markers(Pc, [q for q in self.static_quads if q.occludes])
         self._truth_corners = corners
         keep = ~hidden
         self._truth_open = [m for m, k in zip(ids, keep, strict=True) if k]
@@ -776,29 +672,18 @@ class Renderer:
                 moving[mid] = T
                 lengths[mid] = r.length
         markers.update(moving)
-        rc, rids, rPc = self._corners_and_probes(moving, lengths)
+        rc, rids, rPc = corners_and_probes(moving, lengths, sc.camera, self.cam2world,
+                                           self.world2cam)
         timing = self.timing(index, t)
         if sc.effects.timed:
-            for r in sc.robots:
-                if any(m in rc for m in r.markers):
-                    rolled = self._rolling_corners(r, timing)
-                    W, H = self.width, self.height
-                    for m, c in rolled.items():
-                        if m not in rc:
-                            continue
-                        # seen at its rows' time it may lie across the image's edge
-                        if ((c >= -0.5).all() and (c[:, 0] <= W - 0.5).all()
-                                and (c[:, 1] <= H - 0.5).all()):
-                            rc[m] = c
-                        else:
-                            del rc[m]
+            rc = rolled_corners(rc, sc, timing, self.world2cam)
         corners = {m: c.copy() for m, c in self._truth_corners.items()}
         corners.update(rc)
         dyn = [q for obj in self.dynamic_quads(t) for q in obj if q.occludes]
         statics = [q for q in self.static_quads if q.occludes]
-        visible = {m for m, h in zip(self._truth_open, self._hidden(self._truth_probes, dyn),
+        visible = {m for m, h in zip(self._truth_open, hidden_markers(self._truth_probes, dyn),
                                      strict=True) if not h}
-        visible |= {m for m, h in zip(rids, self._hidden(rPc, statics + dyn), strict=True)
+        visible |= {m for m, h in zip(rids, hidden_markers(rPc, statics + dyn), strict=True)
                     if not h and m in rc}
         return FrameTruth(self.cam2world.copy(), markers, lengths, corners, visible, robots, t,
                           timing, {r.name: r.path for r in sc.robots})
