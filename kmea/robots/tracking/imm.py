@@ -56,7 +56,8 @@ def moments(ss: np.ndarray, Ps: np.ndarray, w: np.ndarray, ref: float
     if len(w) == 1:
         return ss[0].copy(), Ps[0].copy()
     if len(w) == 2:
-        # The two modes: the mean in floats (w @ X in numpy's order).
+        # Two modes (the shipped filter): the general path below in floats (the same sums
+        # in numpy's order); the arrays cost about 30 % more per update (docs/tracking.md).
         w0, w1 = w.tolist()
         a, b = ss.tolist()
         a[2] = ref + (a[2] - ref + math.pi) % _TWO_PI - math.pi
@@ -111,39 +112,22 @@ class ModeSet:
         if len(self.qs) == 1:
             out_s, out_P = self.model.steps(ss, Ps, dt, self.qs)
             return Modes(out_s, out_P, mu)
-        p01 = 1.0 - math.exp(-abs(dt) / self.cruise_time_s)
-        p10 = 1.0 - math.exp(-abs(dt) / self.manoeuvre_time_s)
-        # Pi[i][j]: from mode i to mode j; c[j] = (Pi^T mu)[j], mode j's probability after
-        # the switch. Both modes' mixed priors (moments for each j) at once: the means in
-        # floats (summed in numpy's order, so bit for bit the same), the covariances as one
-        # stacked product.
-        Pi = ((1.0 - p01, p01), (p10, 1.0 - p10))
-        m0, m1 = mu.tolist()
-        c = [Pi[0][0] * m0 + Pi[1][0] * m1, Pi[0][1] * m0 + Pi[1][1] * m1]
-        rows = ss.tolist()
-        n = len(rows[0])
-        W, Ds, DW, means = [], [], [], []
-        for j in range(2):
-            w0, w1 = Pi[0][j] * m0 / c[j], Pi[1][j] * m1 / c[j]
-            ref = rows[j][2]
-            x0, x1 = list(rows[0]), list(rows[1])
-            x0[2] = ref + (x0[2] - ref + math.pi) % _TWO_PI - math.pi
-            x1[2] = ref + (x1[2] - ref + math.pi) % _TWO_PI - math.pi
-            mean = [w0 * u + w1 * v for u, v in zip(x0, x1, strict=True)]
-            d0 = [u - v for u, v in zip(x0, mean, strict=True)]
-            d1 = [u - v for u, v in zip(x1, mean, strict=True)]
-            Ds += d0 + d1
-            DW += [v * w0 for v in d0] + [v * w1 for v in d1]  # D.T * w, as rows
-            mean[2] = wrap_angle(mean[2])
-            means.append(mean)
-            W += (w0, w1)
-        flat = np.array(W + Ds + DW)
-        Wa = flat[:4].reshape(2, 2, 1, 1)
-        D = flat[4:4 + 4 * n].reshape(2, 2, n)
-        DWa = flat[4 + 4 * n:].reshape(2, 2, n)
-        P0 = Wa[:, 0] * Ps[0] + Wa[:, 1] * Ps[1] + DWa.transpose(0, 2, 1) @ D
-        out_s, out_P = self.model.steps(means, P0, dt, self.qs)
-        return Modes(out_s, out_P, np.array(c))
+        Pi = self.transitions(abs(dt))
+        c = Pi.T @ mu  # each mode's probability after the switch
+        # W[i, j]: the probability that the track was in mode i, given mode j after it.
+        W = Pi * mu[:, None] / c[None, :]
+        mixed = [moments(ss, Ps, W[:, j], float(ss[j, 2])) for j in range(len(c))]
+        out_s, out_P = self.model.steps(np.array([s for s, _ in mixed]),
+                                        np.array([P for _, P in mixed]), dt, self.qs)
+        return Modes(out_s, out_P, c)
+
+    def transitions(self, dt: float) -> np.ndarray:
+        """(M, M) mode switching probabilities over ``dt`` >= 0 s, from mode i (row) to
+        mode j: cruise to manoeuvre at the rate 1 / ``cruise_time_s``, back at
+        1 / ``manoeuvre_time_s``."""
+        p01 = 1.0 - math.exp(-dt / self.cruise_time_s)
+        p10 = 1.0 - math.exp(-dt / self.manoeuvre_time_s)
+        return np.array([[1.0 - p01, p01], [p10, 1.0 - p10]])
 
     @staticmethod
     def combine(m: Modes) -> tuple[np.ndarray, np.ndarray]:
