@@ -26,8 +26,9 @@ class FixedCameraConfig:
     ``bump_min`` of them) = the camera was bumped; counted among the markers whose drift
     was measured in the frame, and among all of them for the code check.
     min_score: a static marker is seen when its code correlates at least this much with
-    the image at its reference corners (:func:`kmea.fixed_camera.codes.code_scores`); add_score: a static marker
-    found by a background detection is taken (or replaces its reference) from this score.
+    the image at its reference corners (:func:`kmea.fixed_camera.codes.code_scores`);
+    add_score: a static marker found by a background detection is taken (or replaces its
+    reference) from this score.
     margin: search region around a moving marker's prediction, in marker sides.
     follow: a moving marker seen in the last two frames is first refined from its predicted
     corners (``cornerSubPix`` as the detector refines) and kept when its code reads at
