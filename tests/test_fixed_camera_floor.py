@@ -7,11 +7,15 @@ import math
 import numpy as np
 from fixed_camera_helpers import (
     frames_of,
+    static_ids,
 )
 from fixed_camera_helpers import tracker as make_tracker
 
+from kmea.fixed_camera.codes import CodeBook
+from kmea.fixed_camera.floor import Floor
+from kmea.fixed_camera.tracks import FixedCameraConfig, Track
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
-from kmea.vision.detection import DetectorConfig, MarkerDetector
+from kmea.vision.detection import DetectorConfig, MarkerDetector, as_gray
 
 
 def test_a_small_bump_is_noticed_in_its_frame_by_the_rotating_drift_check():
@@ -78,3 +82,29 @@ def test_bumped_camera_restarts_detection_and_estimation_with_an_event():
     before = np.mean([e for x in results[2:bump_frame] for e in x.loo.values()])
     after = np.mean([e for x in results[bump_frame:] for e in x.loo.values()])
     assert after < 2.0 * before + 1e-3, (before, after)  # metres: the estimate is sane again
+
+
+def test_the_floor_look_sees_the_fixed_markers_in_place_and_a_blank_view_as_a_bump(
+        default_frames):
+    """Floor.look on its own: the fixed markers of a full detection, checked in the next
+    frames, are seen at their place (a robot may hide one) and none moved; a frame with
+    nothing at their place is a bump."""
+    frames, src = default_frames
+    cfg = DetectorConfig(src.world_map.dictionary)
+    det = MarkerDetector(cfg)
+    d = det.detect(frames[0].image)
+    fixed = static_ids(src)
+    ids = [m for m in d.ids.tolist() if m in fixed]
+    tracks = [Track(c.copy(), np.zeros((4, 2)), True, 0)
+              for m, c in zip(d.ids.tolist(), d.corners, strict=True) if m in fixed]
+    assert len(ids) >= 10
+    floor = Floor(FixedCameraConfig(static_ids=fixed), CodeBook(det.dictionary))
+    for k, f in enumerate(frames[1:6], start=1):
+        gray = as_gray(f.image)
+        look = floor.look(gray, ids, tracks, k)
+        assert look.ids == ids and look.bump is None and look.moved == [], (k, look.moved)
+        assert look.seen.sum() >= len(ids) - 2, (k, int(look.seen.sum()))
+    blank = np.full_like(as_gray(frames[6].image), 128)
+    look = floor.look(blank, ids, tracks, 6)
+    assert not look.seen.any()
+    assert look.bump is not None and look.bump.startswith("camera moved"), look.bump

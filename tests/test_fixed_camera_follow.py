@@ -11,8 +11,12 @@ from fixed_camera_helpers import (
 from fixed_camera_helpers import tracker as make_tracker
 
 from kmea.fixed_camera import FixedCameraDetector
+from kmea.fixed_camera.codes import CodeBook
+from kmea.fixed_camera.discovery import TunedDetectors
+from kmea.fixed_camera.follow import Follower
+from kmea.fixed_camera.tracks import FixedCameraConfig
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
-from kmea.vision.detection import DetectorConfig, MarkerDetector
+from kmea.vision.detection import DetectorConfig, MarkerDetector, as_gray
 
 
 def _robot_corner_gaps(spec: str, n: int, width: int, **kw
@@ -76,3 +80,29 @@ def test_robots_at_speed_keep_their_pose_every_frame():
         prev = f
     assert max(yaw_rates) >= 3.0  # the run did include turns at 3 rad/s or more
     assert p.observer.detector.followed_frames >= 20
+
+
+def test_the_follower_refines_a_prediction_to_the_detected_corners_and_refuses_a_wrong_one(
+        pi_frames):
+    """Follower.follow on its own: robot markers predicted from their two last detections
+    (constant velocity) come back with the corners a full detection of the frame gives;
+    a prediction 25 px off, where the code cannot read, gives nothing."""
+    frames, src = pi_frames
+    cfg = DetectorConfig(src.world_map.dictionary)
+    dets = TunedDetectors(cfg)
+    follower = Follower(FixedCameraConfig(), dets, CodeBook(dets.full.dictionary))
+    robot_ids = {m for r in src.scene.robot_specs() for m in r.markers}
+    seen = [dict(zip(d.ids.tolist(), d.corners, strict=True))
+            for d in (dets.full.detect(f.image) for f in frames[:6])]
+    refined = 0
+    for k in range(2, 6):
+        ms = [m for m in robot_ids if all(m in seen[j] for j in (k - 2, k - 1, k))]
+        preds = {m: 2 * seen[k - 1][m] - seen[k - 2][m] for m in ms}
+        got = follower.follow(as_gray(frames[k].image), preds, {m: seen[k - 1][m] for m in ms})
+        for m, c in got.items():
+            assert np.abs(c - seen[k][m]).max() < 0.05, (k, m)
+        refined += len(got)
+        off = {m: p + 25.0 for m, p in preds.items()}
+        assert follower.follow(as_gray(frames[k].image), off,
+                               {m: seen[k - 1][m] for m in ms}) == {}
+    assert refined >= 6 and follower.followed == refined
