@@ -34,7 +34,7 @@ from kmea.vision.camera import CameraModel
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector
 
 __all__ = ["STAGES", "FrameInput", "FrameResult", "MarkerObserver", "Pipeline",
-           "PipelineSettings", "RobotFix", "new_detector"]
+           "PipelineSettings", "RobotFix"]
 
 STAGES = ("capture", "detect", "pose", "estimate", "loo", "filter", "robots", "output")
 
@@ -161,8 +161,7 @@ class PipelineSettings:
     """What the pipeline is told (units: m, s).
 
     dictionary: ArUco dictionary ("" = the map's); corner_refinement, detector_parameters:
-    see :class:`kmea.vision.detection.DetectorConfig`; fast, fast_window, full_every: the
-    fast detector (:mod:`kmea.vision.fastdetect`); marker_length: side of markers the map
+    see :class:`kmea.vision.detection.DetectorConfig`; marker_length: side of markers the map
     and the robots do not size; algorithm: an estimator name (:func:`kmea.estimators.get`);
     unknown_plane: what the estimator does with markers of unknown plane ("auto", "floor",
     "free"; :mod:`kmea.estimators.unknown_plane`);
@@ -180,9 +179,6 @@ class PipelineSettings:
     dictionary: str = ""
     corner_refinement: str = "subpix"
     detector_parameters: dict[str, Any] = field(default_factory=dict)
-    fast: bool = False
-    fast_window: int = 0
-    full_every: int = 30
     marker_length: float = 0.06
     algorithm: str = estimators.DEFAULT_ALGORITHM
     unknown_plane: str = "auto"
@@ -205,8 +201,7 @@ class PipelineSettings:
         only)."""
         d, f = data["detector"], data["filter"]
         return cls(dictionary=d["dictionary"], corner_refinement=d["corner_refinement"],
-                   detector_parameters=dict(d["parameters"]), fast=bool(d["fast"]),
-                   fast_window=int(d["fast_window"]), full_every=int(d["full_every"]),
+                   detector_parameters=dict(d["parameters"]),
                    marker_length=float(d["marker_length"]),
                    algorithm=data["estimator"]["algorithm"],
                    unknown_plane=data["estimator"].get("unknown_plane", "auto"),
@@ -226,17 +221,6 @@ def tracker_config(f: Mapping[str, Any]) -> TrackerConfig:
     """The tracking filter's configuration from a ``[filter]`` table (missing keys: the
     defaults of :class:`TrackerConfig`)."""
     return TrackerConfig.from_table(f)
-
-
-def new_detector(config: DetectorConfig, fast: bool = False, fast_window: int = 0,
-                 full_every: int = 30):
-    """A detector with ``detect(image) -> Detections``: :class:`MarkerDetector`, or the
-    stateful :class:`kmea.vision.fastdetect.FastDetector` with ``fast``."""
-    if fast:
-        from kmea.vision.fastdetect import FastDetector
-
-        return FastDetector(config, fast_window, full_every)
-    return MarkerDetector(config)
 
 
 class MarkerObserver:
@@ -339,8 +323,8 @@ class Pipeline:
             est.reset_warm()
 
     def new_detector(self):
-        """A fresh detector as configured (one per detection thread); with
-        ``settings.fixed_camera`` a
+        """A fresh detector as configured (one per detection thread): a
+        :class:`kmea.vision.detection.MarkerDetector`, or with ``settings.fixed_camera`` a
         :class:`kmea.fixed_camera.FixedCameraDetector` told which markers are fixed (the
         map's, minus the robots'), its discoveries run by ``background``."""
         s = self.settings
@@ -350,7 +334,7 @@ class Pipeline:
             return FixedCameraDetector(self.detector_config, FixedCameraConfig(
                 full_every=s.fixed_full_every, static_ids=static),
                 jobs=None if self.background is None else self.background.jobs())
-        return new_detector(self.detector_config, s.fast, s.fast_window, s.full_every)
+        return MarkerDetector(self.detector_config)
 
     @property
     def detector(self):

@@ -188,8 +188,7 @@ def test_huge_stats_values_are_refused_and_the_daemon_runs_on(shared: LiveDaemon
 
 @pytest.mark.parametrize("sets", [["stats.window=1000000000000000000000000000000"],
                                   ["stats.displaced_frames=1000000000000000000000000000000"],
-                                  ["detector.fast=true",
-                                   "detector.fast_window=1000000000000000000000000000000"]])
+                                  ["detector.fixed_full_every=1000000000000000000000000000000"]])
 def test_huge_values_from_set_refuse_to_start(sets: list[str],
                                               capsys: pytest.CaptureFixture) -> None:
     args = [a for s in sets for a in ("--set", s)]

@@ -298,11 +298,9 @@ class NoDetect:
 def open_feed(capture: Capture, pipeline, workers: int, live: bool, replay: bool):
     """Where detection happens: ``workers`` = 0 (or a replay, nothing to detect) in the main
     thread; else a thread of its own for a live source, a pool of ``workers`` threads for an
-    in-order source (one thread with the fast detector: it follows the frames in order)."""
+    in-order source."""
     if workers < 1 or replay:
         return NoDetect(capture)
     if live:
         return LiveDetect(capture, pipeline)
-    if pipeline.settings.fast:
-        workers = 1
     return DetectPool(capture, pipeline, workers)
