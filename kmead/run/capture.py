@@ -237,7 +237,7 @@ class LiveDetect:
                 if frame.image is not None:
                     if gen != self.pipeline.detector_generation:
                         if det is not None and hasattr(det, "close"):
-                            det.close()  # a tracking detector's background thread
+                            det.close()  # a tracking detector's discoveries
                         det, gen = (self.pipeline.new_detector(),
                                     self.pipeline.detector_generation)
                     t0 = time.perf_counter()
