@@ -13,10 +13,8 @@ into CSV rows, telemetry and datagrams. Every stage is timed in milliseconds.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable, Mapping
-from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +22,9 @@ import numpy as np
 
 from kmea import estimators
 from kmea.estimators.base import Estimate, MarkerObservation, WarmStart
-from kmea.fixed_camera import FixedCameraSession
+from kmea.fixed_camera import FixedCameraConfig, FixedCameraDetector, FixedCameraSession
+from kmea.fixed_camera.discovery import Background
+from kmea.fixed_camera.session import Models
 from kmea.geometry import wrap_angle
 from kmea.maps.files import MarkerMap
 from kmea.robots.iir import PoseFilter
@@ -34,12 +34,12 @@ from kmea.vision.camera import CameraModel
 from kmea.vision.detection import Detections, DetectorConfig, MarkerDetector
 
 __all__ = ["STAGES", "FrameInput", "FrameResult", "MarkerObserver", "Pipeline",
-           "PipelineSettings", "RobotFix", "new_detector"]
+           "PipelineSettings", "RobotFix"]
 
 STAGES = ("capture", "detect", "pose", "estimate", "loo", "filter", "robots", "output")
 
 # A fixed marker whose reference corners moved by at most this (px) keeps its pose, for
-# estimators that fit corners (kmea.fixed_camera.IncrementalPoses.reuse_px): a tenth of a
+# estimators that fit corners (kmea.fixed_camera.reuse.IncrementalPoses.reuse_px): a tenth of a
 # pixel, above the 0.005-0.05 px of one more averaged look, below the 0.1-0.3 px corner
 # noise of a single detection.
 REUSE_PX = 0.1
@@ -132,12 +132,36 @@ class FrameResult:
 
 
 @dataclass
+class _Work:
+    """One frame's values on their way through :meth:`Pipeline.process`'s steps."""
+
+    inp: FrameInput
+    tm: dict[str, float]
+    loo: bool
+    on_robots: Callable[[float, dict[str, RobotFix]], None] | None
+    t0: float
+    t1: float = 0.0
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    corners: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 2)))
+    obs: list[MarkerObservation] = field(default_factory=list)
+    diag: dict = field(default_factory=dict)
+    events: tuple[str, ...] = ()
+    restart: bool = False
+    mode: str = "full"
+    incremental: bool = False
+    deferred: tuple[int, ...] = ()
+    est: Estimate = field(default_factory=lambda: Estimate.failed("", "not estimated"))
+    both: Any = None  # the estimate with its leave-one-out (estimate_with_loo)
+    robots: dict[str, RobotFix] | None = None  # sent already (before the poses)
+    rejections: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
 class PipelineSettings:
     """What the pipeline is told (units: m, s).
 
     dictionary: ArUco dictionary ("" = the map's); corner_refinement, detector_parameters:
-    see :class:`kmea.vision.detection.DetectorConfig`; fast, fast_window, full_every: the
-    fast detector (:mod:`kmea.vision.fastdetect`); marker_length: side of markers the map
+    see :class:`kmea.vision.detection.DetectorConfig`; marker_length: side of markers the map
     and the robots do not size; algorithm: an estimator name (:func:`kmea.estimators.get`);
     unknown_plane: what the estimator does with markers of unknown plane ("auto", "floor",
     "free"; :mod:`kmea.estimators.unknown_plane`);
@@ -145,7 +169,7 @@ class PipelineSettings:
     paper's, with alpha) or "kalman" (:mod:`kmea.robots.tracking`, configured by ``tracker``);
     loo: compute leave-one-out errors; robots: the robots carrying markers.
     fixed_camera: a fixed live camera (:mod:`kmea.fixed_camera`): the fixed-camera detector
-    (:mod:`kmea.vision.fixed_camera_detector`, a background full detection every
+    (:mod:`kmea.fixed_camera.detector`, a background full detection every
     ``fixed_full_every`` frames), marker poses and leave-one-out errors reused while the
     floor's detections do not change (recomputed at least every ``loo_every`` frames),
     the floor's camera fit updated at most every ``refit_every`` frames (see
@@ -155,9 +179,6 @@ class PipelineSettings:
     dictionary: str = ""
     corner_refinement: str = "subpix"
     detector_parameters: dict[str, Any] = field(default_factory=dict)
-    fast: bool = False
-    fast_window: int = 0
-    full_every: int = 30
     marker_length: float = 0.06
     algorithm: str = estimators.DEFAULT_ALGORITHM
     unknown_plane: str = "auto"
@@ -180,8 +201,7 @@ class PipelineSettings:
         only)."""
         d, f = data["detector"], data["filter"]
         return cls(dictionary=d["dictionary"], corner_refinement=d["corner_refinement"],
-                   detector_parameters=dict(d["parameters"]), fast=bool(d["fast"]),
-                   fast_window=int(d["fast_window"]), full_every=int(d["full_every"]),
+                   detector_parameters=dict(d["parameters"]),
                    marker_length=float(d["marker_length"]),
                    algorithm=data["estimator"]["algorithm"],
                    unknown_plane=data["estimator"].get("unknown_plane", "auto"),
@@ -201,17 +221,6 @@ def tracker_config(f: Mapping[str, Any]) -> TrackerConfig:
     """The tracking filter's configuration from a ``[filter]`` table (missing keys: the
     defaults of :class:`TrackerConfig`)."""
     return TrackerConfig.from_table(f)
-
-
-def new_detector(config: DetectorConfig, fast: bool = False, fast_window: int = 0,
-                 full_every: int = 30):
-    """A detector with ``detect(image) -> Detections``: :class:`MarkerDetector`, or the
-    stateful :class:`kmea.vision.fastdetect.FastDetector` with ``fast``."""
-    if fast:
-        from kmea.vision.fastdetect import FastDetector
-
-        return FastDetector(config, fast_window, full_every)
-    return MarkerDetector(config)
 
 
 class MarkerObserver:
@@ -265,18 +274,16 @@ class Pipeline:
 
     def __init__(self, camera: CameraModel, world_map: MarkerMap,
                  settings: PipelineSettings | None = None,
-                 executor: Executor | None = None) -> None:
-        """executor: where a fixed-camera detector's background detection runs (the caller's,
-        e.g. the daemon's one low-priority thread); None: in the frame path itself."""
-        self.executor = executor
+                 background: Background | None = None) -> None:
+        """background: where a fixed-camera detector's discoveries run (the caller's, e.g.
+        the daemon's one low-priority thread, :mod:`kmead.run.discovery`); None: in the
+        frame path itself (:class:`kmea.fixed_camera.Inline`)."""
+        self.background = background
         self.base_camera = camera
         self.camera = camera
         self.world_map = world_map
         self.settings = settings or PipelineSettings()
         self.detector_generation = 0
-        # Set once a frame's robots are known (sent): a tracking detector's background
-        # detection waits for it, so it runs in the gap between frames.
-        self.robots_sent = threading.Event()
         self.observer = MarkerObserver(None, camera, world_map)
         # A fixed live camera (settings.fixed_camera): what carries over from frame to frame.
         self.session = FixedCameraSession(self.settings.loo_every)
@@ -316,20 +323,18 @@ class Pipeline:
             est.reset_warm()
 
     def new_detector(self):
-        """A fresh detector as configured (one per detection thread); with
-        ``settings.fixed_camera`` a
-        :class:`kmea.vision.fixed_camera_detector.FixedCameraDetector` told which markers
-        are fixed (the map's, minus the robots')."""
+        """A fresh detector as configured (one per detection thread): a
+        :class:`kmea.vision.detection.MarkerDetector`, or with ``settings.fixed_camera`` a
+        :class:`kmea.fixed_camera.FixedCameraDetector` told which markers are fixed (the
+        map's, minus the robots'), its discoveries run by ``background``."""
         s = self.settings
         if s.fixed_camera:
-            from kmea.vision.fixed_camera_detector import FixedCameraConfig, FixedCameraDetector
-
             robot_ids = {m for r in s.robots for m in r.markers}
             static = frozenset(set(self.world_map.markers) - robot_ids)
             return FixedCameraDetector(self.detector_config, FixedCameraConfig(
-                full_every=s.fixed_full_every, static_ids=static), executor=self.executor,
-                gate=self.robots_sent)
-        return new_detector(self.detector_config, s.fast, s.fast_window, s.full_every)
+                full_every=s.fixed_full_every, static_ids=static),
+                jobs=None if self.background is None else self.background.jobs())
+        return MarkerDetector(self.detector_config)
 
     @property
     def detector(self):
@@ -362,11 +367,13 @@ class Pipeline:
         self.session.poses.reuse_px = REUSE_PX if self.estimator.fits_corners else 0.0
 
     def close(self) -> None:
-        """No more background detections (one waiting for the gate goes at once)."""
+        """No more background detections (one waiting for the frame's robots goes at
+        once)."""
         close = getattr(self.observer.detector, "close", None)
         if close is not None:
             close()
-        self.robots_sent.set()
+        if self.background is not None:
+            self.background.robots_sent()
 
     def configure_filter(self) -> None:
         s = self.settings
@@ -418,131 +425,164 @@ class Pipeline:
 
         loo: compute the leave-one-out errors (None: ``settings.loo``).
 
-        on_robots(t, fixes): called as soon as the robot poses are known, before the
+        on_robots(t, fixes): called once, as soon as the robot poses are known, before the
         leave-one-out estimates (the relay's latency must not pay for the statistics).
 
-        With ``settings.fixed_camera`` the floor's camera fit is updated at most every
+        With ``settings.fixed_camera`` the frame goes through the fixed camera's session
+        (:class:`kmea.fixed_camera.FixedCameraSession`): the robots may be placed before
+        the frame's poses, and the floor's camera fit is updated at most every
         ``settings.refit_every`` frames: in between, a fixed marker whose corners changed
         (one more averaged look) keeps the observation of the last fit, and a fixed marker
         new to the floor (found, or uncovered for the first time) is placed with the last
         fit but is not a reference yet (``FrameResult.deferred``); the next update takes
         them all at once (a refit costs 10-40 ms of CPU; the fit moves by micrometres).
         """
-        if loo is None:
-            loo = self.settings.loo
-        tm: dict[str, float] = dict.fromkeys(STAGES, 0.0)
-        tm["capture"] = inp.capture_ms
-        rejections: dict[str, str] = {}
-        early: dict[str, RobotFix] | None = None
-        t0 = time.perf_counter()
-        events: tuple[str, ...] = ()
-        restart = False
-        mode = "full"
-        incremental = self.settings.fixed_camera
-        deferred: tuple[int, ...] = ()
+        w = _Work(inp, dict.fromkeys(STAGES, 0.0), loo=self.settings.loo if loo is None
+                  else loo, on_robots=on_robots, t0=time.perf_counter())
+        w.tm["capture"] = inp.capture_ms
         self._times, self._rates = {}, {}
-        if on_robots is not None:
-            relay = on_robots
-
-            def relay_and_signal(t: float, fixes: dict[str, RobotFix]) -> None:
-                relay(t, fixes)
-                self.robots_sent.set()  # the background detection may run now
-
-            on_robots = relay_and_signal
         if inp.observations is None:
-            if inp.image is None:
-                raise ValueError(f"frame {inp.index}: no image")
-            h, w = inp.image.shape[:2]
-            self.camera_for(w, h)
-            det = inp.detections
-            if det is not None:
-                t1 = time.perf_counter()
-                tm["detect"] = inp.detect_ms
-            else:
-                det = self.detector.detect(inp.image)
-                t1 = time.perf_counter()
-                tm["detect"] = (t1 - t0) * 1e3
-            if isinstance(det, Detections):
-                ids, corners = det.ids, det.corners
-                events, restart, mode = det.events, det.restart, det.mode
-            else:
-                ids, corners = det
-            self._times = self.observation_times(inp, ids, corners)
-            if restart:  # the view changed: estimation starts again
-                self.reset_incremental()
-                self.configure_filter()
-            if incremental:
-                seen = self.session.observe(self, inp.timestamp, ids, corners, on_robots,
-                                            rejections, self._times)
-                obs, diag, corners = seen.obs, seen.diag, seen.corners
-                deferred, early = seen.deferred, seen.early
-            else:
-                obs, diag = self.poses(ids, corners)
-            t2 = time.perf_counter()
-            tm["pose"] = (t2 - t1) * 1e3
+            self._detect_step(w)
+            self._pose_step(w)
         else:
-            incremental = False  # replay: recorded poses, frame-exact
-            ids = np.asarray(inp.ids if inp.ids is not None else [o.id for o in inp.observations],
-                             dtype=np.int64)
-            corners = np.asarray(inp.corners if inp.corners is not None
-                                 else np.zeros((0, 4, 2)), dtype=float)
-            obs, diag = list(inp.observations), dict(inp.diagnostics)
-            self._times = self.observation_times(inp, ids, corners)
-            t2 = time.perf_counter()
-        intr = self.camera.intrinsics
-        both = None
-        try:
-            if loo:  # one call: the estimate and its leave-one-out (kmea.estimators.base)
-                both = self.estimator.estimate_with_loo(obs, self.world_map, exclude=deferred,
-                                                        camera=intr,
-                                                        plane_heights=self.plane_heights)
-                est = both.estimate
-            else:
-                est = self.estimator.estimate(obs, self.world_map, exclude=deferred,
-                                              camera=intr, plane_heights=self.plane_heights)
-        except ValueError as e:  # bad observations: report, never crash the loop
-            est = Estimate.failed(self.algorithm, str(e))
+            self._replay_step(w)
+        t2 = time.perf_counter()
+        w.tm["pose"] = (t2 - w.t1) * 1e3 if w.t1 else 0.0
+        self._estimate_step(w)
         t3 = time.perf_counter()
-        tm["estimate"] = (t3 - t2) * 1e3
+        w.tm["estimate"] = (t3 - t2) * 1e3
         # The robots first: their datagrams must not wait for the markers' bookkeeping.
-        if early is not None:
-            robots = early  # sent already, before the floor's update
-        else:
-            robots = self.robot_fixes(est, inp.timestamp, rejections, self._times)
-            if on_robots is not None:
-                on_robots(inp.timestamp, robots)  # the relay: before the leave-one-out work
-        if incremental and not deferred:
-            self.session.remember(obs, est.ok)
-        self.robots_sent.set()  # also without a relay (no background detection waits long)
+        robots = w.robots if w.robots is not None else self._send_robots(w, w.est)
+        if w.incremental and not w.deferred:
+            self.session.remember(w.obs, w.est.ok)
         t4 = time.perf_counter()
-        tm["robots"] = (t4 - t3) * 1e3
+        w.tm["robots"] = (t4 - t3) * 1e3
+        markers = self._filter_step(w.est, inp.timestamp)
+        t5 = time.perf_counter()
+        w.tm["filter"] = (t5 - t4) * 1e3
+        loo_err, fresh = self._loo_step(w)
+        w.tm["loo"] = (time.perf_counter() - t5) * 1e3
+        return FrameResult(inp.index, inp.timestamp, self.algorithm, w.ids, w.corners, w.obs,
+                           w.diag, w.est, markers, loo_err, robots, w.tm, inp.t_capture,
+                           inp.meta, w.rejections, w.events, w.restart, w.mode, fresh,
+                           w.deferred)
+
+    def _detect_step(self, w: _Work) -> None:
+        """The frame's detections (done already by a detection thread, or here), with what
+        the detector noticed; a restart when the view changed."""
+        inp = w.inp
+        if inp.image is None:
+            raise ValueError(f"frame {inp.index}: no image")
+        h, wd = inp.image.shape[:2]
+        self.camera_for(wd, h)
+        det = inp.detections
+        if det is not None:
+            w.t1 = time.perf_counter()
+            w.tm["detect"] = inp.detect_ms
+        else:
+            det = self.detector.detect(inp.image)
+            w.t1 = time.perf_counter()
+            w.tm["detect"] = (w.t1 - w.t0) * 1e3
+        if isinstance(det, Detections):
+            w.ids, w.corners = det.ids, det.corners
+            w.events, w.restart, w.mode = det.events, det.restart, det.mode
+        else:
+            w.ids, w.corners = det
+        self._times = self.observation_times(inp, w.ids, w.corners)
+        if w.restart:  # the view changed: estimation starts again
+            self.reset_incremental()
+            self.configure_filter()
+        w.incremental = self.settings.fixed_camera
+
+    def _pose_step(self, w: _Work) -> None:
+        """The frame's observations: every marker posed, or with a fixed camera what did
+        not change reused and the robots placed (and sent) before the poses when the
+        session can."""
+        if not w.incremental:
+            w.obs, w.diag = self.poses(w.ids, w.corners)
+            return
+        s = self.session
+        models = self._models()
+        plan = s.plan(w.ids, w.corners, self.refit_every)
+        early = (s.early_robots(plan, w.ids, models, relay=w.on_robots is not None)
+                 if self.robot_specs else None)
+        if early is not None:
+            w.robots = self._send_robots(w, early.estimate)
+        w.obs, w.diag = s.observations(w.ids, plan, models, early)
+        w.corners, w.deferred = plan.corners, plan.deferred
+
+    def _replay_step(self, w: _Work) -> None:
+        """Recorded detections and poses (replay: frame-exact, no session)."""
+        inp = w.inp
+        assert inp.observations is not None  # (the caller's branch)
+        w.ids = np.asarray(inp.ids if inp.ids is not None
+                           else [o.id for o in inp.observations], dtype=np.int64)
+        w.corners = np.asarray(inp.corners if inp.corners is not None
+                               else np.zeros((0, 4, 2)), dtype=float)
+        w.obs, w.diag = list(inp.observations), dict(inp.diagnostics)
+        self._times = self.observation_times(inp, w.ids, w.corners)
+
+    def _models(self) -> Models:
+        """What the fixed camera's session places robots with, as the pipeline is now."""
+        return Models(self.estimator, self.algorithm, self.world_map, self.robot_lengths,
+                      self.marker_length, self.plane_heights, self.camera.intrinsics,
+                      self.poses)
+
+    def _estimate_step(self, w: _Work) -> None:
+        """The estimate, with its leave-one-out when asked (one call:
+        kmea.estimators.base); a failed estimate for bad observations (never a crash)."""
+        intr = self.camera.intrinsics
+        try:
+            if w.loo:
+                w.both = self.estimator.estimate_with_loo(
+                    w.obs, self.world_map, exclude=w.deferred, camera=intr,
+                    plane_heights=self.plane_heights)
+                w.est = w.both.estimate
+            else:
+                w.est = self.estimator.estimate(w.obs, self.world_map, exclude=w.deferred,
+                                                camera=intr, plane_heights=self.plane_heights)
+        except ValueError as e:
+            w.est = Estimate.failed(self.algorithm, str(e))
+
+    def _send_robots(self, w: _Work, est: Estimate) -> dict[str, RobotFix]:
+        """The one place robot fixes are made (:meth:`robot_fixes`, once a frame) and sent
+        (``on_robots``); then the caller's background work may run."""
+        fixes = self.robot_fixes(est, w.inp.timestamp, w.rejections, self._times)
+        if w.on_robots is not None:
+            w.on_robots(w.inp.timestamp, fixes)  # the relay: before the leave-one-out work
+        if self.background is not None:
+            self.background.robots_sent()
+        return fixes
+
+    def _filter_step(self, est: Estimate, t: float) -> dict[int, tuple[np.ndarray, float]]:
+        """The markers' positions and yaws through the pose filter."""
         markers: dict[int, tuple[np.ndarray, float]] = {}
         if self.filter.alpha == 1.0:  # no filtering: skip the per-marker bookkeeping
             for mid, me in sorted(est.markers.items()):
                 markers[mid] = (np.asarray(me.position, dtype=float), float(wrap_angle(me.yaw)))
         else:
             for mid, me in sorted(est.markers.items()):
-                p, yaw = self.filter.update(("marker", mid), inp.timestamp, me.position, me.yaw)
+                p, yaw = self.filter.update(("marker", mid), t, me.position, me.yaw)
                 markers[mid] = (np.asarray(p, dtype=float), float(yaw))
-        t5 = time.perf_counter()
-        tm["filter"] = (t5 - t4) * 1e3
-        loo_err: dict[int, float] = {}
-        fresh = True
-        if both is not None and est.ok:
-            def compute() -> dict[int, float]:
-                try:
-                    return both.loo_errors  # computed here, from the estimate's own state
-                except ValueError:
-                    return {}
-            if incremental:  # the floor's observations unchanged: the same errors
-                refs = [o for o in obs if o.id not in deferred] if deferred else obs
-                loo_err, fresh = self.session.loo.get(refs, self.world_map.markers, compute)
-            else:
-                loo_err = compute()
-        tm["loo"] = (time.perf_counter() - t5) * 1e3
-        return FrameResult(inp.index, inp.timestamp, self.algorithm, ids, corners, obs, diag,
-                           est, markers, loo_err, robots, tm, inp.t_capture, inp.meta,
-                           rejections, events, restart, mode, fresh, deferred)
+        return markers
+
+    def _loo_step(self, w: _Work) -> tuple[dict[int, float], bool]:
+        """(leave-one-out errors, computed in this frame): with a fixed camera the last
+        errors while the floor's observations are unchanged."""
+        both, est = w.both, w.est
+        if both is None or not est.ok:
+            return {}, True
+
+        def compute() -> dict[int, float]:
+            try:
+                return both.loo_errors  # computed here, from the estimate's own state
+            except ValueError:
+                return {}
+
+        if not w.incremental:
+            return compute(), True
+        refs = [o for o in w.obs if o.id not in w.deferred] if w.deferred else w.obs
+        return self.session.loo.get(refs, self.world_map.markers, compute)
 
     def observation_times(self, inp: FrameInput, ids: np.ndarray, corners: np.ndarray
                           ) -> dict[int, float]:

@@ -17,7 +17,14 @@ except ImportError:  # a checkout from before kmea/sources/
 import kmea
 from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
 from kmea.vision.detection import DetectorConfig
-from kmea.vision.fixed_camera_detector import FixedCameraConfig, FixedCameraDetector
+
+try:
+    from kmea.fixed_camera import FixedCameraConfig, FixedCameraDetector
+except ImportError:  # a checkout from before the kmea.fixed_camera package
+    from kmea.vision.fixed_camera_detector import (  # type: ignore[no-redef]
+        FixedCameraConfig,
+        FixedCameraDetector,
+    )
 
 src = SimSource("sim:default", width=820, frames=90)
 frames = [src.read() for _ in range(90)]
@@ -27,9 +34,10 @@ for algo in ("kmea", "corner-pnp"):
     p = Pipeline(src.camera, src.world_map, PipelineSettings(
         robots=tuple(src.scene.robot_specs()), fixed_camera=True, algorithm=algo))
     p.observer.detector.close()
-    # The background detection in the calling thread: executor=None (background=False
-    # before the executor came from the caller).
-    sync = ({"executor": None} if "executor" in inspect.signature(FixedCameraDetector).parameters
+    # The background detection in the calling thread: the default jobs (Inline), executor=None
+    # before the jobs came from the caller, background=False before the executor did.
+    params = inspect.signature(FixedCameraDetector).parameters
+    sync = ({} if "jobs" in params else {"executor": None} if "executor" in params
             else {"background": False})
     p.observer.detector = FixedCameraDetector(DetectorConfig(src.world_map.dictionary),
                                            FixedCameraConfig(static_ids=static), **sync)

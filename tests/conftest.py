@@ -20,6 +20,23 @@ def shared_dir() -> Path:
     return d
 
 
+@pytest.fixture(scope="session")
+def default_frames():
+    """24 rendered frames of ``sim:default`` at 820x616 and their source (the fixed-camera
+    tests: tests/fixed_camera_helpers.py)."""
+    from fixed_camera_helpers import frames_of
+
+    return frames_of("sim:default", 24)
+
+
+@pytest.fixture(scope="session")
+def pi_frames():
+    """14 rendered frames of ``sim:default`` at the Pi's 1640x1232 and their source."""
+    from fixed_camera_helpers import frames_of
+
+    return frames_of("sim:default", 14, width=1640)
+
+
 @pytest.fixture(autouse=True)
 def _own_config_home(tmp_path_factory, monkeypatch) -> None:
     """A plain kmead start reads the per-user overlay ($XDG_CONFIG_HOME/kmead/...): every

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -188,8 +189,7 @@ def test_huge_stats_values_are_refused_and_the_daemon_runs_on(shared: LiveDaemon
 
 @pytest.mark.parametrize("sets", [["stats.window=1000000000000000000000000000000"],
                                   ["stats.displaced_frames=1000000000000000000000000000000"],
-                                  ["detector.fast=true",
-                                   "detector.fast_window=1000000000000000000000000000000"]])
+                                  ["detector.fixed_full_every=1000000000000000000000000000000"]])
 def test_huge_values_from_set_refuse_to_start(sets: list[str],
                                               capsys: pytest.CaptureFixture) -> None:
     args = [a for s in sets for a in ("--set", s)]
@@ -577,5 +577,6 @@ def test_robots_gone_stale_because_the_frames_stopped_say_so(tmp_path: Path) -> 
         time.sleep(0.05)
     d.close()
     stale = [e for e in events if "amr1" in e]
-    assert stale and stale[0].startswith("no frame for 3.0 s (the camera or this machine "
-                                         "stalled): robot amr1 stale (valid=0 sent)"), events
+    # 3.0 s and the time until the tick read the clock (a loaded machine: 3.1 s and more).
+    assert stale and re.match(r"no frame for 3\.\d s \(the camera or this machine "
+                              r"stalled\): robot amr1 stale \(valid=0 sent\)", stale[0]), events

@@ -22,8 +22,7 @@ HUGE = 10**30
 @pytest.mark.parametrize("key, value, why", [
     ("stats.window", HUGE, r"\[1, 100000\]"),
     ("stats.displaced_frames", HUGE, r"\[1, 1000\]"),
-    ("detector.fast_window", HUGE, r"\[0, 255\]"),
-    ("detector.full_every", 0, "integer in"),
+    ("detector.fixed_full_every", 0, "integer in"),
     ("detector.workers", 1000, r"\[0, 16\]"),
     ("source.width", -1, "integer in"),
     ("source.fps", 1e9, "must be in"),

@@ -262,3 +262,29 @@ def test_no_module_imports_a_higher_rank() -> None:
             bad.append(f"{imp.module}:{imp.line} (rank {here}) imports {imp.target} "
                        f"(rank {there})")
     assert not bad, "an import upward:\n" + "\n".join(bad)
+
+
+# The library starts no thread and leaves the scheduling to its caller: its per-frame
+# computation (the pipeline and the fixed camera) imports no thread or executor module
+# and sets no priority (the daemon's discovery thread does: kmead/run/discovery.py).
+NO_THREADS = ("kmea.fixed_camera", "kmea.pipeline")
+THREAD_MODULES = ("threading", "concurrent", "_thread", "multiprocessing", "zmq", "textual",
+                  "picamera2")
+
+
+def test_the_frame_computation_starts_no_thread_and_sets_no_priority() -> None:
+    bad = []
+    files = []
+    for pkg in NO_THREADS:
+        base = ROOT.joinpath(*pkg.split("."))
+        files += [p for p in (base.with_suffix(".py"), *sorted(base.rglob("*.py")))
+                  if p.is_file()]
+    assert len(files) >= 8, files
+    for p in files:
+        bad += [f"{module_name(p)}:{imp.line} imports {imp.target}" for imp in imports_of(p)
+                if imp.target.split(".")[0] in THREAD_MODULES]
+        tree = ast.parse(p.read_text(encoding="utf-8"))
+        bad += [f"{module_name(p)}:{n.lineno} calls {n.attr}" for n in ast.walk(tree)
+                if isinstance(n, ast.Attribute) and n.attr in ("setpriority", "nice",
+                                                                "sched_setaffinity")]
+    assert not bad, bad

@@ -231,7 +231,7 @@ async def test_config_edits_apply_live_and_save_writes_the_overlay(daemon: Daemo
         await wait_for(pilot, lambda: bool(list(app.query(".detector-option"))), "the detector")
         names = {i.name for i in app.query(".detector-option")}
         assert "dictionary" in names and "marker_length" in names
-        assert not names & {"workers", "fast", "parameters", "fixed_camera"}
+        assert not names & {"workers", "parameters", "fixed_camera"}
         # Filter alpha: type a value, Enter applies it live.
         alpha = app.query_one("#filter-alpha")
         alpha.focus()

@@ -1,9 +1,8 @@
 """``kmea bench fixed-camera``: nothing lost with the tracking detector (1640x1232 sim).
 
 Frames are rendered beforehand, then fed to :class:`kmea.pipeline.Pipeline` with tracking
-(:mod:`kmea.vision.fixed_camera_detector`, background detection on its thread) at the camera's
-30 frames/s (the loop waits for each frame's due time), so the background detection has the
-time it would have live. Printed, per scene:
+(:mod:`kmea.fixed_camera.detector`, its discoveries in the calling thread) at the camera's
+30 frames/s (the loop waits for each frame's due time). Printed, per scene:
 
 - robots at 1.5 m/s on the default loops (their curves turn them at several rad/s): frames
   in which a robot is visible (truth) and frames in which it got a pose;

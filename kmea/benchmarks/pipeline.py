@@ -2,18 +2,16 @@
 
 On pre-rendered 1640x1232 simulator frames (scene "default", two robots; rendering not
 counted): bare ``detectMarkers`` with the default parameters and with one 13 px
-threshold window, the fast detector (:mod:`kmea.vision.fastdetect`), then
-:class:`kmea.pipeline.Pipeline` (detection, pose, estimator, leave-one-out, filter, robots)
-with the normal and the fast detector, then with tracking for a fixed camera
-(:mod:`kmea.vision.fixed_camera_detector`, :mod:`kmea.fixed_camera`) against full detection of
-every frame, with the default estimator and with ``corner-pnp``, back to back on the same
-frames. Times are wall-clock and CPU (``time.process_time``: every thread of the process,
-the tracking detector's background full detection and OpenCV's worker threads included),
+threshold window, then :class:`kmea.pipeline.Pipeline` (detection, pose, estimator,
+leave-one-out, filter, robots) with full detection, then with tracking for a fixed camera
+(:mod:`kmea.fixed_camera`) against full detection of every frame, with the default
+estimator and with ``corner-pnp``, back to back on the same frames. Times are wall-clock
+and CPU (``time.process_time``: every thread of the process, OpenCV's worker threads
+included; the tracking detector's discoveries run in the calling thread),
 per frame and as a share of bare ``detectMarkers``: the one timed at the start and, for
 each tracking run, one timed just before it (this machine's speed drifts by tens of percent
 within a minute; the adjacent one compares like with like). The daemon's figures with its
-threads,
-files and sockets are ``kmea bench daemon``.
+threads, files and sockets are ``kmea bench daemon``.
 """
 
 from __future__ import annotations
@@ -194,9 +192,6 @@ def _print_steady(label: str, marks: np.ndarray, bare_fps: float, bare_cpu: floa
 def run(quick: bool = False, frames: int | None = None) -> None:
     import cv2
 
-    from kmea.vision.detection import DetectorConfig
-    from kmea.vision.fastdetect import FastDetector
-
     n = frames if frames is not None else 20 if quick else 90
     if n < 2:
         raise SystemExit("kmea bench pipeline: --frames must be at least 2")
@@ -216,19 +211,11 @@ def run(quick: bool = False, frames: int | None = None) -> None:
     lost = sum(len(a - b) for a, b in zip(full_sets, tuned_sets, strict=True))
     print(f"bare detectMarkers, one 13 px window only: {tuned:6.1f} frames/s, {lost} of "
           f"{sum(len(s) for s in full_sets)} markers of the default detection lost")
-    fast = FastDetector(DetectorConfig(dic))
-    t0 = time.perf_counter()
-    fast_sets = [set(fast.detect(f).ids.tolist()) for f in images]
-    fast_rate = n / (time.perf_counter() - t0)
-    lost = sum(len(a - b) for a, b in zip(full_sets, fast_sets, strict=True))
-    print(f"fast detection (detector.fast): {fast_rate:6.1f} frames/s, {fast.fast} fast / "
-          f"{fast.full} full frames, {lost} markers of the default detection lost")
     robots = tuple(scene.robot_specs())
-    for label, fast_on in (("default detection", False), ("fast detection", True)):
-        rate, ms = pipeline_rate(rendered, scene, PipelineSettings(fast=fast_on, robots=robots))
-        total = sum(ms.values())
-        print(f"library pipeline, {label}: {rate:6.1f} frames/s = {rate / bare * 100:5.1f} % "
-              "of bare default detection; stage ms/frame: "
-              + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
-              + f"; all stages {total:.2f} ms")
+    rate, ms = pipeline_rate(rendered, scene, PipelineSettings(robots=robots))
+    total = sum(ms.values())
+    print(f"library pipeline, default detection: {rate:6.1f} frames/s = "
+          f"{rate / bare * 100:5.1f} % of bare default detection; stage ms/frame: "
+          + ", ".join(f"{k} {v:.2f}" for k, v in ms.items() if k != "capture")
+          + f"; all stages {total:.2f} ms")
     compare_tracking(rendered, scene, bare, cpu[0], ("kmea", "corner-pnp"))

@@ -230,7 +230,7 @@ class Detections:
     ids: (N,) int64. corners: (N, 4, 2) float64 pixels, TL, TR, BR, BL (OpenCV order and
     pixel convention: the top-left pixel's centre is (0, 0)). rejected: number of
     candidate squares that did not decode. mode: "full" (the whole frame was searched) or
-    "followed" (:mod:`kmea.vision.fixed_camera_detector`); events: what a tracking detector
+    "followed" (:mod:`kmea.fixed_camera.detector`); events: what a tracking detector
     noticed (e.g. the camera moved); restart: the view changed, estimation must restart.
     """
 

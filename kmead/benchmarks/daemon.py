@@ -65,11 +65,7 @@ def run_daemon(quick: bool = False) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for label, sets in (("main thread only (workers=0)", ["detector.workers=0"]),
                             ("detection thread ahead (workers=1)", ["detector.workers=1"]),
-                            ("two detection threads (workers=2)", ["detector.workers=2"]),
-                            ("fast detection, workers=0", ["detector.workers=0",
-                                                           "detector.fast=true"]),
-                            ("fast detection, workers=1", ["detector.workers=1",
-                                                           "detector.fast=true"])):
+                            ("two detection threads (workers=2)", ["detector.workers=2"])):
             fps, ms, d = _daemon_fps(tmp, sets)
             rest = ms["total"] - ms["detect"] - ms["capture"]
             print(f"pipeline, {label}: {fps:6.1f} frames/s = {fps / bare * 100:5.1f} % of bare "

@@ -243,17 +243,6 @@ def detector_parameters(v: Any, where: str, remote: bool = False) -> dict:
         raise ConfigError(str(e)) from None
 
 
-def fast_window(v: Any, where: str, remote: bool = False) -> int:
-    w = integer(0, 255)(v, where)
-    if 0 < w < 3:
-        raise ConfigError(f"{where}: 0 (measured) or an adaptive-threshold window of 3-255 px, "
-                          f"got {w}")
-    return w
-
-
-fast_window.text = "0 (measured) or integer [3, 255] px"  # type: ignore[attr-defined]
-
-
 # ---------------------------------------------------------------------------- robots
 
 ROBOT_KEYS = ("name", "markers", "height", "length", "separation", "destinations")

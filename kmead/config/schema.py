@@ -27,7 +27,6 @@ from kmead.config.checks import (
     choice,
     detector_parameters,
     dictionary_name,
-    fast_window,
     flag,
     frame_id,
     integer,
@@ -178,22 +177,6 @@ Detection threads working ahead of the rest of the pipeline (both cores busy). 0
 in the main thread. Live sources use one detection thread (newest frame wins) whatever the
 number; file sources and the unpaced simulator use this many, in frame order, with results
 identical to 0. Replay has nothing to detect. Needs a restart."""),
-        "fast": Key(False, flag,
-                  'fast detection for a fixed camera (see Performance)',
-                  doc="""\
-Fast detection for a fixed camera: one adaptive-threshold window of fast_window px
-(0 = a fifth of the median marker side in pixels, measured) instead of three, 2-3x
-faster. A frame where a marker of the previous frame is missing, and every full_every-th
-frame, is detected again with the full parameters: no tracked marker is lost; a marker
-newly entering the view may wait for the next full detection. Off by default.""",
-                  live=True),
-        "fast_window": Key(0, fast_window,
-                  ('its single adaptive-threshold window, px; 0 = a fifth of the measured median'
-                   ' marker side'),
-                  live=True),
-        "full_every": Key(30, integer(1, 100000),
-                  'fast detection: a full detection every N frames',
-                  live=True),
         "fixed_camera": Key(True, flag,
                   ('a fixed camera, live sources only: markers followed where they were, a full'
                    ' detection in the background (see Performance)'),
@@ -667,8 +650,8 @@ DEFAULT_ROBOTS: list[dict[str, Any]] = [
 # config.toml and the terminal UI's form, still settable (--set, a file, control) and
 # documented in docs/daemon.md's "Advanced keys". The rest are what a technician sets.
 ADVANCED: frozenset[str] = frozenset({
-    "detector.corner_refinement", "detector.parameters", "detector.workers", "detector.fast",
-    "detector.fast_window", "detector.full_every", "detector.fixed_camera",
+    "detector.corner_refinement", "detector.parameters", "detector.workers",
+    "detector.fixed_camera",
     "detector.fixed_full_every", "detector.fixed_refit_every",
     "estimator.unknown_plane",
     "filter.reset_after_s", "filter.model", "filter.accel_noise", "filter.turn_noise",

@@ -237,7 +237,7 @@ class LiveDetect:
                 if frame.image is not None:
                     if gen != self.pipeline.detector_generation:
                         if det is not None and hasattr(det, "close"):
-                            det.close()  # a tracking detector's background thread
+                            det.close()  # a tracking detector's discoveries
                         det, gen = (self.pipeline.new_detector(),
                                     self.pipeline.detector_generation)
                     t0 = time.perf_counter()
@@ -298,11 +298,9 @@ class NoDetect:
 def open_feed(capture: Capture, pipeline, workers: int, live: bool, replay: bool):
     """Where detection happens: ``workers`` = 0 (or a replay, nothing to detect) in the main
     thread; else a thread of its own for a live source, a pool of ``workers`` threads for an
-    in-order source (one thread with the fast detector: it follows the frames in order)."""
+    in-order source."""
     if workers < 1 or replay:
         return NoDetect(capture)
     if live:
         return LiveDetect(capture, pipeline)
-    if pipeline.settings.fast:
-        workers = 1
     return DetectPool(capture, pipeline, workers)

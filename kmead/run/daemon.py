@@ -19,7 +19,6 @@ import math
 import threading
 import time
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +56,7 @@ from kmead.outputs.relay import Relay
 from kmead.outputs.robots import RobotSender
 from kmead.outputs.totals import RunTotals, csv_lines, truth_record
 from kmead.run.capture import Capture, CaptureEnded, open_feed
+from kmead.run.discovery import Discovery
 from kmead.run.gc_pacing import GcPacing
 from kmead.run.live_settings import LiveSettings
 from kmead.run.rollback import ChangeGuard
@@ -157,10 +157,10 @@ class Daemon:
                                  self._new_recorder)
         # The tracking detector's background detection: one thread of the daemon's (the
         # library starts none), started on first use.
-        self.discovery = ThreadPoolExecutor(1, thread_name_prefix="kmead-discover")
+        self.discovery = Discovery()
         try:
             self.pipeline = Pipeline(camera, self.world_map, self._settings(),
-                                     executor=self.discovery)
+                                     background=self.discovery)
         except ValueError as e:  # detector parameters, dictionary, algorithm options
             raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
         self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
