@@ -35,14 +35,15 @@ TURNS_X = (-0.58, 2.28)
 NEAR_TURN_M = 0.3
 
 
-def _record(speed: float, seconds: float, width: int, height: int, fps: float) -> dict:
+def _record(speed: float, seconds: float, width: int, height: int, fps: float,
+            sets: list[str]) -> dict:
     """Per camera, per frame: (fixes name -> (t, x, y, sigma), measured name -> (t, x, y,
     theta, sigma), accepted name -> the same)."""
     from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
     from kmea.sources.sim import SimSource
     from kmead.config.layers import load_config
 
-    settings = PipelineSettings.from_config(load_config(None, []).data, live=True)
+    settings = PipelineSettings.from_config(load_config(None, sets).data, live=True)
     out: dict = {}
     for cam in (0, 1):
         src = SimSource(f"wide?camera={cam}&speed={speed}", width=width, height=height,
@@ -63,14 +64,14 @@ def _record(speed: float, seconds: float, width: int, height: int, fps: float) -
     return out
 
 
-def _fused(rec: dict, which: int, seed: int = 0) -> dict[str, list[tuple]]:
+def _fused(rec: dict, which: int, sets: list[str], seed: int = 0) -> dict[str, list[tuple]]:
     """The node's outputs (t, x, y, sigma) per robot, fed ``rec``'s measured (1) or
     accepted (2) measurements in arrival order."""
     from kmea.robots.fusion import Fusion, Measurement
     from kmead.config.layers import load_config
     from kmead.fusion.node import tracker_config
 
-    cfg = load_config(None, [])
+    cfg = load_config(None, sets)
     rng = np.random.default_rng(seed)
     arr = []
     for cam in (0, 1):
@@ -128,6 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=820)
     p.add_argument("--height", type=int, default=616)
     p.add_argument("--fps", type=float, default=15.0)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a configuration key for the cameras and the node, as kmead's --set "
+                        "(e.g. filter.step_k=1e9; repeatable)")
     a = p.parse_args(argv)
     from kmea.sim.scenes import get_scene
 
@@ -139,10 +143,10 @@ def main(argv: list[str] | None = None) -> int:
                                                                     speed=speed).robots}
         seconds = a.seconds or max(pt.length for pt in paths.values()) / speed + 1.0
         t0 = time.perf_counter()
-        rec = _record(speed, seconds, a.width, a.height, a.fps)
+        rec = _record(speed, seconds, a.width, a.height, a.fps, a.set)
         streams: list[tuple[str, dict[str, list[tuple]]]] = [
-            ("node, every measurement", _fused(rec, 1)),
-            ("node, accepted ones only", _fused(rec, 2))]
+            ("node, every measurement", _fused(rec, 1, a.set)),
+            ("node, accepted ones only", _fused(rec, 2, a.set))]
         for cam in (0, 1):
             own: dict[str, list[tuple]] = {}
             for fixes, _m, _a in rec[cam]:
