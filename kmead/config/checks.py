@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from kmea.maps.aruco_names import MAX_MARKER_ID
@@ -24,6 +25,7 @@ __all__ = [
     "MAX_DESTINATIONS",
     "MAX_ROBOTS",
     "ConfigError",
+    "Key",
     "check_destination",
     "check_robot_name",
     "choice",
@@ -43,6 +45,21 @@ class Check(Protocol):
     """``check(value, where, remote=False) -> normalised value``; raises ConfigError."""
 
     def __call__(self, v: Any, where: str, remote: bool = False, /) -> Any: ...
+
+
+@dataclass(frozen=True)
+class Key:
+    """One ``section.key``: ``default`` (what config.toml holds), ``check(value, where,
+    remote) -> normalised value``, ``summary`` (one line, the docs' table), ``doc`` (the
+    comment above it in config.toml; "" = the comment above an earlier key covers it) and
+    ``live`` (a running daemon may change it; the others need a restart)."""
+
+    default: Any
+    check: Check
+    summary: str
+    doc: str = ""
+    live: bool = False
+
 
 MAX_ROBOTS = 64
 MAX_DESTINATIONS = 8
