@@ -46,13 +46,13 @@ from kmead.config.startup import (
 )
 from kmead.net import bodies
 from kmead.net.camera_feed import CameraFeed, camera_body, frame_outlines
-from kmead.net.service import Service
 from kmead.outputs.csvlog import CsvLog
 from kmead.outputs.datadir import FileRefused
 from kmead.outputs.files import LowSpace
 from kmead.outputs.robots import RobotSender
 from kmead.outputs.totals import RunTotals, csv_lines, truth_record
 from kmead.run.capture import Capture, CaptureEnded, open_feed
+from kmead.run.extras import ExtraOutputs
 from kmead.run.gc_pacing import GcPacing
 from kmead.run.live_settings import LiveSettings
 from kmead.run.rollback import ChangeGuard
@@ -67,7 +67,7 @@ DISPLACED_QUIET_S = 30.0
 STARTUP_FAILURES = 30
 
 
-class Daemon(Service):
+class Daemon(ExtraOutputs):
     """A configured daemon; :meth:`run` processes frames until the end, --frames or stop().
 
     A service (:class:`kmead.net.service.Service`) with a camera part: its control server
@@ -184,58 +184,6 @@ class Daemon(Service):
             self.open_control(self, camera=self)
         except OSError as e:
             raise StartupError(str(e), EXIT_RUNTIME) from None
-
-    def _start_zenoh(self) -> None:
-        """Robot poses on Zenoh (docs/ros2.md): the relay hands it every message."""
-        try:
-            from kmead.outputs.zenoh import ZenohOutput
-        except ImportError:
-            raise StartupError("key 'zenoh.enabled': the zenoh extra is not installed "
-                               "(pip install 'kmea[zenoh]')") from None
-        from kmead.outputs.zenoh_camera import DuplicateCamera, ZenohCamera, camera_id
-
-        z = self.cfg["zenoh"]
-        self.zenoh = ZenohOutput.open(z)
-        self.closing.callback(self._close_zenoh)
-        self.relay.sink = self.zenoh.send
-        # This kmead as a camera of its site, for the fusion nodes (docs/fusion.md), and
-        # one of the robots' possible voices (kmead.outputs.voice).
-        relay = self.relay
-        try:
-            self.zenoh_camera = ZenohCamera(
-                self.zenoh.session, z["site"], camera_id(z, self.source_spec),
-                self._camera_meta(), known=lambda name: name in relay.channels,
-                on_quiet=self.zenoh.quiet, event=self.event)
-        except DuplicateCamera as e:
-            relay.muted = True  # it never spoke: its close tells the robots nothing
-            raise StartupError(str(e)) from None
-        self.closing.callback(self._close_zenoh_camera)
-        self.relay.voice = self.zenoh_camera.voice
-        self.robots.camera = self.zenoh_camera
-
-    def _camera_meta(self) -> dict:
-        from kmead.outputs.zenoh_camera import camera_id, meta_body
-
-        return meta_body(camera_id(self.cfg["zenoh"], self.source_spec), self.world_map,
-                         self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
-
-    def _start_foxglove(self) -> None:
-        fx = self.cfg["foxglove"]
-        try:
-            from kmead.viewers.foxglove import FoxgloveServer
-        except ImportError:
-            raise StartupError("key 'foxglove.enabled': the foxglove extra is not installed "
-                               "(pip install 'kmea[foxglove]')") from None
-        try:
-            self.foxglove = FoxgloveServer(self.world_map, self.pipeline.camera, fx["host"],
-                                           fx["port"], fx["image_hz"])
-        except OSError as e:
-            raise StartupError(f"key 'foxglove.port': {e}; another kmead is probably running "
-                               "(or set foxglove.port = 0 for a free port)",
-                               EXIT_RUNTIME) from None
-        self.closing.callback(self.foxglove.close)
-        log.info("foxglove: serving %s (open it in Foxglove: Open connection, "
-                 "Foxglove WebSocket)", self.foxglove.url)
 
     def _secure_network(self) -> None:
         """CURVE on both sockets when keys are configured (the plan judged the exposure)."""
@@ -697,19 +645,6 @@ class Daemon(Service):
             self.capture.close()
         else:
             self.source.close()
-
-    def _close_zenoh_camera(self) -> None:
-        if self.zenoh_camera is not None:
-            self.zenoh_camera.close()
-            self.zenoh_camera = None
-            self.robots.camera = None
-
-    def _close_zenoh(self) -> None:
-        if self.zenoh is not None:
-            log.info("zenoh: %d messages published, %d failed", self.zenoh.sent,
-                     self.zenoh.errors)
-            self.zenoh.close()
-            self.zenoh = None
 
     def farewell(self) -> None:
         """Announce the end, so a UI shows "daemon stopped" instead of frozen data."""
