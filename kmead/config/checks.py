@@ -15,8 +15,10 @@ Ranges are the values that mean something: past them a value is a mistake or an 
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 from kmea.maps.aruco_names import MAX_MARKER_ID
@@ -33,6 +35,7 @@ __all__ = [
     "number",
     "off_or_number",
     "parse_destination",
+    "same_file",
     "validate_robots",
 ]
 
@@ -452,3 +455,14 @@ def check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, hei
         check(fx, fy, cx, cy, width, height)
     except ValueError as e:
         raise ConfigError(f"{where}: {e}") from None
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """True when two paths name the same file (resolved; existing or not)."""
+    try:
+        pa, pb = Path(a), Path(b)
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+        return pa.resolve() == pb.resolve()
+    except (OSError, ValueError):
+        return False

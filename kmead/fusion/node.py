@@ -43,6 +43,7 @@ from kmea.robots.tracking import TrackerConfig
 from kmea.wire import protocol as P
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
+from kmead.config.site_tls import certificate_name
 from kmead.config.startup import StartupError, configured_map
 from kmead.fusion.bodies import robots_body, state_body, status_body
 from kmead.fusion.cameras import Camera, check_meta, make_room
@@ -50,7 +51,6 @@ from kmead.fusion.inputs import Limits, admit
 from kmead.fusion.speaker import Speaker
 from kmead.net.keys import KeysError
 from kmead.net.service import Service
-from kmead.net.site_tls import certificate_name
 from kmead.outputs.csvlog import CsvLog, row
 from kmead.outputs.files import LowSpace
 
