@@ -132,7 +132,7 @@ def test_teardown_is_the_reverse_of_opening(tmp_path: Path) -> None:
     shell = Shell(load_config(None, [*NET, f'log.dir="{tmp_path}"']))
     assert shell.control is not None and shell.telemetry is not None
     telemetry = shell.telemetry.bound
-    csv = shell.start_csv("run.csv")
+    csv = shell.start_csv(str(tmp_path / "run.csv"))
     assert len(_handlers()) == len(before) + 2  # the log ring and the telemetry's
     shell.close()
     assert shell.order == ["control", "relay", "files", "telemetry", "farewell"]
