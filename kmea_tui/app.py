@@ -384,6 +384,7 @@ class KmeaTui(App[None]):
         self.query_one(CameraPane).show_caption("camera: not available on a fusion node "
                                                 "(no camera)")
         self.query_one(ConfigPane).show_fusion_node()
+        self.refresh_bindings()  # no "Reset stats"
         if self.query_one(TabbedContent).active == "markers":
             self.action_show_tab("robots")
 
@@ -581,8 +582,8 @@ class KmeaTui(App[None]):
         tab = self.query_one(TabbedContent).active if self.is_mounted else ""
         if action == "leave_field":
             return isinstance(self.focused, (Input, Select))
-        if action == "reset_stats":
-            return tab == "stats"
+        if action == "reset_stats":  # a fusion node has no marker statistics to reset
+            return tab == "stats" and not self.fusion_node
         if action in ("magnify", "auto_magnification"):
             return tab == "map"
         return True

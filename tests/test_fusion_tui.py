@@ -48,6 +48,10 @@ async def test_fusion_node_ui_opens_on_robots_and_draws_its_map(tmp_path: Path) 
             summary = str(app.query_one("#markers-summary").render())
             assert "a fusion node has no markers" in summary
             assert "no marker statistics" in str(app.query_one("#stats-summary").render())
+            await pilot.press("3")  # Statistics: no statistics to reset on a fusion node
+            await _wait(pilot, lambda: app.query_one("TabbedContent").active == "stats",
+                        "the Statistics tab")
+            assert app.check_action("reset_stats", ()) is False
             await pilot.press("7")
             await pilot.pause(0.5)
             caption = str(app.query_one("#camera-caption").render())

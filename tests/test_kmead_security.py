@@ -311,7 +311,7 @@ def test_every_robot_gets_valid0_at_shutdown(tmp_path: Path, how: str) -> None:
 
 def test_watchdog_tick_racing_shutdown_does_not_raise(tmp_path: Path) -> None:
     # SIGTERM while no frame came for relay.stale_after_s: the service thread's watchdog
-    # passed its check, then close() removed the relay ('NoneType' has no attribute 'tick').
+    # passed its check, then close() closed the relay under the lock it waits for.
     d = LiveDaemon(tmp_path, sets=["relay.stale_after_s=0.01"])
     d.daemon.stop()
     d.thread.join(10)
@@ -329,9 +329,8 @@ def test_watchdog_tick_racing_shutdown_does_not_raise(tmp_path: Path) -> None:
         t = threading.Thread(target=tick)
         t.start()
         time.sleep(0.1)
-        relay, daemon.relay = daemon.relay, None
+        daemon.close()  # what SIGTERM's shutdown does, under the lock
     t.join(5)
-    relay.close()
     d.close()
     assert errors == []
 

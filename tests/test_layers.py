@@ -55,8 +55,11 @@ RANKS: tuple[tuple[str, ...], ...] = (
     ("kmea.benchmarks",),
     # The library's front-ends: argument parsing and wiring of the `kmea` command.
     ("kmea.cli",),
-    # The daemon's services (configuration, sockets and outputs still import one another).
-    ("kmead.config", "kmead.net", "kmead.outputs"),
+    # The daemon's services: the configuration (the keys, their checks, the start-up plan),
+    # the outputs (files, the relay, Zenoh), the sockets and the service shell.
+    ("kmead.config",),
+    ("kmead.outputs",),
+    ("kmead.net",),
     ("kmead.viewers",),
     ("kmead.run", "kmead.fusion"),
     ("kmea_tui",),

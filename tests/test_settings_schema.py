@@ -96,3 +96,15 @@ def test_a_renamed_key_is_one_line_naming_the_new_one(old: str) -> None:
     with pytest.raises(ConfigError) as e:
         load_config(None, sets=[f"{old}=true"], use_local=False)
     assert RENAMED[old] in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_removed_key_is_one_line_saying_why(tmp_path) -> None:
+    from kmead.config.layers import ConfigError
+
+    path = tmp_path / "old.toml"
+    path.write_text("[detector]\nfast = true\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(str(path), use_local=False)
+    msg = str(e.value)
+    assert "'detector.fast' was removed" in msg and "detector.fixed_camera" in msg
+    assert str(path) in msg and "\n" not in msg

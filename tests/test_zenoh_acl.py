@@ -23,8 +23,8 @@ pytest.importorskip("cryptography", reason="the zenoh extra is not installed")
 
 from kmead.config.layers import load_config  # noqa: E402
 from kmead.config.plan import zenoh_plan  # noqa: E402
+from kmead.config.site_tls import certificate_name  # noqa: E402
 from kmead.config.startup import StartupError  # noqa: E402
-from kmead.net.site_tls import certificate_name  # noqa: E402
 from kmead.outputs.zenoh_camera import camera_id  # noqa: E402
 from kmead.outputs.zenoh_session import open_session  # noqa: E402
 from kmead.tools.kmea_cli import main as kmea_main  # noqa: E402

@@ -10,9 +10,9 @@ import pytest
 from kmead import cli
 from kmead.config.layers import ConfigError, load_config
 from kmead.config.plan import plan_startup, zenoh_plan
+from kmead.config.site_tls import make_site
 from kmead.config.startup import StartupError
 from kmead.config.zenoh import ros_token_problem, zenoh_exposure
-from kmead.net.site_tls import make_site
 
 NET = ["--set", 'network.telemetry="tcp://127.0.0.1:*"',
        "--set", 'network.control="tcp://127.0.0.1:*"']

@@ -15,7 +15,10 @@ Ranges are the values that mean something: past them a value is a mistake or an 
 from __future__ import annotations
 
 import math
+import os
 import re
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 from kmea.maps.aruco_names import MAX_MARKER_ID
@@ -24,6 +27,7 @@ __all__ = [
     "MAX_DESTINATIONS",
     "MAX_ROBOTS",
     "ConfigError",
+    "Key",
     "check_destination",
     "check_robot_name",
     "choice",
@@ -31,6 +35,7 @@ __all__ = [
     "number",
     "off_or_number",
     "parse_destination",
+    "same_file",
     "validate_robots",
 ]
 
@@ -43,6 +48,21 @@ class Check(Protocol):
     """``check(value, where, remote=False) -> normalised value``; raises ConfigError."""
 
     def __call__(self, v: Any, where: str, remote: bool = False, /) -> Any: ...
+
+
+@dataclass(frozen=True)
+class Key:
+    """One ``section.key``: ``default`` (what config.toml holds), ``check(value, where,
+    remote) -> normalised value``, ``summary`` (one line, the docs' table), ``doc`` (the
+    comment above it in config.toml; "" = the comment above an earlier key covers it) and
+    ``live`` (a running daemon may change it; the others need a restart)."""
+
+    default: Any
+    check: Check
+    summary: str
+    doc: str = ""
+    live: bool = False
+
 
 MAX_ROBOTS = 64
 MAX_DESTINATIONS = 8
@@ -424,3 +444,14 @@ def check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, hei
         check(fx, fy, cx, cy, width, height)
     except ValueError as e:
         raise ConfigError(f"{where}: {e}") from None
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """True when two paths name the same file (resolved; existing or not)."""
+    try:
+        pa, pb = Path(a), Path(b)
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+        return pa.resolve() == pb.resolve()
+    except (OSError, ValueError):
+        return False

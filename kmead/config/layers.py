@@ -189,7 +189,7 @@ def load_config(path: str | None = None, sets: list[str] | None = None,
         cfg.set(key, value, where="--set")
     log_ = cfg["log"]
     if log_["csv"] and log_["record"]:
-        from kmead.outputs.datadir import same_file
+        from kmead.config.checks import same_file
 
         if same_file(log_["csv"], log_["record"]):
             raise ConfigError(f"log.csv and log.record: both are {log_['csv']!r}; a log and a "

@@ -353,7 +353,7 @@ def network_exposure(cfg: Config) -> list[str]:
     key directory is read as start-up reads it. The warnings (a reachable insecure socket);
     :class:`StartupError` when the sockets may not be opened so. The daemon (through
     :func:`plan_startup`) and the fusion node judge their sockets with it."""
-    from kmead.net.keys import KeyRing, KeysError, exposure
+    from kmead.config.keyring import KeyRing, KeysError, exposure
 
     net = cfg["network"]
     if net["telemetry"] and net["control"] and same_endpoint(net["telemetry"], net["control"]):
@@ -376,8 +376,8 @@ def zenoh_plan(cfg: Config, z: dict | None = None) -> list[str]:
     """``[zenoh]`` (or ``z``, the section as a fusion node uses it): the extra installed,
     the exposure rule (:func:`zenoh_exposure`), the certificate files readable, robot names
     that can be ROS 2 topic tokens. Warnings."""
+    from kmead.config.site_tls import SiteTlsError, certificate_name, load_acl
     from kmead.config.zenoh import ros_token_problem, zenoh_exposure
-    from kmead.net.site_tls import SiteTlsError, certificate_name, load_acl
 
     z = cfg.data.get("zenoh", {}) if z is None else z
     if not z.get("enabled"):

@@ -1,5 +1,5 @@
-"""The fusion node's telemetry bodies (``robots``, ``status``) and what it has not got of a
-daemon (marker statistics, a pipeline): kmead.fusion.node serves them."""
+"""The fusion node's telemetry bodies (``robots``, ``status``) and its ``get_state`` reply
+(no frame, no marker statistics): kmead.fusion.node serves them."""
 
 from __future__ import annotations
 
@@ -10,25 +10,7 @@ from typing import Any
 from kmea.wire import protocol as P
 from kmead.net.bodies import map_info
 
-__all__ = ["NoPipeline", "NoStats", "map_status", "robots_body", "status_body"]
-
-
-class NoStats:
-    """The statistics a fusion node does not have (no markers): an empty window."""
-
-    window = 0
-    mean_error = None
-    max_error = None
-
-    def per_marker(self) -> dict:
-        return {}
-
-    def reset(self) -> None:
-        pass
-
-
-class NoPipeline:
-    algorithm = "fusion"
+__all__ = ["map_status", "robots_body", "state_body", "status_body"]
 
 
 def robots_body(node: Any) -> dict:
@@ -103,3 +85,11 @@ def status_body(node: Any) -> P.StatusBody:
         "telemetry": node.telemetry.bound if node.telemetry else "",
         "control": node.control.bound if node.control else "",
     }
+
+
+def state_body(node: Any) -> dict[str, Any]:
+    """``get_state``: the status, no frame (``{}``) and the statistics of no marker (a node
+    has no markers: the wire's ``stats`` body, empty, algorithm ``fusion``)."""
+    stats: P.StatsBody = {"t": time.time(), "frame": None, "algorithm": "fusion", "window": 0,
+                          "mean_error": None, "max_error": None, "markers": []}
+    return {"status": status_body(node), "frame": {}, "stats": stats}

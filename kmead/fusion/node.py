@@ -31,10 +31,8 @@ import logging
 import math
 import queue
 import re
-import threading
 import time
 from collections import deque
-from collections.abc import Mapping
 from typing import Any
 
 import zmq
@@ -45,20 +43,16 @@ from kmea.robots.tracking import TrackerConfig
 from kmea.wire import protocol as P
 from kmead.config.layers import Config, ConfigError
 from kmead.config.plan import network_exposure
+from kmead.config.site_tls import certificate_name
 from kmead.config.startup import StartupError, configured_map
-from kmead.fusion.bodies import NoPipeline, NoStats, robots_body, status_body
+from kmead.fusion.bodies import robots_body, state_body, status_body
 from kmead.fusion.cameras import Camera, check_meta, make_room
 from kmead.fusion.inputs import Limits, admit
 from kmead.fusion.speaker import Speaker
-from kmead.net.keys import CurveServer, KeysError, keyed_context
-from kmead.net.log_ring import LogRing
-from kmead.net.site_tls import certificate_name
-from kmead.net.telemetry import Telemetry, TelemetryLogHandler
+from kmead.net.keys import KeysError
+from kmead.net.service import Service
 from kmead.outputs.csvlog import CsvLog, row
-from kmead.outputs.datadir import DataDir
-from kmead.outputs.files import FileOutputs, LowSpace
-from kmead.outputs.relay import Relay
-from kmead.outputs.totals import RunTotals
+from kmead.outputs.files import LowSpace
 
 log = logging.getLogger("kmead.fusion")
 
@@ -75,55 +69,43 @@ def tracker_config(cfg: Config) -> TrackerConfig:
     return TrackerConfig.from_table(cfg["filter"])
 
 
-class FusionNode:
+class FusionNode(Service):
     """The fusion node; :meth:`run` until ``max_outputs`` fused outputs or :meth:`stop`.
 
-    Serves :class:`kmead.net.control.ControlServer` as a daemon does (it satisfies its
-    :class:`kmead.net.control.Host` protocol).
+    A service (:class:`kmead.net.service.Service`) without a camera part: its control
+    server answers the commands of every service (:class:`kmead.net.control.Host`) and
+    refuses a camera's with one line.
     """
 
     def __init__(self, cfg: Config, max_outputs: int | None = None,
                  context: zmq.Context | None = None, session: Any = None) -> None:
-        self.cfg = cfg
+        super().__init__(cfg)
         self.max_outputs = max_outputs
-        self.lock = threading.RLock()
-        self.stop_event = threading.Event()
-        self.t0 = time.time()
-        self.curve: CurveServer | None = None
-        self.control: Any = None
-        self.telemetry: Telemetry | None = None
-        self.relay: Relay | None = None
-        self.files: FileOutputs | None = None  # the CSV log (no recording: no frames)
         self.session: Any = None
         self.zenoh_out: Any = None  # kmead.outputs.zenoh.ZenohOutput while active
         self._subs: list[Any] = []
         self._data: list[Any] = []  # the data subscribers (ring channels)
-        self._log_handler: TelemetryLogHandler | None = None
-        self._own_ctx: zmq.Context | None = None
-        self.log_ring = LogRing()  # the UI's Log tab on attach (get_log), as a daemon's
-        self.progress_t = time.monotonic()  # the loop's last sign of life (systemd watchdog)
         self.guard = None  # no change on trial: nothing of a camera to roll back
-        net = cfg["network"]
         self.z = {**cfg["zenoh"], "enabled": True}  # the node lives on Zenoh
-        try:
-            warnings = network_exposure(cfg)
-            from kmead.config.plan import zenoh_plan
-
-            warnings += zenoh_plan(cfg, self.z)
-        except StartupError as e:
-            raise ConfigError(str(e)) from None
-        for w in warnings:
-            log.warning("%s", w)
         self.lease_s = float(self.z["lease_s"])
         self.site = self.z["site"]
-        if net["keys"]:  # the daemon's one set-up: a context of its own with the ZAP handler
+        try:
             try:
-                self._own_ctx, self.curve = keyed_context(net["keys"])
+                warnings = network_exposure(cfg)
+                from kmead.config.plan import zenoh_plan
+
+                warnings += zenoh_plan(cfg, self.z)
+            except StartupError as e:
+                raise ConfigError(str(e)) from None
+            for w in warnings:
+                log.warning("%s", w)
+            try:  # the daemon's one set-up: a context of its own with the ZAP handler
+                self.open_keys()
             except KeysError as e:
                 raise ConfigError(str(e)) from None
-        self.ctx = self._own_ctx or context or zmq.Context.instance()
-        try:
-            self.data_dir = DataDir(cfg["log"]["dir"])
+            context = self.zmq_context or context or zmq.Context.instance()
+            self.open_telemetry(context)
+            self.open_files()  # the CSV log (no recording: no frames)
             try:  # the floor the robots are on: map.file, else the first camera's
                 self.world_map = configured_map(cfg, None)
             except MapError as e:
@@ -135,15 +117,7 @@ class FusionNode:
             self.map_name = self.world_map.name if cfg["map"]["file"] else None
             self.fusion = Fusion(tracker_config(cfg), cfg["fusion"]["max_age_s"])
             self.names = {r["name"] for r in cfg["robots"]}
-            self.telemetry = Telemetry(cfg["network"]["telemetry"], self.ctx, curve=self.curve)
-            self._log_handler = TelemetryLogHandler(self.telemetry)
-            logging.getLogger("kmead").addHandler(self._log_handler)
-            logging.getLogger("kmead").addHandler(self.log_ring)
-            self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
-                               cfg["relay"]["stale_repeat_s"], publish=self.publish,
-                               extra_fields=cfg["relay"]["extra_fields"],
-                               max_sigma_m=cfg["relay"]["max_sigma_m"])
-            self.relay.muted = True  # until this node is the active one
+            self.open_relay().muted = True  # until this node is the active one
             self.cameras: dict[str, Camera] = {}
             self.queue: queue.Queue = queue.Queue(QUEUE_MAX)
             self.overflow = 0  # events dropped: the loop fell behind by QUEUE_MAX
@@ -153,7 +127,6 @@ class FusionNode:
             self.camera_extent: tuple[float, ...] | None = None  # the first camera's map
             # The daemon's rules for its files (never truncating, the data directory over
             # control, the free-space floor, a failing disk stops the log only).
-            self.files = FileOutputs(cfg["log"], self.data_dir, RunTotals(), self.event)
             if cfg["log"]["csv"]:
                 try:
                     self.files.start_csv(cfg["log"]["csv"], keep=True)
@@ -169,12 +142,11 @@ class FusionNode:
             self._last_robots_pub = 0.0
             self._open_zenoh(session)
             self.speaker = Speaker(self)  # the election, its token, the voice per robot
+            self.closing.callback(self.speaker.close)
+            self.closing.callback(self._close_zenoh_out)
             self.election = self.speaker.election
-            if cfg["network"]["control"]:
-                from kmead.net.control import ControlServer
-
-                self.control = ControlServer(cfg["network"]["control"], self, self.ctx,
-                                             curve=self.curve)
+            self.last_word(time.time)
+            self.open_control(self, context=context)
         except BaseException:
             self.close()
             raise
@@ -185,6 +157,7 @@ class FusionNode:
 
         self._owns_session = session is None
         self.session = session if session is not None else open_session(self.z)
+        self.closing.callback(self._close_zenoh)
         # With TLS a node's id is its certificate's name: the site's ACL lets it hold
         # tokens under <site>/fusion/<that name>/ only.
         self.node_id = (certificate_name(self.z["tls_cert"]) if self.z.get("tls_cert")
@@ -394,7 +367,6 @@ class FusionNode:
                 self._ask(cam)
 
     def _output(self, m: Measurement, t_recv: float) -> None:
-        assert self.relay is not None
         tr = self.fusion.tracker.tracks[m.name]
         t_meas = tr.t if tr.t is not None else m.t  # the newest measurement time
         t_out = t_meas
@@ -409,7 +381,7 @@ class FusionNode:
         self.relay.update(m.name, st.t, st.x, st.y, st.theta, st.sigma, extra, cov=st.cov)
         self.outputs += 1
         files = self.files
-        if files is not None and files.csv is not None:
+        if files.csv is not None:
             files.watch_space()
             files.write_csv([row(self.outputs, st.t, "fusion", "robot", m.name, st.x, st.y,
                                  None, st.theta, st.sigma, len(srcs))])
@@ -427,21 +399,14 @@ class FusionNode:
         """The ``status`` body (kmead.fusion.bodies)."""
         return status_body(self)
 
-    # ------------------------------------------------------------------ daemon interface
-    def publish(self, topic: str, body: Mapping[str, Any]) -> None:
-        if self.telemetry is not None:
-            self.telemetry.publish(topic, body)
+    def state(self) -> dict[str, Any]:
+        """``get_state``: the status; no frame and no marker statistics (kmead.fusion.bodies)."""
+        return state_body(self)
 
+    # ------------------------------------------------------------------ the service's part
     def event(self, level: str, text: str) -> None:
+        """A log line (the ``log`` telemetry topic carries it)."""
         getattr(log, "warning" if level == "warning" else level, log.info)(text)
-
-    # No frames, no marker statistics, no camera: what the control thread reads.
-    last_frame_body: dict = {}  # never mutated
-    last_result = None
-    pipeline = NoPipeline()
-    stats = NoStats()
-    camera_feed = None
-    replay = False
 
     def tick(self) -> None:
         """Stale robots on the fusion clock (called by the control thread and the loop)."""
@@ -449,9 +414,9 @@ class FusionNode:
         if not math.isfinite(now):
             return
         with self.lock:
-            relay = self.relay  # close() sets it to None under the lock
-            if relay is None:
+            if self.closed:  # close() runs under the lock
                 return
+            relay = self.relay
             for name in relay.tick(now):
                 self.event("warning", f"robot {name} not seen for "
                                       f"{relay.stale_after_s:g} s: stale (valid=0 sent)")
@@ -459,16 +424,12 @@ class FusionNode:
 
     @property
     def csv(self) -> CsvLog | None:
-        return self.files.csv if self.files is not None else None
+        return self.files.csv
 
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> CsvLog:
-        if self.files is None:
-            raise ValueError("log: the node is closed")
         return self.files.start_csv(path, remote, keep)
 
     def stop_csv(self) -> dict:
-        if self.files is None:
-            raise ValueError("not logging")
         return self.files.stop_csv()
 
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any:
@@ -476,30 +437,10 @@ class FusionNode:
                        "log.level"):
             raise ValueError(f"{key}: not settable on a fusion node (restart it with --set)")
         v = self.cfg.set(key, value, remote=remote)
-        if self.relay is not None:
-            self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
-            self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
-            self.relay.max_sigma_m = self.cfg["relay"]["max_sigma_m"]
+        self.relay.stale_after_s = self.cfg["relay"]["stale_after_s"]
+        self.relay.stale_repeat_s = self.cfg["relay"]["stale_repeat_s"]
+        self.relay.max_sigma_m = self.cfg["relay"]["max_sigma_m"]
         return v
-
-    @staticmethod
-    def _unsupported() -> ValueError:
-        return ValueError("not available on a fusion node (no camera)")
-
-    def start_recording(self, path: str, remote: bool = False, keep: bool = False) -> Any:
-        raise self._unsupported()
-
-    def stop_recording(self) -> dict:
-        raise self._unsupported()
-
-    def reload_map(self) -> Any:
-        raise self._unsupported()
-
-    def save_config(self, path: str | None = None) -> dict:
-        raise self._unsupported()
-
-    def snapshot(self, overlay: bool = False) -> dict:
-        raise self._unsupported()
 
     # ------------------------------------------------------------------ run
     def run(self) -> int:
@@ -561,55 +502,22 @@ class FusionNode:
         """True once ``max_outputs`` fused outputs have been made."""
         return self.max_outputs is not None and self.outputs >= self.max_outputs
 
-    def stop(self) -> None:
-        self.stop_event.set()
-
-    def close(self) -> None:
-        with self.lock:
-            self._close()
-
-    def _close(self) -> None:
-        if self.control is not None:
-            self.control.stop()
-            self.control = None
-        if self.files is not None:
-            self.files.close()
-            self.files = None
-        if self._log_handler is not None:
-            logging.getLogger("kmead").removeHandler(self._log_handler)
-            self._log_handler = None
-        logging.getLogger("kmead").removeHandler(self.log_ring)
-        if self.relay is not None:
-            try:  # robots must not keep following the last fused pose (active node only)
-                self.relay.shutdown(time.time())
-            except Exception:
-                log.exception("relay shutdown")
-            self.relay.close()
-            self.relay = None
+    def _close_zenoh_out(self) -> None:
         if self.zenoh_out is not None:
             self.zenoh_out.close()
             self.zenoh_out = None
-        if getattr(self, "speaker", None) is not None:
-            self.speaker.close()
+
+    def _close_zenoh(self) -> None:
         for entity in self._subs:
             with contextlib.suppress(Exception):  # a session already closed
                 entity.undeclare()
         self._subs = []
-        if self.session is not None and getattr(self, "_owns_session", False):
+        if self.session is not None and self._owns_session:
             try:
                 self.session.close()
             except Exception as e:  # zenoh.ZError: "close operation timed out"
                 log.warning("zenoh: closing the session: %s", str(e).splitlines()[0])
         self.session = None
-        if self.telemetry is not None:
-            self.telemetry.close()
-            self.telemetry = None
-        if self.curve is not None:
-            self.curve.stop()
-            self.curve = None
-        if self._own_ctx is not None:
-            self._own_ctx.term()
-            self._own_ctx = None
 
     def summary(self) -> str:
         lat = sorted(self.latency_ms)

@@ -28,7 +28,6 @@ from kmead.config.schema import ADVANCED
 from kmead.net import bodies
 
 if TYPE_CHECKING:
-    from kmea.pipeline import FrameResult
     from kmead.config.layers import Config
     from kmead.net.camera_feed import CameraFeed
     from kmead.net.keys import CurveServer
@@ -41,24 +40,27 @@ log = logging.getLogger("kmead.control")
 # MAX_MESSAGE_BYTES and this, the client gets an error reply.
 SOCKET_MAX_BYTES = 16 * P.MAX_MESSAGE_BYTES
 
-COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop", "record_start",
-            "record_stop", "reload_map", "save_config", "reset_stats", "camera_watch",
-            "snapshot", "get_log")
+# What every service answers (a camera's kmead and a fusion node alike), and what only a
+# camera's kmead adds: its pipeline's statistics, its camera's image, its recording and map,
+# its live settings' save. A service without the camera part answers each of these with
+# one line saying so.
+SERVICE_COMMANDS = ("ping", "get_state", "get_config", "set", "log_start", "log_stop",
+                    "get_log")
+CAMERA_COMMANDS = ("record_start", "record_stop", "reload_map", "save_config", "reset_stats",
+                   "camera_watch", "snapshot")
+COMMANDS = (*SERVICE_COMMANDS, *CAMERA_COMMANDS)
 # What a viewer key may ask: everything that only reads (the watch-only role sees all the
 # operator sees); the rest changes settings, files or statistics.
 READ_ONLY = ("ping", "get_state", "get_config", "camera_watch", "snapshot", "get_log")
-
-
-class HasAlgorithm(Protocol):
-    @property
-    def algorithm(self) -> str: ...
+# The service without a camera part (kmead.fusion.node).
+NO_CAMERA = "not supported by a fusion node (it has no camera)"
 
 
 class Host(Protocol):
-    """What the control thread uses of its host: a daemon (``kmead.run.daemon.Daemon``) or a
-    fusion node (``kmead.fusion.FusionNode``, whose camera commands raise ValueError with
-    the reason). Declared here so this module imports neither (they create the server);
-    pyright checks that both satisfy it where they hand themselves to the server."""
+    """What the control thread uses of every service (:mod:`kmead.net.service`): a daemon
+    (``kmead.run.daemon.Daemon``) and a fusion node (``kmead.fusion.FusionNode``). Declared
+    here so this module imports neither (they create the server); pyright checks that both
+    satisfy it where they hand themselves to the server."""
 
     # Read-only properties: a plain attribute or a property of the host satisfies each.
     @property
@@ -66,29 +68,30 @@ class Host(Protocol):
     @property
     def lock(self) -> AbstractContextManager[Any]: ...
     @property
-    def stats(self) -> bodies.StatsWindow: ...
-    @property
-    def pipeline(self) -> HasAlgorithm: ...
-    @property
-    def last_frame_body(self) -> Mapping[str, Any]: ...
-    @property
-    def last_result(self) -> FrameResult | None: ...
-    @property
     def data_dir(self) -> DataDir: ...
     @property
-    def camera_feed(self) -> CameraFeed | None: ...  # None on a fusion node (no camera)
-    @property
     def log_ring(self) -> LogRing: ...
-    @property
-    def replay(self) -> bool: ...
 
     def status(self) -> P.StatusBody: ...
+    def state(self) -> dict[str, Any]: ...  # get_state: status, frame, stats
     def publish(self, topic: str, body: Mapping[str, Any]) -> None: ...
     def event(self, level: str, text: str) -> None: ...
     def tick(self) -> None: ...
     def apply_setting(self, key: str, value: Any, remote: bool = False) -> Any: ...
     def start_csv(self, path: str, remote: bool = False, keep: bool = False) -> Any: ...
     def stop_csv(self) -> dict: ...
+
+
+class CameraHost(Protocol):
+    """What a camera's kmead adds (``kmead.run.daemon.Daemon``): :data:`CAMERA_COMMANDS`."""
+
+    @property
+    def stats(self) -> bodies.StatsWindow: ...
+    @property
+    def camera_feed(self) -> CameraFeed: ...
+    @property
+    def replay(self) -> bool: ...
+
     def start_recording(self, path: str, remote: bool = False, keep: bool = False
                         ) -> Any: ...
     def stop_recording(self) -> dict: ...
@@ -120,11 +123,16 @@ def _field(req: dict, name: str, types: type | tuple[type, ...], required: bool 
 
 
 class ControlServer:
-    """REP socket on ``endpoint`` serving ``daemon``; :meth:`start` runs the thread."""
+    """REP socket on ``endpoint`` serving ``daemon``; :meth:`start` runs the thread.
+
+    camera: the host's camera part (:class:`CameraHost`), None for a service without one:
+    then :data:`CAMERA_COMMANDS` are refused with one line (:data:`NO_CAMERA`)."""
 
     def __init__(self, endpoint: str, daemon: Host, context: zmq.Context | None = None,
-                 poll_ms: int = 100, curve: CurveServer | None = None) -> None:
+                 poll_ms: int = 100, curve: CurveServer | None = None,
+                 camera: CameraHost | None = None) -> None:
         self.daemon = daemon
+        self.camera = camera
         self.poll_ms = poll_ms
         self.curve = curve
         ctx = context or zmq.Context.instance()
@@ -141,17 +149,21 @@ class ControlServer:
         self.bound = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.requests = 0
         self.errors = 0
-        # The command table: every command of COMMANDS and its handler (a test holds them
-        # equal), typed, instead of looking a method up by the request's text.
+        # The command table: every command of COMMANDS the host answers and its handler (a
+        # test holds them equal), typed, instead of looking a method up by the request's
+        # text; the camera's commands only with the camera part.
         self.handlers: dict[str, Callable[[dict], dict]] = {
             "ping": self._cmd_ping, "get_state": self._cmd_get_state,
             "get_config": self._cmd_get_config, "set": self._cmd_set,
             "log_start": self._cmd_log_start, "log_stop": self._cmd_log_stop,
-            "record_start": self._cmd_record_start, "record_stop": self._cmd_record_stop,
-            "reload_map": self._cmd_reload_map, "save_config": self._cmd_save_config,
-            "reset_stats": self._cmd_reset_stats, "camera_watch": self._cmd_camera_watch,
-            "snapshot": self._cmd_snapshot, "get_log": self._cmd_get_log,
+            "get_log": self._cmd_get_log,
         }
+        if camera is not None:
+            self.handlers.update({
+                "record_start": self._cmd_record_start, "record_stop": self._cmd_record_stop,
+                "reload_map": self._cmd_reload_map, "save_config": self._cmd_save_config,
+                "reset_stats": self._cmd_reset_stats, "camera_watch": self._cmd_camera_watch,
+                "snapshot": self._cmd_snapshot})
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="kmead-control", daemon=True)
 
@@ -221,11 +233,14 @@ class ControlServer:
             if cmd not in COMMANDS:
                 raise RequestError(f"unknown command {_short(cmd)} "
                                    f"(commands: {', '.join(COMMANDS)})")
+            handler = self.handlers.get(cmd)
+            if handler is None:
+                raise RequestError(f"{cmd}: {NO_CAMERA}")
             kind = role.split(" ", 1)[0] if role is not None else None
             if kind not in (None, "operator") and cmd not in READ_ONLY:
                 raise RequestError(f"control refused: {cmd} needs an operator key; this is "
                                    f"the key of {role} (read-only: {', '.join(READ_ONLY)})")
-            reply = self.handlers[cmd](req)
+            reply = handler(req)
             if cmd == "ping":  # the UI says what its key may do
                 reply["role"] = kind
             return {"ok": True, "cmd": cmd, **reply}
@@ -247,10 +262,8 @@ class ControlServer:
         return {"t": time.time()}
 
     def _cmd_get_state(self, req: dict) -> dict:
-        d = self.daemon
-        with d.lock:
-            return {"status": d.status(), "frame": d.last_frame_body,
-                    "stats": bodies.stats_body(d.stats, d.pipeline.algorithm, d.last_result)}
+        with self.daemon.lock:
+            return self.daemon.state()
 
     def _cmd_get_config(self, req: dict) -> dict:
         d = self.daemon
@@ -295,26 +308,30 @@ class ControlServer:
         with self.daemon.lock:
             return self.daemon.stop_csv()
 
+    def _cam(self) -> CameraHost:
+        assert self.camera is not None  # its commands are in the table only with it
+        return self.camera
+
     def _cmd_record_start(self, req: dict) -> dict:
-        d = self.daemon
+        d, cam = self.daemon, self._cam()
         name = self._path(req)
         if name is not None:
             d.data_dir.check_name(name, "record")
         with d.lock:
             if name is None and d.cfg["log"]["record"]:
-                r = d.start_recording(d.cfg["log"]["record"], keep=True)
+                r = cam.start_recording(d.cfg["log"]["record"], keep=True)
             else:
-                r = d.start_recording(name or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl.zst"),
-                                      remote=True)
+                r = cam.start_recording(name or time.strftime("kmead-%Y%m%d-%H%M%S.jsonl.zst"),
+                                        remote=True)
         return {"path": str(r.path), "mode": r.mode}
 
     def _cmd_record_stop(self, req: dict) -> dict:
         with self.daemon.lock:
-            return self.daemon.stop_recording()
+            return self._cam().stop_recording()
 
     def _cmd_reload_map(self, req: dict) -> dict:
         with self.daemon.lock:
-            m = self.daemon.reload_map()
+            m = self._cam().reload_map()
         return {"map": {"name": m.name, "n": len(m)}}
 
     def _cmd_save_config(self, req: dict) -> dict:
@@ -324,24 +341,22 @@ class ControlServer:
             raise RequestError(f"save_config writes only the daemon's overlay {overlay} "
                                "(get_config: overlay_file); send it without a path")
         with self.daemon.lock:
-            return self.daemon.save_config()
+            return self._cam().save_config()
 
     def _cmd_reset_stats(self, req: dict) -> dict:
         with self.daemon.lock:
-            self.daemon.stats.reset()
+            self._cam().stats.reset()
         return {}
 
     def _cmd_camera_watch(self, req: dict) -> dict:
         """Thumbnails on the ``camera`` topic until the lease ends (renew to keep them)."""
-        d = self.daemon
-        if d.camera_feed is None:
-            raise RequestError("camera: not available on a fusion node (no camera)")
-        reply = d.camera_feed.watch(req.get("width"), req.get("height"), req.get("lease_s"))
-        return {**reply, "images": not d.replay}
+        cam = self._cam()
+        reply = cam.camera_feed.watch(req.get("width"), req.get("height"), req.get("lease_s"))
+        return {**reply, "images": not cam.replay}
 
     def _cmd_snapshot(self, req: dict) -> dict:
         overlay = bool(_field(req, "overlay", bool, required=False))
-        return self.daemon.snapshot(overlay)
+        return self._cam().snapshot(overlay)
 
     def _cmd_get_log(self, req: dict) -> dict:
         limit = _field(req, "limit", int, required=False)

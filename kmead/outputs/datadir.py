@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from kmead.config.checks import same_file
+
 __all__ = ["SUFFIXES", "DataDir", "FileRefused", "free_bytes", "low_space", "next_part",
            "same_file", "split_suffix"]
 
@@ -59,17 +61,6 @@ def next_part(path: str | Path, part: int) -> tuple[Path, int]:
             continue
         return p, k
     raise OSError(f"{base}-part{part}{suffix} to -part{part + 9999}: all exist")
-
-
-def same_file(a: str | Path, b: str | Path) -> bool:
-    """True when two paths name the same file (resolved; existing or not)."""
-    try:
-        pa, pb = Path(a), Path(b)
-        if pa.exists() and pb.exists():
-            return os.path.samefile(pa, pb)
-        return pa.resolve() == pb.resolve()
-    except (OSError, ValueError):
-        return False
 
 
 def free_bytes(path: str | Path) -> int | None:

@@ -42,7 +42,7 @@ from typing import Any
 
 from kmea.maps.files import map_digest
 from kmea.maps.model import MarkerMap
-from kmead.net.site_tls import certificate_name
+from kmead.config.site_tls import certificate_name
 from kmead.outputs.voice import CAMERA, NODE, QUIET_S, Voice
 from kmead.outputs.zenoh_session import import_zenoh
 

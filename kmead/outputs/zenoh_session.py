@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import json
 
+from kmead.config.site_tls import load_acl
 from kmead.config.startup import EXIT_RUNTIME, StartupError
-from kmead.net.site_tls import load_acl
 
 #: The loopback rendezvous of the processes of one machine (Zenoh's own default port).
 RENDEZVOUS = "tcp/127.0.0.1:7447"

@@ -16,7 +16,6 @@ from __future__ import annotations
 import collections
 import logging
 import math
-import threading
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -46,17 +45,14 @@ from kmead.config.startup import (
 )
 from kmead.net import bodies
 from kmead.net.camera_feed import CameraFeed, camera_body, frame_outlines
-from kmead.net.control import ControlServer
-from kmead.net.log_ring import LogRing
-from kmead.net.telemetry import Telemetry, TelemetryLogHandler
 from kmead.outputs.csvlog import CsvLog
-from kmead.outputs.datadir import DataDir, FileRefused
-from kmead.outputs.files import FileOutputs, LowSpace
-from kmead.outputs.relay import Relay
+from kmead.outputs.datadir import FileRefused
+from kmead.outputs.files import LowSpace
 from kmead.outputs.robots import RobotSender
 from kmead.outputs.totals import RunTotals, csv_lines, truth_record
 from kmead.run.capture import Capture, CaptureEnded, open_feed
 from kmead.run.discovery import Discovery
+from kmead.run.extras import ExtraOutputs
 from kmead.run.gc_pacing import GcPacing
 from kmead.run.live_settings import LiveSettings
 from kmead.run.rollback import ChangeGuard
@@ -71,24 +67,21 @@ DISPLACED_QUIET_S = 30.0
 STARTUP_FAILURES = 30
 
 
-class Daemon:
-    """A configured daemon; :meth:`run` processes frames until the end, --frames or stop()."""
+class Daemon(ExtraOutputs):
+    """A configured daemon; :meth:`run` processes frames until the end, --frames or stop().
+
+    A service (:class:`kmead.net.service.Service`) with a camera part: its control server
+    answers every command (:class:`kmead.net.control.Host` and
+    :class:`kmead.net.control.CameraHost`)."""
 
     # Made by _build, before anything can use them (close() copes with a partial build).
-    files: FileOutputs
-    relay: Relay
     robots: RobotSender
     source: FrameSource
 
     def __init__(self, cfg: Config, max_frames: int | None = None) -> None:
-        self.cfg = cfg
+        super().__init__(cfg)
         self.max_frames = max_frames
-        self.lock = threading.RLock()
-        self.stop_event = threading.Event()
         self.totals = RunTotals()
-        self.t0 = time.time()
-        self.telemetry: Telemetry | None = None
-        self.control = None
         self.capture: Capture | None = None
         self.feed = None
         self.gc_pacing: GcPacing | None = None
@@ -102,20 +95,13 @@ class Daemon:
         self._t_capture = 0.0
         self._last_frame_wall = time.time()
         self.exit_code = EXIT_OK
-        self._closed = False
-        self._log_handler: logging.Handler | None = None
         # Field kit: liveness, the UI's camera view and log on attach, snapshots, Foxglove.
-        self.state = "starting"  # running, then stopped: in the status telemetry
-        self.progress_t = time.monotonic()  # the main loop's last sign of life (watchdog)
+        self.run_state = "starting"  # running, then stopped: in the status telemetry
         self.camera_feed = CameraFeed()
-        self.log_ring = LogRing()
-        logging.getLogger("kmead").addHandler(self.log_ring)
         self.last_image = None  # the last processed frame's image (snapshots)
         self.foxglove = None
         self.zenoh = None  # kmead.outputs.zenoh.ZenohOutput when [zenoh] enabled = true
         self.zenoh_camera = None  # kmead.outputs.zenoh_camera.ZenohCamera, with it
-        self.curve = None  # kmead.net.keys.CurveServer when network.keys is set
-        self.zmq_context = None  # the daemon's own context when keyed (one ZAP handler each)
         self.live_settings = LiveSettings(cfg, self._reconfigure, self.event,
                                           self._setting_problem)
         self.frames_read = 0  # what --frames counts: frames that came in, failed or not
@@ -137,7 +123,16 @@ class Daemon:
         for w in plan.warnings:
             log.warning("%s", w)
         self.world_map = plan.world_map
+        # The order of opening is the reverse of closing (kmead.net.service): the network
+        # first (it closes last, after the "stopped" status), the control server last.
+        self._secure_network()
+        try:
+            self.open_telemetry(log_level=logging.NOTSET)
+        except OSError as e:
+            raise StartupError(str(e), EXIT_RUNTIME) from None
+        logging.getLogger("kmead").setLevel(cfg["log"]["level"].upper())
         self.source = open_configured_source(cfg)
+        self.closing.callback(self._close_source)
         self.source_spec = cfg["source"]["spec"]
         self.replay = isinstance(self.source, ReplaySource)
         self.live = bool(getattr(self.source, "live", False)) or is_paced_sim(cfg)
@@ -150,43 +145,23 @@ class Daemon:
                         "its rows differ slightly (record with --set detector.fixed_camera=false "
                         "for rows identical to the recorded run's)", self.source_spec)
         try:
-            self.data_dir = DataDir(cfg["log"]["dir"])
+            self.open_files(self.totals, self._new_recorder)
         except FileRefused as e:
             raise StartupError(f"key 'log.dir': {e}") from None
-        self.files = FileOutputs(cfg["log"], self.data_dir, self.totals, self.event,
-                                 self._new_recorder)
         # The tracking detector's background detection: one thread of the daemon's (the
         # library starts none), started on first use.
         self.discovery = Discovery()
+        self.closing.callback(self.discovery.shutdown, wait=False, cancel_futures=True)
         try:
             self.pipeline = Pipeline(camera, self.world_map, self._settings(),
                                      background=self.discovery)
         except ValueError as e:  # detector parameters, dictionary, algorithm options
             raise StartupError(f"{cfg.files[-1]}: detector: {e}") from None
+        self.closing.callback(self.pipeline.close)
         self.stats = WindowStats(cfg["stats"]["window"], self.world_map.ref_length())
         self.monitor = MovedMonitor(cfg["stats"]["displaced_threshold"],
                                     cfg["stats"]["displaced_frames"])
-        net = cfg["network"]
-        self._secure_network()
-        try:
-            self.telemetry = Telemetry(net["telemetry"], context=self.zmq_context,
-                                       curve=self.curve)
-        except OSError as e:
-            raise StartupError(str(e), EXIT_RUNTIME) from None
-        self.relay = Relay(cfg["robots"], cfg["relay"]["stale_after_s"],
-                           cfg["relay"]["stale_repeat_s"], publish=self.telemetry.publish,
-                           extra_fields=cfg["relay"]["extra_fields"],
-                           max_sigma_m=cfg["relay"]["max_sigma_m"])
-        self.robots = RobotSender(self.relay, self.totals, self.event)
-        if net["control"]:
-            try:
-                self.control = ControlServer(net["control"], self, context=self.zmq_context,
-                                             curve=self.curve)
-            except OSError as e:
-                raise StartupError(str(e), EXIT_RUNTIME) from None
-        self._log_handler = TelemetryLogHandler(self.telemetry, logging.NOTSET)
-        logging.getLogger("kmead").setLevel(cfg["log"]["level"].upper())
-        logging.getLogger("kmead").addHandler(self._log_handler)
+        self.robots = RobotSender(self.open_relay(), self.totals, self.event)
         for key, start in (("csv", self.start_csv), ("record", self.start_recording)):
             if not cfg["log"][key]:
                 continue
@@ -202,64 +177,21 @@ class Daemon:
             self._start_foxglove()
         if cfg.data.get("zenoh", {}).get("enabled"):
             self._start_zenoh()
-
-    def _start_zenoh(self) -> None:
-        """Robot poses on Zenoh (docs/ros2.md): the relay hands it every message."""
+        self.last_word(self._now)
+        self.closing.callback(self.live_settings.settle)  # a trial comes over control only
         try:
-            from kmead.outputs.zenoh import ZenohOutput
-        except ImportError:
-            raise StartupError("key 'zenoh.enabled': the zenoh extra is not installed "
-                               "(pip install 'kmea[zenoh]')") from None
-        from kmead.outputs.zenoh_camera import DuplicateCamera, ZenohCamera, camera_id
-
-        z = self.cfg["zenoh"]
-        self.zenoh = ZenohOutput.open(z)
-        self.relay.sink = self.zenoh.send
-        # This kmead as a camera of its site, for the fusion nodes (docs/fusion.md), and
-        # one of the robots' possible voices (kmead.outputs.voice).
-        relay = self.relay
-        try:
-            self.zenoh_camera = ZenohCamera(
-                self.zenoh.session, z["site"], camera_id(z, self.source_spec),
-                self._camera_meta(), known=lambda name: name in relay.channels,
-                on_quiet=self.zenoh.quiet, event=self.event)
-        except DuplicateCamera as e:
-            relay.muted = True  # it never spoke: its close tells the robots nothing
-            raise StartupError(str(e)) from None
-        self.relay.voice = self.zenoh_camera.voice
-        self.robots.camera = self.zenoh_camera
-
-    def _camera_meta(self) -> dict:
-        from kmead.outputs.zenoh_camera import camera_id, meta_body
-
-        return meta_body(camera_id(self.cfg["zenoh"], self.source_spec), self.world_map,
-                         self.pipeline.camera, self.source_spec, self.cfg["camera"]["file"])
-
-    def _start_foxglove(self) -> None:
-        fx = self.cfg["foxglove"]
-        try:
-            from kmead.viewers.foxglove import FoxgloveServer
-        except ImportError:
-            raise StartupError("key 'foxglove.enabled': the foxglove extra is not installed "
-                               "(pip install 'kmea[foxglove]')") from None
-        try:
-            self.foxglove = FoxgloveServer(self.world_map, self.pipeline.camera, fx["host"],
-                                           fx["port"], fx["image_hz"])
+            self.open_control(self, camera=self)
         except OSError as e:
-            raise StartupError(f"key 'foxglove.port': {e}; another kmead is probably running "
-                               "(or set foxglove.port = 0 for a free port)",
-                               EXIT_RUNTIME) from None
-        log.info("foxglove: serving %s (open it in Foxglove: Open connection, "
-                 "Foxglove WebSocket)", self.foxglove.url)
+            raise StartupError(str(e), EXIT_RUNTIME) from None
 
     def _secure_network(self) -> None:
         """CURVE on both sockets when keys are configured (the plan judged the exposure)."""
         net = self.cfg["network"]
         if net["keys"]:
-            from kmead.net.keys import KeysError, keyed_context
+            from kmead.net.keys import KeysError
 
             try:
-                self.zmq_context, self.curve = keyed_context(net["keys"])
+                self.open_keys()
             except KeysError as e:
                 raise StartupError(str(e), EXIT_CONFIG) from None
             log.info("CURVE on: keys %s (%d operator(s), %d viewer(s))", net["keys"],
@@ -377,7 +309,13 @@ class Daemon:
             bad_frames=self.totals.bad_frames,
             telemetry=self.telemetry.bound if self.telemetry else "",
             control=self.control.bound if self.control else "",
-            stopped=self.state == "stopped")
+            stopped=self.run_state == "stopped")
+
+    def state(self) -> dict[str, Any]:
+        """``get_state``: the status, the last frame and the statistics."""
+        return {"status": self.status(), "frame": self.last_frame_body,
+                "stats": bodies.stats_body(self.stats, self.pipeline.algorithm,
+                                           self.last_result)}
 
     def progress(self) -> dict:
         """A snapshot for the headless status line and systemd STATUS (any thread)."""
@@ -405,15 +343,6 @@ class Daemon:
         if len(ts) < 2 or ts[-1] <= ts[0]:
             return 0.0
         return (len(ts) - 1) / (ts[-1] - ts[0])
-
-    def publish(self, topic: str, body: Mapping[str, Any]) -> None:
-        if self.telemetry is not None:
-            self.telemetry.publish(topic, body)
-
-    def event(self, level: str, text: str) -> None:
-        getattr(log, "warning" if level == "warning" else level, log.info)(text)
-        if self.telemetry is not None:
-            self.telemetry.event(level, text)
 
     def _check_blur(self, meta: dict) -> None:
         """Warn once when the camera's exposure smears a robot at ``filter.max_speed`` by
@@ -625,8 +554,8 @@ class Daemon:
             now = time.time()
             if now - self._last_frame_wall >= self.cfg["relay"]["stale_after_s"]:
                 with self.lock:
-                    relay = self.relay  # close() sets it to None under the lock (SIGTERM)
-                    for name in relay.tick(now) if relay is not None else ():
+                    # close() runs under the lock (SIGTERM): nothing to tick after it
+                    for name in self.relay.tick(now) if not self.closed else ():
                         # The frames stopped, not the robot: say which.
                         self.event("warning", f"no frame for {now - self._last_frame_wall:.1f}"
                                               f" s (the camera or this machine stalled): robot "
@@ -646,7 +575,7 @@ class Daemon:
         if self.control is not None:
             self.control.start()
         self.totals.t_start = time.perf_counter()
-        self.state = "running"
+        self.run_state = "running"
         self.publish(P.TOPIC_STATUS, self.status())
         log.info("running: source %s, algorithm %s, map %s (%d markers)", self.source_spec,
                  self.pipeline.algorithm, self.world_map.name, len(self.world_map))
@@ -708,67 +637,20 @@ class Daemon:
             self.event("error", f"source stopped: {e.args[0]}")
             self.exit_code = EXIT_RUNTIME
 
-    def stop(self) -> None:
-        # Only a flag: this runs in a signal handler (no locks, no sockets here).
-        self.stop_event.set()
+    # ------------------------------------------------------------------ closing
+    # Each registered on self.closing as its part opens (kmead.net.service.Service.close).
+    def _close_source(self) -> None:
+        if self.capture is not None:  # it closes the source
+            self.capture.close()
+        else:
+            self.source.close()
 
-    def close(self) -> None:
-        """Flush and close everything (idempotent; also after a build that failed half way)."""
-        with self.lock:
-            if self._closed:
-                return
-            self._closed = True
-            self.live_settings.settle()
-            if self.control is not None:
-                self.control.stop()
-                self.control = None
-            if getattr(self, "pipeline", None) is not None:
-                self.pipeline.close()
-            if getattr(self, "discovery", None) is not None:
-                # A detection under way finishes on its own (it holds nothing of ours).
-                self.discovery.shutdown(wait=False, cancel_futures=True)
-            if self.capture is not None:
-                self.capture.close()
-            elif getattr(self, "source", None) is not None:
-                self.source.close()
-            if getattr(self, "files", None) is not None:
-                self.files.close()
-            if self.foxglove is not None:
-                self.foxglove.close()
-                self.foxglove = None
-            if getattr(self, "relay", None) is not None:
-                try:  # robots must not keep following the last pose of a stopped daemon
-                    self.relay.shutdown(self._now())
-                except Exception:
-                    log.exception("relay shutdown")
-                self.relay.close()
-            if self.zenoh_camera is not None:
-                self.zenoh_camera.close()
-                self.zenoh_camera = None
-                self.robots.camera = None
-            if self.zenoh is not None:
-                log.info("zenoh: %d messages published, %d failed", self.zenoh.sent,
-                         self.zenoh.errors)
-                self.zenoh.close()
-                self.zenoh = None
-            if self._log_handler is not None:
-                logging.getLogger("kmead").removeHandler(self._log_handler)
-                self._log_handler = None
-            logging.getLogger("kmead").removeHandler(self.log_ring)
-            if self.telemetry is not None:
-                # Announce the end, so a UI shows "daemon stopped" instead of frozen data.
-                if self.state != "starting":
-                    self.state = "stopped"
-                    self.telemetry.event("info", "kmead stopped")
-                    self.publish(P.TOPIC_STATUS, self.status())
-                self.telemetry.close()
-                self.telemetry = None
-            if self.curve is not None:
-                self.curve.stop()
-                self.curve = None
-            if self.zmq_context is not None:
-                self.zmq_context.term()
-                self.zmq_context = None
+    def farewell(self) -> None:
+        """Announce the end, so a UI shows "daemon stopped" instead of frozen data."""
+        if self.telemetry is not None and self.run_state != "starting":
+            self.run_state = "stopped"
+            self.telemetry.event("info", "kmead stopped")
+            self.publish(P.TOPIC_STATUS, self.status())
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> str:

@@ -3,7 +3,7 @@
 ``kmea keys init DIR`` writes the daemon's pair and a first operator; ``kmea keys add DIR
 NAME [--viewer]`` adds a client. The contract is described in :mod:`kmea.wire.curve_client`.
 ``kmea keys site DIR --cameras ... --nodes ... --robots ...`` makes a site's CA, one
-certificate per peer and Zenoh's access control (:mod:`kmead.net.site_tls`).
+certificate per peer and Zenoh's access control (:mod:`kmead.config.site_tls`).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from kmea.wire.curve_client import CurveKeyError
+from kmead.config.site_tls import SiteTlsError, make_site
 from kmead.net.keys import add_client, init_keys
-from kmead.net.site_tls import SiteTlsError, make_site
 
 
 def add_arguments(parser: Any) -> None:
