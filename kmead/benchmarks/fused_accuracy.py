@@ -88,8 +88,11 @@ def _robots(ports: dict[str, int]) -> str:
 
 
 def run_once(speed: float, seconds: float, width: int, settle: float, window: float,
-             ) -> dict[str, dict[str, list[float]]]:
-    """One run at ``speed`` m/s: {region: {stream: [pos rmse mm, heading rmse mrad, n]}}."""
+             fps: float = 30.0,
+             ) -> tuple[dict[str, dict[str, list[float]]], dict[str, float]]:
+    """One run at ``speed`` m/s with the cameras asked for ``fps`` frames/s: ({region:
+    {stream: [pos rmse mm, heading rmse mrad, n]}}, {camera: the frame rate it achieved,
+    from the median interval of its measurements of a robot})."""
     import zenoh
 
     from kmea.robots.tracking import Tracker
@@ -150,7 +153,7 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
                         f"&width={width}&height={height}")
                 procs.append(subprocess.Popen(
                     [sys.executable, "-m", "kmead.cli", "--headless", "--free-ports",
-                     "--status-every", "0", "--source", spec,
+                     "--status-every", "0", "--source", spec, "--set", f"source.fps={fps}",
                      *_zenoh_sets(zport, ["--set", _robots({n: _free_port(socket.SOCK_DGRAM)
                                                             for n, _ in ROBOTS})])],
                     cwd=tmp, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
@@ -211,6 +214,12 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
                 tx, ty, tth = truth_scene.robot_poses(t - epoch)[name]
                 d_th = (th - tth + math.pi) % (2 * math.pi) - math.pi
                 errs[_region(seen, t, window)][label].append((math.hypot(x - tx, y - ty), d_th))
+    rates: dict[str, float] = {}
+    for cam in ("cam0", "cam1"):
+        gaps = np.concatenate([np.diff(np.asarray(raw_copy[(cam, n)].t)) for n, _ in ROBOTS
+                               if (cam, n) in raw_copy] or [np.zeros(0)])
+        gaps = gaps[(gaps > 0) & (gaps < 0.5)]
+        rates[cam] = 1.0 / float(np.median(gaps)) if gaps.size else 0.0
     table: dict[str, dict[str, list[float]]] = {}
     for reg, by in errs.items():
         table[reg] = {}
@@ -218,7 +227,7 @@ def run_once(speed: float, seconds: float, width: int, settle: float, window: fl
             a = np.asarray(e)
             table[reg][label] = [1e3 * math.sqrt(float(np.mean(a[:, 0] ** 2))),
                                  1e3 * math.sqrt(float(np.mean(a[:, 1] ** 2))), len(a)]
-    return table
+    return table, rates
 
 
 def _region(seen: dict[str, np.ndarray], t: float, window: float) -> str:
@@ -239,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=40.0, help="measured per speed")
     ap.add_argument("--settle", type=float, default=3.0)
     ap.add_argument("--width", type=int, default=820, help="camera width (px; 4:3)")
+    ap.add_argument("--fps", type=float, default=30.0,
+                    help="frame rate asked of the cameras (source.fps; default 30, kmead's)")
     ap.add_argument("--window", type=float, default=0.1,
                     help="s: a camera measured the robot this close to a pose's t")
     args = ap.parse_args(argv)
@@ -246,7 +257,10 @@ def main(argv: list[str] | None = None) -> int:
           f"node, {args.seconds:.0f} s per speed; RMSE against truth at each pose's t")
     print("speed m/s | region   | stream    | pos RMSE mm | heading RMSE mrad |     n")
     for speed in args.speeds:
-        table = run_once(speed, args.seconds, args.width, args.settle, args.window)
+        table, rates = run_once(speed, args.seconds, args.width, args.settle, args.window,
+                                args.fps)
+        print(f"{speed:9.2f} | cameras asked for {args.fps:g} frames/s, achieved: "
+              + ", ".join(f"{c} {r:.1f}" for c, r in rates.items()))
         for reg in ("one", "overlap", "handover"):
             for label in ("fused", "cam0 raw", "cam0 filt", "cam1 raw", "cam1 filt"):
                 v = table.get(reg, {}).get(label)
