@@ -6,10 +6,11 @@ Starts ``kmead`` (a subprocess, headless, the simulated floor with a moved marke
 robots, paced so a subscriber sees every message), records its telemetry with the UI's own
 client (typed decoding, :func:`kmea.wire.protocol.decode`) up to frame ``--last``, asks it for
 ``get_config`` and ``get_state`` (the replay's header), stops it and keeps the last
-``--keep`` frames (:func:`kmea_tui.client.trim_messages`). Every message in the file came
-from the daemon unchanged (floats rounded to 6 digits). After regenerating, update the
-snapshots (``pytest tests/test_tui_snapshots.py tests/test_tui_suspect.py
---snapshot-update``) and look at them.
+``--keep`` frames (:func:`kmea_tui.client.trim_messages`). The daemon runs full detection
+on every frame (``detector.fixed_camera = false``; see :func:`start_daemon`). Every message
+in the file came from the daemon unchanged (floats rounded to 6 digits). After
+regenerating, update the snapshots (``pytest tests/test_tui_snapshots.py
+tests/test_tui_suspect.py --snapshot-update``) and look at them.
 """
 
 from __future__ import annotations
@@ -42,7 +43,13 @@ def start_daemon(cwd: Path, scene: str, fps: float) -> tuple[subprocess.Popen, s
            "--log", "out/run.csv",
            "--set", 'network.telemetry="tcp://127.0.0.1:*"',
            "--set", 'network.control="tcp://127.0.0.1:*"',
-           "--set", f"source.fps={fps}", "--set", "network.status_period_s=1.0"]
+           "--set", f"source.fps={fps}", "--set", "network.status_period_s=1.0",
+           # Full detection on every frame: the stream shows the suspect flag (frame 32:
+           # amr2's plate over a corner of marker 25), which the fixed-camera path (the
+           # default for a paced source) never has to raise for a floor marker - it
+           # reports one at its reference corners, or not at all until it is seen cleanly
+           # (tests/test_fixed_camera_suspect.py).
+           "--set", "detector.fixed_camera=false"]
     proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=err)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
