@@ -589,6 +589,8 @@ class KmeaTui(App[None]):
         return True
 
     def on_tabbed_content_tab_activated(self, event: TabbedContent.TabActivated) -> None:
+        if not self.screen_stack:  # a tab's activation still queued while the app closes
+            return
         with suppress(NoMatches):
             self.show_tab_data(self.query_one(TabbedContent).active)
         self.refresh_bindings()
