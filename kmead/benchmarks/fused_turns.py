@@ -124,11 +124,12 @@ def main(argv: list[str] | None = None) -> int:
                                 description="the fused stream at the wide scene's turns")
     p.add_argument("--speed", type=float, action="append",
                    help="robots' speed, m/s (repeatable; default 0.25 and 1.5)")
-    p.add_argument("--seconds", type=float, default=0.0,
-                   help="simulated time (default: one loop of the slower robot)")
+    p.add_argument("--seconds", type=float, default=60.0,
+                   help="simulated time (default %(default)s s)")
     p.add_argument("--width", type=int, default=820)
     p.add_argument("--height", type=int, default=616)
-    p.add_argument("--fps", type=float, default=15.0)
+    p.add_argument("--fps", type=float, default=30.0,
+                   help="the cameras' frame rate (default 30, kmead's source.fps)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a configuration key for the cameras and the node, as kmead's --set "
                         "(e.g. filter.step_k=1e9; repeatable)")
