@@ -36,7 +36,7 @@ NEAR_TURN_M = 0.3
 
 
 def _record(speed: float, seconds: float, width: int, height: int, fps: float,
-            sets: list[str]) -> dict:
+            sets: list[str], drop: float = 0.0) -> dict:
     """Per camera, per frame: (fixes name -> (t, x, y, sigma), measured name -> (t, x, y,
     theta, sigma), accepted name -> the same)."""
     from kmea.pipeline import FrameInput, Pipeline, PipelineSettings
@@ -50,10 +50,14 @@ def _record(speed: float, seconds: float, width: int, height: int, fps: float,
                         fps=fps)
         pipe = Pipeline(src.camera, src.world_map, settings)
         rows = []
+        # A camera that cannot keep up drops frames: the pipeline never sees them.
+        rng = np.random.default_rng(cam)
         for _ in range(int(seconds * fps)):
             fr = src.read()
             if fr is None:
                 break
+            if drop and rng.uniform() < drop:
+                continue
             res = pipe.process(FrameInput(fr.index, fr.timestamp, fr.image, meta=fr.meta))
             fixes = {n: (fr.timestamp if f.t is None else f.t, f.x, f.y, f.sigma or 0.0)
                      for n, f in res.robots.items()}
@@ -130,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=616)
     p.add_argument("--fps", type=float, default=30.0,
                    help="the cameras' frame rate (default 30, kmead's source.fps)")
+    p.add_argument("--drop", type=float, default=0.0, metavar="P",
+                   help="each camera drops each frame with probability P (seeded), as a "
+                        "camera that cannot keep up does")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a configuration key for the cameras and the node, as kmead's --set "
                         "(e.g. filter.step_k=1e9; repeatable)")
@@ -144,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                     speed=speed).robots}
         seconds = a.seconds or max(pt.length for pt in paths.values()) / speed + 1.0
         t0 = time.perf_counter()
-        rec = _record(speed, seconds, a.width, a.height, a.fps, a.set)
+        rec = _record(speed, seconds, a.width, a.height, a.fps, a.set, a.drop)
         streams: list[tuple[str, dict[str, list[tuple]]]] = [
             ("node, every measurement", _fused(rec, 1, a.set)),
             ("node, accepted ones only", _fused(rec, 2, a.set))]
