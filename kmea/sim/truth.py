@@ -82,7 +82,7 @@ class SimFrame(Frame):
 
 
 def rolling_corners(scene: Scene, robot: SimRobot, timing: FrameTiming,
-                    world2cam: np.ndarray, height: int) -> dict[int, np.ndarray]:
+                    world2cam: np.ndarray) -> dict[int, np.ndarray]:
     """(4, 2) pixel corners of ``robot``'s markers, each corner where it was at its own
     row's mid-exposure (a fixed point: the row depends on the time and back; three
     steps, each shrinking the error by the image speed times the line time, ~0.03)."""
@@ -94,7 +94,7 @@ def rolling_corners(scene: Scene, robot: SimRobot, timing: FrameTiming,
     for mid in robot.markers:
         uv = np.zeros((4, 2))
         for c in range(4):
-            t = timing.row_time(height / 2)
+            t = timing.row_time(sc.camera.height / 2)
             for _ in range(4):
                 pose = robot.path.pose(t)
                 if pose is None:
@@ -164,7 +164,7 @@ def rolled_corners(corners: dict[int, np.ndarray], scene: Scene, timing: FrameTi
     for r in scene.robots:
         if not any(m in out for m in r.markers):
             continue
-        for m, c in rolling_corners(scene, r, timing, world2cam, H).items():
+        for m, c in rolling_corners(scene, r, timing, world2cam).items():
             if m not in out:
                 continue
             if ((c >= -0.5).all() and (c[:, 0] <= W - 0.5).all()

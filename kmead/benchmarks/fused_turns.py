@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--speed", type=float, action="append",
                    help="robots' speed, m/s (repeatable; default 0.25 and 1.5)")
     p.add_argument("--seconds", type=float, default=60.0,
-                   help="simulated time (default %(default)s s)")
+                   help="simulated time (default %(default)s s; 0 = one loop of the slower robot)")
     p.add_argument("--width", type=int, default=820)
     p.add_argument("--height", type=int, default=616)
     p.add_argument("--fps", type=float, default=30.0,
